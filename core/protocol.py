@@ -1,0 +1,341 @@
+"""The wire protocol between the master and the slaves.
+
+A message is a fixed header `!4sHHIQ` (magic b"KDTR", protocol version, message type, JSON
+length, payload length), a UTF-8 JSON object, then the payload: raw little-endian arrays listed
+in the JSON under "arrays": [{"name", "dtype", "shape"}], concatenated in that order.
+
+Nothing received is unpickled or evaluated: the JSON is parsed with the json module, arrays are
+built with numpy.frombuffer from an allow-listed set of dtypes, and every length is checked
+against a per-type limit *before* anything is allocated. See docs/protocol.md.
+"""
+from __future__ import annotations
+
+import enum
+import hashlib
+import json
+import math
+import socket
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .scene import INDEX_DTYPE, MATERIAL_ID_DTYPE, VERTEX_DTYPE, Geometry, SceneError
+
+PROTOCOL_VERSION = 1
+MAGIC = b"KDTR"
+HEADER = struct.Struct("!4sHHIQ")
+DEFAULT_PORT = 47600
+SERVICE_TYPE = "_kdtrace._tcp.local."
+
+# Only these dtypes may appear on the wire; all little-endian.
+ALLOWED_DTYPES = {name: np.dtype("<" + name) for name in ("f4", "f2", "u4", "u2", "u1", "i4")}
+MAX_ARRAYS = 16
+MAX_DIMS = 4
+MAX_TILE_SIZE = 1024
+
+
+class MsgType(enum.IntEnum):
+    HELLO = 1          # master -> slave: versions, master name
+    WELCOME = 2        # slave -> master: versions, slave name/id, device, compute units, memory
+    SCENE_QUERY = 3    # master -> slave: scene hash; the slave answers SCENE_READY
+    SCENE_UPLOAD = 4   # master -> slave: scene hash + geometry and tree arrays
+    SCENE_READY = 5    # slave -> master: scene hash, present (bool)
+    FRAME_START = 6    # master -> slave: frame id, scene hash, view, tile size
+    TILE_REQUEST = 7   # master -> slave: frame id, tile index
+    TILE_RESULT = 8    # slave -> master: frame id, tile index, x/y/w/h, render ms + passes
+    CANCEL = 9         # master -> slave: frame id; the slave answers CANCEL once the frame is quiet
+    ERROR = 10         # either way: message (+ frame id when it concerns a frame)
+    BYE = 11           # master -> slave: closing
+
+
+MASTER_TO_SLAVE = frozenset({MsgType.HELLO, MsgType.SCENE_QUERY, MsgType.SCENE_UPLOAD,
+                             MsgType.FRAME_START, MsgType.TILE_REQUEST, MsgType.CANCEL,
+                             MsgType.ERROR, MsgType.BYE})
+SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_RESULT,
+                             MsgType.CANCEL, MsgType.ERROR})
+
+# Tile passes: name -> (channels, dtype); (h, w) or (h, w, channels).
+TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3}
+TILE_BYTES_PER_PIXEL = 4 * sum(TILE_PASSES.values())
+
+# Geometry and kd-tree arrays of a scene upload: name -> (dtype, shape pattern; -1 = any length).
+SCENE_ARRAYS = {
+    "vertices": (VERTEX_DTYPE, (-1, 3)),
+    "triangles": (INDEX_DTYPE, (-1, 3)),
+    "material_ids": (MATERIAL_ID_DTYPE, (-1,)),
+    "nodes": (np.dtype("<u4"), (-1, 2)),
+    "leaf_indices": (np.dtype("<u4"), (-1,)),
+    "bounds": (np.dtype("<f4"), (2, 3)),
+}
+
+
+class ProtocolError(Exception):
+    """The peer sent something that is not a valid message; the connection cannot go on."""
+
+
+class ConnectionClosed(ProtocolError):
+    """The peer closed the connection cleanly between two messages."""
+
+
+class VersionMismatch(ProtocolError):
+    """The peer speaks another protocol version."""
+
+    def __init__(self, peer_version: int):
+        self.peer_version = peer_version
+        super().__init__(f"protocol version mismatch: peer speaks version {peer_version}, "
+                         f"this side speaks version {PROTOCOL_VERSION}")
+
+
+@dataclass
+class Limits:
+    """Upper bounds on what one message may carry, checked before anything is read."""
+
+    max_json: int = 64 * 1024                 # control messages
+    max_frame_json: int = 16 * 1024 * 1024    # FRAME_START carries the shading (materials, lights)
+    max_scene_bytes: int = 4 * 1024 ** 3      # SCENE_UPLOAD payload
+    max_tile_pixels: int = MAX_TILE_SIZE * MAX_TILE_SIZE
+
+    def json_limit(self, msg_type: MsgType) -> int:
+        return self.max_frame_json if msg_type == MsgType.FRAME_START else self.max_json
+
+    def payload_limit(self, msg_type: MsgType) -> int:
+        if msg_type == MsgType.SCENE_UPLOAD:
+            return self.max_scene_bytes
+        if msg_type == MsgType.TILE_RESULT:
+            return self.max_tile_pixels * TILE_BYTES_PER_PIXEL
+        return 0  # control messages carry no arrays
+
+
+DEFAULT_LIMITS = Limits()
+
+
+@dataclass
+class Message:
+    type: MsgType
+    header: dict
+    arrays: dict = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------- encoding
+
+def encode_message(msg_type: MsgType, header: dict | None = None, arrays: dict | None = None) -> list:
+    """The message as a list of buffers (header+JSON bytes, then one buffer per array)."""
+    header = dict(header or {})
+    specs, buffers = [], []
+    for name, array in (arrays or {}).items():
+        array = np.asarray(array)
+        dtype = array.dtype.newbyteorder("<") if array.dtype.byteorder == ">" else array.dtype
+        code = dtype.str.lstrip("<|=")
+        if code not in ALLOWED_DTYPES:
+            raise ValueError(f"array {name!r}: dtype {array.dtype} cannot be sent")
+        array = np.ascontiguousarray(array, dtype=ALLOWED_DTYPES[code])
+        specs.append({"name": name, "dtype": code, "shape": list(array.shape)})
+        buffers.append(memoryview(array.reshape(-1).view(np.uint8)))
+    header["arrays"] = specs
+    text = json.dumps(header, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    payload_length = sum(len(b) for b in buffers)
+    head = HEADER.pack(MAGIC, PROTOCOL_VERSION, int(msg_type), len(text), payload_length)
+    return [head + text] + buffers
+
+
+def send_message(sock: socket.socket, msg_type: MsgType, header: dict | None = None,
+                 arrays: dict | None = None) -> None:
+    """Send one message (the caller serialises senders on one socket)."""
+    for buffer in encode_message(msg_type, header, arrays):
+        if len(buffer):
+            sock.sendall(buffer)
+
+
+# ----------------------------------------------------------------------------- decoding
+
+def _recv_exactly(sock: socket.socket, count: int, what: str, allow_eof: bool = False) -> bytearray:
+    # Grow the buffer as data arrives, so a lying length costs nothing until bytes really come.
+    buffer = bytearray()
+    while len(buffer) < count:
+        chunk = sock.recv(min(count - len(buffer), 1 << 20))
+        if not chunk:
+            if allow_eof and not buffer:
+                raise ConnectionClosed("connection closed by peer")
+            raise ProtocolError(f"connection closed in the middle of a message ({what}: "
+                                f"{len(buffer)} of {count} bytes)")
+        buffer += chunk
+    return buffer
+
+
+def _reject_constant(name):
+    raise ValueError(f"{name} is not allowed")
+
+
+def _parse_arrays(specs, payload: bytearray) -> dict:
+    if not isinstance(specs, list) or len(specs) > MAX_ARRAYS:
+        raise ProtocolError(f"'arrays' must be a list of at most {MAX_ARRAYS} entries")
+    arrays, offset = {}, 0
+    for spec in specs:
+        if not isinstance(spec, dict):
+            raise ProtocolError("an 'arrays' entry is not an object")
+        name, code, shape = spec.get("name"), spec.get("dtype"), spec.get("shape")
+        if not isinstance(name, str) or not name or len(name) > 64 or name in arrays:
+            raise ProtocolError(f"bad or duplicate array name {name!r}")
+        if code not in ALLOWED_DTYPES:
+            raise ProtocolError(f"array {name!r}: dtype {code!r} not allowed "
+                                f"(allowed: {', '.join(ALLOWED_DTYPES)})")
+        if (not isinstance(shape, list) or len(shape) > MAX_DIMS
+                or not all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n < 2 ** 40
+                           for n in shape)):
+            raise ProtocolError(f"array {name!r}: bad shape {shape!r}")
+        dtype = ALLOWED_DTYPES[code]
+        size = math.prod(shape) * dtype.itemsize
+        if offset + size > len(payload):
+            raise ProtocolError(f"array sizes do not match the payload: {name!r} needs "
+                                f"{size} bytes at offset {offset}, payload has {len(payload)}")
+        arrays[name] = np.frombuffer(payload, dtype, math.prod(shape), offset).reshape(shape)
+        offset += size
+    if offset != len(payload):
+        raise ProtocolError(f"array sizes do not match the payload: arrays take {offset} bytes, "
+                            f"payload has {len(payload)}")
+    return arrays
+
+
+def recv_message(sock: socket.socket, limits: Limits = DEFAULT_LIMITS,
+                 allowed: frozenset | None = None) -> Message:
+    """Receive and validate one message; raise ProtocolError (ConnectionClosed on a clean EOF)."""
+    head = _recv_exactly(sock, HEADER.size, "header", allow_eof=True)
+    magic, version, type_code, json_length, payload_length = HEADER.unpack(head)
+    if magic != MAGIC:
+        raise ProtocolError(f"not a KD Trace message (magic {bytes(magic)!r}, expected {MAGIC!r})")
+    if version != PROTOCOL_VERSION:
+        raise VersionMismatch(version)
+    try:
+        msg_type = MsgType(type_code)
+    except ValueError:
+        raise ProtocolError(f"unknown message type {type_code}") from None
+    if allowed is not None and msg_type not in allowed:
+        raise ProtocolError(f"unexpected message type {msg_type.name}")
+    if json_length > limits.json_limit(msg_type):
+        raise ProtocolError(f"{msg_type.name} JSON of {json_length} bytes exceeds the limit of "
+                            f"{limits.json_limit(msg_type)}")
+    if payload_length > limits.payload_limit(msg_type):
+        raise ProtocolError(f"{msg_type.name} payload of {payload_length} bytes exceeds the limit "
+                            f"of {limits.payload_limit(msg_type)}")
+    text = _recv_exactly(sock, json_length, "JSON")
+    try:
+        header = json.loads(text.decode("utf-8"), parse_constant=_reject_constant)
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise ProtocolError(f"{msg_type.name}: invalid JSON ({exc})") from None
+    if not isinstance(header, dict):
+        raise ProtocolError(f"{msg_type.name}: JSON is not an object")
+    payload = _recv_exactly(sock, payload_length, "payload")
+    arrays = _parse_arrays(header.pop("arrays", []), payload)
+    return Message(msg_type, header, arrays)
+
+
+# ----------------------------------------------------------------------------- field helpers
+
+def get_int(header: dict, key: str, low: int = 0, high: int = 2 ** 63 - 1) -> int:
+    value = header.get(key)
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise ProtocolError(f"field {key!r} must be an integer in [{low}, {high}], got {value!r}")
+    return value
+
+
+def get_str(header: dict, key: str, max_length: int = 256) -> str:
+    value = header.get(key)
+    if not isinstance(value, str) or len(value) > max_length:
+        raise ProtocolError(f"field {key!r} must be a string of at most {max_length} characters")
+    return value
+
+
+def get_float(header: dict, key: str) -> float:
+    value = header.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ProtocolError(f"field {key!r} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def check_scene_hash(value) -> str:
+    if not isinstance(value, str) or len(value) != 32 or any(c not in "0123456789abcdef" for c in value):
+        raise ProtocolError(f"bad scene hash {value!r}")
+    return value
+
+
+# ----------------------------------------------------------------------------- scenes
+
+@dataclass
+class SceneTree:
+    """The kd-tree arrays as they travel (the tracer needs only these)."""
+
+    nodes: np.ndarray         # (N, 2) uint32
+    leaf_indices: np.ndarray  # (R,) uint32
+    bounds: np.ndarray        # (2, 3) float32
+
+
+def scene_hash(geometry: Geometry, tree) -> str:
+    """The one content hash of a scene: the geometry's hash plus the kd-tree arrays."""
+    digest = hashlib.blake2b(digest_size=16)
+    digest.update(geometry.content_hash().encode())
+    for name in ("nodes", "leaf_indices", "bounds"):
+        array = np.ascontiguousarray(getattr(tree, name), dtype=SCENE_ARRAYS[name][0])
+        digest.update(f"{name}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
+def scene_arrays(geometry: Geometry, tree) -> dict:
+    """The arrays of a SCENE_UPLOAD, in wire dtypes."""
+    arrays = {"vertices": geometry.vertices, "triangles": geometry.triangles,
+              "material_ids": geometry.material_ids, "nodes": tree.nodes,
+              "leaf_indices": tree.leaf_indices, "bounds": tree.bounds}
+    return {name: np.ascontiguousarray(arrays[name], dtype=SCENE_ARRAYS[name][0])
+            for name in SCENE_ARRAYS}
+
+
+def scene_from_arrays(arrays: dict) -> tuple[Geometry, SceneTree]:
+    """Rebuild and validate a scene from uploaded arrays; ProtocolError names the problem.
+
+    The tree is checked so that the kernel never indexes outside its buffers: every inner node's
+    children lie inside the node array, every leaf's range inside leaf_indices, and every
+    reference names an existing triangle (the tracer also rejects cycles by depth).
+    """
+    if set(arrays) != set(SCENE_ARRAYS):
+        raise ProtocolError(f"scene upload must carry exactly the arrays {sorted(SCENE_ARRAYS)}")
+    for name, (dtype, pattern) in SCENE_ARRAYS.items():
+        array = arrays[name]
+        if array.dtype != dtype or array.ndim != len(pattern) or any(
+                p != -1 and p != n for p, n in zip(pattern, array.shape)):
+            raise ProtocolError(f"scene array {name!r} must be {dtype.str} of shape {pattern}, "
+                                f"got {array.dtype.str} {array.shape}")
+    geometry = Geometry(arrays["vertices"], arrays["triangles"], arrays["material_ids"])
+    try:
+        geometry.validate()
+    except SceneError as exc:
+        raise ProtocolError(f"invalid scene geometry: {exc}") from None
+    nodes, refs, bounds = arrays["nodes"], arrays["leaf_indices"], arrays["bounds"]
+    if len(nodes) == 0:
+        raise ProtocolError("kd-tree has no nodes")
+    if not np.isfinite(bounds).all():
+        raise ProtocolError("kd-tree bounds are not finite")
+    word0, word1 = nodes[:, 0].astype(np.int64), nodes[:, 1].astype(np.int64)
+    leaf = (word0 & 3) == 3
+    first_child = word0 >> 2
+    inner_ok = first_child + 1 < len(nodes)
+    leaf_ok = word1 + (word0 >> 2) <= len(refs)
+    if not np.where(leaf, leaf_ok, inner_ok).all():
+        raise ProtocolError("kd-tree nodes point outside the tree")
+    if len(refs) and int(refs.max()) >= len(geometry.triangles):
+        raise ProtocolError("kd-tree refers to a triangle that does not exist")
+    return geometry, SceneTree(nodes, refs, bounds)
+
+
+def tile_passes_ok(arrays: dict, w: int, h: int) -> str | None:
+    """None if `arrays` are the passes of a w x h tile, else what is wrong."""
+    if set(arrays) != set(TILE_PASSES):
+        return f"tile passes must be {sorted(TILE_PASSES)}, got {sorted(arrays)}"
+    for name, channels in TILE_PASSES.items():
+        shape = (h, w) if channels == 1 else (h, w, channels)
+        array = arrays[name]
+        if array.dtype != np.dtype("<f4") or array.shape != shape:
+            return f"pass {name!r} must be float32 {shape}, got {array.dtype} {array.shape}"
+        if not np.isfinite(array).all():
+            return f"pass {name!r} contains NaN or infinity"
+    return None

@@ -1,0 +1,258 @@
+"""The wire protocol: round trips, and every kind of bad input rejected with a clear error."""
+from __future__ import annotations
+
+import json
+import socket
+import struct
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from core import protocol
+from core.protocol import HEADER, MAGIC, PROTOCOL_VERSION, Limits, MsgType, ProtocolError
+from core.scene import Geometry
+from core.tiles import TilePool, tile_grid
+
+
+@pytest.fixture
+def pair():
+    a, b = socket.socketpair()
+    a.settimeout(5)
+    b.settimeout(5)
+    yield a, b
+    a.close()
+    b.close()
+
+
+def raw(msg_type, header: dict, payload: bytes = b"", version=PROTOCOL_VERSION, magic=MAGIC,
+        payload_length=None) -> bytes:
+    text = json.dumps(header).encode()
+    length = len(payload) if payload_length is None else payload_length
+    return HEADER.pack(magic, version, int(msg_type), len(text), length) + text + payload
+
+
+def send_raw(sock, data: bytes, close=True):
+    # From a thread: a large write must not block the test before it starts reading.
+    def write():
+        try:
+            sock.sendall(data)
+            if close:
+                sock.shutdown(socket.SHUT_WR)
+        except OSError:
+            pass
+    thread = threading.Thread(target=write, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_round_trip_with_every_allowed_dtype(pair):
+    a, b = pair
+    arrays = {code: (np.arange(24) % 7).astype("<" + code).reshape(2, 3, 4)
+              for code in protocol.ALLOWED_DTYPES}
+    arrays["empty"] = np.zeros((0, 3), np.float32)
+    protocol.send_message(a, MsgType.TILE_RESULT, {"frame_id": 7, "tile": 3, "text": "é"}, arrays)
+    msg = protocol.recv_message(b)
+    assert msg.type == MsgType.TILE_RESULT
+    assert msg.header == {"frame_id": 7, "tile": 3, "text": "é"}
+    assert list(msg.arrays) == list(arrays)
+    for name, array in arrays.items():
+        assert msg.arrays[name].dtype == array.dtype.newbyteorder("<")
+        np.testing.assert_array_equal(msg.arrays[name], array)
+
+
+def test_big_endian_and_non_contiguous_arrays_are_sent_little_endian(pair):
+    a, b = pair
+    big = np.arange(6, dtype=">f4").reshape(2, 3)
+    strided = np.arange(12, dtype=np.uint32).reshape(3, 4)[:, ::2]
+    protocol.send_message(a, MsgType.TILE_RESULT, {}, {"big": big, "strided": strided})
+    msg = protocol.recv_message(b)
+    np.testing.assert_array_equal(msg.arrays["big"], big)
+    np.testing.assert_array_equal(msg.arrays["strided"], strided)
+
+
+def test_control_message_and_clean_close(pair):
+    a, b = pair
+    protocol.send_message(a, MsgType.TILE_REQUEST, {"frame_id": 1, "tile": 0})
+    a.shutdown(socket.SHUT_WR)
+    assert protocol.recv_message(b).header == {"frame_id": 1, "tile": 0}
+    with pytest.raises(protocol.ConnectionClosed):
+        protocol.recv_message(b)
+
+
+def test_sending_a_disallowed_dtype_fails_locally(pair):
+    with pytest.raises(ValueError, match="cannot be sent"):
+        protocol.send_message(pair[0], MsgType.TILE_RESULT, {}, {"x": np.zeros(3, np.float64)})
+
+
+@pytest.mark.parametrize("data, match", [
+    (b"GET / HTTP/1.1\r\nHost: x\r\n\r\n", "not a KD Trace message"),
+    (raw(MsgType.BYE, {}, magic=b"XXXX"), "not a KD Trace message"),
+    (raw(MsgType.HELLO, {}, version=PROTOCOL_VERSION + 1),
+     f"peer speaks version {PROTOCOL_VERSION + 1}, this side speaks version {PROTOCOL_VERSION}"),
+    (raw(99, {}), "unknown message type 99"),
+    (HEADER.pack(MAGIC, PROTOCOL_VERSION, MsgType.BYE, 5, 0) + b"\xff\xfe{}}", "invalid JSON"),
+    (HEADER.pack(MAGIC, PROTOCOL_VERSION, MsgType.BYE, 2, 0) + b"[]", "not an object"),
+    (HEADER.pack(MAGIC, PROTOCOL_VERSION, MsgType.BYE, 10, 0) + b'{"a": NaN}', "invalid JSON"),
+    (HEADER.pack(MAGIC, PROTOCOL_VERSION, MsgType.BYE, 2000, 0) + b"[" * 2000, "invalid JSON"),
+    (raw(MsgType.BYE, {})[:10], "in the middle of a message"),
+    (raw(MsgType.BYE, {"a": 1})[:-2], "in the middle of a message"),
+    (raw(MsgType.TILE_RESULT, {"arrays": [{"name": "a", "dtype": "f4", "shape": [4]}]},
+         b"\0" * 8, payload_length=16), "in the middle of a message"),
+])
+def test_garbage_and_truncation_are_rejected(pair, data, match):
+    a, b = pair
+    send_raw(a, data)
+    with pytest.raises(ProtocolError, match=match):
+        protocol.recv_message(b)
+
+
+def test_version_mismatch_names_both_versions(pair):
+    a, b = pair
+    send_raw(a, raw(MsgType.HELLO, {}, version=9))
+    with pytest.raises(protocol.VersionMismatch) as info:
+        protocol.recv_message(b)
+    assert info.value.peer_version == 9
+    assert "version 9" in str(info.value) and f"version {PROTOCOL_VERSION}" in str(info.value)
+
+
+@pytest.mark.parametrize("specs, payload, match", [
+    ([{"name": "a", "dtype": "f8", "shape": [2]}], b"\0" * 16, "dtype 'f8' not allowed"),
+    ([{"name": "a", "dtype": "O", "shape": [2]}], b"\0" * 16, "not allowed"),
+    ([{"name": "a", "dtype": "f4", "shape": [3]}], b"\0" * 16, "do not match"),
+    ([{"name": "a", "dtype": "f4", "shape": [5]}], b"\0" * 16, "do not match"),
+    ([{"name": "a", "dtype": "f4", "shape": [-4]}], b"\0" * 16, "bad shape"),
+    ([{"name": "a", "dtype": "f4", "shape": [2.0]}], b"\0" * 8, "bad shape"),
+    ([{"name": "a", "dtype": "f4", "shape": "2"}], b"\0" * 8, "bad shape"),
+    ([{"name": "a", "dtype": "u1", "shape": [1, 1, 1, 1, 1]}], b"\0", "bad shape"),
+    ([{"name": "a", "dtype": "u1", "shape": [1]}, {"name": "a", "dtype": "u1", "shape": [1]}],
+     b"\0\0", "duplicate"),
+    ([{"dtype": "u1", "shape": [1]}], b"\0", "array name"),
+    ({"name": "a"}, b"", "must be a list"),
+    (["a"], b"", "not an object"),
+])
+def test_bad_array_descriptions_are_rejected(pair, specs, payload, match):
+    a, b = pair
+    send_raw(a, raw(MsgType.TILE_RESULT, {"arrays": specs}, payload))
+    with pytest.raises(ProtocolError, match=match):
+        protocol.recv_message(b)
+
+
+def test_oversized_messages_are_rejected_before_reading(pair):
+    a, b = pair
+    # A control message may carry no payload at all, whatever it claims.
+    a.sendall(HEADER.pack(MAGIC, PROTOCOL_VERSION, MsgType.TILE_REQUEST, 2, 1 << 40))
+    with pytest.raises(ProtocolError, match="TILE_REQUEST payload of 1099511627776 bytes exceeds"):
+        protocol.recv_message(b)
+    a.sendall(HEADER.pack(MAGIC, PROTOCOL_VERSION, MsgType.BYE, 1 << 30, 0))
+    with pytest.raises(ProtocolError, match="JSON of 1073741824 bytes exceeds"):
+        protocol.recv_message(b)
+    # A tile bigger than the tiles of the frame.
+    limits = Limits(max_tile_pixels=16 * 16)
+    a.sendall(HEADER.pack(MAGIC, PROTOCOL_VERSION, MsgType.TILE_RESULT, 2,
+                          17 * 16 * protocol.TILE_BYTES_PER_PIXEL))
+    with pytest.raises(ProtocolError, match="TILE_RESULT payload .* exceeds"):
+        protocol.recv_message(b, limits)
+    a.sendall(HEADER.pack(MAGIC, PROTOCOL_VERSION, MsgType.SCENE_UPLOAD, 2, 1001))
+    with pytest.raises(ProtocolError, match="SCENE_UPLOAD payload of 1001 bytes exceeds the limit of 1000"):
+        protocol.recv_message(b, Limits(max_scene_bytes=1000))
+
+
+def test_unexpected_message_type_for_the_direction(pair):
+    a, b = pair
+    protocol.send_message(a, MsgType.HELLO, {})
+    with pytest.raises(ProtocolError, match="unexpected message type HELLO"):
+        protocol.recv_message(b, allowed=protocol.SLAVE_TO_MASTER)
+
+
+# -- scenes ---------------------------------------------------------------------------------
+def small_scene():
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
+    triangles = np.array([[0, 1, 2], [1, 3, 2]], np.uint32)
+    geometry = Geometry(vertices, triangles, np.zeros(2, np.uint16))
+    tree = SimpleNamespace(nodes=np.array([[(2 << 2) | 3, 0]], np.uint32),
+                           leaf_indices=np.array([0, 1], np.uint32),
+                           bounds=np.array([[0, 0, 0], [1, 1, 0]], np.float32))
+    return geometry, tree
+
+
+def test_scene_round_trip_and_hash(pair):
+    a, b = pair
+    geometry, tree = small_scene()
+    scene_hash = protocol.scene_hash(geometry, tree)
+    protocol.send_message(a, MsgType.SCENE_UPLOAD, {"scene_hash": scene_hash},
+                          protocol.scene_arrays(geometry, tree))
+    msg = protocol.recv_message(b)
+    geometry2, tree2 = protocol.scene_from_arrays(msg.arrays)
+    assert protocol.scene_hash(geometry2, tree2) == scene_hash
+    assert protocol.check_scene_hash(scene_hash) == scene_hash
+    # The hash covers the tree as well as the geometry.
+    tree.bounds = tree.bounds + np.float32(1)
+    assert protocol.scene_hash(geometry, tree) != scene_hash
+
+
+@pytest.mark.parametrize("change, match", [
+    (lambda s: s.pop("bounds"), "exactly the arrays"),
+    (lambda s: s.update(nodes=s["nodes"].astype(np.int32)), "'nodes' must be"),
+    (lambda s: s.update(vertices=s["vertices"].reshape(-1)), "'vertices' must be"),
+    (lambda s: s.update(triangles=s["triangles"] + 7), "vertex that does not exist"),
+    (lambda s: s.update(vertices=s["vertices"] * np.float32(np.nan)), "NaN"),
+    (lambda s: s.update(nodes=np.array([[(9 << 2) | 3, 0]], np.uint32)), "outside the tree"),
+    (lambda s: s.update(nodes=np.array([[(5 << 2) | 0, 0]], np.uint32)), "outside the tree"),
+    (lambda s: s.update(leaf_indices=np.array([0, 5], np.uint32)), "triangle that does not exist"),
+    (lambda s: s.update(nodes=np.zeros((0, 2), np.uint32)), "no nodes"),
+])
+def test_bad_scenes_are_rejected(change, match):
+    geometry, tree = small_scene()
+    arrays = protocol.scene_arrays(geometry, tree)
+    change(arrays)
+    with pytest.raises(ProtocolError, match=match):
+        protocol.scene_from_arrays(arrays)
+
+
+def test_tile_pass_validation():
+    good = {"combined": np.zeros((3, 4, 4), np.float32), "depth": np.zeros((3, 4), np.float32),
+            "normal": np.zeros((3, 4, 3), np.float32)}
+    assert protocol.tile_passes_ok(good, 4, 3) is None
+    assert "must be float32 (4, 3, 4)" in protocol.tile_passes_ok(good, 3, 4)
+    bad = dict(good, depth=np.full((3, 4), np.inf, np.float32))
+    assert "NaN or infinity" in protocol.tile_passes_ok(bad, 4, 3)
+    assert "tile passes must be" in protocol.tile_passes_ok({"combined": good["combined"]}, 4, 3)
+
+
+def test_field_helpers():
+    assert protocol.get_int({"a": 3}, "a", 0, 5) == 3
+    for value in (True, 3.0, "3", 9, None):
+        with pytest.raises(ProtocolError, match="'a' must be an integer"):
+            protocol.get_int({"a": value}, "a", 0, 5)
+    with pytest.raises(ProtocolError):
+        protocol.check_scene_hash("../../etc/passwd")
+
+
+# -- tiles ----------------------------------------------------------------------------------
+def test_tile_grid_covers_the_region_row_by_row():
+    tiles = tile_grid((3, 2, 13, 9), 4)
+    assert tiles[:3] == [(3, 2, 4, 4), (7, 2, 4, 4), (11, 2, 2, 4)]
+    assert tiles[3] == (3, 6, 4, 3)
+    covered = np.zeros((9, 13), int)
+    for x, y, w, h in tiles:
+        covered[y:y + h, x:x + w] += 1
+    assert (covered[2:9, 3:13] == 1).all() and covered.sum() == 70
+    with pytest.raises(ValueError):
+        tile_grid((0, 0, 4, 4), 0)
+
+
+def test_tile_pool_hands_out_puts_back_and_finishes():
+    pool = TilePool(3)
+    assert [pool.take(0), pool.take(0), pool.take(0)] == [0, 1, 2]
+    assert pool.take(0.01) is None
+    pool.put_back(1)
+    assert pool.take(0) == 1
+    for index in (0, 1, 2):
+        assert pool.mark_done(index)
+    assert not pool.mark_done(2)          # a duplicate
+    assert pool.all_done and pool.take(1.0) is None   # returns at once when all are done
+    closed = TilePool(2)
+    closed.close()
+    assert closed.take(1.0) is None
