@@ -1,0 +1,113 @@
+"""Slave processes on this machine, started when no slave on the LAN answers.
+
+Each is `python -m slave` run from the extension's root folder, bound to loopback and not
+advertised (only this Blender uses it). They are kept between renders and stopped when the
+add-on is disabled or Blender exits.
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import queue
+import re
+import subprocess
+import sys
+import threading
+import time
+
+EXTENSION_ROOT = pathlib.Path(__file__).resolve().parent.parent
+READY_LINE = re.compile(r"listening on (?P<host>[^\s:]+):(?P<port>\d+)")
+
+
+class LocalSlaveError(RuntimeError):
+    pass
+
+
+class LocalSlave:
+    def __init__(self, name: str, python: str, device: str, threads: int):
+        env = dict(os.environ, POCL_MAX_PTHREAD_COUNT=str(threads), PYTHONUNBUFFERED="1")
+        command = [python, "-m", "slave", "--port", "0", "--bind", "127.0.0.1",
+                   "--name", name, "--device", device, "--no-zeroconf"]
+        self.name = name
+        self.process = subprocess.Popen(command, cwd=EXTENSION_ROOT, env=env, text=True,
+                                        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                        stderr=subprocess.STDOUT)
+        self.lines: queue.Queue = queue.Queue()
+        self.endpoint = None
+        # The slave's output is read on a thread so a silent slave cannot block Blender.
+        threading.Thread(target=self._read_output, name=f"kdtrace-{name}-output", daemon=True).start()
+
+    def _read_output(self):
+        for line in self.process.stdout:
+            self.lines.put(line.rstrip())
+        self.lines.put(None)
+
+    def wait_ready(self, deadline: float) -> tuple[str, int]:
+        """Block until the slave prints its listening line; raise with its output if it fails."""
+        output = []
+        while time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=max(0.01, deadline - time.monotonic()))
+            except queue.Empty:
+                break
+            if line is None:
+                raise LocalSlaveError(f"local slave {self.name} exited: " + " | ".join(output[-5:]))
+            output.append(line)
+            match = READY_LINE.search(line)
+            if match:
+                self.endpoint = (match["host"], int(match["port"]))
+                return self.endpoint
+        raise LocalSlaveError(f"local slave {self.name} did not start in time: " + " | ".join(output[-5:]))
+
+    @property
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def stop(self):
+        if self.alive:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+
+class LocalSlaves:
+    """The pool of local slave processes of one Blender session."""
+
+    def __init__(self):
+        self._slaves: list[LocalSlave] = []
+        self._lock = threading.Lock()
+
+    def ensure(self, count: int, python: str = "", device: str = "auto",
+               timeout: float = 60.0) -> list[tuple[str, int]]:
+        """Have `count` live local slaves; return their endpoints."""
+        with self._lock:
+            self._slaves = [s for s in self._slaves if s.alive or s.stop()]
+            for slave in self._slaves[count:]:
+                slave.stop()
+            del self._slaves[count:]
+            threads = max(1, (os.cpu_count() or 1) // max(1, count))
+            started = [LocalSlave(f"{os.uname().nodename}-local-{len(self._slaves) + i + 1}",
+                                  python or sys.executable, device, threads)
+                       for i in range(count - len(self._slaves))]
+            deadline = time.monotonic() + timeout
+            try:
+                for slave in started:
+                    slave.wait_ready(deadline)
+            except LocalSlaveError:
+                for slave in started:
+                    slave.stop()
+                raise
+            self._slaves += started
+            return [s.endpoint for s in self._slaves]
+
+    def pids(self) -> list[int]:
+        return [s.process.pid for s in self._slaves if s.alive]
+
+    def stop_all(self):
+        with self._lock:
+            for slave in self._slaves:
+                slave.stop()
+            self._slaves.clear()

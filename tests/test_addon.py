@@ -1,0 +1,45 @@
+"""The whole path, headless: the extension zip is built and validated with Blender's own tool,
+installed into an isolated user folder, and renders through slaves that zeroconf found."""
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from tests.blender import ROOT, build_extension, run_bpy_script
+from core.tiles import tile_grid
+
+
+def start_slave(name: str) -> tuple[subprocess.Popen, str]:
+    """A real slave process on loopback, advertised with zeroconf there."""
+    env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1", PYTHONUNBUFFERED="1")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "slave", "--port", "0", "--bind", "127.0.0.1", "--name", name],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    line = process.stdout.readline()
+    assert "listening on" in line, line + process.stdout.read()
+    return process, line
+
+
+@pytest.fixture
+def two_advertised_slaves():
+    slaves = [start_slave(name) for name in ("zc-slave-a", "zc-slave-b")]
+    yield slaves
+    for process, _ in slaves:
+        process.terminate()
+        process.wait(timeout=10)
+
+
+def test_render_through_slaves_found_by_zeroconf(tmp_path, two_advertised_slaves):
+    zip_path = build_extension(tmp_path / "dist")
+    png = tmp_path / "render.png"
+    width, height, tile_size = 160, 120, 32
+    report = run_bpy_script("render_with_discovered_slaves", tmp_path, zip=str(zip_path),
+                            png=str(png), width=width, height=height, tile_size=tile_size,
+                            discovery_seconds=5.0)
+    assert png.exists() and png.stat().st_size > 1000
+    tiles = report["tiles_per_slave"]
+    assert set(tiles) == {"zc-slave-a", "zc-slave-b"}, report["log"][-3000:]
+    assert sum(tiles.values()) == len(tile_grid((0, 0, width, height), tile_size))
+    assert report["tree_built"] and report["triangles"] > 3000
