@@ -48,7 +48,7 @@ def main():
     bpy.ops.mesh.primitive_uv_sphere_add(radius=0.8, location=(-2.8, 1.5, 0.8))
     bpy.ops.mesh.primitive_cube_add(size=1.2, location=(2.8, 1.2, 0.6))
     camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
-    camera.location, camera.rotation_euler = (0.0, -9.0, 3.5), (1.25, 0.0, 0.0)
+    camera.location, camera.rotation_euler = (0.0, -13.0, 5.5), (1.17, 0.0, 0.0)
     scene.collection.objects.link(camera)
     scene.camera = camera
     sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))

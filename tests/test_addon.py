@@ -43,3 +43,15 @@ def test_render_through_slaves_found_by_zeroconf(tmp_path, two_advertised_slaves
     assert set(tiles) == {"zc-slave-a", "zc-slave-b"}, report["log"][-3000:]
     assert sum(tiles.values()) == len(tile_grid((0, 0, width, height), tile_size))
     assert report["tree_built"] and report["triangles"] > 3000
+
+
+@pytest.mark.parametrize("hosts, message", [
+    ("127.0.0.1:9", "cannot reach slave 127.0.0.1:9 (connection refused)"),
+    ("127.0.0.1:notaport", "manual host '127.0.0.1:notaport' is not host:port"),
+])
+def test_unusable_hosts_are_reported_to_the_user(tmp_path, hosts, message):
+    zip_path = build_extension(tmp_path / "dist")
+    result = run_bpy_script("render_dead_host", tmp_path, zip=str(zip_path), hosts=hosts)
+    assert message in result["log"], result["log"][-3000:]
+    assert "Traceback" not in result["log"]
+    assert result["last_render"] == {}

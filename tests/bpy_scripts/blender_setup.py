@@ -44,6 +44,8 @@ def mesh_object(name, vertices, triangles, location=(0, 0, 0), color=(0.8, 0.8, 
     bpy.context.scene.collection.objects.link(obj)
     material = bpy.data.materials.new(name + "-material")
     material.diffuse_color = color
+    if material.node_tree:  # new materials have a Principled BSDF in Blender 5
+        material.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = color
     obj.data.materials.append(material)
     return obj
 
