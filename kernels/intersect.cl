@@ -1,0 +1,22 @@
+// Arbitrary rays: one work-item per ray, nearest hit in [tmin, tmax].
+// origins/directions: n packed float3 (the (n, 3) float32 arrays of the host).
+
+__kernel void intersect_rays(__global const float *origins, __global const float *directions,
+                             float tmin, float tmax, uint ray_count,
+                             __global const uint2 *nodes, __global const uint *leaf_indices,
+                             __global const float4 *tri_verts, __global const float4 *bounds,
+                             __global float *out_t, __global int *out_tri,
+                             __global float *out_u, __global float *out_v)
+{
+    uint i = get_global_id(0);
+    if (i >= ray_count)
+        return;
+    Ray r = make_ray(vload3(i, origins), vload3(i, directions));
+    Hit h;
+    trace_ray(&r, tmin, tmax, false, nodes, leaf_indices, tri_verts,
+              bounds[0].xyz, bounds[1].xyz, &h);
+    out_t[i] = h.t;
+    out_tri[i] = h.tri == NO_HIT ? -1 : (int)h.tri;
+    out_u[i] = h.u;
+    out_v[i] = h.v;
+}

@@ -1,0 +1,196 @@
+// Ray queries against the kd-tree: traversal and the watertight ray/triangle test.
+// Shared by the arbitrary-ray kernel (intersect.cl) and the camera-tile kernel (render.cl).
+// OpenCL C 1.2, single precision only, no extensions.
+//
+// Build options (slave/tracer.py kernel_options): KD_STACK_SIZE (>= tree depth + 1),
+// KDTRACE_HASH (source + options hash, so no driver cache can serve a stale binary),
+// HAS_POINT / HAS_SUN / HAS_SPOT / HAS_AREA (light kinds present).
+
+// Same rounding on every device: no silent a*b+c -> fma contraction.
+#pragma OPENCL FP_CONTRACT OFF
+
+#ifndef KD_STACK_SIZE
+#error "KD_STACK_SIZE must be defined by the host"
+#endif
+
+#define KD_LEAF 3u
+#define NO_HIT 0xFFFFFFFFu
+// pbrt's gamma(3): bound on the error of the slab distances, used to widen the root interval.
+#define GAMMA3 (3.0f * 0x1.0p-24f / (1.0f - 3.0f * 0x1.0p-24f))
+
+// Component `axis` (0, 1, 2) of a vector; OpenCL C has no run-time indexing of vector lanes.
+inline float lane(float3 v, uint axis)
+{
+    return axis == 0 ? v.x : (axis == 1 ? v.y : v.z);
+}
+
+typedef struct {
+    float3 o, d, inv_d;
+    uint kx, ky, kz;        // watertight test: kz = dominant axis of d
+    float sx, sy, sz;       // shear constants
+} Ray;
+
+typedef struct {
+    float t, u, v;
+    uint tri;               // NO_HIT on a miss
+} Hit;
+
+typedef struct {
+    uint node;
+    float t0, t1;
+} StackEntry;
+
+inline Ray make_ray(float3 o, float3 d)
+{
+    Ray r;
+    r.o = o;
+    r.d = d;
+    // 1/0 = +-inf is wanted here: slab and plane distances then become +-inf (or NaN when the
+    // origin lies on the plane), which the comparisons below treat conservatively.
+    r.inv_d = (float3)(1.0f / d.x, 1.0f / d.y, 1.0f / d.z);
+    float3 a = fabs(d);
+    r.kz = (a.x > a.y) ? (a.x > a.z ? 0u : 2u) : (a.y > a.z ? 1u : 2u);
+    r.kx = (r.kz + 1u) % 3u;
+    r.ky = (r.kx + 1u) % 3u;
+    float dz = lane(d, r.kz);
+    if (dz < 0.0f) {        // swap to keep the winding, so the edge signs stay meaningful
+        uint k = r.kx; r.kx = r.ky; r.ky = k;
+    }
+    r.sx = lane(d, r.kx) / dz;
+    r.sy = lane(d, r.ky) / dz;
+    r.sz = 1.0f / dz;
+    return r;
+}
+
+// a*b - c*d with one rounding error (Kahan, via fma); used when an edge function is exactly 0,
+// in place of the double-precision recomputation that OpenCL does not guarantee.
+inline float diff_of_products(float a, float b, float c, float d)
+{
+    float cd = c * d;
+    float err = fma(-c, d, cd);
+    return fma(a, b, -cd) + err;
+}
+
+// Watertight ray/triangle test (Woop, Benthin, Wald 2013). On a hit with t in [tmin, tmax]
+// returns true and sets t, u (weight of v1), v (weight of v2).
+inline bool intersect_triangle(const Ray *r, float3 v0, float3 v1, float3 v2,
+                               float tmin, float tmax, float *t_out, float *u_out, float *v_out)
+{
+    float3 a = v0 - r->o, b = v1 - r->o, c = v2 - r->o;
+    float az = lane(a, r->kz), bz = lane(b, r->kz), cz = lane(c, r->kz);
+    float ax = lane(a, r->kx) - r->sx * az, ay = lane(a, r->ky) - r->sy * az;
+    float bx = lane(b, r->kx) - r->sx * bz, by = lane(b, r->ky) - r->sy * bz;
+    float cx = lane(c, r->kx) - r->sx * cz, cy = lane(c, r->ky) - r->sy * cz;
+    float e0 = cx * by - cy * bx;   // weight of v0
+    float e1 = ax * cy - ay * cx;   // weight of v1
+    float e2 = bx * ay - by * ax;   // weight of v2
+    if (e0 == 0.0f || e1 == 0.0f || e2 == 0.0f) {
+        e0 = diff_of_products(cx, by, cy, bx);
+        e1 = diff_of_products(ax, cy, ay, cx);
+        e2 = diff_of_products(bx, ay, by, ax);
+    }
+    if ((e0 < 0.0f || e1 < 0.0f || e2 < 0.0f) && (e0 > 0.0f || e1 > 0.0f || e2 > 0.0f))
+        return false;
+    float det = e0 + e1 + e2;
+    if (det == 0.0f)
+        return false;
+    float tscaled = e0 * (r->sz * az) + e1 * (r->sz * bz) + e2 * (r->sz * cz);
+    float t = tscaled / det;
+    if (!(t >= tmin && t <= tmax))   // also rejects NaN
+        return false;
+    *t_out = t;
+    *u_out = e1 / det;
+    *v_out = e2 / det;
+    return true;
+}
+
+// Nearest hit with t in [tmin, tmax] (ties to the lower triangle index), or, when any_hit,
+// the first hit found (shadow rays). Front-to-back stack traversal with t intervals (pbrt).
+inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit,
+                      __global const uint2 *nodes, __global const uint *leaf_indices,
+                      __global const float4 *tri_verts, float3 bmin, float3 bmax, Hit *hit)
+{
+    hit->tri = NO_HIT;
+    hit->t = INFINITY;
+    hit->u = hit->v = 0.0f;
+
+    // Clip to the root box. NaN slab distances (origin on a face, ray parallel to it) compare
+    // false and are thereby ignored; the far distance is widened by pbrt's error bound.
+    float t0 = tmin, t1 = tmax;
+    for (uint axis = 0; axis < 3; ++axis) {
+        float o = lane(r->o, axis), inv = lane(r->inv_d, axis);
+        float tn = (lane(bmin, axis) - o) * inv;
+        float tf = (lane(bmax, axis) - o) * inv;
+        if (tn > tf) { float s = tn; tn = tf; tf = s; }
+        tf *= 1.0f + 2.0f * GAMMA3;
+        if (tn > t0) t0 = tn;
+        if (tf < t1) t1 = tf;
+    }
+    if (t0 > t1)
+        return false;
+
+    float best = tmax;              // accepted hits satisfy t <= best
+    uint best_tri = NO_HIT;         // any index is lower than NO_HIT: ties go to the lower one
+    StackEntry stack[KD_STACK_SIZE];
+    int sp = 0;
+    uint node = 0;
+
+    while (true) {
+        // Everything left starts beyond the best hit. Strict: a node starting exactly at the
+        // best t is still visited, so equal-t hits there can win the tie by index.
+        if (best < t0)
+            break;
+        uint2 n = nodes[node];
+        uint kind = n.x & 3u;
+        if (kind != KD_LEAF) {
+            float split = as_float(n.y);
+            float o = lane(r->o, kind);
+            float tplane = (split - o) * lane(r->inv_d, kind);
+            // The child holding the origin comes first; on the plane the direction decides.
+            bool below_first = (o < split) || (o == split && lane(r->d, kind) <= 0.0f);
+            uint child = n.x >> 2;
+            uint first = below_first ? child : child + 1u;
+            uint second = below_first ? child + 1u : child;
+            // A NaN tplane fails both tests and both children are visited: safe.
+            if (tplane > t1 || tplane <= 0.0f) {
+                node = first;
+            } else if (tplane < t0) {
+                node = second;
+            } else {
+                stack[sp].node = second;
+                stack[sp].t0 = tplane;
+                stack[sp].t1 = t1;
+                ++sp;
+                node = first;
+                t1 = tplane;
+            }
+            continue;
+        }
+        // Leaf: test its triangles against [tmin, best] (not the cell interval: a hit found
+        // here outside the cell is still a valid candidate, kept until a nearer one appears).
+        uint count = n.x >> 2, offset = n.y;
+        for (uint i = 0; i < count; ++i) {
+            uint tri = leaf_indices[offset + i];
+            float t, u, v;
+            if (intersect_triangle(r, tri_verts[3 * tri].xyz, tri_verts[3 * tri + 1].xyz,
+                                   tri_verts[3 * tri + 2].xyz, tmin, best, &t, &u, &v)
+                && (t < best || tri < best_tri)) {
+                best = t;
+                best_tri = tri;
+                hit->t = t;
+                hit->u = u;
+                hit->v = v;
+                hit->tri = tri;
+                if (any_hit)
+                    return true;
+            }
+        }
+        if (sp == 0)
+            break;
+        --sp;
+        node = stack[sp].node;
+        t0 = stack[sp].t0;
+        t1 = stack[sp].t1;
+    }
+    return hit->tri != NO_HIT;
+}

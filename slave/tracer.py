@@ -1,0 +1,349 @@
+"""The OpenCL tracer: ray queries against a kd-tree and camera tiles (docs/tracer.md).
+
+One kernel source set (kernels/trace.cl + intersect.cl + render.cl) serves both `intersect` and
+`render_tile`, so both share the same traversal and triangle test. Runs on PoCL's CPU device and
+on GPU drivers alike: single precision, no extensions, no fast-math options.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import pathlib
+import tempfile
+from typing import NamedTuple
+
+import numpy as np
+
+from core.scene import Geometry, View
+
+KERNEL_DIR = pathlib.Path(__file__).resolve().parent.parent / "kernels"
+# Concatenated in this order: trace.cl defines what the other two use.
+KERNEL_FILES = ("trace.cl", "intersect.cl", "render.cl")
+LIGHT_CODES = {"POINT": 0, "SUN": 1, "SPOT": 2, "AREA": 3}
+LIGHT_FLOAT4S = 4           # float4 slots per light in the kernel's light buffer
+CAMERA_FLOAT4S = 7
+MIN_STACK_SIZE = 32
+
+
+class TracerError(RuntimeError):
+    """The tracer cannot run: no OpenCL device, a kernel that does not build, bad input."""
+
+
+class RayHits(NamedTuple):
+    t: np.ndarray           # float32, inf on a miss
+    triangle: np.ndarray    # int32, -1 on a miss
+    u: np.ndarray           # float32, weight of the triangle's second vertex
+    v: np.ndarray           # float32, weight of the third vertex
+
+
+def kernel_sources() -> str:
+    return "\n".join((KERNEL_DIR / name).read_text() for name in KERNEL_FILES)
+
+
+def kernel_options(features: dict) -> list:
+    """THE place that turns scene features into build options.
+
+    features: "stack_size" (int, at least the kd-tree depth + 1), "light_kinds" (iterable of
+    Light.kind), "correct_divide_sqrt" (bool: the device can round / and sqrt correctly, which
+    keeps pixels identical across devices). Never fast-math: traversal needs inf/NaN/-0.
+    """
+    options = [f"-DKD_STACK_SIZE={int(features.get('stack_size', MIN_STACK_SIZE))}"]
+    options += [f"-DHAS_{kind}" for kind in sorted(set(features.get("light_kinds", ())))]
+    if features.get("correct_divide_sqrt"):
+        options.append("-cl-fp32-correctly-rounded-divide-sqrt")
+    return options
+
+
+def _ensure_pocl_cache_dir() -> None:
+    """PoCL needs a writable cache dir even with caching off; give it one of ours."""
+    if os.environ.get("POCL_CACHE_DIR"):
+        return
+    base = pathlib.Path(os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache")
+    for candidate in (base / "kdtrace" / "pocl", pathlib.Path(tempfile.gettempdir()) / "kdtrace-pocl"):
+        try:
+            candidate.mkdir(parents=True, exist_ok=True)
+            if os.access(candidate, os.W_OK):
+                os.environ["POCL_CACHE_DIR"] = str(candidate)
+                return
+        except OSError:
+            continue
+
+
+def _select_device(cl, device):
+    """None/"auto": the first GPU, else the first CPU device; "cpu"; "gpu"; or "P:D" indices."""
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as error:
+        platforms, reason = [], str(error)
+    else:
+        reason = "none installed"
+    if not platforms:
+        raise TracerError(f"no OpenCL platform found ({reason}); install a GPU driver or "
+                          "`pip install pocl-binary-distribution` for the CPU device")
+    devices = [(p, d) for p in platforms for d in p.get_devices()]
+    spec = "auto" if device is None else str(device).strip().lower()
+    if spec in ("auto", "gpu", "cpu"):
+        want = {"gpu": (cl.device_type.GPU,), "cpu": (cl.device_type.CPU,),
+                "auto": (cl.device_type.GPU, cl.device_type.CPU)}[spec]
+        for kind in want:
+            for p, d in devices:
+                if d.type & kind:
+                    return d
+        if spec == "auto" and devices:
+            return devices[0][1]
+        raise TracerError(f"no OpenCL {spec} device; found: "
+                          + ", ".join(f"{p.name}: {d.name}" for p, d in devices))
+    try:
+        p_index, d_index = (int(part) for part in spec.split(":"))
+        return platforms[p_index].get_devices()[d_index]
+    except (ValueError, IndexError):
+        raise TracerError(f"device {device!r} not found: use auto, cpu, gpu or P:D with "
+                          f"{len(platforms)} platform(s)") from None
+
+
+def _tree_depth(nodes: np.ndarray) -> int:
+    """Depth of the kd-tree (root = 1), level by level; also checks child indices."""
+    depth, level = 0, np.zeros(1, np.int64)
+    while len(level):
+        depth += 1
+        if depth > 1024:
+            raise TracerError("kd-tree deeper than 1024 levels (cycle?)")
+        words = nodes[level, 0]
+        inner = (words & 3) != 3
+        children = (words[inner] >> 2).astype(np.int64)
+        if len(children) and children.max() + 1 >= len(nodes):
+            raise TracerError("kd-tree node refers to a child that does not exist")
+        level = np.concatenate([children, children + 1])
+    return depth
+
+
+class Tracer:
+    """Ray queries and tile rendering on one OpenCL device (docs/architecture.md, "Tracer")."""
+
+    def __init__(self, device=None):
+        _ensure_pocl_cache_dir()    # before the ICD loader initialises PoCL
+        import pyopencl as cl
+        self._cl = cl
+        self.device = _select_device(cl, device)
+        self.context = cl.Context([self.device])
+        self.queue = cl.CommandQueue(self.context)
+        self._programs = {}         # (source hash, options, device) -> {name: kernel}
+        self._scene = None
+        self._stack_size = MIN_STACK_SIZE
+        self._material_count = 0
+        self.local_size = None      # work-group size; None lets the driver choose (measured best on PoCL)
+
+    @property
+    def device_info(self) -> dict:
+        d = self.device
+        return {"name": d.name.strip(), "compute_units": int(d.max_compute_units),
+                "memory": int(d.global_mem_size), "platform": d.platform.name.strip()}
+
+    # -- programs ------------------------------------------------------------------------
+    def _features(self, light_kinds=()) -> dict:
+        fp = getattr(self.device, "single_fp_config", 0)
+        return {"stack_size": self._stack_size, "light_kinds": tuple(light_kinds),
+                "correct_divide_sqrt": bool(fp & self._cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT)}
+
+    def _program(self, features: dict):
+        cl = self._cl
+        source = kernel_sources()
+        options = kernel_options(features)
+        digest = hashlib.sha256((source + "\0" + " ".join(options)).encode()).hexdigest()[:16]
+        # The hash in the options makes every cache (PoCL's, pyopencl's, the driver's) key on it.
+        options = options + [f"-DKDTRACE_HASH=0x{digest}"]
+        key = (digest, tuple(options), self.device.int_ptr)
+        kernels = self._programs.get(key)
+        if kernels is None:
+            program = cl.Program(self.context, source)
+            try:
+                program.build(options=options, devices=[self.device])
+            except cl.Error as error:
+                try:
+                    log = program.get_build_info(self.device, cl.program_build_info.LOG)
+                except cl.Error:
+                    log = str(error)
+                saved = pathlib.Path(tempfile.gettempdir()) / f"kdtrace-failed-{digest}.cl"
+                saved.write_text(source)
+                raise TracerError(f"kernel build failed on {self.device.name.strip()} with options "
+                                  f"{' '.join(options)}; source saved to {saved}\n{log}") from None
+            # Kernel objects retrieved once: each retrieval makes a new, costly object.
+            kernels = self._programs[key] = {k.function_name: k for k in program.all_kernels()}
+        return kernels
+
+    def _local(self):
+        return None if self.local_size is None else (self.local_size,)
+
+    def _global_size(self, n):
+        # A set local size must divide the global size; the kernels skip the padding items.
+        ls = self.local_size or 1
+        return (-(-n // ls) * ls,)
+
+    # -- scene ---------------------------------------------------------------------------
+    def load(self, geometry: Geometry, tree) -> None:
+        """Upload the geometry and its kd-tree once; later calls trace against them."""
+        cl = self._cl
+        nodes = np.ascontiguousarray(tree.nodes, dtype=np.uint32)
+        leaf_indices = np.ascontiguousarray(tree.leaf_indices, dtype=np.uint32).reshape(-1)
+        bounds = np.asarray(tree.bounds, dtype=np.float32)
+        if nodes.ndim != 2 or nodes.shape[1] != 2 or len(nodes) == 0:
+            raise TracerError(f"kd-tree nodes must be a non-empty (N, 2) uint32 array, got {nodes.shape}")
+        if bounds.shape != (2, 3) or not np.isfinite(bounds).all():
+            raise TracerError(f"kd-tree bounds must be a finite (2, 3) array, got {bounds.shape}")
+        tri_count = geometry.triangle_count
+        if len(geometry.material_ids) != tri_count:
+            raise TracerError("one material id per triangle is required")
+        if tri_count and int(geometry.triangles.max()) >= len(geometry.vertices):
+            raise TracerError("a triangle refers to a vertex that does not exist")
+        leaves = (nodes[:, 0] & 3) == 3
+        ends = (nodes[leaves, 0] >> 2).astype(np.int64) + nodes[leaves, 1]
+        if len(ends) and ends.max() > len(leaf_indices):
+            raise TracerError("a kd-tree leaf reaches past the end of leaf_indices")
+        if len(leaf_indices) and int(leaf_indices.max()) >= tri_count:
+            raise TracerError("a kd-tree leaf refers to a triangle that does not exist")
+        self._stack_size = max(MIN_STACK_SIZE, -(-(_tree_depth(nodes) + 1) // 16) * 16)
+
+        # Triangles as three float4 corners each: one gather per triangle in the kernel.
+        corners = np.zeros((max(tri_count, 1), 3, 4), np.float32)
+        corners[:tri_count, :, :3] = geometry.vertices[geometry.triangles]
+        box = np.zeros((2, 4), np.float32)
+        box[:, :3] = bounds
+        mf = cl.mem_flags
+
+        def upload(array):  # OpenCL has no empty buffers
+            array = np.ascontiguousarray(array)
+            if array.nbytes == 0:
+                array = np.zeros(1, array.dtype)
+            return cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=array)
+
+        self._scene = {"nodes": upload(nodes), "leaf_indices": upload(leaf_indices),
+                       "tri_verts": upload(corners), "bounds": upload(box),
+                       "material_ids": upload(geometry.material_ids)}
+        self._material_count = int(geometry.material_ids.max()) + 1 if tri_count else 0
+
+    def _scene_buffers(self):
+        if self._scene is None:
+            raise TracerError("call load(geometry, tree) before tracing")
+        return self._scene
+
+    # -- ray queries ---------------------------------------------------------------------
+    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf) -> RayHits:
+        """Nearest hit of each ray with t in [tmin, tmax], t in units of the direction's length."""
+        cl = self._cl
+        origins = np.ascontiguousarray(origins, dtype=np.float32)
+        directions = np.ascontiguousarray(directions, dtype=np.float32)
+        if origins.ndim != 2 or origins.shape[1] != 3 or origins.shape != directions.shape:
+            raise ValueError(f"origins and directions must both be (n, 3) arrays, got "
+                             f"{origins.shape} and {directions.shape}")
+        if not (np.isfinite(origins).all() and np.isfinite(directions).all()):
+            raise ValueError("ray origins and directions must be finite")
+        if (directions == 0).all(axis=1).any():
+            raise ValueError("a ray direction is the zero vector")
+        if math.isnan(tmin) or math.isnan(tmax):
+            raise ValueError("tmin and tmax must not be NaN")
+        scene = self._scene_buffers()
+        n = len(origins)
+        out = RayHits(np.empty(n, np.float32), np.empty(n, np.int32),
+                      np.empty(n, np.float32), np.empty(n, np.float32))
+        if n == 0:
+            return out
+        mf = cl.mem_flags
+        ctx = self.context
+        o_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=origins)
+        d_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=directions)
+        outs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in out]
+        kernel = self._program(self._features())["intersect_rays"]
+        kernel(self.queue, self._global_size(n), self._local(), o_buf, d_buf, np.float32(tmin), np.float32(tmax),
+               np.uint32(n), scene["nodes"], scene["leaf_indices"], scene["tri_verts"],
+               scene["bounds"], *outs)
+        for host, buf in zip(out, outs):
+            cl.enqueue_copy(self.queue, host, buf)
+        self.queue.finish()
+        return out
+
+    # -- camera tiles --------------------------------------------------------------------
+    def render_tile(self, view: View, x: int, y: int, w: int, h: int) -> dict:
+        """Render pixels [x, x+w) x [y, y+h) of the full image (top-left origin)."""
+        cl = self._cl
+        if not (0 <= x and 0 <= y and w > 0 and h > 0
+                and x + w <= view.width and y + h <= view.height):
+            raise ValueError(f"tile ({x}, {y}, {w}, {h}) is not inside the "
+                             f"{view.width}x{view.height} image")
+        scene = self._scene_buffers()
+        materials = np.ascontiguousarray(view.shading.materials, np.float32).reshape(-1, 4)
+        if self._material_count > len(materials):
+            raise TracerError(f"the geometry uses {self._material_count} materials, "
+                              f"the shading has {len(materials)}")
+        lights = _pack_lights(view.shading.lights)
+        camera = _pack_camera(view)
+        mf = cl.mem_flags
+        ctx = self.context
+
+        def upload(array):
+            return cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=array)
+
+        n = w * h
+        combined = np.empty((h, w, 4), np.float32)
+        depth = np.empty((h, w), np.float32)
+        normal = np.empty((h, w, 3), np.float32)
+        outs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in (combined, depth, normal)]
+        kinds = {light.kind for light in view.shading.lights}
+        kernel = self._program(self._features(kinds))["render_tile"]
+        kernel(self.queue, self._global_size(n), self._local(), upload(camera), np.int32(x), np.int32(y), np.int32(w),
+               np.int32(h), scene["nodes"], scene["leaf_indices"], scene["tri_verts"],
+               scene["bounds"], scene["material_ids"], upload(materials), upload(lights),
+               np.uint32(len(view.shading.lights)), *outs)
+        for host, buf in zip((combined, depth, normal), outs):
+            cl.enqueue_copy(self.queue, host, buf)
+        self.queue.finish()
+        return {"combined": combined, "depth": depth, "normal": normal}
+
+
+def _pack_camera(view: View) -> np.ndarray:
+    """The camera buffer laid out as kernels/render.cl documents it."""
+    cam = view.camera
+    m = cam.to_world
+    forward = m[:3, :3] @ np.array([0.0, 0.0, -1.0])
+    length = np.linalg.norm(forward)
+    if not length > 0:
+        raise TracerError("camera to_world maps the view axis to zero")
+    out = np.zeros((CAMERA_FLOAT4S, 4), np.float64)
+    out[0:3] = m[:3]
+    out[3] = (cam.ndc_scale[0], cam.ndc_scale[1], cam.ndc_offset[0], cam.ndc_offset[1])
+    out[4, :3] = forward / length
+    out[4, 3] = 0.0 if cam.kind == "PERSP" else 1.0
+    out[5] = (cam.clip_start, min(cam.clip_end, 3e38), view.width, view.height)
+    out[6, :3] = view.shading.world_color
+    return out.astype(np.float32)
+
+
+def light_intensity(light) -> tuple:
+    """The unit factor of each light kind (docs/tracer.md), times its colour.
+
+    POINT/SPOT: W -> W/sr over the full sphere (P / 4 pi); SUN: W/m^2 as is; AREA: a one-sided
+    Lambertian emitter of power P has peak intensity P / pi (W/sr along its axis).
+    """
+    factor = {"POINT": 1.0 / (4.0 * math.pi), "SPOT": 1.0 / (4.0 * math.pi),
+              "SUN": 1.0, "AREA": 1.0 / math.pi}[light.kind]
+    return tuple(c * light.power * factor for c in light.color)
+
+
+def _pack_lights(lights) -> np.ndarray:
+    """The light buffer laid out as kernels/render.cl documents it."""
+    out = np.zeros((max(len(lights), 1) * LIGHT_FLOAT4S, 4), np.float64)
+    for i, light in enumerate(lights):
+        row = out[i * LIGHT_FLOAT4S:(i + 1) * LIGHT_FLOAT4S]
+        direction = np.asarray(light.direction, np.float64)
+        norm = np.linalg.norm(direction)
+        direction = direction / norm if norm > 0 else np.array([0.0, 0.0, -1.0])
+        row[0] = (*light.position, LIGHT_CODES[light.kind])
+        row[1, :3] = direction
+        row[2, :3] = light_intensity(light)
+        if light.kind == "SPOT":
+            cos_half = math.cos(light.spot_size / 2)
+            row[1, 3] = cos_half
+            # Cycles: smoothstep((cos - cos_half) / ((1 - cos_half) * blend)); 0 = hard edge.
+            span = (1.0 - cos_half) * light.spot_blend
+            row[2, 3] = 1.0 / span if span > 0 else 0.0
+    return out.astype(np.float32)
