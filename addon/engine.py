@@ -16,6 +16,8 @@ class KDTraceRenderEngine(bpy.types.RenderEngine):
     def update_render_passes(self, scene=None, renderlayer=None):
         # Declared so the compositor sees the passes the slaves fill.
         self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")
+        # Each tile filled with the colour of the slave that rendered it.
+        self.register_pass(scene, renderlayer, "Slave", 4, "RGBA", "COLOR")
         if renderlayer.use_pass_z:
             self.register_pass(scene, renderlayer, "Depth", 1, "Z", "VALUE")
         if renderlayer.use_pass_normal:

@@ -1,4 +1,4 @@
-"""One F12: export, build (or reuse) the kd-tree, find slaves, hand out tiles, write them as they
+"""One F12: export, build (or reuse) the kd-tree, find slaves, hand out tiles, show them as they
 arrive. Runs on Blender's render thread; all socket work happens on the master's threads and
 comes back through job.next_result()."""
 from __future__ import annotations
@@ -9,11 +9,13 @@ import numpy as np
 
 from ..core.master import Master, MasterError
 from ..core.scene import SceneError
+from ..core.slave_colors import slave_color
 from . import session
 from .export import export_view
 from .properties import preferences
 
 POLL_SECONDS = 0.05  # how often the render thread checks for Esc while waiting for tiles
+FRAME_PIXELS = 2     # width of the slave-coloured frame drawn around tiles while rendering
 
 
 class RenderFailed(Exception):
@@ -34,23 +36,23 @@ def parse_hosts(text: str) -> list[tuple[str, int]]:
     return endpoints
 
 
-def find_slaves(engine, context_settings, prefs) -> list[tuple[str, int]]:
+def find_slaves(engine, settings, prefs) -> list[tuple[str, int]]:
     """Manual hosts, then slaves found on the LAN; local slaves if none (or if asked to)."""
     state = session.current()
-    endpoints = parse_hosts(context_settings.manual_hosts)
-    if context_settings.use_zeroconf:
+    endpoints = parse_hosts(settings.manual_hosts)
+    if settings.use_zeroconf:
         engine.update_stats("", "KD Trace | Looking for slaves on the LAN")
         browser = state.browser()
-        deadline = time.monotonic() + context_settings.discovery_seconds
+        deadline = time.monotonic() + settings.discovery_seconds
         while time.monotonic() < deadline and not engine.test_break():
             if browser.slaves() and not endpoints:
                 # Give the others that answer a moment too, then go.
                 deadline = min(deadline, time.monotonic() + 0.3)
             time.sleep(POLL_SECONDS)
-        endpoints += [(s.host, s.port) for s in browser.slaves() if (s.host, s.port) not in endpoints]
-    if (not endpoints or context_settings.use_local_slaves_always) and context_settings.local_slaves:
-        engine.update_stats("", f"KD Trace | Starting {context_settings.local_slaves} local slave(s)")
-        endpoints += state.local_slaves.ensure(context_settings.local_slaves, prefs.slave_python,
+        endpoints += [s.endpoint for s in browser.slaves() if s.endpoint not in endpoints]
+    if (not endpoints or settings.use_local_slaves_always) and settings.local_slaves:
+        engine.update_stats("", f"KD Trace | Starting {settings.local_slaves} local slave(s)")
+        endpoints += state.local_slaves.ensure(settings.local_slaves, prefs.slave_python,
                                                prefs.slave_device)
     if not endpoints:
         raise RenderFailed("no slave is reachable: none answered on the LAN, no host is listed "
@@ -59,8 +61,10 @@ def find_slaves(engine, context_settings, prefs) -> list[tuple[str, int]]:
 
 
 def render(engine, depsgraph):
+    import bpy
     settings = depsgraph.scene.kdtrace
-    prefs = preferences(engine_context())
+    prefs = preferences(bpy.context)
+    state = session.current()
     started = time.perf_counter()
     try:
         engine.update_stats("", "KD Trace | Exporting scene")
@@ -73,7 +77,7 @@ def render(engine, depsgraph):
             engine.update_stats("", f"KD Trace | Building kd-tree: {message}")
 
         engine.update_stats("", f"KD Trace | Building kd-tree over {geometry.triangle_count:,} triangles")
-        tree, built = session.current().trees.get(geometry, tree_progress)
+        tree, built = state.trees.get(geometry, tree_progress)
         tree_done = time.perf_counter()
         if engine.test_break():
             return
@@ -84,64 +88,108 @@ def render(engine, depsgraph):
             master.load_scene(geometry, tree)
             for problem in master.errors:
                 engine.report({"WARNING"}, f"KD Trace: {problem}")
+            legend = state.start_legend(master.slaves)
             job = master.render(view, settings.tile_size)
-            per_slave = _receive_tiles(engine, job, view)
+            canvas = TileCanvas(engine, view, depsgraph.view_layer)
+            try:
+                _receive_tiles(engine, job, canvas, legend, master)
+            finally:
+                canvas.finish()
+                legend.frame_over(master)
             for problem in job.errors:
                 engine.report({"WARNING"}, f"KD Trace: {problem}")
+            if job.error and not job.cancelled:
+                raise RenderFailed(job.error)
+            uploaded_to = list(master.uploaded_to)
         finished = time.perf_counter()
     except (SceneError, RenderFailed, MasterError, OSError, RuntimeError) as error:
         engine.report({"ERROR"}, f"KD Trace: {error}")
         engine.error_set(f"KD Trace: {error}")
         return
-    tree_note = "built" if built else "reused"
-    summary = (f"export {exported - started:.2f} s, kd-tree {tree_note} {tree_done - exported:.2f} s "
-               f"({tree.stats['nodes']:,} nodes), render {finished - tree_done:.2f} s; tiles: "
-               + ", ".join(f"{name} {count}" for name, count in sorted(per_slave.items())))
-    session.current().last_render = {
+    per_slave = legend.tiles_per_slave()
+    state.last_render = {
         "export_seconds": exported - started, "tree_seconds": tree_done - exported,
         "tree_built": built, "tree_stats": dict(tree.stats), "render_seconds": finished - tree_done,
-        "triangles": geometry.triangle_count, "tiles_per_slave": per_slave}
+        "triangles": geometry.triangle_count, "tiles_per_slave": per_slave,
+        "slave_colors": {name: slave_color(name) for name in per_slave},
+        "uploaded_to": uploaded_to, "cancelled": job.cancelled}
+    summary = (f"export {exported - started:.2f} s, kd-tree {'built' if built else 'reused'} "
+               f"{tree_done - exported:.2f} s ({tree.stats['nodes']:,} nodes), render "
+               f"{finished - tree_done:.2f} s; tiles: "
+               + ", ".join(f"{name} {count}" for name, count in sorted(per_slave.items())))
     engine.update_stats("", f"KD Trace | Done: {summary}")
     engine.report({"INFO"}, f"KD Trace: {summary}")
 
 
-def engine_context():
-    import bpy
-    return bpy.context
-
-
-def _receive_tiles(engine, job, view) -> dict:
-    """Write tiles into Blender's result as they arrive; stop promptly on Esc."""
-    per_slave: dict[str, int] = {}
+def _receive_tiles(engine, job, canvas, legend, master):
+    """Show tiles as they arrive; stop promptly on Esc."""
     done, total = 0, len(job.tiles)
     while not job.finished:
         if engine.test_break():
             job.cancel()
-            return per_slave
+            return
         tile = job.next_result(POLL_SECONDS)
         if tile is None:
+            legend.check_lost(master)
             continue
-        _write_tile(engine, view, tile)
+        canvas.add(tile)
+        legend.tile_done(tile)
         done += 1
-        per_slave[tile.slave_name] = per_slave.get(tile.slave_name, 0) + 1
         engine.update_progress(0.5 + 0.5 * done / total)
         engine.update_stats("", f"KD Trace | Tile {done}/{total} from {tile.slave_name}")
-    if job.error:
-        raise RenderFailed(job.error)
-    return per_slave
 
 
-def _write_tile(engine, view, tile):
-    """Copy one tile's passes into Blender's result (bottom-left origin, relative to the border)."""
-    x0, y0, x1, y1 = view.region
-    left = tile.x - x0
-    bottom = (y1 - y0) - (tile.y - y0 + tile.h)
-    result = engine.begin_result(left, bottom, tile.w, tile.h)
-    passes = result.layers[0].passes
-    arrays = {"Combined": tile.passes["combined"], "Depth": tile.passes["depth"],
-              "Normal": tile.passes["normal"]}
-    for name, array in arrays.items():
-        blender_pass = passes.find(name)
-        if blender_pass >= 0:
-            passes[blender_pass].rect.foreach_set(np.ascontiguousarray(array[::-1]).ravel())
-    engine.end_result(result)
+class TileCanvas:
+    """The rendered region, filled tile by tile.
+
+    While rendering, each tile is shown with a frame in its slave's colour; when the frame is over
+    the clean image (and the Slave pass, each tile filled with its slave's colour) is written in
+    one go, so the final Combined pass carries no frames.
+    """
+
+    def __init__(self, engine, view, view_layer):
+        x0, y0, x1, y1 = view.region
+        self.engine, self.origin = engine, (x0, y0)
+        self.width, self.height = x1 - x0, y1 - y0
+        self.passes = {"Combined": np.zeros((self.height, self.width, 4), np.float32),
+                       "Slave": np.zeros((self.height, self.width, 4), np.float32)}
+        if view_layer.use_pass_z:
+            self.passes["Depth"] = np.full((self.height, self.width), 1e10, np.float32)
+        if view_layer.use_pass_normal:
+            self.passes["Normal"] = np.zeros((self.height, self.width, 3), np.float32)
+        self.received = 0
+
+    def add(self, tile):
+        left, top = tile.x - self.origin[0], tile.y - self.origin[1]
+        window = np.s_[top:top + tile.h, left:left + tile.w]
+        color = (*slave_color(tile.slave_name), 1.0)
+        self.passes["Combined"][window] = tile.passes["combined"]
+        self.passes["Slave"][window] = color
+        if "Depth" in self.passes:
+            self.passes["Depth"][window] = tile.passes["depth"]
+        if "Normal" in self.passes:
+            self.passes["Normal"][window] = tile.passes["normal"]
+        framed = tile.passes["combined"].copy()
+        f = min(FRAME_PIXELS, tile.w // 4, tile.h // 4)
+        for edge in (np.s_[:f], np.s_[-f:]) if f else ():
+            framed[edge] = color
+            framed[:, edge] = color
+        self._write(left, top, tile.w, tile.h, {"Combined": framed})
+        self.received += 1
+
+    def finish(self):
+        """Write the clean region (what arrived; the rest stays empty on a cancel)."""
+        if self.received:
+            self._write(0, 0, self.width, self.height, self.passes)
+
+    def _write(self, left, top, w, h, arrays):
+        """Write (h, w) arrays by pass name at (left, top) of the region."""
+        # Blender's result rectangles are relative to the border, with the origin bottom-left.
+        bottom = self.height - (top + h)
+        result = self.engine.begin_result(left, bottom, w, h)
+        passes = result.layers[0].passes
+        for name, array in arrays.items():
+            index = passes.find(name)
+            if index >= 0:
+                passes[index].rect.foreach_set(np.ascontiguousarray(array[::-1]).ravel())
+        self.engine.end_result(result)

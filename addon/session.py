@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from dataclasses import dataclass
 
 from ..core.kdtree import build_kdtree
+from ..core.slave_colors import slave_color
 from .local_slaves import LocalSlaves
 
 
@@ -33,12 +35,60 @@ class TreeCache:
         return tree, True
 
 
+@dataclass
+class SlaveStatus:
+    """One line of the panel's legend."""
+    name: str
+    color: tuple
+    device: str
+    tiles: int = 0
+    render_ms: float = 0.0
+    state: str = "idle"  # idle, rendering or lost
+
+    @property
+    def ms_per_tile(self) -> float:
+        return self.render_ms / self.tiles if self.tiles else 0.0
+
+
+class Legend:
+    """Which slave renders what, for the panel (read by draw(), written by the render thread)."""
+
+    def __init__(self, connections):
+        self.slaves = {c.name: SlaveStatus(c.name, slave_color(c.name), c.device, state="rendering")
+                       for c in connections}
+
+    def tile_done(self, tile):
+        status = self.slaves.get(tile.slave_name)
+        if status is not None:
+            status.tiles += 1
+            status.render_ms += tile.render_ms
+
+    def check_lost(self, master):
+        for connection in master.connections:
+            if connection.closed and connection.name in self.slaves:
+                self.slaves[connection.name].state = "lost"
+
+    def frame_over(self, master):
+        self.check_lost(master)
+        for status in self.slaves.values():
+            if status.state == "rendering":
+                status.state = "idle"
+
+    def tiles_per_slave(self) -> dict:
+        return {name: s.tiles for name, s in self.slaves.items() if s.tiles}
+
+
 class Session:
     def __init__(self):
         self.local_slaves = LocalSlaves()
         self.trees = TreeCache()
         self._browser = None
         self.last_render: dict = {}  # timings and tiles per slave of the last render, for reports
+        self.legend: Legend | None = None
+
+    def start_legend(self, connections) -> Legend:
+        self.legend = Legend(connections)
+        return self.legend
 
     def browser(self):
         """The zeroconf browser on every interface, started on first use (it runs on zeroconf's

@@ -40,19 +40,51 @@ class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
         col.prop(settings, "manual_hosts")
         col.prop(settings, "local_slaves")
         col.prop(settings, "use_local_slaves_always")
+        state = session.current()
         box = layout.box()
-        found = session.current().discovered_slaves()
+        found = state.discovered_slaves()
         if not found:
             box.label(text="No slave found on the LAN yet", icon="INFO")
         for slave in found:
             box.label(text=f"{slave.name}  {slave.host}:{slave.port}  {slave.properties.get('device', '')}",
                       icon="NETWORK_DRIVE")
-        local = session.current().local_slaves.pids()
+        local = state.local_slaves.pids()
         if local:
             box.label(text=f"{len(local)} local slave(s) running", icon="CONSOLE")
 
 
-classes = (RENDER_PT_kdtrace, RENDER_PT_kdtrace_slaves)
+class RENDER_PT_kdtrace_legend(KDTracePanel, bpy.types.Panel):
+    """Who rendered what in the last frame, in the colours of the tile frames and the Slave pass."""
+    bl_label = "Last Render"
+    bl_parent_id = "RENDER_PT_kdtrace"
+
+    def draw(self, context):
+        from . import session
+        legend = session.current().legend
+        if legend is None:
+            self.layout.label(text="Nothing rendered yet")
+            return
+        grid = self.layout.grid_flow(columns=5, even_columns=False, align=True)
+        for heading in ("Slave", "Device", "Tiles", "ms/tile", "State"):
+            grid.label(text=heading)
+        for status in legend.slaves.values():
+            grid.label(text=status.name, icon=color_icon(status.color))
+            grid.label(text=status.device)
+            grid.label(text=str(status.tiles))
+            grid.label(text=f"{status.ms_per_tile:.0f}")
+            grid.label(text=status.state)
+
+
+def color_icon(color) -> str:
+    """The closest of Blender's eight coloured collection icons (labels cannot show any RGB)."""
+    palette = {"COLLECTION_COLOR_01": (0.9, 0.3, 0.3), "COLLECTION_COLOR_02": (0.95, 0.6, 0.3),
+               "COLLECTION_COLOR_03": (0.95, 0.9, 0.3), "COLLECTION_COLOR_04": (0.4, 0.8, 0.3),
+               "COLLECTION_COLOR_05": (0.3, 0.55, 0.95), "COLLECTION_COLOR_06": (0.6, 0.35, 0.9),
+               "COLLECTION_COLOR_07": (0.9, 0.4, 0.75), "COLLECTION_COLOR_08": (0.6, 0.45, 0.3)}
+    return min(palette, key=lambda icon: sum((a - b) ** 2 for a, b in zip(palette[icon], color)))
+
+
+classes = (RENDER_PT_kdtrace, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_legend)
 
 # Blender's own panels that show what KD Trace renders (camera, lights, material base colour,
 # world colour). Panels for Blender's generic engine list "BLENDER_RENDER"; the material and

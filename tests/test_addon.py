@@ -55,3 +55,30 @@ def test_unusable_hosts_are_reported_to_the_user(tmp_path, hosts, message):
     assert message in result["log"], result["log"][-3000:]
     assert "Traceback" not in result["log"]
     assert result["last_render"] == {}
+
+
+def test_slave_pass_shows_who_rendered_each_tile_and_combined_is_clean(tmp_path):
+    from core.slave_colors import slave_color
+    zip_path = build_extension(tmp_path / "dist")
+    width, height, tile_size = 160, 120, 32
+    result = run_bpy_script("render_passes", tmp_path, zip=str(zip_path), out=str(tmp_path),
+                            width=width, height=height, tile_size=tile_size)
+    assert {"Image", "Depth", "Normal", "Slave"} <= set(result["compositor_outputs"])
+    two, one = result["reports"]["2"], result["reports"]["1"]
+    assert len(two["tiles_per_slave"]) == 2 and len(one["tiles_per_slave"]) == 1
+
+    def load(slaves, name):
+        return np.load(tmp_path / f"slaves{slaves}-{name}.npy")
+
+    # Whichever slaves render, the pixels are the same, and no tile frame is left in them.
+    for name in ("Combined", "Depth", "Normal"):
+        assert np.array_equal(load(2, name), load(1, name)), name
+    # The Slave pass: every tile one flat colour, that of the slave that rendered it.
+    colors = {name: np.array(slave_color(name) + (1.0,), np.float32) for name in two["tiles_per_slave"]}
+    counted = {name: 0 for name in colors}
+    for x, y, w, h in tile_grid((0, 0, width, height), tile_size):
+        tile = load(2, "Slave")[y:y + h, x:x + w].reshape(-1, 4)
+        matches = [name for name, c in colors.items() if np.allclose(tile, c, atol=1e-6)]
+        assert len(matches) == 1, f"tile at {x},{y} is not one slave's colour"
+        counted[matches[0]] += 1
+    assert counted == two["tiles_per_slave"]

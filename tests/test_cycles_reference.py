@@ -16,7 +16,8 @@ def steepest_neighbour_slope(depth: np.ndarray) -> np.ndarray:
     slope = np.zeros_like(depth)
     for dy, dx in ((0, 1), (2, 1), (1, 0), (1, 2)):
         neighbour = padded[dy:dy + depth.shape[0], dx:dx + depth.shape[1]]
-        change = np.where(neighbour < MISS, np.abs(neighbour - depth) / depth, 0.0)
+        with np.errstate(invalid="ignore"):
+            change = np.where(neighbour < MISS, np.abs(neighbour - depth) / depth, 0.0)
         slope = np.maximum(slope, change)
     return slope
 
