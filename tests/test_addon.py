@@ -82,3 +82,30 @@ def test_slave_pass_shows_who_rendered_each_tile_and_combined_is_clean(tmp_path)
         assert len(matches) == 1, f"tile at {x},{y} is not one slave's colour"
         counted[matches[0]] += 1
     assert counted == two["tiles_per_slave"]
+
+
+def test_enable_disable_reload_leaves_nothing_behind(tmp_path):
+    zip_path = build_extension(tmp_path / "dist")
+    result = run_bpy_script("enable_disable_reload", tmp_path, zip=str(zip_path))
+    assert len(result["rounds"]) == 3
+    for round_ in result["rounds"]:
+        assert round_["rendered"] and round_["local_slaves"] == 1, result["log"][-3000:]
+        assert round_["leftovers"] == []
+
+
+def test_animation_rebuilds_and_uploads_only_when_geometry_changes(tmp_path):
+    zip_path = build_extension(tmp_path / "dist")
+    result = run_bpy_script("render_animation", tmp_path, zip=str(zip_path), out=str(tmp_path),
+                            width=96, height=72)
+    frames = {f["frame"]: f for f in result["frames"]}
+    assert sorted(frames) == [1, 2, 3, 4, 5]
+    # The sphere moves until frame 3; after that only the camera moves.
+    assert [frames[f]["tree_built"] for f in range(1, 6)] == [True, True, True, False, False]
+    assert result["builds"] == 3
+    assert all(frames[f]["uploaded_to"] for f in (1, 2, 3))
+    assert frames[4]["uploaded_to"] == [] and frames[5]["uploaded_to"] == []
+    images = {f: np.load(tmp_path / f"anim_{f:04d}.npy") for f in range(1, 6)}
+    assert all(not np.array_equal(images[f], images[f + 1]) for f in range(1, 5)), "every frame moves"
+    for frame in (2, 5):
+        assert np.array_equal(images[frame], np.load(tmp_path / f"still_{frame:04d}.npy"))
+
