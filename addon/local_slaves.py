@@ -25,7 +25,10 @@ class LocalSlaveError(RuntimeError):
 
 class LocalSlave:
     def __init__(self, name: str, python: str, device: str, threads: int):
-        env = dict(os.environ, POCL_MAX_PTHREAD_COUNT=str(threads), PYTHONUNBUFFERED="1")
+        # Blender's sys.path holds the folder where it installed the extension's wheels
+        # (zeroconf, pyopencl, PoCL): the slave, run by Blender's own Python, needs them too.
+        env = dict(os.environ, POCL_MAX_PTHREAD_COUNT=str(threads), PYTHONUNBUFFERED="1",
+                   PYTHONPATH=os.pathsep.join(p for p in sys.path if p and os.path.isdir(p)))
         command = [python, "-m", "slave", "--port", "0", "--bind", "127.0.0.1",
                    "--name", name, "--device", device, "--no-zeroconf"]
         self.name = name

@@ -1,0 +1,120 @@
+"""Issue 2's benchmark: the Stanford dragon at 1024x1024 through the whole pipeline, against Embree.
+
+    .venv/bin/python bench/dragon.py [--size 1024] [--repeat 3]
+
+Export (the installed add-on's exporter on Blender's evaluated depsgraph), kd-tree build, a full
+render of the image (primary rays, one shadow ray per light, diffuse shading) on the OpenCL
+tracer, and the camera's primary rays through our intersect() and through Embree (embreex), one
+core each (PoCL limited to one thread, the process pinned to one CPU for Embree).
+"""
+import argparse
+import os
+import pathlib
+import sys
+import tempfile
+import time
+
+os.environ["POCL_MAX_PTHREAD_COUNT"] = "1"  # before pyopencl loads PoCL
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests" / "bpy_scripts"))
+
+import numpy as np  # noqa: E402
+
+from bench.trace_vs_embree import best_time, cpu_model  # noqa: E402
+
+
+def camera_rays(view):
+    """The primary rays of every pixel, as the kernel makes them (pixel centres, top row first)."""
+    camera = view.camera
+    px, py = np.meshgrid(np.arange(view.width) + 0.5, np.arange(view.height) + 0.5)
+    x = px / view.width * 2 - 1
+    y = 1 - py / view.height * 2
+    local = np.stack([x * camera.ndc_scale[0] + camera.ndc_offset[0],
+                      y * camera.ndc_scale[1] + camera.ndc_offset[1],
+                      np.full_like(x, -1.0)], -1).reshape(-1, 3)
+    rotation, eye = camera.to_world[:3, :3], camera.to_world[:3, 3]
+    directions = local @ rotation.T
+    origins = np.broadcast_to(eye, directions.shape)
+    return (np.ascontiguousarray(origins, np.float32), np.ascontiguousarray(directions, np.float32))
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", type=int, default=1024)
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args()
+    print("command:", " ".join(["python"] + sys.argv))
+    print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs); one core for each tracer")
+
+    work = pathlib.Path(tempfile.mkdtemp(prefix="kdtrace-bench-"))
+    os.environ["BLENDER_USER_RESOURCES"] = str(work / "blender-user")
+    from tests.blender import build_extension
+    import bpy
+    from blender_setup import install_extension, mesh_object
+    from tests.meshes import load_dragon
+    addon = install_extension(str(build_extension(work / "dist")))
+
+    vertices, triangles = load_dragon()
+    vertices = vertices[:, [0, 2, 1]] * np.array([1, -1, 1], np.float32)  # z up
+    mesh_object("dragon", vertices, triangles)
+    scene = bpy.context.scene
+    # Frame the dragon: look at its centre from the front, slightly from above.
+    centre = (vertices.min(0) + vertices.max(0)) / 2
+    camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
+    camera.location = centre + np.array([0.0, -0.24, 0.05])
+    camera.rotation_euler = (np.pi / 2 - 0.2, 0.0, 0.0)
+    camera.data.lens = 35
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
+    sun.rotation_euler = (0.6, 0.2, 0.3)
+    scene.collection.objects.link(sun)
+    scene.render.resolution_x = scene.render.resolution_y = args.size
+    scene.render.resolution_percentage = 100
+
+    export = addon.addon.export.export_view
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    export_s, (geometry, view, _) = best_time(lambda: export(depsgraph), args.repeat)
+    print(f"dragon: {geometry.triangle_count:,} triangles, {args.size}x{args.size}")
+    print(f"export:        {export_s:8.3f} s")
+
+    from core.kdtree import build_kdtree
+    build_s, tree = best_time(lambda: build_kdtree(geometry.vertices, geometry.triangles), 1)
+    stats = tree.stats
+    print(f"kd-tree build: {build_s:8.3f} s  {stats['nodes']:,} nodes, {stats['leaves']:,} leaves, "
+          f"depth {stats['depth']}, {stats['refs_per_triangle']:.2f} refs/triangle, "
+          f"{tree.nbytes / 2**20:.1f} MiB")
+
+    from slave.tracer import Tracer
+    tracer = Tracer("cpu")
+    tracer.load(geometry, tree)
+    tracer.render_tile(view, 0, 0, 16, 16)  # build the kernels outside the timing
+    render_s, passes = best_time(lambda: tracer.render_tile(view, 0, 0, view.width, view.height),
+                                 args.repeat)
+    hit_fraction = (passes["depth"] < 1e9).mean()
+    print(f"render:        {render_s:8.3f} s  ({hit_fraction:.1%} of pixels hit; primary + "
+          f"{len(view.shading.lights)} shadow ray(s) per hit, diffuse shading)")
+
+    origins, directions = camera_rays(view)
+    tracer.intersect(origins[:1024], directions[:1024])
+    ours_s, hits = best_time(lambda: tracer.intersect(origins, directions), args.repeat)
+
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    embree = rtcore_scene.EmbreeScene()
+    TriangleMesh(embree, geometry.vertices[geometry.triangles])
+    embree.run(origins[:1024], directions[:1024], output=1)
+    embree_s, reference = best_time(lambda: embree.run(origins, directions, output=1), args.repeat)
+    embree_hit = np.asarray(reference["primID"]) >= 0
+    agree = ((hits.triangle >= 0) == embree_hit).mean()
+
+    rays = len(origins)
+    print(f"primary rays:  ours {rays / ours_s / 1e6:6.2f} Mrays/s ({ours_s:.3f} s), "
+          f"Embree {rays / embree_s / 1e6:6.2f} Mrays/s ({embree_s:.3f} s)")
+    print(f"ratio ours/Embree per core: {embree_s / ours_s:.3f}  (hit/miss agreement {agree:.4%})")
+
+
+if __name__ == "__main__":
+    main()
