@@ -3,9 +3,9 @@ import atexit
 
 import bpy
 
-from . import engine, properties, session, ui
+from . import engine, operators, properties, session, ui
 
-_modules = (properties, engine, ui)
+_modules = (properties, operators, engine, ui)
 
 
 def register():

@@ -1,21 +1,32 @@
 """Render settings stored in the .blend (Scene.kdtrace) and machine settings (add-on preferences)."""
 import bpy
-from bpy.props import BoolProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import (BoolProperty, CollectionProperty, FloatProperty, IntProperty,
+                       PointerProperty, StringProperty)
+
+from ..core.protocol import DEFAULT_PORT, MAX_TILE_SIZE
+
+
+class KDTraceHost(bpy.types.PropertyGroup):
+    """A slave given by address, for networks where multicast discovery does not work."""
+    host: StringProperty(name="Host", description="Host name or IP address of the slave")
+    port: IntProperty(name="Port", description="TCP port the slave listens on",
+                      default=DEFAULT_PORT, min=1, max=65535)
+    enabled: BoolProperty(name="Use", description="Use this slave", default=True)
 
 
 class KDTraceRenderSettings(bpy.types.PropertyGroup):
     tile_size: IntProperty(
         name="Tile Size", description="Width and height of the image tiles handed to slaves, in pixels",
-        default=64, min=8, max=4096)
+        default=64, min=8, max=MAX_TILE_SIZE)
     use_zeroconf: BoolProperty(
         name="Find Slaves on the LAN", description="Discover slaves with zeroconf (mDNS) before rendering",
         default=True)
     discovery_seconds: FloatProperty(
         name="Discovery Time", description="How long to wait for slaves to answer before rendering",
         default=1.0, min=0.1, max=30.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
-    manual_hosts: StringProperty(
-        name="Hosts", description="Slaves to use in any case, as host:port separated by commas "
-        "(for networks where multicast discovery does not work)", default="")
+    hosts: CollectionProperty(type=KDTraceHost, name="Hosts",
+                              description="Slaves to use in any case, by address")
+    active_host: IntProperty(name="Active Host", default=0)
     local_slaves: IntProperty(
         name="Local Slaves", description="Slaves to start on this machine when no other slave answers",
         default=2, min=0, max=64)
@@ -52,4 +63,4 @@ def preferences(context):
     return context.preferences.addons[KDTracePreferences.bl_idname].preferences
 
 
-classes = (KDTraceRenderSettings, KDTracePreferences)
+classes = (KDTraceHost, KDTraceRenderSettings, KDTracePreferences)

@@ -22,24 +22,23 @@ class RenderFailed(Exception):
     """A problem the user must see in Blender's report, not a traceback."""
 
 
-def parse_hosts(text: str) -> list[tuple[str, int]]:
-    """'host:port, host:port' -> [(host, port)], with a message that names a bad entry."""
+def listed_hosts(settings) -> list[tuple[str, int]]:
+    """The enabled entries of the panel's host list, with a message that names a bad one."""
     endpoints = []
-    for entry in text.replace(";", ",").split(","):
-        entry = entry.strip()
-        if not entry:
+    for number, entry in enumerate(settings.hosts, 1):
+        if not entry.enabled:
             continue
-        host, sep, port = entry.rpartition(":")
-        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-            raise RenderFailed(f"manual host '{entry}' is not host:port")
-        endpoints.append((host.strip("[]"), int(port)))
+        host = entry.host.strip().strip("[]")
+        if not host or any(c.isspace() for c in host):
+            raise RenderFailed(f"host {number} in the slave list has no valid address: {entry.host!r}")
+        endpoints.append((host, entry.port))
     return endpoints
 
 
 def find_slaves(engine, settings, prefs) -> list[tuple[str, int]]:
     """Manual hosts, then slaves found on the LAN; local slaves if none (or if asked to)."""
     state = session.current()
-    endpoints = parse_hosts(settings.manual_hosts)
+    endpoints = listed_hosts(settings)
     if settings.use_zeroconf:
         engine.update_stats("", "KD Trace | Looking for slaves on the LAN")
         browser = state.browser()

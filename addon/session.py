@@ -98,6 +98,12 @@ class Session:
             self._browser = SlaveBrowser(interfaces=all_ipv4_addresses())
         return self._browser
 
+    def restart_browser(self):
+        if self._browser is not None:
+            self._browser.close()
+            self._browser = None
+        self.browser()
+
     def discovered_slaves(self) -> list:
         return self._browser.slaves() if self._browser is not None else []
 

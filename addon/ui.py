@@ -23,6 +23,14 @@ class RENDER_PT_kdtrace(KDTracePanel, bpy.types.Panel):
         layout.prop(settings, "tile_size")
 
 
+class KDTRACE_UL_hosts(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index=0):
+        row = layout.row(align=True)
+        row.prop(item, "enabled", text="")
+        row.prop(item, "host", text="", emboss=False, placeholder="host or IP address")
+        row.prop(item, "port", text="")
+
+
 class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
     bl_label = "Slaves"
     bl_parent_id = "RENDER_PT_kdtrace"
@@ -31,26 +39,37 @@ class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
         from . import session
         layout = self.layout
         settings = context.scene.kdtrace
+        state = session.current()
+
         col = layout.column()
         col.use_property_split = True
         col.prop(settings, "use_zeroconf")
         sub = col.column()
         sub.active = settings.use_zeroconf
         sub.prop(settings, "discovery_seconds")
-        col.prop(settings, "manual_hosts")
         col.prop(settings, "local_slaves")
         col.prop(settings, "use_local_slaves_always")
-        state = session.current()
-        box = layout.box()
+
+        layout.label(text="Found on the LAN:")
+        row = layout.row()
+        box = row.box()
         found = state.discovered_slaves()
         if not found:
-            box.label(text="No slave found on the LAN yet", icon="INFO")
+            box.label(text="None yet" if settings.use_zeroconf else "Discovery is off", icon="INFO")
         for slave in found:
             box.label(text=f"{slave.name}  {slave.host}:{slave.port}  {slave.properties.get('device', '')}",
                       icon="NETWORK_DRIVE")
         local = state.local_slaves.pids()
         if local:
             box.label(text=f"{len(local)} local slave(s) running", icon="CONSOLE")
+        row.operator("kdtrace.refresh_slaves", text="", icon="FILE_REFRESH")
+
+        layout.label(text="Listed by address:")
+        row = layout.row()
+        row.template_list("KDTRACE_UL_hosts", "", settings, "hosts", settings, "active_host", rows=2)
+        buttons = row.column(align=True)
+        buttons.operator("kdtrace.host_add", text="", icon="ADD")
+        buttons.operator("kdtrace.host_remove", text="", icon="REMOVE")
 
 
 class RENDER_PT_kdtrace_legend(KDTracePanel, bpy.types.Panel):
@@ -84,7 +103,7 @@ def color_icon(color) -> str:
     return min(palette, key=lambda icon: sum((a - b) ** 2 for a, b in zip(palette[icon], color)))
 
 
-classes = (RENDER_PT_kdtrace, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_legend)
+classes = (KDTRACE_UL_hosts, RENDER_PT_kdtrace, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_legend)
 
 # Blender's own panels that show what KD Trace renders (camera, lights, material base colour,
 # world colour). Panels for Blender's generic engine list "BLENDER_RENDER"; the material and

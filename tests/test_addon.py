@@ -46,8 +46,8 @@ def test_render_through_slaves_found_by_zeroconf(tmp_path, two_advertised_slaves
 
 
 @pytest.mark.parametrize("hosts, message", [
-    ("127.0.0.1:9", "cannot reach slave 127.0.0.1:9 (connection refused)"),
-    ("127.0.0.1:notaport", "manual host '127.0.0.1:notaport' is not host:port"),
+    ([["127.0.0.1", 9]], "cannot reach slave 127.0.0.1:9 (connection refused)"),
+    ([["127.0.0.1", 9], ["  ", 47600]], "host 2 in the slave list has no valid address: '  '"),
 ])
 def test_unusable_hosts_are_reported_to_the_user(tmp_path, hosts, message):
     zip_path = build_extension(tmp_path / "dist")

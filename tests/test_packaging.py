@@ -21,6 +21,5 @@ def test_zip_with_wheels_builds_validates_installs_and_renders(tmp_path):
 
     result = run_bpy_script("install_with_wheels", tmp_path, zip=str(zip_path))
     assert result["wheel_dirs"], "Blender did not add the extension's wheels to sys.path"
-    assert result["zeroconf"].startswith(result["wheel_dirs"][0])
-    assert result["pyopencl"].startswith(result["wheel_dirs"][0])
+    assert {"zeroconf", "ifaddr", "pyopencl", "pytools", "pocl_binary_distribution"} <= set(result["installed"])
     assert result["rendered"]

@@ -1,4 +1,4 @@
-"""Render with only a dead manual host listed: the user must get a message, not a traceback."""
+"""Render with only a dead or empty host listed: the user must get a message, not a traceback."""
 import bpy
 
 from blender_setup import arguments, build_test_scene, install_extension, write_result
@@ -9,7 +9,9 @@ scene = build_test_scene(32, 24)
 scene.render.engine = "KDTRACE"
 scene.kdtrace.use_zeroconf = False
 scene.kdtrace.local_slaves = 0
-scene.kdtrace.manual_hosts = args["hosts"]
+for host, port in args["hosts"]:
+    entry = scene.kdtrace.hosts.add()
+    entry.host, entry.port = host, port
 try:
     bpy.ops.render.render()
     outcome = "finished"
