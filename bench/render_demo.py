@@ -25,6 +25,8 @@ def main():
     parser.add_argument("--height", type=int, default=540)
     parser.add_argument("--slaves", type=int, default=2, help="local slaves to start")
     parser.add_argument("--tile-size", type=int, default=64)
+    parser.add_argument("--slave-map", help="also write this PNG: the render beside its Slave "
+                        "pass (each tile tinted with the colour of the slave that rendered it)")
     args = parser.parse_args()
 
     work = pathlib.Path(tempfile.mkdtemp(prefix="kdtrace-demo-"))
@@ -48,7 +50,7 @@ def main():
     bpy.ops.mesh.primitive_uv_sphere_add(radius=0.8, location=(-2.8, 1.5, 0.8))
     bpy.ops.mesh.primitive_cube_add(size=1.2, location=(2.8, 1.2, 0.6))
     camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
-    camera.location, camera.rotation_euler = (0.0, -13.0, 5.5), (1.17, 0.0, 0.0)
+    camera.location, camera.rotation_euler = (0.0, -10.5, 4.2), (1.2, 0.0, 0.0)
     scene.collection.objects.link(camera)
     scene.camera = camera
     sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
@@ -70,6 +72,8 @@ def main():
     started = time.perf_counter()
     bpy.ops.render.render(write_still=True)
     wall = time.perf_counter() - started
+    if args.slave_map:
+        write_slave_map(scene, work, args.out, args.slave_map)
     report = addon.addon.session.current().last_render
     if not report:
         sys.exit("the render failed: see the messages above")
@@ -81,9 +85,33 @@ def main():
           f"{stats['bytes'] / 2**20:.1f} MiB)")
     print(f"  render  {report['render_seconds']:7.2f} s  (slave start-up included on the first render)")
     print(f"  total   {wall:7.2f} s")
+    from core.slave_colors import ansi_swatch, slave_color
     for name, count in sorted(report["tiles_per_slave"].items()):
-        print(f"  tiles from {name}: {count}")
-    print(f"  wrote {scene.render.filepath}")
+        hex_color = "#" + "".join(f"{round(c * 255):02x}" for c in slave_color(name))
+        print(f"  {ansi_swatch(name)} {hex_color} tiles from {name}: {count}")
+    print(f"  wrote {scene.render.filepath}" + (f" and {args.slave_map}" if args.slave_map else ""))
+
+
+def write_slave_map(scene, work, render_png, out_png):
+    """The render (as displayed) beside the same image tinted by the Slave pass."""
+    import bpy
+    import numpy as np
+    from blender_setup import exr_passes
+    settings = scene.render.image_settings
+    settings.media_type, settings.file_format = "MULTI_LAYER_IMAGE", "OPEN_EXR_MULTILAYER"
+    exr = str(work / "passes.exr")
+    bpy.data.images["Render Result"].save_render(filepath=exr)
+    slave = np.stack([exr_passes(exr)["Slave"][c] for c in "RGB"], -1)
+    shown = bpy.data.images.load(str(pathlib.Path(render_png).resolve()))
+    width, height = shown.size
+    pixels = np.array(shown.pixels[:], np.float32).reshape(height, width, 4)[::-1, :, :3]
+    tinted = 0.45 * pixels + 0.55 * slave
+    both = np.concatenate([pixels, np.ones((height, 8, 3), np.float32), tinted], axis=1)
+    image = bpy.data.images.new("slave-map", both.shape[1], height)
+    rgba = np.concatenate([both, np.ones((height, both.shape[1], 1), np.float32)], -1)
+    image.pixels.foreach_set(rgba[::-1].ravel())
+    image.filepath_raw, image.file_format = str(pathlib.Path(out_png).resolve()), "PNG"
+    image.save()
 
 
 if __name__ == "__main__":
