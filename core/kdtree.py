@@ -98,99 +98,146 @@ def _split_cost(params: KDTreeParams, dims, area, axis, below_width, count_below
     return np.where((count_below == 0) | (count_above == 0), cost * params.empty_bonus, cost)
 
 
-def _segment_argmin(values: np.ndarray, starts: np.ndarray):
-    """Minimum and index of its first occurrence within each segment [starts[i], starts[i+1])."""
-    seg_min = np.minimum.reduceat(values, starts)
-    segment_of = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, len(values))))
-    index = np.where(values == seg_min[segment_of], np.arange(len(values)), len(values))
-    return seg_min, np.minimum.reduceat(index, starts)
-
-
 # ---------------------------------------------------------------------------------------------
 # Clipping triangles to boxes (Sutherland-Hodgman on padded polygon arrays)
+#
+# Polygons are stored coordinate-major, (3, W, K) float64 for K polygons of at most W vertices,
+# `count` vertices each, so that every step is an elementwise operation over K contiguous values
+# (reductions run over the short W axis). Unused slots repeat vertex 0: "the next vertex" is
+# simply the next slot (cyclically), the closing edge runs into the first padding copy of
+# vertex 0, and padding-to-padding edges have zero length and never cross a plane.
 
-def _clip_polygons(poly, count, axis, value, keep_below):
-    """Clip convex polygons to the half-space x[axis] <= value (keep_below) or >= value.
+def _next_slot(values: np.ndarray, slot_axis: int) -> np.ndarray:
+    return np.roll(values, -1, slot_axis)
 
-    poly (K, W, 3) float64 holds `count` vertices per row. Returns new (poly, count); the new
-    width is just enough for the result (a plane adds at most one vertex to a convex polygon).
-    Rows with no vertex outside come back unchanged; a vertex on the plane counts as inside.
-    """
-    K, W, _ = poly.shape
-    rows = np.arange(K)[:, None]
-    slots = np.arange(W)[None, :]
-    coord = poly[rows, slots, axis[:, None]]
-    dist = value[:, None] - coord if keep_below else coord - value[:, None]
-    valid = slots < count[:, None]
-    needs_clip = (valid & (dist < 0)).any(1)
-    if not needs_clip.any():
-        return poly, count
-    sub = np.flatnonzero(needs_clip)
-    p, d, v, c = poly[sub], dist[sub], valid[sub], count[sub]
-    nxt = np.where(slots + 1 < c[:, None], slots + 1, 0)
-    d_next = np.take_along_axis(d, nxt, 1)
-    inside = v & (d >= 0)
-    crossing = v & (((d > 0) & (d_next < 0)) | ((d < 0) & (d_next > 0)))
+
+def _crossings(poly, dist):
+    """Edges (slot i to i+1) crossing the plane strictly, and their crossing points."""
+    d_next = _next_slot(dist, 0)
+    crossing = ((dist > 0) & (d_next < 0)) | ((dist < 0) & (d_next > 0))
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(crossing, d / (d - d_next), 0.0)
-    p_next = np.take_along_axis(p, nxt[..., None], 1)
-    crossing_point = p + t[..., None] * (p_next - p)
-    # Snap onto the plane so that pieces meet the child's face exactly.
-    crossing_point[np.arange(len(sub))[:, None], slots, axis[sub][:, None]] = value[sub][:, None]
-    candidates = np.stack([p, crossing_point], 2).reshape(len(sub), 2 * W, 3)
-    keep = np.stack([inside, crossing], 2).reshape(len(sub), 2 * W)
-    new_count = keep.sum(1)
+        t = np.where(crossing, dist / (dist - d_next), 0.0)
+    return crossing, poly + t * (_next_slot(poly, 1) - poly)
+
+
+def _clip_face(poly, count, axis: int, value, keep_below: bool):
+    """Clip convex polygons to x[axis] <= value (keep_below) or >= value.
+
+    A vertex on the plane counts as inside; crossing points are snapped onto the plane.
+    Rows with no vertex outside come back unchanged.
+    """
+    _, W, K = poly.shape
+    dist = value - poly[axis] if keep_below else poly[axis] - value
+    valid = np.arange(W)[:, None] < count
+    sub = np.flatnonzero((valid & (dist < 0)).any(0))
+    if not len(sub):
+        return poly, count
+    p, d, v = poly[:, :, sub], dist[:, sub], valid[:, sub]
+    crossing, crossing_point = _crossings(p, d)
+    crossing &= v
+    crossing_point[axis] = value[sub]
+    inside = v & (d >= 0)
+    n = len(sub)
+    candidates = np.stack([p, crossing_point], 2).reshape(3, 2 * W, n)
+    keep = np.stack([inside, crossing], 1).reshape(2 * W, n)
+    slot = np.cumsum(keep, 0) - 1
+    new_count = slot[-1] + 1
     new_width = max(W, int(new_count.max()))
-    out = np.zeros((len(sub), new_width, 3))
-    r, col = np.nonzero(keep)
-    out[r, (np.cumsum(keep, 1) - 1)[r, col]] = candidates[r, col]
+    first = candidates[:, np.argmax(keep, 0), np.arange(n)]
+    out = np.repeat(first[:, None, :], new_width, 1)
+    target = (slot * n + np.arange(n))[keep]
+    out.reshape(3, -1)[:, target] = candidates.reshape(3, -1)[:, keep.reshape(-1)]
     if new_width > W:
-        poly = np.concatenate([poly, np.zeros((K, new_width - W, 3))], 1)
+        poly = np.concatenate([poly, np.repeat(poly[:, :1], new_width - W, 1)], 1)
     else:
         poly = poly.copy()
     count = count.copy()
-    poly[sub] = out
+    poly[:, :, sub] = out
     count[sub] = new_count
     return poly, count
 
 
-def _piece_boxes(poly, count, triangle_flat):
-    """float64 box of each clipped piece and whether the piece has positive area.
+def _split_piece_boxes(poly, count, axis, plane):
+    """float64 boxes and vertex counts of both halves of polygons cut by their own plane.
 
-    A piece of a non-degenerate triangle has zero area exactly when it only touches the box: it
-    is then empty, a point or a segment, or it lies flat in a box face plane that the triangle
-    itself does not lie in (flat in an axis where the triangle is not).
+    Each half is what Sutherland-Hodgman would keep: the vertices on its side (a vertex on the
+    plane belongs to both) plus the crossing points snapped onto the plane.
     """
-    valid = (np.arange(poly.shape[1])[None, :] < count[:, None])[..., None]
-    lo = np.where(valid, poly, np.inf).min(1)
-    hi = np.where(valid, poly, -np.inf).max(1)
-    flat = (hi - lo) == 0
-    positive = (count >= 3) & ~(flat & ~triangle_flat).any(1)
-    return lo, hi, positive
+    _, W, K = poly.shape
+    rows = np.arange(K)
+    d = poly[axis, :, rows].T - plane                         # (W, K)
+    valid = np.arange(W)[:, None] < count
+    crossing, crossing_point = _crossings(poly, d)
+    crossing &= valid
+    crossing_point[axis, :, rows] = plane[:, None]
+    lo = np.empty((2, 3, K))
+    hi = np.empty((2, 3, K))
+    n_cross = crossing.sum(0)
+    counts = []
+    for side, keep in ((0, valid & (d <= 0)), (1, valid & (d >= 0))):
+        for c in range(3):
+            lo[side, c] = np.minimum(np.where(keep, poly[c], np.inf).min(0),
+                                     np.where(crossing, crossing_point[c], np.inf).min(0))
+            hi[side, c] = np.maximum(np.where(keep, poly[c], -np.inf).max(0),
+                                     np.where(crossing, crossing_point[c], -np.inf).max(0))
+        counts.append(keep.sum(0) + n_cross)
+    return lo, hi, counts
 
 
 def _clip_straddlers(corners, cell_lo, cell_hi, axis, plane):
     """Perfect split of references that straddle their node's split plane.
 
-    Each triangle is clipped in float64 to its node's cell, then cut by the plane; each half's
-    box is rounded outward to float32 and clamped to the child's cell. Returns both halves'
-    boxes and whether each half has positive area (a zero-area half is dropped by the caller).
+    Each triangle is clipped in float64 to its node's cell (only against the faces its box
+    crosses), then cut by the plane; each half's box is rounded outward to float32 and clamped
+    to the child's cell. Returns both halves' boxes and whether each half has positive area (a
+    zero-area half is dropped by the caller).
+
+    A piece of a non-degenerate triangle has zero area exactly when it only touches the box: it
+    is then empty, a point or a segment, or it lies flat in a box face plane that the triangle
+    itself does not lie in (flat in an axis where the triangle is not).
     """
     K = len(corners)
-    poly, count = corners.copy(), np.full(K, 3)
+    tri_lo, tri_hi = corners.min(1), corners.max(1)
     lo64, hi64 = cell_lo.astype(np.float64), cell_hi.astype(np.float64)
-    for a in range(3):
-        axis_a = np.full(K, a)
-        poly, count = _clip_polygons(poly, count, axis_a, lo64[:, a], keep_below=False)
-        poly, count = _clip_polygons(poly, count, axis_a, hi64[:, a], keep_below=True)
-    triangle_flat = corners.max(1) == corners.min(1)
+    beyond_lo, beyond_hi = tri_lo < lo64, tri_hi > hi64
+    clipped = np.flatnonzero(beyond_lo.any(1) | beyond_hi.any(1))
+    piece_lo = np.empty((2, 3, K))
+    piece_hi = np.empty((2, 3, K))
+    piece_count = np.empty((2, K), np.int64)
     plane64 = plane.astype(np.float64)
+    # Triangles inside their cell are cut as they are; the others are clipped to it first.
+    whole = np.ones(K, bool)
+    whole[clipped] = False
+    for rows, is_whole in ((np.flatnonzero(whole), True), (clipped, False)):
+        if not len(rows):
+            continue
+        poly = np.ascontiguousarray(corners[rows].transpose(2, 1, 0))    # (3, 3, k)
+        count = np.full(len(rows), 3)
+        if not is_whole:
+            for a in range(3):
+                for keep_below, face, beyond in ((False, lo64[rows, a], beyond_lo[rows, a]),
+                                                 (True, hi64[rows, a], beyond_hi[rows, a])):
+                    sub = np.flatnonzero(beyond)
+                    if not len(sub):
+                        continue
+                    sub_poly, sub_count = _clip_face(poly[:, :, sub], count[sub], a, face[sub],
+                                                     keep_below)
+                    extra = sub_poly.shape[1] - poly.shape[1]
+                    if extra > 0:
+                        poly = np.concatenate([poly, np.repeat(poly[:, :1], extra, 1)], 1)
+                    poly[:, :sub_poly.shape[1], sub] = sub_poly
+                    count[sub] = sub_count
+        lo, hi, counts = _split_piece_boxes(poly, count, axis[rows], plane64[rows])
+        piece_lo[:, :, rows], piece_hi[:, :, rows] = lo, hi
+        piece_count[0, rows], piece_count[1, rows] = counts
+    triangle_flat = tri_hi == tri_lo
     halves = []
-    for keep_below in (True, False):
-        piece, piece_count = _clip_polygons(poly, count, axis, plane64, keep_below)
-        lo, hi, positive = _piece_boxes(piece, piece_count, triangle_flat)
+    for side in (0, 1):
+        lo, hi = piece_lo[side].T, piece_hi[side].T
+        flat = (hi - lo) == 0
+        positive = (piece_count[side] >= 3) & ~(flat & ~triangle_flat).any(1)
         child_lo, child_hi = cell_lo.copy(), cell_hi.copy()
-        (child_hi if keep_below else child_lo)[np.arange(K), axis] = plane
+        (child_hi if side == 0 else child_lo)[np.arange(K), axis] = plane
         lo32 = np.maximum(_round_down_f32(np.where(positive[:, None], lo, 0.0)), child_lo)
         hi32 = np.minimum(_round_up_f32(np.where(positive[:, None], hi, 0.0)), child_hi)
         halves.append((lo32, hi32, positive))
@@ -200,12 +247,13 @@ def _clip_straddlers(corners, cell_lo, cell_hi, axis, plane):
 # ---------------------------------------------------------------------------------------------
 # Choosing splits
 
-def _binned_best_splits(params, cell_lo, cell_hi, counts, ref_node, ref_lo, ref_hi):
+def _binned_best_splits(params, cell_lo, cell_hi, counts, ref_lo, ref_hi):
     """Best SAH split of each node from binned counts, plus the exact empty-space cuts.
 
-    All arrays cover only nodes with at least one reference; ref_* are sorted by node. Each node
-    gets its own bin count (bins_per_reference * N clamped to [min_bins, max_bins]) laid out in
-    one flat array, so that every node's sweep is a segment of one cumsum.
+    For nodes with at least one reference; ref_* hold exactly their references, sorted by node.
+    Each node gets its own bin count (bins_per_reference * N clamped to [min_bins, max_bins]);
+    the counts live in one (nodes, most bins) array, so that every node's sweep is a row cumsum.
+    Binning only proposes planes (float32 is enough): the caller recounts exactly.
     Returns (cost, axis, plane float32); cost is inf where no plane lies strictly inside.
     """
     node_count = len(counts)
@@ -213,12 +261,12 @@ def _binned_best_splits(params, cell_lo, cell_hi, counts, ref_node, ref_lo, ref_
     area = _surface_area(dims)
     bins = np.clip(np.round(params.bins_per_reference * counts), params.min_bins,
                    params.max_bins).astype(np.int64)
-    bin_start = _exclusive_cumsum(bins)
-    total_bins = int(bin_start[-1])
-    bin_start = bin_start[:-1]
-    bin_node = np.repeat(np.arange(node_count), bins)
-    bin_local = np.arange(total_bins) - bin_start[bin_node]
+    B = int(bins.max())
     ref_start = _exclusive_cumsum(counts)[:-1]
+    ref_row = np.repeat(np.arange(node_count) * B, counts)
+    ref_last_bin = np.repeat(bins - 1, counts).astype(np.float32)
+    k = np.arange(B)[None, :]
+    rows = np.arange(node_count)
 
     best_cost = np.full(node_count, np.inf)
     best_axis = np.zeros(node_count, np.int64)
@@ -233,29 +281,37 @@ def _binned_best_splits(params, cell_lo, cell_hi, counts, ref_node, ref_lo, ref_
     for axis in range(3):
         low = cell_lo[:, axis].astype(np.float64)
         width = dims[:, axis]
-        scale = (bins / width)[ref_node]
-        last_bin = (bins - 1)[ref_node]
+        ref_low = np.repeat(cell_lo[:, axis], counts)
+        scale = np.repeat((bins / width).astype(np.float32), counts)
         # A reference counts below plane k if its low end is below it, above if its high end is
         # above it: bin the low ends by floor and the high ends by ceil - 1.
-        start_bin = np.clip(np.floor((ref_lo[:, axis] - low[ref_node]) * scale), 0, last_bin)
-        end_bin = np.clip(np.ceil((ref_hi[:, axis] - low[ref_node]) * scale) - 1, 0, last_bin)
-        starts = np.cumsum(np.bincount(bin_start[ref_node] + start_bin.astype(np.int64),
-                                       minlength=total_bins))
-        ends = np.cumsum(np.bincount(bin_start[ref_node] + end_bin.astype(np.int64),
-                                     minlength=total_bins))
-        starts_before = np.concatenate([[0], starts])[bin_start][bin_node]
-        ends_before = np.concatenate([[0], ends])[bin_start][bin_node]
-        count_below = starts - starts_before
-        count_above = counts[bin_node] - (ends - ends_before)
+        start_bin = (ref_lo[:, axis] - ref_low) * scale
+        np.floor(start_bin, out=start_bin)
+        np.clip(start_bin, 0, ref_last_bin, out=start_bin)
+        end_bin = (ref_hi[:, axis] - ref_low) * scale
+        np.ceil(end_bin, out=end_bin)
+        end_bin -= 1
+        np.clip(end_bin, 0, ref_last_bin, out=end_bin)
+        count_below = np.bincount(ref_row + start_bin.astype(np.int64),
+                                  minlength=node_count * B).reshape(node_count, B).cumsum(1)
+        count_above = counts[:, None] - np.bincount(
+            ref_row + end_bin.astype(np.int64), minlength=node_count * B
+        ).reshape(node_count, B).cumsum(1)
         # Plane after bin k; the last bin of each node ends at the cell's high side.
-        plane = (low[bin_node] + (bin_local + 1) * (width / bins)[bin_node]).astype(np.float32)
-        inside = ((bin_local < bins[bin_node] - 1) & (plane > cell_lo[bin_node, axis])
-                  & (plane < cell_hi[bin_node, axis]))
-        cost = _split_cost(params, dims[bin_node], area[bin_node], axis,
-                           plane.astype(np.float64) - low[bin_node], count_below, count_above)
-        cost = np.where(inside, cost, np.inf)
-        node_cost, index = _segment_argmin(cost, bin_start)
-        consider(node_cost, axis, plane[index])
+        plane = (low[:, None] + (k + 1) * (width / bins)[:, None]).astype(np.float32)
+        inside = ((k < bins[:, None] - 1) & (plane > cell_lo[:, axis, None])
+                  & (plane < cell_hi[:, axis, None]))
+        side_a, side_b = dims[:, (axis + 1) % 3, None], dims[:, (axis + 2) % 3, None]
+        width_below = plane - low[:, None]
+        width_above = width[:, None] - width_below
+        area_below = 2.0 * (width_below * (side_a + side_b) + side_a * side_b)
+        area_above = 2.0 * (width_above * (side_a + side_b) + side_a * side_b)
+        cost = params.traversal_cost + params.intersection_cost * (
+            area_below * count_below + area_above * count_above) / area[:, None]
+        cost = np.where((count_below == 0) | (count_above == 0), cost * params.empty_bonus, cost)
+        cost[~inside] = np.inf
+        index = np.argmin(cost, 1)
+        consider(cost[rows, index], axis, plane[rows, index])
 
         # Exact cuts at the references' tight bounds: bins alone would leave empty slivers.
         for plane, below, above in (
@@ -268,8 +324,87 @@ def _binned_best_splits(params, cell_lo, cell_hi, counts, ref_node, ref_lo, ref_
     return best_cost, best_axis, best_plane
 
 
+def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, ref_lo, ref_hi, width):
+    """Exact SAH over all candidate planes of small nodes (at most `width` references each).
+
+    Every reference bound is a candidate. The nodes' references are packed into (n, width)
+    arrays (padding counts on no side), and each candidate is compared against all of its
+    node's boxes: below = low end < plane, above = high end > plane, planar = flat at the plane
+    (planar references go to the cheaper side). Returns (cost, axis, plane float32).
+    """
+    n = len(counts)
+    slots = np.arange(width)
+    used = slots[None, :] < counts[:, None]
+    index = np.minimum(first_ref[:, None] + slots, len(ref_lo) - 1)
+    group_lo = np.where(used[..., None], ref_lo[index], np.float32(np.inf))       # (n, width, 3)
+    group_hi = np.where(used[..., None], ref_hi[index], np.float32(-np.inf))
+    dims = (cell_hi.astype(np.float64) - cell_lo)
+    inv_area = 1.0 / _surface_area(dims)
+    dims = dims.astype(np.float32)
+    best_cost = np.full(n, np.inf)
+    best_axis = np.zeros(n, np.int64)
+    best_plane = np.zeros(n, np.float32)
+    rows = np.arange(n)
+    K_T = np.float32(params.traversal_cost)
+    bonus = np.float32(params.empty_bonus)
+    for axis in range(3):
+        lo = np.ascontiguousarray(group_lo[:, :, axis])
+        hi = np.ascontiguousarray(group_hi[:, :, axis])
+        planar = used & (lo == hi)
+        cand = np.concatenate([lo, hi], 1)                      # (n, 2 width)
+        # Counts as int8 (width <= 16), viewing each comparison's bools as 0/1 bytes.
+        below = np.zeros(cand.shape, np.int8)
+        above = np.zeros(cand.shape, np.int8)
+        on_plane = np.zeros(cand.shape, np.int8) if planar.any() else None
+        test = np.empty(cand.shape, bool)
+        test8 = test.view(np.int8)
+        for j in range(width):
+            np.less(lo[:, j:j + 1], cand, out=test)
+            below += test8
+            np.greater(hi[:, j:j + 1], cand, out=test)
+            above += test8
+            if on_plane is not None:
+                np.equal(lo[:, j:j + 1], cand, out=test)
+                test &= planar[:, j:j + 1]
+                on_plane += test8
+        # Costs in float32 (they only rank candidates; the caller recounts the chosen plane).
+        # With w the width below the plane, area_below = w P + Q and area_above = R - w P
+        # (all scaled by K_I / area).
+        side_a, side_b = dims[:, (axis + 1) % 3], dims[:, (axis + 2) % 3]
+        scale = (2 * params.intersection_cost * inv_area).astype(np.float32)
+        P = ((side_a + side_b) * scale)[:, None]
+        Q = (side_a * side_b * scale)[:, None]
+        R = dims[:, axis, None] * P + Q
+        cell_low = cell_lo[:, axis:axis + 1]
+        inside = (cand > cell_low) & (cand < cell_hi[:, axis:axis + 1])
+        wP = np.where(inside, cand - cell_low, np.float32(0))
+        wP *= P
+
+        no_plane = np.where(inside, np.float32(1), np.float32(np.inf))
+
+        def variant(n_below, n_above):
+            cost = (wP + Q) * n_below.astype(np.float32)
+            cost += (R - wP) * n_above.astype(np.float32)
+            cost += K_T
+            cost *= np.where((n_below == 0) | (n_above == 0), bonus * no_plane, no_plane)
+            return cost
+
+        if on_plane is None:
+            cost = variant(below, above)
+        else:             # planar references on the cheaper side, with its empty bonus
+            cost = np.minimum(variant(below + on_plane, above), variant(below, above + on_plane))
+        k = np.argmin(cost, 1)
+        c = cost[rows, k].astype(np.float64)
+        better = c < best_cost
+        best_cost[better] = c[better]
+        best_axis[better] = axis
+        best_plane[better] = cand[rows, k][better]
+    return best_cost, best_axis, best_plane
 # ---------------------------------------------------------------------------------------------
 # The build
+
+EXACT_WIDTHS = (1, 2, 4, 8, 16)   # nodes with up to 16 references: exact SAH in padded groups
+
 
 def _root_bounds(boxes_lo, boxes_hi, vertices):
     if len(boxes_lo):
@@ -288,6 +423,33 @@ def _root_bounds(boxes_lo, boxes_hi, vertices):
     return np.stack([_round_down_f32(lo), _round_up_f32(hi)]).astype(np.float32)
 
 
+def _best_splits(params, cell_lo, cell_hi, counts, ref_start, ref_lo, ref_hi):
+    """Best split of every node given (all with at least one reference).
+
+    Small nodes get exact SAH over all their references' bounds; bigger ones binned SAH.
+    """
+    n = len(counts)
+    cost = np.full(n, np.inf)
+    axis = np.zeros(n, np.int64)
+    plane = np.zeros(n, np.float32)
+    smaller = 0
+    for width in EXACT_WIDTHS:
+        group = np.flatnonzero((counts > smaller) & (counts <= width))
+        smaller = width
+        if len(group):
+            cost[group], axis[group], plane[group] = _exact_best_splits(
+                params, cell_lo[group], cell_hi[group], counts[group], ref_start[group],
+                ref_lo, ref_hi, width)
+    big = np.flatnonzero(counts > smaller)
+    if len(big):
+        if len(big) < n:
+            ref_sel = np.repeat(counts > smaller, counts)
+            ref_lo, ref_hi = ref_lo[ref_sel], ref_hi[ref_sel]
+        cost[big], axis[big], plane[big] = _binned_best_splits(
+            params, cell_lo[big], cell_hi[big], counts[big], ref_lo, ref_hi)
+    return cost, axis, plane
+
+
 def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progress=None) -> KDTree:
     """Build an SAH kd-tree with perfect splits over triangles (see module docstring).
 
@@ -304,20 +466,21 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
     triangles = triangles.astype(np.int64)
     triangle_count = len(triangles)
 
-    corners = vertices[triangles].astype(np.float64)                  # (T, 3, 3)
-    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    corners = vertices[triangles]                                     # (T, 3, 3) float32
+    c64 = corners.astype(np.float64)
+    normal = np.cross(c64[:, 1] - c64[:, 0], c64[:, 2] - c64[:, 0])
     kept = np.flatnonzero((normal != 0).any(1))                        # drop zero-area triangles
-    del normal
+    del normal, c64
 
     ref_tri = kept.astype(np.int64)
-    ref_lo = corners[kept].min(1).astype(np.float32)                 # exact: corners are float32
-    ref_hi = corners[kept].max(1).astype(np.float32)
+    ref_lo = corners[kept].min(1)                                     # exact: corners are float32
+    ref_hi = corners[kept].max(1)
     bounds = _root_bounds(ref_lo, ref_hi, vertices)
-    ref_node = np.zeros(len(kept), np.int64)
 
     depth_cap = params.depth_cap(triangle_count)
     root_area = float(_surface_area(bounds[1].astype(np.float64) - bounds[0]))
     cell_lo, cell_hi = bounds[:1].copy(), bounds[1:].copy()
+    counts = np.array([len(kept)], np.int64)
     bad_refines = np.zeros(1, np.int64)
 
     level_words, leaf_lists = [], []
@@ -332,39 +495,45 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
         if progress is not None:
             progress(min(level / (depth_cap + 1), 1.0),
                      f"kd-tree level {level}: {node_count} nodes, {len(ref_tri)} references")
-        counts = np.bincount(ref_node, minlength=node_count)
         ref_start = _exclusive_cumsum(counts)
         dims = cell_hi.astype(np.float64) - cell_lo
         area = _surface_area(dims)
 
-        # 1. Best binned split of every node that may still split.
+        # 1. Best split of every non-empty node that may still split.
         cost = np.full(node_count, np.inf)
         axis = np.zeros(node_count, np.int64)
         plane = np.zeros(node_count, np.float32)
         if level < depth_cap:
-            candidates = np.flatnonzero(counts > 0)
-            if len(candidates):
-                in_candidate = np.zeros(node_count, bool)
-                in_candidate[candidates] = True
-                ref_sel = in_candidate[ref_node]
-                compact = np.cumsum(in_candidate) - 1
-                c_cost, c_axis, c_plane = _binned_best_splits(
-                    params, cell_lo[candidates], cell_hi[candidates], counts[candidates],
-                    compact[ref_node[ref_sel]], ref_lo[ref_sel], ref_hi[ref_sel])
-                cost[candidates], axis[candidates], plane[candidates] = c_cost, c_axis, c_plane
+            cand = np.flatnonzero(counts > 0)
+            if len(cand):
+                cost[cand], axis[cand], plane[cand] = _best_splits(
+                    params, cell_lo[cand], cell_hi[cand], counts[cand], ref_start[cand],
+                    ref_lo, ref_hi)
         has_plane = np.isfinite(cost)
 
-        # 2. Exact counts at the chosen planes; planar references go to the cheaper side.
-        ref_axis = axis[ref_node]
-        ref_plane = plane[ref_node]
-        lo_on_axis = np.take_along_axis(ref_lo, ref_axis[:, None], 1)[:, 0]
-        hi_on_axis = np.take_along_axis(ref_hi, ref_axis[:, None], 1)[:, 0]
-        planar = (lo_on_axis == ref_plane) & (hi_on_axis == ref_plane)
+        # 2. Exact counts at the chosen planes (references of nodes with a plane only); planar
+        #    references go to the cheaper side.
+        n_below = np.zeros(node_count, np.int64)
+        n_above = np.zeros(node_count, np.int64)
+        n_planar = np.zeros(node_count, np.int64)
+        ref_has_plane = np.repeat(has_plane, counts)
+        cand = np.flatnonzero(has_plane)          # all non-empty
+        sel = np.flatnonzero(ref_has_plane)
+        sel_counts = counts[cand]
+        sel_starts = _exclusive_cumsum(sel_counts)[:-1]
+        flat_index = 3 * sel + np.repeat(axis[cand], sel_counts)
+        ref_plane = np.repeat(plane[cand], sel_counts)
+        lo_on_axis = ref_lo.reshape(-1)[flat_index]
+        hi_on_axis = ref_hi.reshape(-1)[flat_index]
+        del flat_index
         below = lo_on_axis < ref_plane
         above = hi_on_axis > ref_plane
-        n_below = np.bincount(ref_node, below, node_count)
-        n_above = np.bincount(ref_node, above, node_count)
-        n_planar = np.bincount(ref_node, planar, node_count)
+        planar = (lo_on_axis == ref_plane) & (hi_on_axis == ref_plane)
+        del lo_on_axis, hi_on_axis, ref_plane
+        if len(cand):
+            n_below[cand] = np.add.reduceat(below, sel_starts, dtype=np.int64)
+            n_above[cand] = np.add.reduceat(above, sel_starts, dtype=np.int64)
+            n_planar[cand] = np.add.reduceat(planar, sel_starts, dtype=np.int64)
         width_below = plane.astype(np.float64) - np.take_along_axis(cell_lo, axis[:, None], 1)[:, 0]
         safe_area = np.where(area > 0, area, 1.0)
         cost_planar_below = _split_cost(params, dims, safe_area, axis, width_below,
@@ -394,8 +563,8 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
         words[:, 0] = np.where(make_leaf, LEAF_TAG | (counts << 2), axis | (first_child << 2))
         words[:, 1] = np.where(make_leaf, leaf_offset, plane.view(np.uint32))
         level_words.append(words)
-        ref_in_leaf = make_leaf[ref_node]
-        leaf_lists.append(ref_tri[ref_in_leaf])
+        ref_in_leaf = np.repeat(make_leaf, counts)
+        leaf_lists.append(ref_tri[ref_in_leaf].astype(np.uint32))
         leaf_total += int(counts[make_leaf].sum())
         leaf_area = area[make_leaf] / root_area
         sah_cost += (params.traversal_cost * area[split].sum() / root_area
@@ -407,49 +576,58 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
         if not split_count:
             break
 
-        # 5. Send references to the children; clip those that straddle the plane.
-        ref_split = split[ref_node]
-        planar_side_below = planar_below[ref_node]
-        goes_below = ref_split & ((below & ~planar) | (planar & planar_side_below))
-        goes_above = ref_split & ((above & ~planar) | (planar & ~planar_side_below))
-        straddles = np.flatnonzero(goes_below & goes_above)
-        below_lo, below_hi = ref_lo.copy(), ref_hi.copy()
-        above_lo, above_hi = ref_lo, ref_hi
+        # 5. Send the references of split nodes (a subset of `sel`) to the children; clip those
+        #    that straddle the plane.
+        split_nodes = np.flatnonzero(split)
+        in_split = split[cand]                                  # per node of `cand`
+        sel_split = np.repeat(in_split, sel_counts)
+        src = sel[sel_split]                                    # reference ids, by node
+        below, above, planar = below[sel_split], above[sel_split], planar[sel_split]
+        split_counts = counts[split_nodes]
+        planar_side_below = np.repeat(planar_below[split_nodes], split_counts)
+        goes_below = (below & ~planar) | (planar & planar_side_below)
+        goes_above = (above & ~planar) | (planar & ~planar_side_below)
+        del below, above, planar, planar_side_below
+        straddles = np.flatnonzero(goes_below & goes_above)     # positions in src
         if len(straddles):
-            s_node = ref_node[straddles]
+            s_node = np.repeat(split_nodes, split_counts)[straddles]
             (b_lo, b_hi, b_ok), (a_lo, a_hi, a_ok) = _clip_straddlers(
-                corners[ref_tri[straddles]], cell_lo[s_node], cell_hi[s_node],
-                axis[s_node], plane[s_node])
+                corners[ref_tri[src[straddles]]].astype(np.float64), cell_lo[s_node],
+                cell_hi[s_node], axis[s_node], plane[s_node])
             goes_below[straddles] = b_ok
             goes_above[straddles] = a_ok
-            below_lo[straddles], below_hi[straddles] = b_lo, b_hi
-            above_lo, above_hi = ref_lo.copy(), ref_hi.copy()
-            above_lo[straddles], above_hi[straddles] = a_lo, a_hi
 
-        # Counting sort into child order: node j's children are 2 * rank(j) and 2 * rank(j) + 1.
-        n_child_below = np.bincount(ref_node, goes_below, node_count).astype(np.int64)[split]
-        n_child_above = np.bincount(ref_node, goes_above, node_count).astype(np.int64)[split]
+        # Children in parent order, each parent's below child first: node j's children are
+        # 2 rank(j) and 2 rank(j) + 1. References keep their order within a child.
+        seg = _exclusive_cumsum(split_counts)[:-1]
+        n_child_below = np.add.reduceat(goes_below, seg, dtype=np.int64)
+        n_child_above = np.add.reduceat(goes_above, seg, dtype=np.int64)
         child_counts = np.stack([n_child_below, n_child_above], 1).reshape(-1)
         child_start = _exclusive_cumsum(child_counts)
         total = int(child_start[-1])
-        new_tri = np.empty(total, np.int64)
-        new_node = np.empty(total, np.int64)
-        new_lo = np.empty((total, 3), np.float32)
-        new_hi = np.empty((total, 3), np.float32)
-        for side, goes, lo, hi in ((0, goes_below, below_lo, below_hi),
-                                   (1, goes_above, above_lo, above_hi)):
-            running = np.cumsum(goes) - goes                       # exclusive, over all refs
-            rank_in_node = running - running[np.minimum(ref_start[:-1], len(running) - 1)][ref_node]
-            sel = np.flatnonzero(goes)
-            child = 2 * split_rank[ref_node[sel]] + side
-            where = child_start[child] + rank_in_node[sel]
-            new_tri[where] = ref_tri[sel]
-            new_node[where] = child
-            new_lo[where] = lo[sel]
-            new_hi[where] = hi[sel]
+        new_src = np.empty(total, np.int64)
+        at_straddler = []
+        for side, goes, n_child in ((0, goes_below, n_child_below), (1, goes_above, n_child_above)):
+            pos_in_src = np.flatnonzero(goes)
+            shift = child_start[0::2][:-1] if side == 0 else child_start[1::2]
+            shift = shift - _exclusive_cumsum(n_child)[:-1]
+            where = np.arange(len(pos_in_src)) + np.repeat(shift, n_child)
+            new_src[where] = src[pos_in_src]
+            if len(straddles):
+                ok = (b_ok, a_ok)[side]
+                at_straddler.append(where[(np.cumsum(goes) - 1)[straddles[ok]]])
+        new_lo = ref_lo[new_src]
+        new_hi = ref_hi[new_src]
+        if len(straddles):
+            # Straddlers get their clipped box on each side they go to.
+            for at, lo_s, hi_s, ok in ((at_straddler[0], b_lo, b_hi, b_ok),
+                                       (at_straddler[1], a_lo, a_hi, a_ok)):
+                new_lo[at] = lo_s[ok]
+                new_hi[at] = hi_s[ok]
+        new_tri = ref_tri[new_src]
+        del new_src
 
         # 6. Children's cells and bad-refine counts.
-        split_nodes = np.flatnonzero(split)
         child_lo = np.repeat(cell_lo[split_nodes], 2, 0)
         child_hi = np.repeat(cell_hi[split_nodes], 2, 0)
         child_axis = np.repeat(axis[split_nodes], 2)
@@ -460,8 +638,9 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
 
         level_base += node_count
         cell_lo, cell_hi = child_lo, child_hi
+        counts = child_counts
         bad_refines = np.repeat(bad_refines[split_nodes], 2)
-        ref_tri, ref_node, ref_lo, ref_hi = new_tri, new_node, new_lo, new_hi
+        ref_tri, ref_lo, ref_hi = new_tri, new_lo, new_hi
         level += 1
 
     nodes = np.concatenate(level_words)
