@@ -45,14 +45,16 @@ class LocalSlave:
             self.lines.put(line.rstrip())
         self.lines.put(None)
 
-    def wait_ready(self, deadline: float) -> tuple[str, int]:
+    def wait_ready(self, deadline: float, cancelled=lambda: False) -> tuple[str, int]:
         """Block until the slave prints its listening line; raise with its output if it fails."""
         output = []
         while time.monotonic() < deadline:
+            if cancelled():
+                raise LocalSlaveError(f"starting local slave {self.name} was cancelled")
             try:
-                line = self.lines.get(timeout=max(0.01, deadline - time.monotonic()))
+                line = self.lines.get(timeout=0.1)
             except queue.Empty:
-                break
+                continue
             if line is None:
                 raise LocalSlaveError(f"local slave {self.name} exited: " + " | ".join(output[-5:]))
             output.append(line)
@@ -84,10 +86,12 @@ class LocalSlaves:
         self._lock = threading.Lock()
 
     def ensure(self, count: int, python: str = "", device: str = "auto",
-               timeout: float = 60.0) -> list[tuple[str, int]]:
+               timeout: float = 60.0, cancelled=lambda: False) -> list[tuple[str, int]]:
         """Have `count` live local slaves; return their endpoints."""
         with self._lock:
-            self._slaves = [s for s in self._slaves if s.alive or s.stop()]
+            for slave in [s for s in self._slaves if not s.alive]:
+                slave.stop()
+                self._slaves.remove(slave)
             for slave in self._slaves[count:]:
                 slave.stop()
             del self._slaves[count:]
@@ -98,7 +102,7 @@ class LocalSlaves:
             deadline = time.monotonic() + timeout
             try:
                 for slave in started:
-                    slave.wait_ready(deadline)
+                    slave.wait_ready(deadline, cancelled)
             except LocalSlaveError:
                 for slave in started:
                     slave.stop()

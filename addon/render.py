@@ -22,6 +22,10 @@ class RenderFailed(Exception):
     """A problem the user must see in Blender's report, not a traceback."""
 
 
+class RenderCancelled(Exception):
+    """The user pressed Esc during a long step (kd-tree build, starting slaves)."""
+
+
 def listed_hosts(settings) -> list[tuple[str, int]]:
     """The enabled entries of the panel's host list, with a message that names a bad one."""
     endpoints = []
@@ -52,7 +56,7 @@ def find_slaves(engine, settings, prefs) -> list[tuple[str, int]]:
     if (not endpoints or settings.use_local_slaves_always) and settings.local_slaves:
         engine.update_stats("", f"KD Trace | Starting {settings.local_slaves} local slave(s)")
         endpoints += state.local_slaves.ensure(settings.local_slaves, prefs.slave_python,
-                                               prefs.slave_device)
+                                               prefs.slave_device, cancelled=engine.test_break)
     if not endpoints:
         raise RenderFailed("no slave is reachable: none answered on the LAN, no host is listed "
                            "and local slaves are off")
@@ -72,6 +76,8 @@ def render(engine, depsgraph):
         exported = time.perf_counter()
 
         def tree_progress(fraction, message):
+            if engine.test_break():
+                raise RenderCancelled
             engine.update_progress(0.5 * fraction)
             engine.update_stats("", f"KD Trace | Building kd-tree: {message}")
 
@@ -101,6 +107,8 @@ def render(engine, depsgraph):
                 raise RenderFailed(job.error)
             uploaded_to = list(master.uploaded_to)
         finished = time.perf_counter()
+    except RenderCancelled:
+        return
     except (SceneError, RenderFailed, MasterError, OSError, RuntimeError) as error:
         engine.report({"ERROR"}, f"KD Trace: {error}")
         engine.error_set(f"KD Trace: {error}")
