@@ -1,0 +1,277 @@
+"""The paper's Tables 1, 2a and 2b (Seo, Kim, Ihm 2017) for our scenes, with build time and peak
+memory per kd-tree mode (standard, choi, ours), and an optional threshold sweep.
+
+    .venv/bin/python bench/kdtree_tables.py [--scenes dragon architecture dragons12]
+        [--sweep] [--check-rays N]
+
+Each scene's standard tree is built once in a child process (its time and peak RSS reported),
+saved under --cache, and every mode is compacted from it in its own child process (time and peak
+RSS of that process, tree loading included). A mode's build time is build + compaction; its peak
+memory is the larger of the two processes' peaks. Table 3 (render time) comes with the kernel.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import resource
+import subprocess
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+
+MODES = ("standard", "choi", "ours")
+MB = 1e6
+
+
+def load_scene(name):
+    from tests.meshes import load_dragon
+    from tests.scenes_architecture import architecture_scene
+    if name == "dragon":
+        return load_dragon()
+    if name == "architecture":
+        return architecture_scene(rooms=(12, 10), floors=3, seed=7)
+    if name == "architecture_small":
+        return architecture_scene(rooms=(3, 2), floors=2, seed=3)
+    if name == "dragons12":
+        # 12 realised (not instanced) copies in a 4 x 3 grid, each shifted by its box size.
+        v, t = load_dragon()
+        size = v.max(0) - v.min(0)
+        vertices, triangles = [], []
+        for k in range(12):
+            shift = np.array([(k % 4) * size[0] * 1.1, (k // 4) * size[1] * 1.1, 0], np.float32)
+            vertices.append(v + shift)
+            triangles.append(t.astype(np.int64) + k * len(v))
+        return np.vstack(vertices), np.vstack(triangles).astype(np.uint32)
+    raise SystemExit(f"unknown scene {name}")
+
+
+def peak_rss_mb():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0   # KiB on Linux
+
+
+def stage_build(name, cache):
+    from core.kdtree import build_kdtree
+    vertices, triangles = load_scene(name)
+    before = peak_rss_mb()
+    started = time.perf_counter()
+    last = [0.0]
+
+    def progress(fraction, message):
+        now = time.perf_counter() - started
+        if now - last[0] > 10 or fraction >= 1.0:
+            last[0] = now
+            print(f"  [{name} {now:6.1f} s] {fraction:4.0%} {message}", file=sys.stderr, flush=True)
+
+    tree = build_kdtree(vertices, triangles, progress=progress)
+    seconds = time.perf_counter() - started
+    np.savez(cache / f"{name}.npz", nodes=tree.nodes, leaf_indices=tree.leaf_indices,
+             bounds=tree.bounds)
+    stats = {k: v for k, v in tree.stats.items()}
+    return {"triangles": len(triangles), "vertices": len(vertices), "build_s": seconds,
+            "peak_mb": peak_rss_mb(), "mesh_mb": before, "tree_bytes": tree.nbytes,
+            "stats": stats}
+
+
+def stage_compact(name, cache, mode, options):
+    from core.kdtree import KDTree
+    from core.kdtree_compact import compact_tree
+    data = np.load(cache / f"{name}.npz")
+    tree = KDTree(data["nodes"], data["leaf_indices"], data["bounds"])
+    triangle_count = int(options.pop("triangles"))
+    started = time.perf_counter()
+    ct = compact_tree(tree, triangle_count, mode, **options)
+    seconds = time.perf_counter() - started
+    stats = {k: v for k, v in ct.stats.items() if k != "node_kinds"}
+    return {"compact_s": seconds, "peak_mb": peak_rss_mb(), "bytes": ct.nbytes,
+            "parts": ct.nbytes_by_part(), "stats": stats}
+
+
+def child(cache, *args):
+    out = subprocess.run([sys.executable, __file__, "--cache", str(cache), "--child", *args],
+                         check=True,
+                         stdout=subprocess.PIPE, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def cpu_model():
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
+
+
+def percent(x, base):
+    return f"{x / MB:,.1f} ({100 * x / base:.1f}%)"
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="+", default=["dragon", "architecture"])
+    parser.add_argument("--cache", default="/tmp/kdtrace-tables")
+    parser.add_argument("--reuse", action="store_true", help="reuse cached standard trees")
+    parser.add_argument("--sweep", action="store_true", help="tau_occu / tau_freq sweep (bytes)")
+    parser.add_argument("--check-rays", type=int, default=0,
+                        help="compare every mode with brute force on this many random rays")
+    parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    cache = pathlib.Path(args.cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    if args.child:
+        stage, name = args.child[:2]
+        if stage == "build":
+            result = stage_build(name, cache)
+        else:
+            result = stage_compact(name, cache, args.child[2], json.loads(args.child[3]))
+        print(json.dumps(result, default=float))
+        return
+
+    from core.kdtree_compact import geometry_nbytes
+    print("command:", " ".join(["python"] + sys.argv))
+    print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs),",
+          f"{os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.0f} GiB RAM,",
+          f"numpy {np.__version__}")
+    results = {}
+    for name in args.scenes:
+        meta = cache / f"{name}.json"
+        if args.reuse and meta.exists() and (cache / f"{name}.npz").exists():
+            built = json.loads(meta.read_text())
+        else:
+            print(f"building {name} ...", flush=True)
+            built = child(cache, "build", name)
+            meta.write_text(json.dumps(built))
+        modes = {}
+        for mode in MODES:
+            modes[mode] = child(cache, "compact", name, mode,
+                                json.dumps({"triangles": built["triangles"]}))
+            print(f"  {name} {mode}: {modes[mode]['compact_s']:.1f} s, "
+                  f"{modes[mode]['bytes'] / MB:.1f} MB", flush=True)
+        results[name] = (built, modes)
+
+    print("\nTable 1: scenes (geometry: float32 vertices, 16/32-bit vertex indices; one material)")
+    print("| scene | triangles (K) | vertices (K) | geometry MB | standard kd-tree MB |")
+    print("|---|---|---|---|---|")
+    for name, (built, modes) in results.items():
+        geometry = geometry_nbytes(built["vertices"], built["triangles"])["total"]
+        print(f"| {name} | {built['triangles'] / 1e3:,.1f} | {built['vertices'] / 1e3:,.1f} | "
+              f"{geometry / MB:,.1f} | {modes['standard']['bytes'] / MB:,.1f} |")
+
+    print("\nTable 2a: kd-tree MB (% of standard)")
+    print("| scene | standard | choi | ours |")
+    print("|---|---|---|---|")
+    for name, (built, modes) in results.items():
+        base = modes["standard"]["bytes"]
+        print(f"| {name} | " + " | ".join(percent(modes[m]["bytes"], base) for m in MODES) + " |")
+
+    print("\nTable 2b: total scene MB = geometry + kd-tree (% of standard)")
+    print("| scene | standard | choi | ours |")
+    print("|---|---|---|---|")
+    for name, (built, modes) in results.items():
+        geometry = geometry_nbytes(built["vertices"], built["triangles"])["total"]
+        base = geometry + modes["standard"]["bytes"]
+        print(f"| {name} | " + " | ".join(percent(geometry + modes[m]["bytes"], base)
+                                          for m in MODES) + " |")
+
+    print("\nBuild time (s: standard build + compaction) and peak RSS (MB, largest process)")
+    print("| scene | mode | build s | of which compaction s | peak MB | nodes | T-ref slots | "
+          "inner refs | lifted tris | leaf refs removed | 2-byte leaves | 4-byte leaves | "
+          "max refs/path |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, (built, modes) in results.items():
+        for m in MODES:
+            r, s = modes[m], modes[m]["stats"]
+            print(f"| {name} | {m} | {built['build_s'] + r['compact_s']:.1f} | "
+                  f"{r['compact_s']:.1f} | {max(built['peak_mb'], r['peak_mb']):,.0f} | "
+                  f"{s['nodes']:,} | {s['tref_nodes']:,} | {s['inner_references']:,} | "
+                  f"{s['lifted_triangles']:,} | {s['references_removed']:,} | "
+                  f"{s['leaves_16bit']:,} | {s['leaves_32bit']:,} | {s['max_refs_on_path']} |")
+    print("\nParts (bytes): ")
+    for name, (built, modes) in results.items():
+        for m in MODES:
+            print(f"  {name} {m}: {modes[m]['parts']}")
+
+    if args.sweep:
+        sweep(results, cache)
+    if args.check_rays:
+        check(args.scenes, cache, args.check_rays)
+
+
+SWEEP = [
+    ("tau_occu", [0.125, 0.25, 0.5, 1.0, 2.0, 4.0], {"tau_freq": 0.4}),
+    ("tau_freq", [0.1, 0.2, 0.4, 0.6, 0.8, 1.0], {"tau_occu": 0.5}),
+]
+ABLATIONS = [
+    ("standard + collapse + empty elision + 2-byte leaves (no lifting)",
+     "ours", {"refs_per_node": 0}),
+    ("ours without collapse", "ours", {"collapse": False}),
+    ("ours without empty-leaf elision", "ours", {"elide_empty": False}),
+    ("ours without 2-byte leaves", "ours", {"leaf16": False}),
+    ("ours, 2 refs/node, no path limit", "ours", {"refs_per_path": None}),
+]
+
+
+def sweep(results, cache):
+    print("\nThreshold sweep (mode ours; tree MB as % of standard, inner references, "
+          "leaf references removed)")
+    for name, (built, modes) in results.items():
+        base = modes["standard"]["bytes"]
+        for param, values, fixed in SWEEP:
+            print(f"\n{name}: {param} (with {fixed})")
+            print(f"| {param} | tree MB (%) | inner refs | T-ref slots | leaf refs removed | "
+                  f"collapsed subtrees | compaction s |")
+            print("|---|---|---|---|---|---|---|")
+            for value in values:
+                r = child(cache, "compact", name, "ours", json.dumps(
+                    {"triangles": built["triangles"], param: value, **fixed}))
+                s = r["stats"]
+                print(f"| {value} | {percent(r['bytes'], base)} | {s['inner_references']:,} | "
+                      f"{s['tref_nodes']:,} | {s['references_removed']:,} | "
+                      f"{s['collapsed_subtrees']:,} | {r['compact_s']:.1f} |", flush=True)
+        print(f"\n{name}: ablations")
+        print("| variant | tree MB (%) |")
+        print("|---|---|")
+        for label, mode, options in ABLATIONS:
+            r = child(cache, "compact", name, mode, json.dumps({"triangles": built["triangles"],
+                                                         **options}))
+            print(f"| {label} | {percent(r['bytes'], base)} |", flush=True)
+
+
+def check(names, cache, count):
+    """Nearest triangle and distance of every mode against brute force (float64)."""
+    from core.kdtree import KDTree
+    from core.kdtree_compact import compact_tree
+    from tests.test_kdtree_compact import brute_force, random_rays, trace_compact
+    print(f"\nCorrectness: {count:,} random rays per scene, every mode against brute force")
+    for name in names:
+        vertices, triangles = load_scene(name)
+        corners = vertices.astype(np.float64)[triangles.astype(np.int64)]
+        data = np.load(cache / f"{name}.npz")
+        tree = KDTree(data["nodes"], data["leaf_indices"], data["bounds"])
+        origins, directions = random_rays(corners, count, seed=11)
+        started = time.perf_counter()
+        bt, btri = brute_force(corners, origins, directions)
+        print(f"  {name}: brute force {time.perf_counter() - started:.0f} s, "
+              f"{np.isfinite(bt).mean():.1%} of rays hit", flush=True)
+        for mode in MODES:
+            ct = compact_tree(tree, len(triangles), mode)
+            t, tri, visits = np.empty(count), np.empty(count, np.int64), 0
+            for start in range(0, count, 100_000):
+                part = slice(start, start + 100_000)
+                t[part], tri[part], v = trace_compact(ct, corners, origins[part], directions[part])
+                visits += v
+            print(f"  {name} {mode}: {int((tri != btri).sum())} rays with another triangle, "
+                  f"{int((t != bt).sum())} with another distance; {visits / count:.1f} node "
+                  f"visits per ray", flush=True)
+
+
+if __name__ == "__main__":
+    main()

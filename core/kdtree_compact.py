@@ -1,0 +1,600 @@
+"""Compressed kd-tree layouts: triangle references in inner nodes and the 2-byte leaf mode.
+
+A post-pass over the standard SAH tree of core/kdtree.py (it only reads `KDTree.nodes`,
+`leaf_indices` and `bounds`), in vectorised numpy with loops per tree level only:
+
+1. **Lifting** (modes `choi` and `ours`): a triangle that is duplicated into many leaves of a
+   subtree is referenced once at the subtree's root (an inner node) and removed from every leaf
+   below it. Which triangles and where is decided by the occupancy and frequency thresholds
+   (docs/kdtree_compression.md), under a limit of references per inner node (1 for `choi`, 2 for
+   `ours`) and per root-to-leaf path (unlimited for `choi`, 8 for `ours`).
+2. **Collapsing**: a subtree whose leaves lost (most of) their references is replaced by a single
+   leaf when that is not more expensive by the SAH (with the subtree's exact, bottom-up cost).
+3. **Layout**: one node format for all three modes (`standard` uses none of the extras), 8 bytes
+   per node; an inner node's children (and its triangle-reference slot) are stored side by side;
+   empty leaves are not stored; leaf triangle lists are 16-bit where they fit, 32-bit otherwise.
+
+Node format (uint32 pairs; `nodes[i, 0]` is word 0, `nodes[i, 1]` word 1)::
+
+    inner node   word0 bits 0-1  split axis 0/1/2
+                 word0 bit 2     R: the node has a triangle-reference slot
+                 word0 bit 3     Eb: the below child is an empty leaf and is not stored
+                 word0 bit 4     Ea: the above child is an empty leaf and is not stored
+                 word0 bits 5-31 c: index of the node's group of slots
+                 word1           split position, float32 bits
+                 The group at c holds, in this order: the T-reference slot (if R), the below
+                 child (unless Eb), the above child (unless Ea). Eb and Ea are never both set.
+    T-ref slot   word0 first triangle index, word1 second triangle index or 0xFFFFFFFF (none;
+                 always none in `choi`: the otherwise unused half of the 8 bytes)
+    leaf         word0 bits 0-1 = 3
+                 word0 bit 2     W: 1 = 16-bit list in `leaf_index16`, 0 = 32-bit in `leaf_index32`
+                 W = 0: word0 bits 3-31 count; word1 offset into leaf_index32
+                 W = 1: word0 bits 3-15 count (1..8191), bits 16-31 base B; word1 offset into
+                        leaf_index16; triangle = (B << leaf_shift) + leaf_index16[offset + j]
+
+`leaf_shift` is per tree: max(0, bits(triangle_count - 1) - 16), so B spans every index.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+MODES = ("standard", "choi", "ours")
+LEAF_TAG = 3
+NO_TRIANGLE = 0xFFFFFFFF
+MAX_GROUP_INDEX = (1 << 27) - 1      # word0 bits 5-31 of an inner node
+MAX_LEAF16_COUNT = (1 << 13) - 1     # word0 bits 3-15 of a 16-bit leaf
+MAX_LEAF32_COUNT = (1 << 29) - 1
+
+
+@dataclass(frozen=True)
+class CompactParams:
+    """What the post-pass does; `compact_params(mode)` gives each mode's defaults."""
+
+    mode: str = "ours"
+    tau_occu: float = 0.5          # lift t to n only if occupancy(t, n) >= tau_occu
+    tau_freq: float = 0.4          # ... and frequency(t, n) >= tau_freq
+    refs_per_node: int = 2         # triangle references per inner node (1 or 2)
+    refs_per_path: int | None = 8  # total on any root-to-leaf path; None: unlimited
+    min_refs: int = 2              # a lift must remove at least this many leaf references
+    collapse: bool = True          # replace subtrees by leaves where the SAH says so
+    elide_empty: bool = True       # empty leaves are flags in the parent, not nodes
+    leaf16: bool = True            # the 2-byte leaf mode
+    traversal_cost: float = 15.0   # K_T, K_I of the collapse decision (as KDTreeParams)
+    intersection_cost: float = 20.0
+
+
+def compact_params(mode: str = "ours", **overrides) -> CompactParams:
+    """Defaults of a mode (`standard`: the plain tree in the common layout), then overrides."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if mode == "standard":
+        base = CompactParams(mode, refs_per_node=0, refs_per_path=0, collapse=False,
+                             elide_empty=False, leaf16=False)
+    elif mode == "choi":
+        base = CompactParams(mode, refs_per_node=1, refs_per_path=None)
+    else:
+        base = CompactParams(mode, refs_per_node=2, refs_per_path=8)
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    params = replace(base, **overrides)
+    if not 0 <= params.refs_per_node <= 2:
+        raise ValueError("refs_per_node must be 0, 1 or 2 (one 8-byte slot)")
+    if params.refs_per_path is not None and params.refs_per_path < 0:
+        raise ValueError("refs_per_path must be >= 0 or None")
+    if params.min_refs < 1:
+        raise ValueError("min_refs must be >= 1")
+    return params
+
+
+@dataclass
+class CompactTree:
+    nodes: np.ndarray          # uint32 (N, 2), format in the module docstring
+    leaf_index32: np.ndarray   # uint32
+    leaf_index16: np.ndarray   # uint16
+    bounds: np.ndarray         # float32 (2, 3)
+    leaf_shift: int
+    params: CompactParams
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def mode(self) -> str:
+        return self.params.mode
+
+    def nbytes_by_part(self) -> dict:
+        """Bytes of each array a tracer needs for the tree (nodes split by kind)."""
+        kinds = self.stats["node_kinds"]
+        return {"inner_nodes": 8 * kinds["inner"], "tref_slots": 8 * kinds["tref"],
+                "leaf_nodes": 8 * kinds["leaf"], "nodes": int(self.nodes.nbytes),
+                "leaf_index32": int(self.leaf_index32.nbytes),
+                "leaf_index16": int(self.leaf_index16.nbytes),
+                "leaf_indices": int(self.leaf_index32.nbytes + self.leaf_index16.nbytes),
+                "total": self.nbytes}
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.nodes.nbytes + self.leaf_index32.nbytes + self.leaf_index16.nbytes)
+
+
+def geometry_nbytes(vertex_count: int, triangle_count: int, material_count: int = 1) -> dict:
+    """Bytes of the geometry a tracer needs: float32 vertices, 16-bit vertex indices when every
+    index fits, else 32-bit, and 16-bit material ids only when there is more than one material."""
+    index_bytes = 2 if vertex_count <= 0x10000 else 4
+    parts = {"vertices": 12 * vertex_count, "triangles": 3 * index_bytes * triangle_count,
+             "material_ids": 2 * triangle_count if material_count > 1 else 0}
+    parts["total"] = sum(parts.values())
+    return parts
+
+
+# ---------------------------------------------------------------------------------------------
+# Helpers
+
+def _exclusive_cumsum(counts) -> np.ndarray:
+    out = np.zeros(len(counts) + 1, np.int64)
+    np.cumsum(counts, out=out[1:])
+    return out
+
+
+def _ranges(starts, lengths) -> np.ndarray:
+    """Concatenation of arange(s, s + n) for every (s, n)."""
+    lengths = np.asarray(lengths, np.int64)
+    total = int(lengths.sum())
+    if not total:
+        return np.zeros(0, np.int64)
+    shift = np.asarray(starts, np.int64) - _exclusive_cumsum(lengths)[:-1]
+    return np.arange(total, dtype=np.int64) + np.repeat(shift, lengths)
+
+
+def _run_starts(*keys) -> np.ndarray:
+    """Start positions of runs of equal consecutive key tuples."""
+    n = len(keys[0])
+    if not n:
+        return np.zeros(0, np.int64)
+    change = np.zeros(n, bool)
+    change[0] = True
+    for key in keys:
+        change[1:] |= key[1:] != key[:-1]
+    return np.flatnonzero(change)
+
+
+class _Topology:
+    """The standard tree decoded: levels, parents, cells' surface areas, preorder numbers."""
+
+    def __init__(self, tree):
+        nodes = tree.nodes
+        n = len(nodes)
+        word0 = nodes[:, 0]
+        self.n = n
+        self.is_leaf = (word0 & 3) == LEAF_TAG
+        self.axis = (word0 & 3).astype(np.int8)
+        self.field = (word0 >> 2).astype(np.int64)
+        self.split_bits = nodes[:, 1]
+        self.parent = np.full(n, -1, np.int64)
+        self.depth = np.zeros(n, np.int16)
+        self.area = np.zeros(n, np.float64)
+        self.levels = []
+        lo = tree.bounds[0].astype(np.float64)[None]
+        hi = tree.bounds[1].astype(np.float64)[None]
+        level = np.zeros(1, np.int64)
+        d = 0
+        while len(level):
+            self.levels.append(level)
+            self.depth[level] = d
+            dims = hi - lo
+            self.area[level] = 2 * (dims[:, 0] * dims[:, 1] + dims[:, 1] * dims[:, 2]
+                                    + dims[:, 2] * dims[:, 0])
+            inner = ~self.is_leaf[level]
+            parents = level[inner]
+            if not len(parents):
+                break
+            child = self.field[parents]
+            if (child <= parents).any() or (child + 1 >= n).any():
+                raise ValueError("kd-tree children must follow their parent and exist")
+            self.parent[child] = parents
+            self.parent[child + 1] = parents
+            ax = self.axis[parents].astype(np.int64)
+            split = self.split_bits[parents].view(np.float32).astype(np.float64)
+            rows = np.arange(len(parents))
+            b_lo, b_hi = lo[inner], hi[inner].copy()
+            a_lo, a_hi = lo[inner].copy(), hi[inner]
+            b_hi[rows, ax] = split
+            a_lo[rows, ax] = split
+            level = np.stack([child, child + 1], 1).reshape(-1)
+            lo = np.stack([b_lo, a_lo], 1).reshape(-1, 3)
+            hi = np.stack([b_hi, a_hi], 1).reshape(-1, 3)
+            d += 1
+        reached = sum(len(l) for l in self.levels)
+        if reached != n:
+            raise ValueError(f"{n - reached} kd-tree nodes are not reachable from the root")
+        # Subtree sizes (bottom-up), then preorder numbers (top-down): a subtree is the preorder
+        # range [pre[n], pre[n] + size[n]).
+        size = np.ones(n, np.int64)
+        for level in reversed(self.levels):
+            inner = level[~self.is_leaf[level]]
+            child = self.field[inner]
+            size[inner] += size[child] + size[child + 1]
+        self.pre = np.zeros(n, np.int64)
+        for level in self.levels:
+            inner = level[~self.is_leaf[level]]
+            child = self.field[inner]
+            self.pre[child] = self.pre[inner] + 1
+            self.pre[child + 1] = self.pre[inner] + 1 + size[child]
+        self.max_depth = len(self.levels) - 1
+
+    def leaf_references(self, tree):
+        """(leaf node, triangle) of every reference of the standard tree."""
+        leaves = np.flatnonzero(self.is_leaf)
+        count = self.field[leaves]
+        offset = tree.nodes[leaves, 1].astype(np.int64)
+        ref_leaf = np.repeat(leaves, count)
+        ref_tri = tree.leaf_indices[_ranges(offset, count)].astype(np.int64)
+        return ref_leaf, ref_tri
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. Lifting
+
+def _lift_candidates(topo, s_leaf, s_tri, r_total, params):
+    """Every (inner node, triangle) pair that passes both thresholds, bottom-up, per depth.
+
+    s_leaf/s_tri: references sorted by (triangle, preorder of the leaf), so that the references of
+    a triangle inside any subtree are one contiguous run. Returns per depth a tuple of arrays
+    (node, triangle, references removed, first and end position of the run in the sorted list).
+    """
+    nonempty = topo.is_leaf & (topo.field > 0)
+    nonempty_below = nonempty.astype(np.int64)
+    for level in reversed(topo.levels):
+        inner = level[~topo.is_leaf[level]]
+        child = topo.field[inner]
+        nonempty_below[inner] = nonempty_below[child] + nonempty_below[child + 1]
+
+    pos = np.flatnonzero(r_total[s_tri] >= params.min_refs)
+    tri, anc = s_tri[pos], s_leaf[pos]
+    leaf_area = topo.area[anc]
+    anc_depth = topo.depth[anc].astype(np.int64)
+    per_depth = [None] * (topo.max_depth + 1)
+    for d in range(topo.max_depth - 1, -1, -1):
+        deeper = np.flatnonzero(anc_depth > d)
+        if not len(deeper):
+            continue
+        anc[deeper] = topo.parent[anc[deeper]]
+        anc_depth[deeper] = d
+        g_tri, g_anc = tri[deeper], anc[deeper]
+        starts = _run_starts(g_tri, g_anc)
+        ends = np.append(starts[1:], len(deeper))
+        r = ends - starts
+        node, t = g_anc[starts], g_tri[starts]
+        occupancy = np.add.reduceat(leaf_area[deeper], starts) / topo.area[node]
+        frequency = r / np.maximum(nonempty_below[node], 1)
+        ok = (r >= params.min_refs) & (occupancy >= params.tau_occu) \
+            & (frequency >= params.tau_freq)
+        per_depth[d] = (node[ok], t[ok], r[ok], pos[deeper[starts[ok]]],
+                        pos[deeper[ends[ok] - 1]] + 1)
+        # A triangle whose references all met in one run only loses occupancy higher up.
+        done = r == r_total[t]
+        if done.any():
+            keep = np.ones(len(tri), bool)
+            keep[deeper[_ranges(starts[done], r[done])]] = False
+            tri, anc, leaf_area, anc_depth, pos = (tri[keep], anc[keep], leaf_area[keep],
+                                                   anc_depth[keep], pos[keep])
+    return per_depth
+
+
+def _select_lifts(topo, per_depth, ref_count, params):
+    """Top-down greedy choice under the per-node and per-path limits.
+
+    At each node the candidates that remove the most references win. A candidate is void when
+    its triangle was already lifted to an ancestor (its whole run is then removed).
+    Returns (removed mask over sorted references, lift node, lift triangle).
+    """
+    removed = np.zeros(ref_count, bool)
+    refs_at = np.zeros(topo.n, np.int64)
+    on_path = np.zeros(topo.n, np.int64)          # references on the proper ancestors
+    path_cap = params.refs_per_path if params.refs_per_path is not None else 1 << 30
+    lift_node, lift_tri = [], []
+    for d, level in enumerate(topo.levels):
+        cand = per_depth[d] if d < len(per_depth) else None
+        if cand is not None and len(cand[0]) and params.refs_per_node:
+            node, tri, r, first, end = cand
+            live = ~removed[first]
+            node, tri, r, first, end = node[live], tri[live], r[live], first[live], end[live]
+            order = np.lexsort((tri, -r, node))
+            node, tri, first, end = node[order], tri[order], first[order], end[order]
+            group = _run_starts(node)
+            rank = np.arange(len(node)) - np.repeat(group, np.diff(np.append(group, len(node))))
+            cap = np.minimum(params.refs_per_node, path_cap - on_path[node])
+            take = rank < cap
+            removed[_ranges(first[take], end[take] - first[take])] = True
+            np.add.at(refs_at, node[take], 1)
+            lift_node.append(node[take])
+            lift_tri.append(tri[take])
+        inner = level[~topo.is_leaf[level]]
+        child = topo.field[inner]
+        on_path[child] = on_path[inner] + refs_at[inner]
+        on_path[child + 1] = on_path[child]
+    lift_node = np.concatenate(lift_node) if lift_node else np.zeros(0, np.int64)
+    lift_tri = np.concatenate(lift_tri) if lift_tri else np.zeros(0, np.int64)
+    return removed, lift_node, lift_tri, refs_at
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. Collapsing
+
+def _distinct_below(topo, item_node, item_tri, triangle_count):
+    """Number of distinct triangles among the items (node, triangle) in each node's subtree.
+
+    Items sorted by (triangle, preorder) climb one level per step; at depth d the runs of equal
+    (triangle, ancestor) are the distinct triangles below each depth-d node. A triangle whose
+    items have all met in one run is counted once in `finished` and dropped from later steps.
+    """
+    order = np.argsort(item_tri * topo.n + topo.pre[item_node], kind="stable")
+    tri, anc = item_tri[order], item_node[order]
+    del order
+    total = np.bincount(tri, minlength=triangle_count)
+    anc_depth = topo.depth[anc].astype(np.int64)
+    finished = np.zeros(topo.n, np.int64)     # finished triangles in the subtree
+    runs_at = np.zeros(topo.n, np.int64)
+    finished_here = np.zeros(topo.n, np.int64)
+    distinct = np.zeros(topo.n, np.int64)
+    for d in range(topo.max_depth, -1, -1):
+        deeper = np.flatnonzero(anc_depth > d)
+        if len(deeper):
+            anc[deeper] = topo.parent[anc[deeper]]
+            anc_depth[deeper] = d
+        here = np.flatnonzero(anc_depth == d)
+        level = topo.levels[d]
+        inner = level[~topo.is_leaf[level]]
+        child = topo.field[inner]
+        finished[inner] = finished[child] + finished[child + 1]
+        if not len(here):
+            distinct[level] = finished[level]
+            continue
+        starts = _run_starts(tri[here], anc[here])
+        lengths = np.diff(np.append(starts, len(here)))
+        run_node = anc[here[starts]]
+        np.add.at(runs_at, run_node, 1)
+        done = lengths == total[tri[here[starts]]]
+        np.add.at(finished_here, run_node[done], 1)
+        distinct[level] = runs_at[level] + finished[level]
+        finished[level] += finished_here[level]
+        runs_at[level] = 0
+        finished_here[level] = 0
+        if done.any():
+            keep = np.ones(len(tri), bool)
+            keep[here[_ranges(starts[done], lengths[done])]] = False
+            tri, anc, anc_depth = tri[keep], anc[keep], anc_depth[keep]
+    return distinct
+
+
+def _collapse(topo, leaf_count, refs_at, distinct, params):
+    """Bottom-up SAH: replace a subtree by one leaf when that is no more expensive."""
+    K_T, K_I = params.traversal_cost, params.intersection_cost
+    cost = K_I * leaf_count.astype(np.float64)
+    collapsed = np.zeros(topo.n, bool)
+    for level in reversed(topo.levels):
+        inner = level[~topo.is_leaf[level]]
+        if not len(inner):
+            continue
+        child = topo.field[inner]
+        area = topo.area[inner]
+        sub = K_T + K_I * refs_at[inner] + (topo.area[child] * cost[child]
+                                            + topo.area[child + 1] * cost[child + 1]) / area
+        as_leaf = K_I * distinct[inner]
+        c = as_leaf <= sub
+        collapsed[inner] = c
+        cost[inner] = np.where(c, as_leaf, sub)
+    return collapsed
+
+
+# ---------------------------------------------------------------------------------------------
+# The post-pass
+
+def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float | None = None,
+                 tau_freq: float | None = None, refs_per_node: int | None = None,
+                 refs_per_path: int | None = -1, progress=None, **options) -> CompactTree:
+    """Rewrite a standard kd-tree (core.kdtree.KDTree) in the compact layout of `mode`.
+
+    `refs_per_path=-1` keeps the mode's default (8 for `ours`, unlimited for `choi`); None means
+    unlimited. Other CompactParams fields (min_refs, collapse, elide_empty, leaf16) may be
+    overridden by keyword. `progress(fraction, message)` is called after each step.
+    """
+    started = time.perf_counter()
+    overrides = dict(tau_occu=tau_occu, tau_freq=tau_freq, refs_per_node=refs_per_node, **options)
+    params = compact_params(mode, **overrides)
+    if refs_per_path != -1:
+        params = replace(params, refs_per_path=refs_per_path)
+    report = progress or (lambda fraction, message: None)
+    triangles_count = int(triangles_count)
+    if len(tree.leaf_indices) and int(tree.leaf_indices.max()) >= triangles_count:
+        raise ValueError("the tree refers to triangles beyond triangles_count")
+
+    topo = _Topology(tree)
+    ref_leaf, ref_tri = topo.leaf_references(tree)
+    reference_count = len(ref_tri)
+    order = np.argsort(ref_tri * topo.n + topo.pre[ref_leaf], kind="stable")
+    s_leaf, s_tri = ref_leaf[order], ref_tri[order]
+    del order, ref_leaf, ref_tri
+    r_total = np.bincount(s_tri, minlength=triangles_count)
+    report(0.2, "compact: tree decoded")
+
+    lifting = params.refs_per_node > 0 and (params.refs_per_path is None
+                                            or params.refs_per_path > 0)
+    if lifting:
+        per_depth = _lift_candidates(topo, s_leaf, s_tri, r_total, params)
+        removed, lift_node, lift_tri, refs_at = _select_lifts(topo, per_depth, len(s_tri), params)
+        del per_depth
+    else:
+        removed = np.zeros(len(s_tri), bool)
+        lift_node = lift_tri = np.zeros(0, np.int64)
+        refs_at = np.zeros(topo.n, np.int64)
+    report(0.5, f"compact: {len(lift_tri)} triangle references lifted")
+
+    keep_ref = ~removed
+    k_leaf, k_tri = s_leaf[keep_ref], s_tri[keep_ref]
+    del s_leaf, s_tri, removed, keep_ref
+    leaf_count = np.bincount(k_leaf, minlength=topo.n)
+
+    # 2. Collapse subtrees (the triangles lifted inside a subtree come back into its leaf).
+    if params.collapse:
+        distinct = _distinct_below(topo, np.concatenate([k_leaf, lift_node]),
+                                   np.concatenate([k_tri, lift_tri]), triangles_count)
+        collapsed = _collapse(topo, leaf_count, refs_at, distinct, params)
+    else:
+        collapsed = np.zeros(topo.n, bool)
+    report(0.7, f"compact: {int(collapsed.sum())} subtrees collapsed")
+
+    # Which nodes survive, and the leaf each removed node's contents go to.
+    dead = np.zeros(topo.n, bool)
+    owner = np.arange(topo.n)
+    for level in topo.levels:
+        inner = level[~topo.is_leaf[level]]
+        child = topo.field[inner]
+        gone = dead[inner] | collapsed[inner]
+        for c in (child, child + 1):
+            dead[c] = gone
+            owner[c] = np.where(gone, owner[inner], c)
+    is_final_leaf = ~dead & (topo.is_leaf | collapsed)
+    lift_gone = dead[lift_node] | collapsed[lift_node]
+    item_leaf = np.concatenate([owner[k_leaf], owner[lift_node[lift_gone]]])
+    item_tri = np.concatenate([k_tri, lift_tri[lift_gone]])
+    lift_node, lift_tri = lift_node[~lift_gone], lift_tri[~lift_gone]
+    refs_at = np.bincount(lift_node, minlength=topo.n)
+    del k_leaf, k_tri
+    key = np.unique(item_leaf * np.int64(triangles_count) + item_tri)
+    item_leaf, item_tri = key // triangles_count, key % triangles_count
+    del key
+    final_count = np.bincount(item_leaf, minlength=topo.n)
+
+    nodes, leaf32, leaf16, shift, kinds, leaf_stats = _layout(
+        topo, params, is_final_leaf, dead, final_count, item_leaf, item_tri, lift_node,
+        lift_tri, refs_at, triangles_count)
+
+    on_path = np.zeros(topo.n, np.int64)
+    max_path = 0
+    for level in topo.levels:
+        live = level[~dead[level]]
+        if len(live):
+            max_path = max(max_path, int((on_path[live] + refs_at[live]).max()))
+        inner = level[~topo.is_leaf[level]]
+        child = topo.field[inner]
+        on_path[child] = on_path[inner] + refs_at[inner]
+        on_path[child + 1] = on_path[child]
+
+    out = CompactTree(nodes, leaf32, leaf16, tree.bounds.astype(np.float32), shift, params)
+    out.stats = {
+        "mode": params.mode,
+        "nodes": len(nodes),
+        "node_kinds": kinds,
+        "standard_nodes": topo.n,
+        "references_standard": reference_count,
+        "leaf_references": int(len(item_tri)),
+        "references_removed": reference_count - int(len(item_tri)),
+        "inner_references": int(len(lift_tri)),
+        "lifted_triangles": int(len(np.unique(lift_tri))),
+        "tref_nodes": int((refs_at > 0).sum()),
+        "nodes_with_two_refs": int((refs_at > 1).sum()),
+        "max_refs_on_path": max_path,
+        "collapsed_subtrees": int((collapsed & ~dead).sum()),
+        **leaf_stats,
+        "bytes": out.nbytes,
+        "compact_seconds": time.perf_counter() - started,
+    }
+    report(1.0, f"compact ({params.mode}): {len(nodes)} nodes, {out.nbytes} bytes")
+    return out
+
+
+def _layout(topo, params, is_final_leaf, dead, final_count, item_leaf, item_tri, lift_node,
+            lift_tri, refs_at, triangles_count):
+    """Number the surviving nodes level by level and write the words (module docstring)."""
+    empty_leaf = is_final_leaf & (final_count == 0)
+    elided = np.zeros(topo.n, bool)
+    if params.elide_empty:
+        inner_live = np.flatnonzero(~dead & ~is_final_leaf)
+        child = topo.field[inner_live]
+        below_empty, above_empty = empty_leaf[child], empty_leaf[child + 1]
+        elided[child] = below_empty & ~above_empty
+        elided[child + 1] = above_empty & ~below_empty
+    # Slot of every lift: 0 or 1 within its node.
+    order = np.lexsort((lift_tri, lift_node))
+    lift_node, lift_tri = lift_node[order], lift_tri[order]
+    first = _run_starts(lift_node)
+    slot = np.arange(len(lift_node)) - np.repeat(first, np.diff(np.append(first, len(lift_node))))
+
+    new_index = np.full(topo.n, -1, np.int64)
+    group_of = np.zeros(topo.n, np.int64)
+    new_index[0] = 0
+    next_free = 1
+    for level in topo.levels:
+        inner = level[~dead[level] & ~is_final_leaf[level]]
+        if not len(inner):
+            continue
+        inner = inner[np.argsort(new_index[inner], kind="stable")]
+        child = topo.field[inner]
+        has_ref = (refs_at[inner] > 0).astype(np.int64)
+        keep_b = (~elided[child]).astype(np.int64)
+        keep_a = (~elided[child + 1]).astype(np.int64)
+        sizes = has_ref + keep_b + keep_a
+        start = next_free + _exclusive_cumsum(sizes)[:-1]
+        group_of[inner] = start
+        new_index[child] = np.where(keep_b > 0, start + has_ref, -1)
+        new_index[child + 1] = np.where(keep_a > 0, start + has_ref + keep_b, -1)
+        next_free += int(sizes.sum())
+    total = next_free
+    if total - 1 > MAX_GROUP_INDEX:
+        raise ValueError(f"compact kd-tree too large: {total} nodes (at most {MAX_GROUP_INDEX})")
+    nodes = np.zeros((total, 2), np.uint32)
+
+    # Inner nodes.
+    inner = np.flatnonzero(~dead & ~is_final_leaf)
+    child = topo.field[inner]
+    word0 = (topo.axis[inner].astype(np.int64) | ((refs_at[inner] > 0) << 2)
+             | (elided[child].astype(np.int64) << 3) | (elided[child + 1].astype(np.int64) << 4)
+             | (group_of[inner] << 5))
+    nodes[new_index[inner], 0] = word0
+    nodes[new_index[inner], 1] = topo.split_bits[inner]
+    # T-reference slots: at the start of their node's group.
+    tref_nodes = np.flatnonzero(refs_at > 0)
+    nodes[group_of[tref_nodes]] = NO_TRIANGLE
+    nodes[group_of[lift_node], slot] = lift_tri
+
+    # Leaves, in new index order (which is the old index order restricted to survivors).
+    leaves = np.flatnonzero(is_final_leaf & ~elided)
+    count = final_count[leaves]
+    shift = max(0, (max(triangles_count, 1) - 1).bit_length() - 16)
+    starts = _exclusive_cumsum(final_count)[:-1][leaves]
+    nonempty = count > 0
+    low = np.zeros(len(leaves), np.int64)
+    high = np.zeros(len(leaves), np.int64)
+    low[nonempty] = item_tri[starts[nonempty]]
+    high[nonempty] = item_tri[starts[nonempty] + count[nonempty] - 1]
+    base = low >> shift
+    fits16 = (params.leaf16 & nonempty & (count <= MAX_LEAF16_COUNT)
+              & (high - (base << shift) <= 0xFFFF))
+    if (count > MAX_LEAF32_COUNT).any():
+        raise ValueError("a leaf holds too many triangles for the 29-bit count")
+    item_is16 = np.repeat(fits16, count)
+    idx32 = item_tri[~item_is16].astype(np.uint32)
+    idx16 = (item_tri[item_is16] - np.repeat((base << shift)[fits16], count[fits16])
+             ).astype(np.uint16)
+    off32 = _exclusive_cumsum(np.where(fits16, 0, count))[:-1]
+    off16 = _exclusive_cumsum(np.where(fits16, count, 0))[:-1]
+    word0 = np.where(fits16, LEAF_TAG | (1 << 2) | (count << 3) | (base << 16),
+                     LEAF_TAG | (count << 3))
+    word1 = np.where(fits16, off16, np.where(nonempty, off32, 0))
+    nodes[new_index[leaves], 0] = word0
+    nodes[new_index[leaves], 1] = word1
+
+    kinds = {"inner": int(len(inner)), "tref": int(len(tref_nodes)), "leaf": int(len(leaves))}
+    assert sum(kinds.values()) == total
+    leaf_stats = {
+        "leaves": int(len(leaves)),
+        "empty_leaves_stored": int((~nonempty).sum()),
+        "empty_leaves_elided": int(elided.sum()),
+        "leaves_16bit": int(fits16.sum()),
+        "leaves_32bit": int((nonempty & ~fits16).sum()),
+        "leaf16_share": float(fits16.sum() / max(int(nonempty.sum()), 1)),
+        "leaf_shift": shift,
+    }
+    return nodes, idx32, idx16, shift, kinds, leaf_stats
