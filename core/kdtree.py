@@ -173,13 +173,14 @@ def _split_piece_boxes(poly, count, axis, plane):
     lo = np.empty((2, 3, K))
     hi = np.empty((2, 3, K))
     n_cross = crossing.sum(0)
+    # The crossing points belong to both halves: their extremes are taken once.
+    cross_lo = np.where(crossing, crossing_point, np.inf).min(1)          # (3, K)
+    cross_hi = np.where(crossing, crossing_point, -np.inf).max(1)
+    del crossing_point
     counts = []
     for side, keep in ((0, valid & (d <= 0)), (1, valid & (d >= 0))):
-        for c in range(3):
-            lo[side, c] = np.minimum(np.where(keep, poly[c], np.inf).min(0),
-                                     np.where(crossing, crossing_point[c], np.inf).min(0))
-            hi[side, c] = np.maximum(np.where(keep, poly[c], -np.inf).max(0),
-                                     np.where(crossing, crossing_point[c], -np.inf).max(0))
+        np.minimum(np.where(keep, poly, np.inf).min(1), cross_lo, out=lo[side])
+        np.maximum(np.where(keep, poly, -np.inf).max(1), cross_hi, out=hi[side])
         counts.append(keep.sum(0) + n_cross)
     return lo, hi, counts
 
@@ -324,29 +325,23 @@ def _binned_best_splits(params, cell_lo, cell_hi, counts, ref_lo, ref_hi):
     return best_cost, best_axis, best_plane
 
 
-def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, ref_lo, ref_hi, width):
+def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, ref_lo, ref_hi, width,
+                       chain=0):
     """Exact SAH over all candidate planes of small nodes (at most `width` references each).
 
     Every reference bound is a candidate. The nodes' references are packed into (n, width)
     arrays (padding counts on no side), and each candidate is compared against all of its
     node's boxes: below = low end < plane, above = high end > plane, planar = flat at the plane
-    (planar references go to the cheaper side). Returns (cost, axis, plane float32).
+    (planar references go to the cheaper side). Returns (cost, axis, plane float32) and the
+    chain of up to `chain` later decisions (see `_exact_chain`).
     """
-    n = len(counts)
     slots = np.arange(width)
     used = slots[None, :] < counts[:, None]
     index = np.minimum(first_ref[:, None] + slots, len(ref_lo) - 1)
     group_lo = np.where(used[..., None], ref_lo[index], np.float32(np.inf))       # (n, width, 3)
     group_hi = np.where(used[..., None], ref_hi[index], np.float32(-np.inf))
-    dims = (cell_hi.astype(np.float64) - cell_lo)
-    inv_area = 1.0 / _surface_area(dims)
-    dims = dims.astype(np.float32)
-    best_cost = np.full(n, np.inf)
-    best_axis = np.zeros(n, np.int64)
-    best_plane = np.zeros(n, np.float32)
-    rows = np.arange(n)
-    K_T = np.float32(params.traversal_cost)
-    bonus = np.float32(params.empty_bonus)
+    del index
+    per_axis = []
     for axis in range(3):
         lo = np.ascontiguousarray(group_lo[:, :, axis])
         hi = np.ascontiguousarray(group_hi[:, :, axis])
@@ -355,7 +350,8 @@ def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, ref_lo, ref_
         # Counts as int8 (width <= 16), viewing each comparison's bools as 0/1 bytes.
         below = np.zeros(cand.shape, np.int8)
         above = np.zeros(cand.shape, np.int8)
-        on_plane = np.zeros(cand.shape, np.int8) if planar.any() else None
+        planar_rows = planar.any(1)
+        on_plane = np.zeros(cand.shape, np.int8) if planar_rows.any() else None
         test = np.empty(cand.shape, bool)
         test8 = test.view(np.int8)
         for j in range(width):
@@ -367,6 +363,36 @@ def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, ref_lo, ref_
                 np.equal(lo[:, j:j + 1], cand, out=test)
                 test &= planar[:, j:j + 1]
                 on_plane += test8
+        per_axis.append((cand, below, above, on_plane, planar_rows))
+    del group_lo, group_hi
+    cost, axis, plane, n_below, n_above, n_planar = _rank_exact(params, per_axis, cell_lo,
+                                                                cell_hi, None)
+    chained = _exact_chain(params, per_axis, cell_lo, cell_hi, counts, chain, axis, plane,
+                           cost, n_below, n_above, n_planar)
+    return cost, axis, plane, chained
+
+
+def _rank_exact(params, per_axis, cell_lo, cell_hi, rows_of):
+    """Cheapest candidate of each node from the counts of `_exact_best_splits` (rows `rows_of`
+    of them, or all), for cells (cell_lo, cell_hi). Returns cost, axis, plane and the counts
+    below / above / planar at that plane."""
+    dims = (cell_hi.astype(np.float64) - cell_lo)
+    inv_area = 1.0 / _surface_area(dims)
+    dims = dims.astype(np.float32)
+    n = len(dims)
+    best_cost = np.full(n, np.inf)
+    best_axis = np.zeros(n, np.int64)
+    best_plane = np.zeros(n, np.float32)
+    best_counts = np.zeros((3, n), np.int8)
+    rows = np.arange(n)
+    K_T = np.float32(params.traversal_cost)
+    bonus = np.float32(params.empty_bonus)
+    for axis, (cand, below, above, on_plane, planar_rows) in enumerate(per_axis):
+        if rows_of is not None:
+            cand, below, above = cand[rows_of], below[rows_of], above[rows_of]
+            planar_rows = planar_rows[rows_of]
+            if on_plane is not None:
+                on_plane = on_plane[rows_of] if planar_rows.any() else None
         # Costs in float32 (they only rank candidates; the caller recounts the chosen plane).
         # With w the width below the plane, area_below = w P + Q and area_above = R - w P
         # (all scaled by K_I / area).
@@ -379,31 +405,87 @@ def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, ref_lo, ref_
         inside = (cand > cell_low) & (cand < cell_hi[:, axis:axis + 1])
         wP = np.where(inside, cand - cell_low, np.float32(0))
         wP *= P
-
         no_plane = np.where(inside, np.float32(1), np.float32(np.inf))
+        del inside
 
-        def variant(n_below, n_above):
+        def variant(n_below, n_above, wP=wP, Q=Q, R=R, no_plane=no_plane):
             cost = (wP + Q) * n_below.astype(np.float32)
             cost += (R - wP) * n_above.astype(np.float32)
             cost += K_T
             cost *= np.where((n_below == 0) | (n_above == 0), bonus * no_plane, no_plane)
             return cost
 
-        if on_plane is None:
-            cost = variant(below, above)
-        else:             # planar references on the cheaper side, with its empty bonus
-            cost = np.minimum(variant(below + on_plane, above), variant(below, above + on_plane))
+        cost = variant(below, above)
+        if on_plane is not None:
+            # Planar references on the cheaper side, with its empty bonus; only rows that have
+            # planar references (elsewhere both variants equal the plain one).
+            pr = np.flatnonzero(planar_rows)
+            b, a, o = below[pr], above[pr], on_plane[pr]
+            sub = dict(wP=wP[pr], Q=Q[pr], R=R[pr], no_plane=no_plane[pr])
+            cost[pr] = np.minimum(variant(b + o, a, **sub), variant(b, a + o, **sub))
         k = np.argmin(cost, 1)
         c = cost[rows, k].astype(np.float64)
         better = c < best_cost
         best_cost[better] = c[better]
         best_axis[better] = axis
         best_plane[better] = cand[rows, k][better]
-    return best_cost, best_axis, best_plane
+        best_counts[0, better] = below[rows, k][better]
+        best_counts[1, better] = above[rows, k][better]
+        if on_plane is not None:
+            best_counts[2, better] = on_plane[rows, k][better]
+        else:
+            best_counts[2, better] = 0
+    return best_cost, best_axis, best_plane, best_counts[0], best_counts[1], best_counts[2]
+
+
+def _exact_chain(params, per_axis, cell_lo, cell_hi, counts, chain, axis, plane, cost,
+                 n_below, n_above, n_planar):
+    """Decisions of the nodes that the chosen splits leave with the same references.
+
+    A split with every reference strictly on one side (an empty-space cut: nothing on the
+    other side, nothing planar at the plane) gives a child with exactly its parent's
+    references and boxes, so its candidate counts are the parent's; only the cell, and so the
+    costs, differ. This ranks those children's candidates from the counts already taken, and
+    theirs in turn, up to `chain` levels down. Returns (cost float32, axis int8, plane float32)
+    arrays (n, chain) and the chain length of each node; the build hands them to that child.
+    """
+    n = len(counts)
+    fut_cost = np.full((n, chain), np.inf, np.float32)
+    fut_axis = np.zeros((n, chain), np.int8)
+    fut_plane = np.zeros((n, chain), np.float32)
+    fut_len = np.zeros(n, np.int8)
+    active = np.arange(n)
+    lo, hi = cell_lo, cell_hi
+    count = counts.astype(np.int8)
+    for step in range(chain):
+        pure = np.isfinite(cost) & (n_planar == 0) & (
+            ((n_below == count) & (n_above == 0)) | ((n_below == 0) & (n_above == count)))
+        keep = np.flatnonzero(pure)
+        if not len(keep):
+            break
+        active, count = active[keep], count[keep]
+        lo, hi = lo[keep].copy(), hi[keep].copy()
+        goes_below = n_below[keep] == count
+        ax = axis[keep]
+        r = np.arange(len(keep))
+        # The child that keeps every reference: below child (hi = plane) or above (lo = plane).
+        hi[r[goes_below], ax[goes_below]] = plane[keep][goes_below]
+        lo[r[~goes_below], ax[~goes_below]] = plane[keep][~goes_below]
+        cost, axis, plane, n_below, n_above, n_planar = _rank_exact(params, per_axis, lo, hi,
+                                                                    active)
+        fut_cost[active, step] = cost
+        fut_axis[active, step] = axis
+        fut_plane[active, step] = plane
+        fut_len[active] = step + 1
+    return fut_cost, fut_axis, fut_plane, fut_len
+
+
 # ---------------------------------------------------------------------------------------------
 # The build
 
 EXACT_WIDTHS = (1, 2, 4, 8, 16)   # nodes with up to 16 references: exact SAH in padded groups
+EXACT_CHUNK = 16384               # nodes per exact-SAH step (temporaries stay in cache)
+CHAIN = 6                         # later decisions carried down chains of empty-space cuts
 
 
 def _root_bounds(boxes_lo, boxes_hi, vertices):
@@ -423,31 +505,41 @@ def _root_bounds(boxes_lo, boxes_hi, vertices):
     return np.stack([_round_down_f32(lo), _round_up_f32(hi)]).astype(np.float32)
 
 
-def _best_splits(params, cell_lo, cell_hi, counts, ref_start, ref_lo, ref_hi):
+def _best_splits(params, cell_lo, cell_hi, counts, ref_start, ref_lo, ref_hi, chain):
     """Best split of every node given (all with at least one reference).
 
-    Small nodes get exact SAH over all their references' bounds; bigger ones binned SAH.
+    Small nodes get exact SAH over all their references' bounds, in chunks of EXACT_CHUNK
+    nodes (smaller temporaries), plus their chains of later decisions (`_exact_chain`);
+    bigger ones binned SAH. Returns cost, axis, plane and the chains (length 0 for binned).
     """
     n = len(counts)
     cost = np.full(n, np.inf)
     axis = np.zeros(n, np.int64)
     plane = np.zeros(n, np.float32)
+    fut_cost = np.full((n, chain), np.inf, np.float32)
+    fut_axis = np.zeros((n, chain), np.int8)
+    fut_plane = np.zeros((n, chain), np.float32)
+    fut_len = np.zeros(n, np.int8)
     smaller = 0
     for width in EXACT_WIDTHS:
         group = np.flatnonzero((counts > smaller) & (counts <= width))
         smaller = width
-        if len(group):
-            cost[group], axis[group], plane[group] = _exact_best_splits(
-                params, cell_lo[group], cell_hi[group], counts[group], ref_start[group],
-                ref_lo, ref_hi, width)
+        for at in range(0, len(group), EXACT_CHUNK):
+            part = group[at:at + EXACT_CHUNK]
+            cost[part], axis[part], plane[part], chained = _exact_best_splits(
+                params, cell_lo[part], cell_hi[part], counts[part], ref_start[part],
+                ref_lo, ref_hi, width, chain)
+            fut_cost[part], fut_axis[part], fut_plane[part], fut_len[part] = chained
     big = np.flatnonzero(counts > smaller)
     if len(big):
-        if len(big) < n:
-            ref_sel = np.repeat(counts > smaller, counts)
+        if int(counts[big].sum()) < len(ref_lo):     # the big nodes' references only
+            big_counts = counts[big]
+            ref_sel = np.arange(int(big_counts.sum())) + np.repeat(
+                ref_start[big] - _exclusive_cumsum(big_counts)[:-1], big_counts)
             ref_lo, ref_hi = ref_lo[ref_sel], ref_hi[ref_sel]
         cost[big], axis[big], plane[big] = _binned_best_splits(
             params, cell_lo[big], cell_hi[big], counts[big], ref_lo, ref_hi)
-    return cost, axis, plane
+    return cost, axis, plane, (fut_cost, fut_axis, fut_plane, fut_len)
 
 
 def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progress=None) -> KDTree:
@@ -482,6 +574,7 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
     cell_lo, cell_hi = bounds[:1].copy(), bounds[1:].copy()
     counts = np.array([len(kept)], np.int64)
     bad_refines = np.zeros(1, np.int64)
+    pend_len = np.zeros(1, np.int8)
 
     level_words, leaf_lists = [], []
     leaf_total = 0
@@ -500,15 +593,34 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
         area = _surface_area(dims)
 
         # 1. Best split of every non-empty node that may still split.
+        #    A node that an empty-space cut left with its parent's references carries its
+        #    decision (and those of its own such children) from `_exact_chain`.
         cost = np.full(node_count, np.inf)
         axis = np.zeros(node_count, np.int64)
         plane = np.zeros(node_count, np.float32)
+        fut_cost = np.full((node_count, CHAIN), np.inf, np.float32)
+        fut_axis = np.zeros((node_count, CHAIN), np.int8)
+        fut_plane = np.zeros((node_count, CHAIN), np.float32)
+        fut_len = np.zeros(node_count, np.int8)
         if level < depth_cap:
-            cand = np.flatnonzero(counts > 0)
+            chain = min(CHAIN, depth_cap - level - 1)
+            cand = np.flatnonzero((counts > 0) & (pend_len == 0))
             if len(cand):
-                cost[cand], axis[cand], plane[cand] = _best_splits(
+                cost[cand], axis[cand], plane[cand], chained = _best_splits(
                     params, cell_lo[cand], cell_hi[cand], counts[cand], ref_start[cand],
-                    ref_lo, ref_hi)
+                    ref_lo, ref_hi, chain)
+                for fut, part in zip((fut_cost, fut_axis, fut_plane), chained):
+                    fut[cand, :chain] = part
+                fut_len[cand] = chained[3]
+            carried = np.flatnonzero(pend_len > 0)
+            if len(carried):
+                cost[carried] = pend_cost[carried, 0]
+                axis[carried] = pend_axis[carried, 0]
+                plane[carried] = pend_plane[carried, 0]
+                for fut, pend in ((fut_cost, pend_cost), (fut_axis, pend_axis),
+                                  (fut_plane, pend_plane)):
+                    fut[carried, :-1] = pend[carried, 1:]
+                fut_len[carried] = pend_len[carried] - 1
         has_plane = np.isfinite(cost)
 
         # 2. Exact counts at the chosen planes (references of nodes with a plane only); planar
@@ -638,8 +750,20 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
 
         level_base += node_count
         cell_lo, cell_hi = child_lo, child_hi
-        counts = child_counts
+        parent_counts, counts = counts, child_counts
         bad_refines = np.repeat(bad_refines[split_nodes], 2)
+        # The child of an empty-space cut that keeps all references inherits the chain.
+        pend_cost = np.full((2 * split_count, CHAIN), np.inf, np.float32)
+        pend_axis = np.zeros((2 * split_count, CHAIN), np.int8)
+        pend_plane = np.zeros((2 * split_count, CHAIN), np.float32)
+        pend_len = np.zeros(2 * split_count, np.int8)
+        heirs = split_nodes[fut_len[split_nodes] > 0]
+        heir = 2 * split_rank[heirs] + (n_below[heirs] != parent_counts[heirs])
+        same = child_counts[heir] == parent_counts[heirs]            # always, by construction
+        heirs, heir = heirs[same], heir[same]
+        for pend, fut in ((pend_cost, fut_cost), (pend_axis, fut_axis), (pend_plane, fut_plane)):
+            pend[heir] = fut[heirs]
+        pend_len[heir] = fut_len[heirs]
         ref_tri, ref_lo, ref_hi = new_tri, new_lo, new_hi
         level += 1
 

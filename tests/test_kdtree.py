@@ -222,6 +222,20 @@ def test_coarse_bins_still_correct():
     build_and_check(vertices, triangles, KDTreeParams(max_bins=4, min_bins=2))
 
 
+@pytest.mark.parametrize("name", ["bunny", "cube_of_quads", "slivers"])
+def test_carried_decisions_and_chunks_give_the_same_tree(name, monkeypatch):
+    # Decisions carried down chains of empty-space cuts (core.kdtree._exact_chain) and exact
+    # SAH in chunks must reproduce, bit for bit, the tree built by ranking every node afresh.
+    import core.kdtree as kd
+    vertices, triangles = SCENES[name]()
+    reference = build_kdtree(vertices, triangles)
+    monkeypatch.setattr(kd, "CHAIN", 0)
+    monkeypatch.setattr(kd, "EXACT_CHUNK", 7)
+    fresh = build_kdtree(vertices, triangles)
+    assert np.array_equal(reference.nodes, fresh.nodes)
+    assert np.array_equal(reference.leaf_indices, fresh.leaf_indices)
+
+
 def test_node_format_and_stats():
     vertices, triangles = uv_sphere(32, 16)
     levels = []
