@@ -22,12 +22,19 @@ def steepest_neighbour_slope(depth: np.ndarray) -> np.ndarray:
     return slope
 
 
-@pytest.fixture(scope="module")
-def renders(tmp_path_factory):
+CAMERAS = {
+    "perspective, shifted, vertical sensor fit": dict(camera_type="PERSP", shift=[0.05, -0.03],
+                                                      sensor_fit="VERTICAL"),
+    "orthographic, shifted": dict(camera_type="ORTHO", shift=[-0.04, 0.02]),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(CAMERAS))
+def renders(request, tmp_path_factory):
     work = tmp_path_factory.mktemp("cycles")
     zip_path = build_extension(work / "dist")
     run_bpy_script("depth_vs_cycles", work, zip=str(zip_path), out=str(work),
-                   width=160, height=120, shift=[0.05, -0.03], cycles_samples=16)
+                   width=160, height=120, **CAMERAS[request.param])
     return {name: np.load(work / f"{name}.npy") for name in
             ("cycles_depth", "kdtrace_depth", "cycles_normal", "kdtrace_normal")}
 
@@ -37,16 +44,17 @@ def test_depth_matches_cycles(renders):
     assert cycles.shape == ours.shape == (120, 160)
     cycles_hit, our_hit = cycles < MISS, ours < MISS
     assert 0.2 < cycles_hit.mean() < 1.0, "the test scene should show both objects and background"
-    mask_differences = np.count_nonzero(cycles_hit != our_hit)
-    assert mask_differences <= 0.001 * cycles.size, f"{mask_differences} pixels differ in hit/miss"
     both = cycles_hit & our_hit
     relative = np.abs(ours[both] - cycles[both]) / cycles[both]
-    # Within 1e-4 wherever Cycles' own sub-pixel jitter cannot move the depth by more...
+    # Within 1e-4 wherever Cycles' own sub-pixel offset cannot move the depth by more.
     jitter = CYCLES_JITTER_PIXELS * steepest_neighbour_slope(np.where(our_hit, ours, np.inf))[both]
-    assert (relative <= np.maximum(1e-4, jitter)).all(), \
-        f"worst relative depth error {relative.max():.2e} (jitter bound there {jitter[relative.argmax()]:.2e})"
-    # ... which holds for all but a handful of silhouette pixels.
-    assert np.mean(relative <= 1e-4) >= 0.999, f"{np.mean(relative <= 1e-4):.4%} within 1e-4"
+    within = relative <= np.maximum(1e-4, jitter)
+    # Where a silhouette passes within that offset of a pixel centre, Cycles' one sample can
+    # land on the other surface (checked once in float64: the ray through the exact centre of
+    # such a pixel hits what we hit). Those pixels count with the hit/miss differences.
+    silhouette = np.count_nonzero(~within) + np.count_nonzero(cycles_hit != our_hit)
+    assert silhouette <= 0.001 * cycles.size, f"{silhouette} pixels disagree at silhouettes"
+    assert np.mean(relative <= 1e-4) >= 0.999, f"only {np.mean(relative <= 1e-4):.4%} within 1e-4"
 
 
 def test_normals_match_cycles_on_flat_surfaces(renders):

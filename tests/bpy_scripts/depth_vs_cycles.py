@@ -10,6 +10,9 @@ install_extension(args["zip"])
 scene = build_test_scene(args["width"], args["height"])
 camera = scene.camera.data
 camera.shift_x, camera.shift_y = args.get("shift", (0.0, 0.0))
+camera.type = args.get("camera_type", "PERSP")
+camera.sensor_fit = args.get("sensor_fit", "AUTO")
+camera.ortho_scale = 9.0
 view_layer = bpy.context.view_layer
 view_layer.use_pass_z = True
 view_layer.use_pass_normal = True
@@ -21,7 +24,7 @@ settings.color_depth = "32"
 # Cycles, one sample per pixel at the pixel centre (box filter of tiny width).
 scene.render.engine = "CYCLES"
 scene.cycles.device = "CPU"
-scene.cycles.samples = args.get("cycles_samples", 1)
+scene.cycles.samples = 1
 scene.cycles.use_adaptive_sampling = False
 scene.cycles.use_denoising = False
 scene.cycles.pixel_filter_type = "BOX"
