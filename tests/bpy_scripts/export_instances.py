@@ -1,0 +1,59 @@
+"""Export a scene of modifiers and instances with the installed add-on's exporter and report
+what came out: triangle count and the bounds of every group of triangles."""
+import bpy
+import numpy as np
+
+from blender_setup import arguments, install_extension, write_result
+
+args, result_path = arguments()
+addon = install_extension(args["zip"])
+scene = bpy.context.scene
+
+# A cube with an array modifier: 3 cubes side by side (36 triangles).
+bpy.ops.mesh.primitive_cube_add(size=1.0, location=(0, 0, 0))
+arrayed = bpy.context.object
+arrayed.modifiers.new("array", "ARRAY").count = 3
+
+# A collection holding one small cube, instanced twice by empties (2 x 12 triangles).
+collection = bpy.data.collections.new("instanced")
+cube = bpy.data.objects.new("instanced-cube", bpy.data.meshes.new("instanced-cube"))
+cube.data.from_pydata([(x, y, z) for x in (0, 0.5) for y in (0, 0.5) for z in (0, 0.5)], [],
+                      [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)])
+collection.objects.link(cube)
+for x in (10.0, 20.0):
+    empty = bpy.data.objects.new(f"instancer-{x}", None)
+    empty.instance_type, empty.instance_collection = "COLLECTION", collection
+    empty.location = (x, 0, 0)
+    scene.collection.objects.link(empty)
+
+# Particle instances: 5 copies of an ico sphere (20 triangles each) on a plane whose own faces
+# are hidden in renders.
+bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=1, radius=0.1, location=(0, 0, -50))
+ico = bpy.context.object
+ico.hide_render = True
+bpy.ops.mesh.primitive_plane_add(size=2.0, location=(0, 10, 0))
+emitter = bpy.context.object
+emitter.modifiers.new("particles", "PARTICLE_SYSTEM")
+settings = emitter.particle_systems[0].settings
+settings.count, settings.frame_start, settings.frame_end = 5, 1, 1
+settings.render_type, settings.instance_object = "OBJECT", ico
+settings.physics_type = "NO"
+# The test exports the viewport depsgraph (a render uses the render one): hide it in both.
+emitter.show_instancer_for_render = emitter.show_instancer_for_viewport = False
+
+camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
+scene.collection.objects.link(camera)
+scene.camera = camera
+scene.frame_set(1)
+geometry = addon.addon.export.export_view(bpy.context.evaluated_depsgraph_get())[0]
+v = geometry.vertices[geometry.triangles].reshape(-1, 3, 3)
+centres = v.mean(axis=1)
+groups = {"arrayed": (centres[:, 0] < 5) & (centres[:, 1] < 5) & (centres[:, 2] > -10),
+          "instances": centres[:, 0] > 5, "particles": centres[:, 1] > 5,
+          "instanced object": centres[:, 2] < -10}
+write_result(result_path, {
+    "triangles": int(geometry.triangle_count),
+    "groups": {name: {"triangles": int(mask.sum()),
+                      "min": v[mask].reshape(-1, 3).min(0).tolist() if mask.any() else None,
+                      "max": v[mask].reshape(-1, 3).max(0).tolist() if mask.any() else None}
+               for name, mask in groups.items()}})
