@@ -2,6 +2,13 @@
 
 The only module that reads Blender scene data. Mesh data is read with foreach_get into numpy
 (no Python loop per vertex or face); meshes shared by several instances are read once.
+
+Materials map the Principled BSDF (and the Diffuse, Glossy, Glass and Emission BSDFs) onto
+core.scene's material parameters (docs/shading.md); a node setup that cannot be mapped falls
+back to its base colour with one warning per material. Warnings (that, and cleaned geometry:
+skipped empty meshes, dropped zero-area faces) are returned in the info dict under "warnings"
+for the render engine to report. Optional geometry arrays (corner normals, UVs, textures) are
+exported only when the scene needs them (core/features.py).
 """
 from __future__ import annotations
 
@@ -10,21 +17,61 @@ import time
 
 import numpy as np
 
-from ..core.scene import Camera, Geometry, Light, MAX_MATERIALS, SceneError, Shading, View
+from ..core.features import scene_features, strip_geometry
+from ..core.scene import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
+                          MAX_MATERIALS, RenderSettings, SceneError, Shading, View)
 
 DEFAULT_COLOR = (0.8, 0.8, 0.8, 1.0)
 
 
-def export_view(depsgraph) -> tuple[Geometry, View, dict]:
-    """Export everything a render needs. Returns (geometry, view, timings)."""
+def export_view(depsgraph, wire_compatible: bool = True) -> tuple[Geometry, View, dict]:
+    """Export everything a render needs. Returns (geometry, view, info): info has
+    "export_seconds" and "warnings" (a list of messages for the user). wire_compatible=False
+    keeps optional arrays the wire format does not carry yet (in-process renders)."""
     started = time.perf_counter()
     scene = depsgraph.scene
-    materials = _MaterialTable()
-    geometry = _export_geometry(depsgraph, materials)
+    warnings = []
+    materials = _MaterialTable(warnings)
+    geometry = _export_geometry(depsgraph, materials, warnings)
     exported = time.perf_counter()
-    shading = Shading(materials.colors(), _export_lights(depsgraph), _world_color(scene))
-    view = View(_export_camera(depsgraph), *render_size(scene), shading, render_region(scene))
-    return geometry, view, {"export_seconds": exported - started}
+    shading = Shading(materials.colors(), _export_lights(depsgraph), _world_color(scene),
+                      materials.params())
+    view = View(_export_camera(depsgraph), *render_size(scene), shading, render_region(scene),
+                render_settings(scene))
+    # Only what the scene needs travels (and the kernel compiles only that).
+    geometry = strip_geometry(geometry, scene_features(geometry, view))
+    if wire_compatible:
+        geometry, view = _wire_compatible(geometry, view)
+    return geometry, view, {"export_seconds": exported - started, "warnings": warnings}
+
+
+def _wire_compatible(geometry: Geometry, view: View):
+    """Drop optional arrays that the wire format (core/protocol.py SCENE_ARRAYS) does not carry
+    yet, so the scene hash the master announces matches what the slaves receive; without
+    textures on the wire, materials fall back to their base colour. Goes away by itself once
+    the arrays are in SCENE_ARRAYS."""
+    from ..core.protocol import SCENE_ARRAYS
+    missing = [name for name in Geometry.OPTIONAL
+               if getattr(geometry, name) is not None and name not in SCENE_ARRAYS]
+    if not missing:
+        return geometry, view
+    keep = {name: (getattr(geometry, name) if name in SCENE_ARRAYS else None)
+            for name in Geometry.OPTIONAL}
+    if keep["texels"] is None or keep["texture_sizes"] is None or keep["uvs"] is None:
+        keep["texels"] = keep["texture_sizes"] = keep["uvs"] = None
+        view.shading.material_params[:, MATERIAL_PARAMS.index("texture")] = -1.0
+    return Geometry(geometry.vertices, geometry.triangles, geometry.material_ids, **keep), view
+
+
+def render_settings(scene) -> RenderSettings:
+    """Sampling and bounces from the KD Trace panel (scene.kdtrace), defaults where it has none."""
+    props = getattr(scene, "kdtrace", None)
+    settings = RenderSettings()
+    for name in settings.to_dict():
+        value = getattr(props, name, None) if props is not None else None
+        if value is not None and type(value) is type(getattr(settings, name)):
+            setattr(settings, name, value)
+    return settings
 
 
 def render_size(scene) -> tuple[int, int]:
@@ -49,11 +96,16 @@ def render_region(scene) -> tuple[int, int, int, int]:
 
 
 class _MaterialTable:
-    """Maps Blender materials to indices into one table of base colours."""
+    """Maps Blender materials to indices into one table of base colours and parameters, and
+    collects the image textures they use."""
 
-    def __init__(self):
+    def __init__(self, warnings: list):
         self._index = {None: 0}
         self._colors = [DEFAULT_COLOR]
+        self._params = [DEFAULT_MATERIAL_PARAMS]
+        self._warnings = warnings
+        self._images = {}           # image name -> texture index
+        self.textures = []          # (texels (N, 4) float16, width, height)
 
     def index(self, material) -> int:
         key = material.name_full if material is not None else None
@@ -61,64 +113,289 @@ class _MaterialTable:
             if len(self._colors) >= MAX_MATERIALS:
                 raise SceneError(f"the scene uses more than {MAX_MATERIALS} materials")
             self._index[key] = len(self._colors)
-            self._colors.append(base_color(material))
+            color, params, image, problems = material_parameters(material)
+            if image is not None:
+                params["texture"] = float(self._texture(image, material.name))
+            for problem in problems:
+                self._warnings.append(f"material '{material.name}': {problem}")
+            self._colors.append(color)
+            self._params.append(tuple(params[name] for name in MATERIAL_PARAMS))
         return self._index[key]
+
+    def uses_texture(self, material) -> bool:
+        key = material.name_full if material is not None else None
+        return key in self._index and self._params[self._index[key]][-1] >= 0
+
+    def _texture(self, image, material_name) -> int:
+        if image.name_full not in self._images:
+            width, height = image.size
+            if width == 0 or height == 0:
+                raise SceneError(f"material '{material_name}': image '{image.name}' has no pixels "
+                                 "(missing file?)")
+            pixels = np.empty(width * height * image.channels, np.float32)
+            image.pixels.foreach_get(pixels)
+            pixels = pixels.reshape(-1, image.channels)
+            rgba = np.ones((len(pixels), 4), np.float32)
+            rgba[:, :min(4, image.channels)] = pixels[:, :4]
+            if image.channels < 3:
+                rgba[:, 1:3] = rgba[:, :1]
+            # 8-bit images hold sRGB-encoded values; the renderer works in linear RGB.
+            if not image.is_float and image.colorspace_settings.name == "sRGB":
+                c = rgba[:, :3]
+                rgba[:, :3] = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+            self._images[image.name_full] = len(self.textures)
+            self.textures.append((np.nan_to_num(rgba).astype(np.float16), width, height))
+        return self._images[image.name_full]
 
     def colors(self) -> np.ndarray:
         return np.array(self._colors, np.float32)
 
+    def params(self) -> np.ndarray:
+        return np.array(self._params, np.float32)
+
+    def texture_arrays(self):
+        if not self.textures:
+            return None, None
+        sizes, offset = [], 0
+        for texels, width, height in self.textures:
+            sizes.append((offset, width, height))
+            offset += len(texels)
+        return np.concatenate([t[0] for t in self.textures]), np.array(sizes, np.uint32)
+
+
+# Principled BSDF input -> our parameter; inputs not listed here are ignored silently when at
+# their defaults and with a warning when linked.
+_PRINCIPLED = {"Metallic": "metallic", "Roughness": "roughness", "IOR": "ior",
+               "Transmission Weight": "transmission", "Specular IOR Level": "specular"}
+
+
+def _surface_node(material):
+    """The node linked to the active Material Output's Surface, or None."""
+    tree = material.node_tree
+    outputs = [n for n in tree.nodes if n.type == "OUTPUT_MATERIAL"]
+    active = [n for n in outputs if n.is_active_output] or outputs
+    if not active or not active[0].inputs["Surface"].is_linked:
+        return None
+    return active[0].inputs["Surface"].links[0].from_node
+
+
+def _input_value(node, name, problems):
+    socket = node.inputs.get(name)
+    if socket is None:
+        return None
+    if socket.is_linked:
+        problems.append(f"input '{name}' of '{node.name}' is linked; using its value {_plain(socket)}")
+    return _plain(socket)
+
+
+def _plain(socket):
+    value = socket.default_value
+    try:
+        return tuple(float(v) for v in value)
+    except TypeError:
+        return float(value)
+
+
+def _color_input(node, name, problems):
+    """(colour RGBA, image or None): an unlinked colour, or one linked straight to an Image
+    Texture (through the active UV map)."""
+    socket = node.inputs[name]
+    if socket.is_linked:
+        source = socket.links[0].from_node
+        if source.type == "TEX_IMAGE" and source.image is not None:
+            return (1.0, 1.0, 1.0, 1.0), source.image
+        problems.append(f"input '{name}' is linked to '{source.name}', which KD Trace cannot "
+                        f"evaluate; using its value")
+    value = _plain(socket)
+    return tuple(value) + (1.0,) * (4 - len(value)), None
+
+
+def material_parameters(material):
+    """(base colour RGBA, params dict, image or None, problems) of a Blender material."""
+    params = dict(zip(MATERIAL_PARAMS, DEFAULT_MATERIAL_PARAMS))
+    problems = []
+    fallback = tuple(material.diffuse_color)
+    if not (material.use_nodes and material.node_tree):
+        return fallback, params, None, problems
+    node = _surface_node(material)
+    kind = node.type if node is not None else None
+    image = None
+    if kind == "BSDF_PRINCIPLED":
+        color, image = _color_input(node, "Base Color", problems)
+        for socket_name, name in _PRINCIPLED.items():
+            value = _input_value(node, socket_name, problems)
+            if value is not None:
+                params[name] = value
+        alpha = _input_value(node, "Alpha", problems)
+        color = color[:3] + (alpha if alpha is not None else 1.0,)
+        emission, _ = _color_input(node, "Emission Color", problems)
+        strength = _input_value(node, "Emission Strength", problems) or 0.0
+        params["emission_r"], params["emission_g"], params["emission_b"] = (
+            max(0.0, c * strength) for c in emission[:3])
+        for other in ("Coat Weight", "Sheen Weight", "Subsurface Weight"):
+            socket = node.inputs.get(other)
+            if socket is not None and (socket.is_linked or _plain(socket) > 0):
+                problems.append(f"'{other}' is not supported and is ignored")
+    elif kind == "BSDF_DIFFUSE":
+        color, image = _color_input(node, "Color", problems)
+        params["roughness"] = 1.0
+    elif kind in ("BSDF_GLOSSY", "BSDF_ANISOTROPIC"):
+        color, image = _color_input(node, "Color", problems)
+        params["metallic"] = 1.0
+        params["roughness"] = _input_value(node, "Roughness", problems) or 0.0
+    elif kind == "BSDF_GLASS":
+        color, image = _color_input(node, "Color", problems)
+        params["transmission"], params["specular"] = 1.0, 0.5
+        params["roughness"] = _input_value(node, "Roughness", problems) or 0.0
+        params["ior"] = _input_value(node, "IOR", problems) or 1.45
+    elif kind == "EMISSION":
+        emission, _ = _color_input(node, "Color", problems)
+        strength = _input_value(node, "Strength", problems) or 0.0
+        color = (0.0, 0.0, 0.0, 1.0)
+        params["emission_r"], params["emission_g"], params["emission_b"] = (
+            max(0.0, c * strength) for c in emission[:3])
+    else:
+        what = f"'{node.name}' ({node.bl_idname})" if node is not None else "nothing"
+        return fallback, params, None, [
+            f"its surface is {what}, which KD Trace cannot map; rendering its base colour"]
+    params["ior"] = min(max(params["ior"], 0.01), 100.0)
+    for name in ("metallic", "roughness", "transmission"):
+        params[name] = min(max(params[name], 0.0), 1.0)
+    params["specular"] = min(max(params["specular"], 0.0), 1000.0)
+    color = tuple(min(max(c, 0.0), 1e6) for c in color[:3]) + (min(max(color[3], 0.0), 1.0),)
+    # Only the first problem per material: one warning per material, as the user sees it.
+    return color, params, image, problems[:1]
+
 
 def base_color(material) -> tuple:
-    """The Principled BSDF's base colour (unlinked input), else the viewport colour."""
-    if material.use_nodes and material.node_tree:
-        for node in material.node_tree.nodes:
-            if node.type == "BSDF_PRINCIPLED":
-                return tuple(node.inputs["Base Color"].default_value)
-    return tuple(material.diffuse_color)
+    """The base colour KD Trace renders a material with (unlinked input or viewport colour)."""
+    return material_parameters(material)[0]
 
 
-def _mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Vertices (V,3) float32, triangles (T,3) uint32 and per-triangle slot indices of a mesh."""
+def _mesh_arrays(mesh, want_normals: bool, want_uvs: bool) -> dict:
+    """Vertices (V,3) float32, triangles (T,3), per-triangle slot indices, and when asked and
+    present: corner normals (T,3,3) (only if some face is smooth) and corner UVs (T,3,2)."""
     mesh.calc_loop_triangles()
+    tris = mesh.loop_triangles
     vertices = np.empty(len(mesh.vertices) * 3, np.float32)
     mesh.vertices.foreach_get("co", vertices)
-    triangles = np.empty(len(mesh.loop_triangles) * 3, np.int32)
-    mesh.loop_triangles.foreach_get("vertices", triangles)
-    slots = np.empty(len(mesh.loop_triangles), np.int32)
-    mesh.loop_triangles.foreach_get("material_index", slots)
-    return vertices.reshape(-1, 3), triangles.reshape(-1, 3), slots
+    triangles = np.empty(len(tris) * 3, np.int32)
+    tris.foreach_get("vertices", triangles)
+    slots = np.empty(len(tris), np.int32)
+    tris.foreach_get("material_index", slots)
+    out = {"vertices": vertices.reshape(-1, 3), "triangles": triangles.reshape(-1, 3),
+           "slots": slots, "normals": None, "uvs": None}
+    if want_normals and len(tris) and (mesh.has_custom_normals or _has_smooth_faces(mesh)):
+        normals = np.empty(len(tris) * 9, np.float32)
+        tris.foreach_get("split_normals", normals)
+        out["normals"] = normals.reshape(-1, 3, 3)
+    if want_uvs and len(tris) and mesh.uv_layers.active is not None:
+        loops = np.empty(len(tris) * 3, np.int32)
+        tris.foreach_get("loops", loops)
+        uv = np.empty(len(mesh.loops) * 2, np.float32)
+        mesh.uv_layers.active.uv.foreach_get("vector", uv)
+        out["uvs"] = uv.reshape(-1, 2)[loops].reshape(-1, 3, 2)
+    return out
 
 
-def _export_geometry(depsgraph, materials: _MaterialTable) -> Geometry:
-    """All visible mesh geometry (objects and instances) as world-space triangles."""
+def _has_smooth_faces(mesh) -> bool:
+    """Whether some face is smooth-shaded: Blender stores flat faces in the boolean face
+    attribute "sharp_face" (absent: every face is smooth)."""
+    sharp = mesh.attributes.get("sharp_face")
+    if sharp is None or sharp.domain != "FACE":
+        return True
+    values = np.empty(len(mesh.polygons), bool)
+    sharp.data.foreach_get("value", values)
+    return not values.all()
+
+
+def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list) -> Geometry:
+    """All visible mesh geometry (objects and instances) as world-space triangles. NaN/inf
+    vertices are rejected (naming the object); empty meshes are skipped and zero-area faces
+    dropped, each with a warning naming the object."""
     mesh_cache = {}  # evaluated mesh pointer -> arrays, so instances of one mesh are read once
-    parts_v, parts_t, parts_m = [], [], []
+    parts = {"v": [], "t": [], "m": [], "n": [], "uv": []}
     vertex_count = 0
+    warned = set()
     for instance in depsgraph.object_instances:
         obj = instance.object
         if obj.type != "MESH" or not instance.show_self:
             continue
         mesh = obj.data
-        key = mesh.as_pointer()
+        slot_materials = np.array(
+            [materials.index(slot.material) for slot in obj.material_slots] or [0], np.uint16)
+        textured = any(materials.uses_texture(slot.material) for slot in obj.material_slots)
+        key = (mesh.as_pointer(), textured)
         if key not in mesh_cache:
-            mesh_cache[key] = _mesh_arrays(mesh)
-        vertices, triangles, slots = mesh_cache[key]
+            mesh_cache[key] = _mesh_arrays(mesh, True, textured)
+        arrays = mesh_cache[key]
+        vertices, triangles, slots = arrays["vertices"], arrays["triangles"], arrays["slots"]
         if len(triangles) == 0:
+            if obj.name not in warned:
+                warned.add(obj.name)
+                warnings.append(f"object '{obj.name}' has no faces; skipped")
             continue
         matrix = np.array(instance.matrix_world, np.float64)
         world = vertices.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
         if not np.isfinite(world).all():
             raise SceneError(f"object '{obj.name}' has vertices that are NaN or infinite")
-        slot_materials = np.array(
-            [materials.index(slot.material) for slot in obj.material_slots] or [0], np.uint16)
-        parts_v.append(world.astype(np.float32))
-        parts_t.append(triangles.astype(np.uint32) + vertex_count)
-        parts_m.append(slot_materials[np.clip(slots, 0, len(slot_materials) - 1)])
+        world32 = world.astype(np.float32)
+        # Zero area in float32 world space (what the kernel sees: never hit, only noise).
+        corners = world32[triangles]
+        keep = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).any(axis=1)
+        if not keep.all():
+            if obj.name not in warned:
+                warned.add(obj.name)
+                warnings.append(f"object '{obj.name}': {int((~keep).sum())} zero-area face(s) dropped")
+            if not keep.any():
+                continue
+        else:
+            keep = slice(None)
+        parts["v"].append(world32)
+        parts["t"].append(triangles[keep].astype(np.uint32) + np.uint32(vertex_count))
+        parts["m"].append(slot_materials[np.clip(slots[keep], 0, len(slot_materials) - 1)])
+        normals = arrays["normals"]
+        if normals is not None:
+            normal_matrix = np.linalg.inv(matrix[:3, :3]).T.astype(np.float32)
+            n = normals[keep].reshape(-1, 3)
+            if not np.allclose(normal_matrix, np.eye(3)):
+                n = n @ normal_matrix.T
+                length = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
+                n = n / np.where(length > 0, length, 1.0)
+        else:
+            n = None
+        parts["n"].append((n, keep))
+        uvs = arrays["uvs"]
+        if textured and uvs is None and obj.name not in warned:
+            warned.add(obj.name)
+            warnings.append(f"object '{obj.name}' has a textured material but no UV map")
+        parts["uv"].append(None if uvs is None else uvs[keep].reshape(-1, 2))
         vertex_count += len(vertices)
-    if not parts_t:
+    if not parts["t"]:
         return Geometry(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32),
                         np.zeros(0, np.uint16))
-    return Geometry(np.concatenate(parts_v), np.concatenate(parts_t), np.concatenate(parts_m))
+    counts = [len(t) for t in parts["t"]]
+    normals = None
+    if any(n is not None for n, _ in parts["n"]):
+        normals = np.concatenate([
+            n if n is not None else _flat_normals(v, t, offset)
+            for (n, _), v, t, offset in zip(parts["n"], parts["v"], parts["t"],
+                                            np.cumsum([0] + [len(v) for v in parts["v"][:-1]]))])
+    uvs = None
+    texels, sizes = materials.texture_arrays()
+    if texels is not None:
+        uvs = np.concatenate([uv if uv is not None else np.zeros((3 * c, 2), np.float32)
+                              for uv, c in zip(parts["uv"], counts)])
+    return Geometry(np.concatenate(parts["v"]), np.concatenate(parts["t"]),
+                    np.concatenate(parts["m"]), normals, uvs, texels, sizes)
+
+
+def _flat_normals(vertices, triangles, offset) -> np.ndarray:
+    """Face normals repeated at each corner, for flat objects in a scene that has smooth ones."""
+    corners = vertices[triangles.astype(np.int64) - offset].astype(np.float64)
+    n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.repeat(n / np.where(length > 0, length, 1.0), 3, axis=0)
 
 
 def _export_camera(depsgraph) -> Camera:

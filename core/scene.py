@@ -24,6 +24,11 @@ INDEX_DTYPE = np.dtype("<u4")
 MATERIAL_ID_DTYPE = np.dtype("<u2")
 MAX_MATERIALS = 65535
 MAX_LIGHTS = 4096
+NORMAL_DTYPE = np.dtype("<f4")
+UV_DTYPE = np.dtype("<f4")
+TEXEL_DTYPE = np.dtype("<f2")      # linear RGBA, half precision
+TEXTURE_SIZE_DTYPE = np.dtype("<u4")
+MAX_TEXTURES = 4096
 
 
 class SceneError(ValueError):
@@ -58,16 +63,48 @@ def _int(value, what: str, low: int, high: int) -> int:
 
 @dataclass
 class Geometry:
-    """Triangles in world space: the part of the scene that the kd-tree is built over."""
+    """Triangles in world space: the part of the scene that the kd-tree is built over.
+
+    The optional arrays are None when the scene does not need them (core/features.py decides):
+    - normals (3T, 3) float32: unit world-space shading normal of each triangle corner (corner
+      k of triangle t is row 3t + k); present when some face is smooth-shaded.
+    - uvs (3T, 2) float32: the active UV map at each triangle corner; present with textures.
+    - texels (N, 4) float16: linear RGBA of all image textures, concatenated; each texture's
+      rows bottom row first (Blender's order, so uv (0, 0) is texel 0).
+    - texture_sizes (K, 3) uint32: (offset into texels, width, height) of each texture.
+    """
 
     vertices: np.ndarray      # (V, 3) float32
     triangles: np.ndarray     # (T, 3) uint32, indices into vertices
     material_ids: np.ndarray  # (T,) uint16, indices into Shading.materials
+    normals: np.ndarray | None = None
+    uvs: np.ndarray | None = None
+    texels: np.ndarray | None = None
+    texture_sizes: np.ndarray | None = None
+
+    OPTIONAL = {"normals": (NORMAL_DTYPE, 3), "uvs": (UV_DTYPE, 2), "texels": (TEXEL_DTYPE, 4),
+                "texture_sizes": (TEXTURE_SIZE_DTYPE, 3)}
 
     def __post_init__(self):
         self.vertices = np.ascontiguousarray(self.vertices, dtype=VERTEX_DTYPE).reshape(-1, 3)
         self.triangles = np.ascontiguousarray(self.triangles, dtype=INDEX_DTYPE).reshape(-1, 3)
         self.material_ids = np.ascontiguousarray(self.material_ids, dtype=MATERIAL_ID_DTYPE).reshape(-1)
+        for name, (dtype, width) in self.OPTIONAL.items():
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, np.ascontiguousarray(value, dtype=dtype).reshape(-1, width))
+
+    def arrays(self) -> dict:
+        """Every array that is present, by name (the optional ones only when not None)."""
+        out = {"vertices": self.vertices, "triangles": self.triangles,
+               "material_ids": self.material_ids}
+        out.update({name: getattr(self, name) for name in self.OPTIONAL
+                    if getattr(self, name) is not None})
+        return out
+
+    @property
+    def texture_count(self) -> int:
+        return 0 if self.texture_sizes is None else len(self.texture_sizes)
 
     def validate(self, material_count: int | None = None) -> None:
         if len(self.material_ids) != len(self.triangles):
@@ -80,14 +117,39 @@ class Geometry:
         if material_count is not None and len(self.material_ids) \
                 and int(self.material_ids.max()) >= material_count:
             raise SceneError("a triangle refers to a material that does not exist")
+        for name in ("normals", "uvs"):
+            value = getattr(self, name)
+            if value is not None:
+                if len(value) != 3 * len(self.triangles):
+                    raise SceneError(f"{name} must have 3 rows per triangle, got {len(value)} "
+                                     f"for {len(self.triangles)} triangles")
+                if not np.isfinite(value).all():
+                    raise SceneError(f"{name} contain NaN or infinity")
+        if (self.texels is None) != (self.texture_sizes is None):
+            raise SceneError("texels and texture_sizes come together")
+        if self.texture_sizes is not None:
+            sizes = self.texture_sizes.astype(np.int64)
+            if len(sizes) > MAX_TEXTURES:
+                raise SceneError(f"more than {MAX_TEXTURES} textures")
+            if len(sizes) and ((sizes[:, 1] < 1).any() or (sizes[:, 2] < 1).any()
+                               or (sizes[:, 0] + sizes[:, 1] * sizes[:, 2] > len(self.texels)).any()):
+                raise SceneError("a texture reaches past the end of texels or is empty")
+            if not np.isfinite(self.texels).all():
+                raise SceneError("texels contain NaN or infinity")
 
     @property
     def triangle_count(self) -> int:
         return len(self.triangles)
 
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self.arrays().values())
+
     def content_hash(self) -> str:
         digest = hashlib.blake2b(digest_size=16)
-        for array in (self.vertices, self.triangles, self.material_ids):
+        for name, array in self.arrays().items():
+            if name not in ("vertices", "triangles", "material_ids"):
+                digest.update(name.encode())    # the three base arrays hash as before
             digest.update(str(array.shape).encode())
             digest.update(array.tobytes())
         return digest.hexdigest()
@@ -192,20 +254,52 @@ class Light:
         )
 
 
+# Per-material surface parameters beside the base colour (Shading.material_params columns).
+MATERIAL_PARAMS = ("metallic", "roughness", "transmission", "ior", "emission_r", "emission_g",
+                   "emission_b", "specular", "texture")
+DEFAULT_MATERIAL_PARAMS = (0.0, 0.5, 0.0, 1.5, 0.0, 0.0, 0.0, 0.0, -1.0)
+# name -> (low, high) accepted from the network; texture is an index, -1 = none.
+_PARAM_RANGES = {"metallic": (0.0, 1.0), "roughness": (0.0, 1.0), "transmission": (0.0, 1.0),
+                 "ior": (0.01, 100.0), "emission_r": (0.0, 1e30), "emission_g": (0.0, 1e30),
+                 "emission_b": (0.0, 1e30), "specular": (0.0, 1000.0),
+                 "texture": (-1.0, MAX_TEXTURES - 1.0)}
+
+
+def default_material_params(count: int) -> np.ndarray:
+    return np.tile(np.array(DEFAULT_MATERIAL_PARAMS, np.float32), (count, 1))
+
+
 @dataclass
 class Shading:
-    """What colours the geometry: materials, lights and the world. Small; sent with each frame."""
+    """What colours the geometry: materials, lights and the world. Small; sent with each frame.
+
+    materials: (M, 4) float32 base colour RGB and alpha (alpha < 1: cut-out, stochastic).
+    material_params: (M, len(MATERIAL_PARAMS)) float32, the Principled BSDF's other inputs
+    (docs/shading.md); None means the defaults: a pure diffuse surface (specular 0).
+    """
 
     materials: np.ndarray = field(default_factory=lambda: np.array([[0.8, 0.8, 0.8, 1.0]], np.float32))
     lights: list = field(default_factory=list)
     world_color: tuple = (0.05, 0.05, 0.05)
+    material_params: np.ndarray | None = None
 
     def __post_init__(self):
         self.materials = np.ascontiguousarray(self.materials, dtype=np.float32).reshape(-1, 4)
+        if self.material_params is None:
+            self.material_params = default_material_params(len(self.materials))
+        self.material_params = np.ascontiguousarray(
+            self.material_params, dtype=np.float32).reshape(-1, len(MATERIAL_PARAMS))
+        if len(self.material_params) != len(self.materials):
+            raise SceneError(f"{len(self.material_params)} material parameter rows for "
+                             f"{len(self.materials)} materials")
+
+    def param(self, name: str) -> np.ndarray:
+        return self.material_params[:, MATERIAL_PARAMS.index(name)]
 
     def to_dict(self) -> dict:
         return {"materials": self.materials.tolist(), "lights": [l.to_dict() for l in self.lights],
-                "world_color": list(self.world_color)}
+                "world_color": list(self.world_color),
+                "material_params": self.material_params.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Shading":
@@ -217,8 +311,75 @@ class Shading:
         if not isinstance(lights, list) or len(lights) > MAX_LIGHTS:
             raise SceneError(f"lights must be a list of at most {MAX_LIGHTS} lights")
         colours = [_finite_floats(m, 4, "material colour") for m in materials]
+        params = d.get("material_params")
+        if params is not None:
+            if not isinstance(params, list) or len(params) != len(materials):
+                raise SceneError("material_params must be a list with one row per material")
+            rows = []
+            for row in params:
+                row = _finite_floats(row, len(MATERIAL_PARAMS), "material parameters")
+                for name, value in zip(MATERIAL_PARAMS, row):
+                    low, high = _PARAM_RANGES[name]
+                    if not low <= value <= high:
+                        raise SceneError(f"material {name} must be in [{low}, {high}], got {value}")
+                rows.append(row)
+            params = np.array(rows, np.float32)
         return cls(np.array(colours, np.float32), [Light.from_dict(l) for l in lights],
-                   _finite_floats(d.get("world_color"), 3, "world colour"))
+                   _finite_floats(d.get("world_color"), 3, "world colour"), params)
+
+
+@dataclass
+class RenderSettings:
+    """How a frame is sampled; travels with the View so every slave renders the same pixels.
+
+    samples_per_axis N: N x N stratified samples per pixel (1: one ray through the pixel centre).
+    adaptive: start every pixel with adaptive_min_samples and add samples (doubling, up to N x N)
+    only where the pixel's estimated error exceeds adaptive_threshold or it differs from its
+    neighbours (docs/shading.md). max_bounces: mirror/glass/diffuse bounces after the camera
+    hit; diffuse_bounces: how many of them may be diffuse (0: direct light only on diffuse).
+    light_samples_per_axis L: L x L stratified shadow samples per soft light and camera sample.
+    """
+
+    samples_per_axis: int = 1
+    adaptive: bool = False
+    adaptive_threshold: float = 0.01
+    adaptive_min_samples: int = 4
+    max_bounces: int = 8
+    diffuse_bounces: int = 0
+    light_samples_per_axis: int = 2
+    seed: int = 0
+
+    @property
+    def max_samples(self) -> int:
+        return self.samples_per_axis ** 2
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+    @classmethod
+    def from_dict(cls, d) -> "RenderSettings":
+        if d is None:
+            return cls()
+        if not isinstance(d, dict):
+            raise SceneError("render settings must be an object")
+        unknown = set(d) - set(cls().__dict__)
+        if unknown:
+            raise SceneError(f"unknown render settings {sorted(unknown)}")
+        out = cls()
+        ints = {"samples_per_axis": (1, 64), "adaptive_min_samples": (1, 4096),
+                "max_bounces": (0, 1024), "diffuse_bounces": (0, 1024),
+                "light_samples_per_axis": (1, 16), "seed": (0, 2 ** 31 - 1)}
+        for name, (low, high) in ints.items():
+            if name in d:
+                setattr(out, name, _int(d[name], f"render setting {name}", low, high))
+        if "adaptive" in d:
+            if not isinstance(d["adaptive"], bool):
+                raise SceneError("render setting adaptive must be true or false")
+            out.adaptive = d["adaptive"]
+        if "adaptive_threshold" in d:
+            out.adaptive_threshold = _finite_float(d["adaptive_threshold"], "adaptive threshold",
+                                                   0.0, 1.0)
+        return out
 
 
 MAX_IMAGE_SIDE = 65536
@@ -237,6 +398,7 @@ class View:
     height: int
     shading: Shading
     region: tuple = None
+    settings: RenderSettings = field(default_factory=RenderSettings)
 
     def __post_init__(self):
         if self.region is None:
@@ -245,7 +407,8 @@ class View:
 
     def to_dict(self) -> dict:
         return {"camera": self.camera.to_dict(), "width": self.width, "height": self.height,
-                "region": list(self.region), "shading": self.shading.to_dict()}
+                "region": list(self.region), "shading": self.shading.to_dict(),
+                "settings": self.settings.to_dict()}
 
     @classmethod
     def from_dict(cls, d: dict) -> "View":
@@ -261,4 +424,5 @@ class View:
         x1 = _int(region[2], "region x1", x0 + 1, width)
         y1 = _int(region[3], "region y1", y0 + 1, height)
         return cls(Camera.from_dict(d.get("camera")), width, height,
-                   Shading.from_dict(d.get("shading")), (x0, y0, x1, y1))
+                   Shading.from_dict(d.get("shading")), (x0, y0, x1, y1),
+                   RenderSettings.from_dict(d.get("settings")))

@@ -13,7 +13,7 @@ __kernel void intersect_rays(__global const float *origins, __global const float
         return;
     Ray r = make_ray(vload3(i, origins), vload3(i, directions));
     Hit h;
-    trace_ray(&r, tmin, tmax, false, nodes, leaf_indices, tri_verts,
+    trace_ray(&r, tmin, tmax, false, NO_HIT, nodes, leaf_indices, tri_verts,
               bounds[0].xyz, bounds[1].xyz, &h);
     out_t[i] = h.t;
     out_tri[i] = h.tri == NO_HIT ? -1 : (int)h.tri;

@@ -1,22 +1,14 @@
-// Camera tiles: one work-item per pixel; primary ray, diffuse shading with one shadow ray per
-// light, and the depth and normal passes.
+// Camera tiles: one work-item per pixel of a list, a range of samples per call; each sample
+// follows one path (camera ray, direct light at every surface, then mirror / glass / diffuse
+// bounces up to the bounce limits), and the results are summed into the tile's accumulators.
+// slave/tracer.py decides which pixels get how many samples (uniform or adaptive).
 //
 // Camera buffer (float4 each), filled by slave/tracer.py _pack_camera:
 //   cam[0..2]  rows of camera.to_world (3x4: rotation/scale and translation)
 //   cam[3]     (ndc_scale.x, ndc_scale.y, ndc_offset.x, ndc_offset.y)
 //   cam[4]     (unit view axis in world space, kind: 0 = PERSP, 1 = ORTHO)
 //   cam[5]     (clip_start, clip_end, image width, image height)
-//   cam[6]     (world colour, unused)
-// Light buffer: 4 float4 per light, filled by slave/tracer.py _pack_lights:
-//   [0] (position, kind: 0 POINT, 1 SUN, 2 SPOT, 3 AREA)
-//   [1] (unit direction the light points, cos of the spot half angle)
-//   [2] (intensity: colour times the unit factor of docs/tracer.md, spot smoothing factor)
-//   [3] reserved (zeros)
-
-#define LIGHT_POINT 0
-#define LIGHT_SUN 1
-#define LIGHT_SPOT 2
-#define LIGHT_AREA 3
+//   cam[6]     (world colour, 0)
 
 inline float3 transform_point(__global const float4 *m, float3 p)
 {
@@ -30,124 +22,237 @@ inline float3 transform_vector(__global const float4 *m, float3 v)
     return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
 }
 
-// Start secondary rays just off the surface, on the side `n` points to (Waechter & Binder,
-// Ray Tracing Gems ch. 6): a few ULPs away, which scales with the coordinate's magnitude.
-inline float offset_lane(float p, float n)
+// The camera ray through image position (fx, fy) in pixels of the full image (top-left
+// origin; pixel centres at +0.5). The direction is not normalised: t is then proportional to
+// the distance along the view axis, which both clipping and the depth pass measure.
+inline void camera_ray(__global const float4 *cam, float fx, float fy, float3 *o, float3 *d)
 {
-    if (fabs(p) < 1.0f / 32.0f)
-        return p + (1.0f / 65536.0f) * n;
-    int of = convert_int(256.0f * n);
-    return as_float(as_int(p) + (p < 0.0f ? -of : of));
-}
-
-inline float3 offset_ray_origin(float3 p, float3 n)
-{
-    return (float3)(offset_lane(p.x, n.x), offset_lane(p.y, n.y), offset_lane(p.z, n.z));
-}
-
-inline float smoothstep01(float x)
-{
-    x = clamp(x, 0.0f, 1.0f);
-    return x * x * (3.0f - 2.0f * x);
-}
-
-__kernel void render_tile(__global const float4 *cam, int x0, int y0, int tile_w, int tile_h,
-                          __global const uint2 *nodes, __global const uint *leaf_indices,
-                          __global const float4 *tri_verts, __global const float4 *bounds,
-                          __global const ushort *material_ids, __global const float4 *materials,
-                          __global const float4 *lights, uint light_count,
-                          __global float4 *out_combined, __global float *out_depth,
-                          __global float *out_normal)
-{
-    int i = get_global_id(0);
-    if (i >= tile_w * tile_h)
-        return;
-    int px = x0 + i % tile_w, py = y0 + i / tile_w;
     float width = cam[5].z, height = cam[5].w;
-
-    // Camera ray (Camera docstring in core/scene.py). The direction is not normalised: t is
-    // then proportional to the distance along the view axis, which both clipping and the
-    // depth pass measure.
-    float ndc_x = ((float)px + 0.5f) / width * 2.0f - 1.0f;
-    float ndc_y = 1.0f - ((float)py + 0.5f) / height * 2.0f;
+    float ndc_x = fx / width * 2.0f - 1.0f;
+    float ndc_y = 1.0f - fy / height * 2.0f;
     float2 p = (float2)(ndc_x * cam[3].x + cam[3].z, ndc_y * cam[3].y + cam[3].w);
-    float3 o, d;
     if (cam[4].w == 0.0f) {
-        o = transform_point(cam, (float3)(0.0f, 0.0f, 0.0f));
-        d = transform_vector(cam, (float3)(p, -1.0f));
+        *o = transform_point(cam, (float3)(0.0f, 0.0f, 0.0f));
+        *d = transform_vector(cam, (float3)(p, -1.0f));
     } else {
-        o = transform_point(cam, (float3)(p, 0.0f));
-        d = transform_vector(cam, (float3)(0.0f, 0.0f, -1.0f));
+        *o = transform_point(cam, (float3)(p, 0.0f));
+        *d = transform_vector(cam, (float3)(0.0f, 0.0f, -1.0f));
     }
+}
+
+inline float3 refract_dir(float3 w, float3 n, float eta_ratio, bool *ok)
+{
+    // w: unit incident direction, n: unit normal facing against w, eta_ratio = n_i / n_t.
+    float cos_i = -dot(n, w);
+    float sin2_t = eta_ratio * eta_ratio * fmax(0.0f, 1.0f - cos_i * cos_i);
+    *ok = sin2_t < 1.0f;
+    float cos_t = sqrt(fmax(0.0f, 1.0f - sin2_t));
+    return eta_ratio * w + (eta_ratio * cos_i - cos_t) * n;
+}
+
+inline float3 reflect_dir(float3 w, float3 n)
+{
+    return w - 2.0f * dot(w, n) * n;
+}
+
+// One path from the camera. *depth and *normal get the first opaque surface (1e10 / 0 on a
+// miss). max_bounces: surfaces after the first that may scatter the path further.
+inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, float3 d,
+                         Rng *rng, int max_bounces, int diffuse_bounces, float *depth,
+                         float3 *normal)
+{
+    float3 radiance = (float3)(0.0f, 0.0f, 0.0f), beta = (float3)(1.0f, 1.0f, 1.0f);
     float along = dot(d, cam[4].xyz);     // view-axis distance per unit of t
-    Ray r = make_ray(o, d);
-    Hit h;
-    trace_ray(&r, cam[5].x / along, cam[5].y / along, false, nodes, leaf_indices, tri_verts,
-              bounds[0].xyz, bounds[1].xyz, &h);
-
-    if (h.tri == NO_HIT) {
-        out_combined[i] = (float4)(cam[6].xyz, 1.0f);
-        out_depth[i] = 1e10f;
-        vstore3((float3)(0.0f, 0.0f, 0.0f), i, out_normal);
-        return;
-    }
-
-    float3 v0 = tri_verts[3 * h.tri].xyz, v1 = tri_verts[3 * h.tri + 1].xyz;
-    float3 v2 = tri_verts[3 * h.tri + 2].xyz;
-    float3 ng = normalize(cross(v1 - v0, v2 - v0));
-    if (dot(ng, d) > 0.0f)
-        ng = -ng;
-    // The barycentric point is more accurate than o + t d far from the origin.
-    float3 hit_p = (1.0f - h.u - h.v) * v0 + h.u * v1 + h.v * v2;
-    float3 shadow_o = offset_ray_origin(hit_p, ng);
-    float3 albedo = materials[material_ids[h.tri]].xyz;
-
-    float3 radiance = (float3)(0.0f, 0.0f, 0.0f);
-    for (uint l = 0; l < light_count; ++l) {
-        float4 l0 = lights[4 * l], l1 = lights[4 * l + 1], l2 = lights[4 * l + 2];
-        int kind = (int)l0.w;
-        float3 to_light;        // shadow ray direction (unnormalised for local lights)
-        float shadow_tmax;
-        float3 irradiance;      // at normal incidence, before the cosine at the surface
-        if (kind == LIGHT_SUN) {
-#ifdef HAS_SUN
-            to_light = -l1.xyz;
-            shadow_tmax = INFINITY;
-            irradiance = l2.xyz;
-#else
+    float tmin = cam[5].x / along, tmax = cam[5].y / along, t_before = 0.0f;
+    uint ignore = NO_HIT;
+    bool primary = true;
+    int bounces = 0, diffuse = 0, passes = 0;
+    *depth = 1e10f;
+    *normal = (float3)(0.0f, 0.0f, 0.0f);
+    while (true) {
+        Hit h;
+        if (!trace(sc, o, d, tmin, tmax, false, ignore, &h)) {
+            radiance += beta * cam[6].xyz;
+            break;
+        }
+        Surface s = surface_at(sc, &h, d);
+        Material m = material_at(sc, h.tri, h.u, h.v);
+#ifdef HAS_ALPHA
+        // Cut-out: the path goes on through with probability 1 - alpha (Cycles' stochastic
+        // transparency); not a bounce.
+        if (m.alpha < 1.0f && rng_next(rng) >= m.alpha) {
+            if (++passes > 64)
+                break;
+            o = spawn(&s, d);
+            ignore = h.tri;
+            if (primary) {
+                t_before += h.t;
+                tmin = fmax(tmin - h.t, 0.0f);
+                tmax = tmax - h.t;
+            }
             continue;
+        }
 #endif
-        } else {
-            to_light = l0.xyz - shadow_o;
-            shadow_tmax = 0.9999f;      // stop just short of the light itself
-            float dist2 = dot(to_light, to_light);
-            float emit = 1.0f;          // angular falloff of the emitter
-            float cos_out = -dot(to_light, l1.xyz) / sqrt(dist2);
-#ifdef HAS_SPOT
-            if (kind == LIGHT_SPOT) {
-                // Cycles: smoothstep((cos - cos_half_angle) * smooth), a hard edge when blend = 0
-                emit = l2.w > 0.0f ? smoothstep01((cos_out - l1.w) * l2.w)
-                                   : (cos_out > l1.w ? 1.0f : 0.0f);
+        if (primary) {
+            *depth = (t_before + h.t) * along;
+            *normal = s.ns;
+            primary = false;
+        }
+        float3 wo = -normalize(d);
+#ifdef HAS_EMISSION
+        radiance += beta * m.emission;
+#endif
+        radiance += beta * direct_light(sc, &s, &m, wo, rng);
+#ifdef HAS_BOUNCES
+        if (bounces >= max_bounces)
+            break;
+        ++bounces;
+        // Pick one lobe to continue with, with probability equal to its weight.
+        float pick = rng_next(rng);
+        float w_metal = m.metallic, w_glass = (1.0f - m.metallic) * m.transmission;
+        bool mirror = m.roughness < MIRROR_ROUGHNESS;
+        float cos_o = fmax(dot(s.ns, wo), 0.0f);
+        float3 nd = (float3)(0.0f, 0.0f, 0.0f);
+        bool go = false;
+        if (pick < w_metal) {
+#ifdef HAS_SPECULAR
+            if (mirror) {
+                nd = reflect_dir(-wo, s.ns);
+                beta *= m.base + (1.0f - m.base) * pow5(1.0f - cos_o);
+                go = true;
             }
 #endif
-#ifdef HAS_AREA
-            if (kind == LIGHT_AREA)
-                emit = fmax(cos_out, 0.0f);     // one-sided emitter, Lambertian
+        } else if (pick < w_metal + w_glass) {
+#ifdef HAS_TRANSMISSION
+            float eta = s.front ? m.ior : 1.0f / m.ior;       // n_t / n_i
+            float F = fresnel_dielectric(cos_o, eta);
+            bool ok = false;
+            if (rng_next(rng) >= F)
+                nd = refract_dir(-wo, s.ns, 1.0f / eta, &ok);
+            if (ok) {
+                beta *= m.base;
+            } else {
+                nd = reflect_dir(-wo, s.ns);                   // Fresnel or total reflection
+            }
+            go = true;
 #endif
-            irradiance = l2.xyz * (emit / dist2);
+        } else {
+            bool specular = false;
+#ifdef HAS_SPECULAR
+            float f0 = dielectric_f0(&m);
+            if (mirror && m.specular > 0.0f
+                    && rng_next(rng) < f0 + (1.0f - f0) * pow5(1.0f - cos_o)) {
+                nd = reflect_dir(-wo, s.ns);
+                specular = go = true;
+            }
+#endif
+#ifdef HAS_DIFFUSE_BOUNCES
+            if (!specular && diffuse < diffuse_bounces) {
+                ++diffuse;
+                nd = cosine_hemisphere(s.ns, rng_next(rng), rng_next(rng));
+                beta *= m.base;                                // albedo; pdf cancels cos / pi
+                go = true;
+            }
+#endif
         }
-        float cos_in = dot(ng, to_light) / length(to_light);
-        if (!(cos_in > 0.0f) || all(irradiance == 0.0f))
-            continue;
-        Ray s = make_ray(shadow_o, to_light);
-        Hit sh;
-        if (trace_ray(&s, 0.0f, shadow_tmax, true, nodes, leaf_indices, tri_verts,
-                      bounds[0].xyz, bounds[1].xyz, &sh))
-            continue;
-        radiance += irradiance * cos_in;
+        if (!go || all(beta == 0.0f))
+            break;
+        o = spawn(&s, nd);
+        d = nd;
+        tmin = 0.0f;
+        tmax = INFINITY;
+        ignore = h.tri;
+#else
+        break;
+#endif
     }
-    // Lambertian BRDF: albedo / pi.
-    out_combined[i] = (float4)(albedo * radiance * M_1_PI_F, 1.0f);
-    out_depth[i] = h.t * along;
-    vstore3(ng, i, out_normal);
+    return radiance;
+}
+
+// Sample `sample_start + k` (k < sample_count) of each listed pixel. strata n > 0: sample s
+// lies in stratum progressive_stratum(s, n) of an n x n grid, jittered; n == 0: the pixel
+// centre (one sample). pixels[i]: tile-local index (row * tile_w + column).
+// accum: (sum of RGB, sample count); stats: (sum, sum of squares) of min(luminance, 1).
+// write_aux: also write the depth and normal passes (from the pixel-centre ray).
+__kernel void render_samples(__global const float4 *cam, int x0, int y0, int tile_w,
+                             __global const int *pixels, int pixel_count, int sample_start,
+                             int sample_count, int strata, int max_bounces, int diffuse_bounces,
+                             int light_n, uint seed, int write_aux,
+                             __global const uint2 *nodes, __global const uint *leaf_indices,
+                             __global const float4 *tri_verts, __global const float4 *bounds,
+                             __global const ushort *material_ids,
+                             __global const float4 *materials, __global const float4 *lights,
+                             uint light_count, __global const float *normals,
+                             __global const float *uvs, __global const half *texels,
+                             __global const uint *tex_sizes,
+                             __global float4 *accum, __global float2 *stats,
+                             __global float *out_depth, __global float *out_normal)
+{
+    int i = get_global_id(0);
+    if (i >= pixel_count)
+        return;
+    int here = pixels[i];
+    int px = x0 + here % tile_w, py = y0 + here / tile_w;
+    uint pixel_index = (uint)py * (uint)cam[5].z + (uint)px;     // global: same on every slave
+
+    Scene sc;
+    sc.nodes = nodes;
+    sc.leaf_indices = leaf_indices;
+    sc.tri_verts = tri_verts;
+    sc.material_ids = material_ids;
+    sc.materials = materials;
+    sc.lights = lights;
+    sc.normals = normals;
+    sc.uvs = uvs;
+    sc.texels = texels;
+    sc.tex_sizes = tex_sizes;
+    sc.bmin = bounds[0].xyz;
+    sc.bmax = bounds[1].xyz;
+    sc.light_count = light_count;
+    sc.light_n = light_n;
+
+    float4 sum = accum[here];
+    float2 st = stats[here];
+    float depth;
+    float3 normal;
+    for (int k = 0; k < sample_count; ++k) {
+        uint s = (uint)(sample_start + k);
+        Rng rng = rng_seed(pixel_index, s, seed);
+        float jx = 0.5f, jy = 0.5f;
+        if (strata > 0) {
+            uint2 cell = progressive_stratum(s % (uint)(strata * strata), (uint)strata);
+            jx = ((float)cell.x + rng_next(&rng)) / (float)strata;
+            jy = ((float)cell.y + rng_next(&rng)) / (float)strata;
+        }
+        float3 o, d;
+        camera_ray(cam, (float)px + jx, (float)py + jy, &o, &d);
+        float3 c = trace_path(&sc, cam, o, d, &rng, max_bounces, diffuse_bounces, &depth, &normal);
+        if (!all(isfinite(c)))
+            c = (float3)(0.0f, 0.0f, 0.0f);                 // never let NaN/inf reach a pixel
+        if (write_aux && strata == 0 && k == 0) {
+            out_depth[here] = depth;
+            vstore3(normal, here, out_normal);
+        }
+        float lum = fmin(0.2126f * c.x + 0.7152f * c.y + 0.0722f * c.z, 1.0f);
+        sum += (float4)(c, 1.0f);
+        st += (float2)(lum, lum * lum);
+    }
+    accum[here] = sum;
+    stats[here] = st;
+    if (write_aux && strata > 0) {
+        // Depth and normal from the pixel centre, as with one sample.
+        float3 o, d;
+        camera_ray(cam, (float)px + 0.5f, (float)py + 0.5f, &o, &d);
+        float along = dot(d, cam[4].xyz);
+        Hit h;
+        depth = 1e10f;
+        normal = (float3)(0.0f, 0.0f, 0.0f);
+        if (trace(&sc, o, d, cam[5].x / along, cam[5].y / along, false, NO_HIT, &h)) {
+            Surface s = surface_at(&sc, &h, d);
+            depth = h.t * along;
+            normal = s.ns;
+        }
+        out_depth[here] = depth;
+        vstore3(normal, here, out_normal);
+    }
 }

@@ -106,7 +106,9 @@ inline bool intersect_triangle(const Ray *r, float3 v0, float3 v1, float3 v2,
 
 // Nearest hit with t in [tmin, tmax] (ties to the lower triangle index), or, when any_hit,
 // the first hit found (shadow rays). Front-to-back stack traversal with t intervals (pbrt).
-inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit,
+// `ignore_tri` (NO_HIT for none) is never reported: the triangle a secondary ray leaves from,
+// which a ray leaving its plane cannot meet again (a guard beside the origin offset).
+inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint ignore_tri,
                       __global const uint2 *nodes, __global const uint *leaf_indices,
                       __global const float4 *tri_verts, float3 bmin, float3 bmax, Hit *hit)
 {
@@ -144,25 +146,32 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit,
         uint kind = n.x & 3u;
         if (kind != KD_LEAF) {
             float split = as_float(n.y);
-            float o = lane(r->o, kind);
-            float tplane = (split - o) * lane(r->inv_d, kind);
+            float o = lane(r->o, kind), inv = lane(r->inv_d, kind);
+            float tplane = (split - o) * inv;
+            // Bound on tplane's rounding error (one rounding in split - o, which is exact when
+            // they are close, one in 1/d, one in the product). Cells that the ray meets within
+            // it are visited too, so a ray through an edge or vertex lying in a split plane,
+            // whose triangles sit in a cell it only touches there, still finds them (leaves
+            // test [tmin, best], so an extra cell costs time, never a wrong answer). 0 when
+            // tplane is +-inf (ray parallel to the plane) or NaN (origin on it as well).
+            float err = isfinite(tplane) ? 2.0f * GAMMA3 * fabs(tplane) : 0.0f;
             // The child holding the origin comes first; on the plane the direction decides.
             bool below_first = (o < split) || (o == split && lane(r->d, kind) <= 0.0f);
             uint child = n.x >> 2;
             uint first = below_first ? child : child + 1u;
             uint second = below_first ? child + 1u : child;
-            // A NaN tplane fails both tests and both children are visited: safe.
-            if (tplane > t1 || tplane <= 0.0f) {
+            // A NaN tplane fails every test and both children are visited: safe.
+            if (tplane - err > t1 || tplane + err <= 0.0f) {
                 node = first;
-            } else if (tplane < t0) {
+            } else if (tplane + err < t0 && tplane - err > 0.0f) {
                 node = second;
             } else {
                 stack[sp].node = second;
-                stack[sp].t0 = tplane;
+                stack[sp].t0 = fmax(t0, tplane - err);      // fmax/fmin ignore a NaN tplane
                 stack[sp].t1 = t1;
                 ++sp;
                 node = first;
-                t1 = tplane;
+                t1 = fmin(t1, tplane + err);
             }
             continue;
         }
@@ -172,7 +181,7 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit,
         for (uint i = 0; i < count; ++i) {
             uint tri = leaf_indices[offset + i];
             float t, u, v;
-            if (intersect_triangle(r, tri_verts[3 * tri].xyz, tri_verts[3 * tri + 1].xyz,
+            if (tri != ignore_tri && intersect_triangle(r, tri_verts[3 * tri].xyz, tri_verts[3 * tri + 1].xyz,
                                    tri_verts[3 * tri + 2].xyz, tmin, best, &t, &u, &v)
                 && (t < best || tri < best_tri)) {
                 best = t;

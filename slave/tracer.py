@@ -1,8 +1,10 @@
 """The OpenCL tracer: ray queries against a kd-tree and camera tiles (docs/tracer.md).
 
-One kernel source set (kernels/trace.cl + intersect.cl + render.cl) serves both `intersect` and
-`render_tile`, so both share the same traversal and triangle test. Runs on PoCL's CPU device and
-on GPU drivers alike: single precision, no extensions, no fast-math options.
+One kernel source set (kernels/trace.cl, sampling.cl, shading.cl, intersect.cl, render.cl) serves
+both `intersect` and `render_tile`, so both share the same traversal and triangle test. Runs on
+PoCL's CPU device and on GPU drivers alike: single precision, no extensions, no fast-math options.
+The render kernel is compiled per feature set (core/features.py): a scene compiles only what it
+uses. docs/tracer.md and docs/shading.md describe the kernels and the sampling.
 """
 from __future__ import annotations
 
@@ -11,19 +13,23 @@ import math
 import os
 import pathlib
 import tempfile
+import time
 from typing import NamedTuple
 
 import numpy as np
 
-from core.scene import Geometry, View
+from core.features import ALL_FEATURES, MIRROR_ROUGHNESS, needed_arrays, scene_features
+from core.scene import MATERIAL_PARAMS, Geometry, View
 
 KERNEL_DIR = pathlib.Path(__file__).resolve().parent.parent / "kernels"
-# Concatenated in this order: trace.cl defines what the other two use.
-KERNEL_FILES = ("trace.cl", "intersect.cl", "render.cl")
+# Concatenated in this order: each file uses only what the ones before it define.
+KERNEL_FILES = ("trace.cl", "sampling.cl", "shading.cl", "intersect.cl", "render.cl")
 LIGHT_CODES = {"POINT": 0, "SUN": 1, "SPOT": 2, "AREA": 3}
-LIGHT_FLOAT4S = 4           # float4 slots per light in the kernel's light buffer
+LIGHT_FLOAT4S = 6           # float4 slots per light in the kernel's light buffer
+MATERIAL_FLOAT4S = 4
 CAMERA_FLOAT4S = 7
 MIN_STACK_SIZE = 32
+LIGHT_KINDS = tuple(LIGHT_CODES)
 
 
 class TracerError(RuntimeError):
@@ -44,12 +50,16 @@ def kernel_sources() -> str:
 def kernel_options(features: dict) -> list:
     """THE place that turns scene features into build options.
 
-    features: "stack_size" (int, at least the kd-tree depth + 1), "light_kinds" (iterable of
-    Light.kind), "correct_divide_sqrt" (bool: the device can round / and sqrt correctly, which
-    keeps pixels identical across devices). Never fast-math: traversal needs inf/NaN/-0.
+    features: "stack_size" (int, at least the kd-tree depth + 1), "flags" (the scene's feature
+    set from core.features.scene_features: light kinds and shading features, each becomes
+    -DHAS_<NAME>), "light_kinds" (extra light kinds, for callers that only name those),
+    "correct_divide_sqrt" (bool: the device can round / and sqrt correctly, which keeps pixels
+    identical across devices). Never fast-math: traversal needs inf/NaN/-0.
     """
-    options = [f"-DKD_STACK_SIZE={int(features.get('stack_size', MIN_STACK_SIZE))}"]
-    options += [f"-DHAS_{kind}" for kind in sorted(set(features.get("light_kinds", ())))]
+    options = [f"-DKD_STACK_SIZE={int(features.get('stack_size', MIN_STACK_SIZE))}",
+               f"-DMIRROR_ROUGHNESS={MIRROR_ROUGHNESS!r}f"]
+    flags = set(features.get("flags", ())) | set(features.get("light_kinds", ()))
+    options += [f"-DHAS_{flag}" for flag in sorted(flags)]
     if features.get("correct_divide_sqrt"):
         options.append("-cl-fp32-correctly-rounded-divide-sqrt")
     return options
@@ -132,6 +142,9 @@ class Tracer:
         self._scene = None
         self._stack_size = MIN_STACK_SIZE
         self._material_count = 0
+        self._geometry = None
+        self.specialise = True      # False: compile every feature (for measuring specialisation)
+        self.last_render = {}       # kernel seconds, samples traced, features of the last tile
         self.local_size = None      # work-group size; None lets the driver choose (measured best on PoCL)
 
     @property
@@ -141,9 +154,9 @@ class Tracer:
                 "memory": int(d.global_mem_size), "platform": d.platform.name.strip()}
 
     # -- programs ------------------------------------------------------------------------
-    def _features(self, light_kinds=()) -> dict:
+    def _features(self, flags=()) -> dict:
         fp = getattr(self.device, "single_fp_config", 0)
-        return {"stack_size": self._stack_size, "light_kinds": tuple(light_kinds),
+        return {"stack_size": self._stack_size, "flags": tuple(sorted(flags)),
                 "correct_divide_sqrt": bool(fp & self._cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT)}
 
     def _program(self, features: dict):
@@ -217,10 +230,23 @@ class Tracer:
                 array = np.zeros(1, array.dtype)
             return cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=array)
 
+        try:
+            geometry.validate()
+        except ValueError as error:
+            raise TracerError(f"invalid geometry: {error}") from None
+
+        def optional(array, dtype):
+            return upload(np.zeros(4, dtype) if array is None else np.ascontiguousarray(array, dtype))
+
         self._scene = {"nodes": upload(nodes), "leaf_indices": upload(leaf_indices),
                        "tri_verts": upload(corners), "bounds": upload(box),
-                       "material_ids": upload(geometry.material_ids)}
+                       "material_ids": upload(geometry.material_ids),
+                       "normals": optional(geometry.normals, np.float32),
+                       "uvs": optional(geometry.uvs, np.float32),
+                       "texels": optional(geometry.texels, np.float16),
+                       "texture_sizes": optional(geometry.texture_sizes, np.uint32)}
         self._material_count = int(geometry.material_ids.max()) + 1 if tri_count else 0
+        self._geometry = geometry
 
     def _scene_buffers(self):
         if self._scene is None:
@@ -264,40 +290,183 @@ class Tracer:
 
     # -- camera tiles --------------------------------------------------------------------
     def render_tile(self, view: View, x: int, y: int, w: int, h: int) -> dict:
-        """Render pixels [x, x+w) x [y, y+h) of the full image (top-left origin)."""
+        """Render pixels [x, x+w) x [y, y+h) of the full image (top-left origin).
+
+        Samples as view.settings says (core/scene.py RenderSettings): uniform N x N stratified,
+        or adaptive. Seeds depend only on the global pixel index and the sample number, so a
+        tile gives the same pixels whichever slave renders it.
+        """
         cl = self._cl
         if not (0 <= x and 0 <= y and w > 0 and h > 0
                 and x + w <= view.width and y + h <= view.height):
             raise ValueError(f"tile ({x}, {y}, {w}, {h}) is not inside the "
                              f"{view.width}x{view.height} image")
         scene = self._scene_buffers()
-        materials = np.ascontiguousarray(view.shading.materials, np.float32).reshape(-1, 4)
-        if self._material_count > len(materials):
+        shading = view.shading
+        if self._material_count > len(shading.materials):
             raise TracerError(f"the geometry uses {self._material_count} materials, "
-                              f"the shading has {len(materials)}")
-        lights = _pack_lights(view.shading.lights)
-        camera = _pack_camera(view)
+                              f"the shading has {len(shading.materials)}")
+        textures = shading.param("texture")
+        if len(textures) and textures.max() >= self._geometry.texture_count:
+            raise TracerError(f"a material uses texture {int(textures.max())}, the geometry has "
+                              f"{self._geometry.texture_count}")
+        flags = scene_features(self._geometry, view) if self.specialise else ALL_FEATURES
+        missing = [name for name in needed_arrays(flags) if getattr(self._geometry, name) is None]
+        if missing:
+            raise TracerError(f"features {sorted(flags)} need the geometry arrays {missing}; "
+                              "load core.features.full_geometry(geometry) to render unspecialised")
+        kernel = self._program(self._features(flags))["render_samples"]
         mf = cl.mem_flags
         ctx = self.context
 
         def upload(array):
-            return cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=array)
+            return cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(array))
 
+        settings = view.settings
         n = w * h
-        combined = np.empty((h, w, 4), np.float32)
+        accum = np.zeros((n, 4), np.float32)
+        stats = np.zeros((n, 2), np.float32)
         depth = np.empty((h, w), np.float32)
         normal = np.empty((h, w, 3), np.float32)
-        outs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in (combined, depth, normal)]
-        kinds = {light.kind for light in view.shading.lights}
-        kernel = self._program(self._features(kinds))["render_tile"]
-        kernel(self.queue, self._global_size(n), self._local(), upload(camera), np.int32(x), np.int32(y), np.int32(w),
-               np.int32(h), scene["nodes"], scene["leaf_indices"], scene["tri_verts"],
-               scene["bounds"], scene["material_ids"], upload(materials), upload(lights),
-               np.uint32(len(view.shading.lights)), *outs)
-        for host, buf in zip((combined, depth, normal), outs):
-            cl.enqueue_copy(self.queue, host, buf)
+        accum_buf = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=accum)
+        stats_buf = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=stats)
+        depth_buf = cl.Buffer(ctx, mf.WRITE_ONLY, depth.nbytes)
+        normal_buf = cl.Buffer(ctx, mf.WRITE_ONLY, normal.nbytes)
+        fixed = (upload(_pack_camera(view)), np.int32(x), np.int32(y), np.int32(w))
+        scene_args = (scene["nodes"], scene["leaf_indices"], scene["tri_verts"], scene["bounds"],
+                      scene["material_ids"], upload(_pack_materials(shading)),
+                      upload(_pack_lights(shading.lights)), np.uint32(len(shading.lights)),
+                      scene["normals"], scene["uvs"], scene["texels"], scene["texture_sizes"],
+                      accum_buf, stats_buf, depth_buf, normal_buf)
+        strata = settings.samples_per_axis
+        total = strata * strata
+        started = time.perf_counter()
+        traced = 0
+
+        def run(pixels, start, count, aux):
+            nonlocal traced
+            pixels = np.ascontiguousarray(pixels, np.int32)
+            kernel(self.queue, self._global_size(len(pixels)), self._local(), *fixed,
+                   upload(pixels), np.int32(len(pixels)), np.int32(start), np.int32(count),
+                   np.int32(0 if total == 1 else strata), np.int32(settings.max_bounces),
+                   np.int32(settings.diffuse_bounces), np.int32(settings.light_samples_per_axis),
+                   np.uint32(settings.seed), np.int32(aux), *scene_args)
+            traced += len(pixels) * count
+
+        every = np.arange(n, dtype=np.int32)
+        if not settings.adaptive or total <= settings.adaptive_min_samples:
+            run(every, 0, total, 1)
+        else:
+            count = max(1, settings.adaptive_min_samples)
+            run(every, 0, 0, 1)                     # depth and normal of every pixel
+            active = self._undersample(run, accum_buf, stats_buf, accum, stats, x, y, w, h,
+                                       count, settings.adaptive_threshold)
+            while count < total:
+                cl.enqueue_copy(self.queue, stats, stats_buf)
+                error = _pixel_error(stats, count, w, h)
+                active = active[error[active] > settings.adaptive_threshold]
+                if len(active) == 0:
+                    break
+                batch = min(count, total - count)   # doubling
+                run(active, count, batch, 0)
+                count += batch
+        cl.enqueue_copy(self.queue, accum, accum_buf)
+        cl.enqueue_copy(self.queue, depth, depth_buf)
+        cl.enqueue_copy(self.queue, normal, normal_buf)
         self.queue.finish()
-        return {"combined": combined, "depth": depth, "normal": normal}
+        combined = np.empty((n, 4), np.float32)
+        combined[:, :3] = accum[:, :3] / np.maximum(accum[:, 3:4], 1.0)
+        combined[:, 3] = 1.0
+        self.last_render = {"kernel_seconds": time.perf_counter() - started,
+                            "samples": traced, "features": sorted(flags)}
+        return {"combined": combined.reshape(h, w, 4), "depth": depth, "normal": normal}
+
+
+    def _undersample(self, run, accum_buf, stats_buf, accum, stats, x, y, w, h, count,
+                     threshold):
+        """Adaptive undersampling (after Kim et al. 2016): trace the pixels with even global
+        coordinates (and the tile's last row and column, so every other pixel has traced
+        neighbours inside the tile); a pixel between them whose traced neighbours agree (their
+        luminance within 4 x threshold) and are converged is their average and traces nothing;
+        the others are traced. Global parity, so the same pixels are traced in every tiling of
+        the rows and columns. Returns the traced pixels (tile-local indices)."""
+        cl = self._cl
+        gy, gx = np.meshgrid(np.arange(y, y + h), np.arange(x, x + w), indexing="ij")
+        coarse = ((gx % 2 == 0) & (gy % 2 == 0)) | (gx == x + w - 1) & (gy % 2 == 0) \
+            | (gy == y + h - 1) & (gx % 2 == 0) | ((gx == x + w - 1) & (gy == y + h - 1))
+        traced = np.flatnonzero(coarse.ravel()).astype(np.int32)
+        run(traced, 0, count, 0)
+        cl.enqueue_copy(self.queue, accum, accum_buf)
+        cl.enqueue_copy(self.queue, stats, stats_buf)
+        colour = (accum[:, :3] / np.maximum(accum[:, 3:4], 1.0)).reshape(h, w, 3)
+        lum = (stats[:, 0] / count).reshape(h, w)
+        error = _pixel_error(stats, count, w, h).reshape(h, w)
+        sum_c = np.zeros((h, w, 3), np.float32)
+        n_c = np.zeros((h, w), np.int32)
+        lo = np.full((h, w), np.inf, np.float32)
+        hi = np.full((h, w), -np.inf, np.float32)
+        worst = np.zeros((h, w), np.float32)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dx == dy == 0:
+                    continue
+                # neighbour (r + dy, c + dx) of pixel (r, c), when traced
+                src = (slice(max(dy, 0), h + min(dy, 0)), slice(max(dx, 0), w + min(dx, 0)))
+                dst = (slice(max(-dy, 0), h + min(-dy, 0)), slice(max(-dx, 0), w + min(-dx, 0)))
+                # Of the 8 neighbours, the traced ones are the nearest ring: left/right or
+                # up/down for pixels on a traced row or column, the diagonals for the others.
+                ok = coarse[src]
+                sum_c[dst] += np.where(ok[..., None], colour[src], 0)
+                n_c[dst] += ok
+                lo[dst] = np.where(ok, np.minimum(lo[dst], lum[src]), lo[dst])
+                hi[dst] = np.where(ok, np.maximum(hi[dst], lum[src]), hi[dst])
+                worst[dst] = np.where(ok, np.maximum(worst[dst], error[src]), worst[dst])
+        smooth = ~coarse & (n_c >= 2) & (hi - lo <= 4 * threshold) & (worst <= threshold)
+        fill = np.flatnonzero(smooth.ravel())
+        if len(fill):
+            interpolated = (sum_c / np.maximum(n_c, 1)[..., None]).reshape(-1, 3)[fill]
+            accum[fill, :3] = interpolated
+            accum[fill, 3] = 1.0
+            stats[fill] = 0.0                   # converged: never refined
+            cl.enqueue_copy(self.queue, accum_buf, accum)
+        rest = np.flatnonzero((~coarse & ~smooth).ravel()).astype(np.int32)
+        if len(rest):
+            run(rest, 0, count, 0)
+        done = ~smooth.ravel()
+        return np.flatnonzero(done).astype(np.int32)
+
+
+def _pixel_error(stats: np.ndarray, count: int, w: int, h: int) -> np.ndarray:
+    """Per pixel, sigma / n: the spread of its samples (of min(luminance, 1)) over their count.
+    Sampling until sigma / n <= threshold gives each pixel n proportional to sigma, which is
+    the allocation that minimises the image's mean squared error for a given number of samples
+    (minimise sum sigma_i^2 / n_i with sum n_i fixed). Widened to half its 4-neighbours' value
+    (in the spirit of Kim et al. 2016: what a coarse pass finds noisy or at an edge, and its
+    neighbourhood, is refined; smooth regions keep the minimum)."""
+    mean = stats[:, 0] / count
+    variance = np.maximum(stats[:, 1] / count - mean * mean, 0.0) * (count / max(count - 1, 1))
+    error = (np.sqrt(variance) / count).reshape(h, w)
+    widened = error.copy()
+    widened[1:] = np.maximum(widened[1:], 0.5 * error[:-1])
+    widened[:-1] = np.maximum(widened[:-1], 0.5 * error[1:])
+    widened[:, 1:] = np.maximum(widened[:, 1:], 0.5 * error[:, :-1])
+    widened[:, :-1] = np.maximum(widened[:, :-1], 0.5 * error[:, 1:])
+    return widened.reshape(-1)
+
+
+def _pack_materials(shading) -> np.ndarray:
+    """The material buffer laid out as kernels/shading.cl documents it."""
+    params = shading.material_params
+    col = {name: params[:, i] for i, name in enumerate(MATERIAL_PARAMS)}
+    out = np.zeros((max(len(params), 1), MATERIAL_FLOAT4S, 4), np.float32)
+    out[:len(params), 0] = shading.materials
+    out[:len(params), 1] = np.stack([col["metallic"], col["roughness"], col["transmission"],
+                                     col["ior"]], -1)
+    out[:len(params), 2] = np.stack([col["emission_r"], col["emission_g"], col["emission_b"],
+                                     col["specular"]], -1)
+    out[:len(params), 3, 0] = col["texture"]
+    out[:len(params), 3, 1] = 1.0           # texture alpha drives alpha (1 = yes)
+    return out.reshape(-1, 4)
 
 
 def _pack_camera(view: View) -> np.ndarray:
@@ -330,7 +499,7 @@ def light_intensity(light) -> tuple:
 
 
 def _pack_lights(lights) -> np.ndarray:
-    """The light buffer laid out as kernels/render.cl documents it."""
+    """The light buffer laid out as kernels/shading.cl documents it."""
     out = np.zeros((max(len(lights), 1) * LIGHT_FLOAT4S, 4), np.float64)
     for i, light in enumerate(lights):
         row = out[i * LIGHT_FLOAT4S:(i + 1) * LIGHT_FLOAT4S]
@@ -340,10 +509,26 @@ def _pack_lights(lights) -> np.ndarray:
         row[0] = (*light.position, LIGHT_CODES[light.kind])
         row[1, :3] = direction
         row[2, :3] = light_intensity(light)
+        row[5, 0] = 1.0
         if light.kind == "SPOT":
             cos_half = math.cos(light.spot_size / 2)
             row[1, 3] = cos_half
             # Cycles: smoothstep((cos - cos_half) / ((1 - cos_half) * blend)); 0 = hard edge.
             span = (1.0 - cos_half) * light.spot_blend
             row[2, 3] = 1.0 / span if span > 0 else 0.0
+        if light.kind in ("POINT", "SPOT"):
+            row[3, 3] = light.radius
+        if light.kind == "SUN":
+            row[5, 0] = math.cos(min(light.radius, math.pi) / 2)
+        if light.kind == "AREA":
+            u, v = _unit(light.axis_u, (1, 0, 0)), _unit(light.axis_v, (0, 1, 0))
+            row[3, :3] = u * light.size_u
+            row[4, :3] = v * light.size_v
+            row[4, 3] = 1.0 if light.shape in ("DISK", "ELLIPSE") else 0.0
     return out.astype(np.float32)
+
+
+def _unit(vector, fallback) -> np.ndarray:
+    vector = np.asarray(vector, np.float64)
+    norm = np.linalg.norm(vector)
+    return vector / norm if norm > 0 else np.asarray(fallback, np.float64)
