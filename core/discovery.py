@@ -10,6 +10,7 @@ interface choice leaves loopback out.
 from __future__ import annotations
 
 import queue
+import re
 import socket
 import threading
 import time
@@ -68,6 +69,15 @@ def _slave_info(info: ServiceInfo) -> SlaveInfo | None:
     return SlaveInfo(_short_name(info.name), addresses[0], info.port, properties)
 
 
+def _server_name(name: str, port: int, slave_id=None) -> str:
+    """The host name the address records are published under. It must differ between slaves:
+    containers and network namespaces share one host name, and one server name announced with
+    two addresses makes every browser resolve both slaves to the same address."""
+    host = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname().split(".")[0])[:20] or "host"
+    label = re.sub(r"[^A-Za-z0-9-]", "-", str(slave_id or name))[:24]
+    return f"{host}-{label}-{port}.local."
+
+
 class Advertisement:
     """A slave's registered service; close() unregisters it (call it in `finally`)."""
 
@@ -77,7 +87,7 @@ class Advertisement:
             SERVICE_TYPE, f"{name}.{SERVICE_TYPE}", port=port,
             addresses=[socket.inet_aton(a) for a in addresses],
             properties={str(k): str(v) for k, v in properties.items()},
-            server=f"{socket.gethostname().split('.')[0]}-{port}.local.")
+            server=_server_name(name, port, properties.get("id")))
         try:
             # Two slaves with one name (two on a host) get "name (2)" rather than an error.
             self._zeroconf.register_service(self.info, allow_name_change=True)

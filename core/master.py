@@ -29,10 +29,11 @@ from dataclasses import dataclass
 from . import protocol
 from .protocol import MsgType, ProtocolError
 from .scene import SCENE_FORMAT_VERSION, Geometry, View
-from .tiles import TilePool, tile_grid
+from .tiles import TilePool, partition_tile_size, tile_dims, tile_grid
 
 POLL_S = 0.2             # how often worker threads look at the job's state
-CANCEL_TIMEOUT_S = 30.0  # a slave that does not confirm a cancel by then is dropped
+SLAVE_TIMEOUT_S = 30.0   # a slave that holds tiles and says nothing this long is dropped
+MODELS = ("3a", "3b")    # the paper's Fig. 3a (one thread per slave) and Fig. 3b (two)
 
 
 class MasterError(Exception):
@@ -100,7 +101,45 @@ def _reason(exc: OSError) -> str:
     return exc.strerror or str(exc) or type(exc).__name__
 
 
-def connect_slave(host: str, port: int, timeout: float = 3.0, master_name: str = "master") -> SlaveConnection:
+FROM_ENVIRONMENT = object()   # Master(secret=...) default: read $KDTRACE_SECRET if it is set
+
+
+def _handshake(sock: socket.socket, host: str, port: int, master_name: str,
+               secret: bytes | None) -> dict:
+    """HELLO, the HMAC challenge-response when the slave asks for it, WELCOME; returns the
+    WELCOME header. MasterError names what went wrong."""
+    nonce = protocol.new_nonce()
+    protocol.send_message(sock, MsgType.HELLO, {
+        "protocol_version": protocol.PROTOCOL_VERSION,
+        "scene_format_version": SCENE_FORMAT_VERSION, "name": master_name, "nonce": nonce})
+    expect = {MsgType.WELCOME, MsgType.ERROR, MsgType.CHALLENGE}
+    reply = protocol.recv_message(sock, protocol.DEFAULT_LIMITS, expect)
+    if reply.type == MsgType.CHALLENGE:
+        if secret is None:
+            raise MasterError(f"slave {host}:{port} requires a shared secret and this master has "
+                              f"none (set {protocol.SECRET_ENV} or a secret file)")
+        slave_nonce = protocol.check_hex(reply.header.get("nonce"), protocol.NONCE_HEX, "slave nonce")
+        if not protocol.proof_ok(secret, "slave", nonce, slave_nonce, reply.header.get("proof")):
+            raise MasterError(f"slave {host}:{port} failed authentication "
+                              f"(its shared secret differs from the master's)")
+        protocol.send_message(sock, MsgType.AUTH, {
+            "proof": protocol.auth_proof(secret, "master", nonce, slave_nonce)})
+        reply = protocol.recv_message(sock, protocol.DEFAULT_LIMITS, {MsgType.WELCOME, MsgType.ERROR})
+    elif reply.type == MsgType.WELCOME and secret is not None:
+        raise MasterError(f"slave {host}:{port} does not authenticate (no shared secret "
+                          f"configured on the slave); refused")
+    if reply.type == MsgType.ERROR:
+        raise MasterError(f"slave {host}:{port} refused the connection: "
+                          f"{reply.header.get('message')}")
+    theirs = reply.header.get("scene_format_version")
+    if theirs != SCENE_FORMAT_VERSION:
+        raise MasterError(f"slave {host}:{port}: scene format version mismatch: slave uses "
+                          f"version {theirs}, master uses version {SCENE_FORMAT_VERSION}")
+    return reply.header
+
+
+def connect_slave(host: str, port: int, timeout: float = 3.0, master_name: str = "master",
+                  secret: bytes | None = None) -> SlaveConnection:
     """Connect and handshake; MasterError with a readable message on any failure."""
     try:
         sock = socket.create_connection((host, port), timeout=timeout)
@@ -108,18 +147,8 @@ def connect_slave(host: str, port: int, timeout: float = 3.0, master_name: str =
         raise MasterError(f"cannot reach slave {host}:{port} ({_reason(exc)})") from None
     try:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # tile requests are tiny
-        protocol.send_message(sock, MsgType.HELLO, {
-            "protocol_version": protocol.PROTOCOL_VERSION,
-            "scene_format_version": SCENE_FORMAT_VERSION, "name": master_name})
-        reply = protocol.recv_message(sock, protocol.DEFAULT_LIMITS, {MsgType.WELCOME, MsgType.ERROR})
-        if reply.type == MsgType.ERROR:
-            raise MasterError(f"slave {host}:{port} refused the connection: "
-                              f"{reply.header.get('message')}")
-        theirs = reply.header.get("scene_format_version")
-        if theirs != SCENE_FORMAT_VERSION:
-            raise MasterError(f"slave {host}:{port}: scene format version mismatch: slave uses "
-                              f"version {theirs}, master uses version {SCENE_FORMAT_VERSION}")
-        connection = SlaveConnection(host, port, sock, reply.header)
+        welcome = _handshake(sock, host, port, master_name, secret)
+        connection = SlaveConnection(host, port, sock, welcome)
         sock.settimeout(None)
         return connection
     except protocol.VersionMismatch as exc:
@@ -156,10 +185,21 @@ def _in_parallel(function, items) -> list:
 class Master:
     """A set of slave connections that render frames of one scene."""
 
-    def __init__(self, endpoints, connect_timeout: float = 3.0, name: str = "master"):
+    def __init__(self, endpoints, connect_timeout: float = 3.0, name: str = "master",
+                 secret=FROM_ENVIRONMENT, slave_timeout: float = SLAVE_TIMEOUT_S):
+        """`secret`: bytes/str shared with the slaves, None for none, default: $KDTRACE_SECRET
+        if set. `slave_timeout`: a slave holding tiles that sends nothing for this many seconds
+        is dropped and its tiles go to the others."""
         self.endpoints = [(str(host), int(port)) for host, port in endpoints]
         self.connect_timeout = connect_timeout
         self.name = name
+        if secret is FROM_ENVIRONMENT:
+            try:
+                secret = protocol.load_secret()
+            except protocol.AuthError as exc:
+                raise MasterError(str(exc)) from None
+        self.secret = secret.encode("utf-8") if isinstance(secret, str) else secret
+        self.slave_timeout = float(slave_timeout)
         self.connections: list = []
         self.errors: list = []           # connection and upload problems, readable
         self.scene_hash: str | None = None
@@ -173,7 +213,8 @@ class Master:
     def connect(self) -> list:
         """Connect to every endpoint; MasterError if none answers. Returns the connections."""
         outcomes = _in_parallel(
-            lambda ep: connect_slave(ep[0], ep[1], self.connect_timeout, self.name), self.endpoints)
+            lambda ep: connect_slave(ep[0], ep[1], self.connect_timeout, self.name, self.secret),
+            self.endpoints)
         for _, outcome in outcomes:
             if isinstance(outcome, SlaveConnection):
                 self.connections.append(outcome)
@@ -186,6 +227,8 @@ class Master:
     def load_scene(self, geometry: Geometry, tree) -> str:
         """Make the scene present on every slave, uploading only where its hash is unknown.
         Slaves that fail are dropped (see .errors). Returns the scene hash."""
+        if self._job is not None:
+            self._job.wait()  # its threads may still read the sockets (copies being cancelled)
         scene_hash = protocol.scene_hash(geometry, tree)
         arrays = protocol.scene_arrays(geometry, tree)
         upload_bytes = sum(a.nbytes for a in arrays.values())
@@ -227,17 +270,38 @@ class Master:
             raise ProtocolError(f"expected SCENE_READY for {scene_hash}, got {reply.type.name}")
         return reply.header.get("present") is True
 
-    def render(self, view: View, tile_size: int = 64, tiles_in_flight: int = 2) -> "RenderJob":
-        """Start rendering `view` on every connected slave; returns at once with the job."""
+    def render(self, view: View, tile_size=64, tiles_in_flight: int = 2, *,
+               partition: int | None = None, model: str = "3b", payload: str = "f32",
+               compress: bool = False, duplicates: bool = True) -> "RenderJob":
+        """Start rendering `view` on every connected slave; returns at once with the job.
+
+        tile_size: pixels (int, square tiles, or a (w, h) pair); partition=N instead cuts the
+        render region into N x N tiles (Table 5b). tiles_in_flight: requests outstanding per
+        slave (model 3b). model: "3b" (sender + receiver thread per slave, the default) or "3a"
+        (one thread per slave that asks for a tile and waits for it: for comparison).
+        payload: "f32" or "f16" (combined and normal as float16); compress: zlib when it pays.
+        duplicates: near the end idle slaves take copies of tiles still outstanding elsewhere.
+        """
         if self.scene_hash is None:
             raise MasterError("no scene loaded: call load_scene first")
-        if not 1 <= tile_size <= protocol.MAX_TILE_SIZE:
-            raise MasterError(f"tile size must be 1 to {protocol.MAX_TILE_SIZE}, got {tile_size}")
+        if model not in MODELS:
+            raise MasterError(f"model must be one of {MODELS}, got {model!r}")
+        if payload not in protocol.PAYLOADS:
+            raise MasterError(f"payload must be one of {protocol.PAYLOADS}, got {payload!r}")
+        try:
+            dims = partition_tile_size(view.region, partition) if partition else tile_dims(tile_size)
+        except ValueError as exc:
+            raise MasterError(str(exc)) from None
+        if not all(1 <= d <= protocol.MAX_TILE_SIZE for d in dims):
+            raise MasterError(f"tile size must be 1 to {protocol.MAX_TILE_SIZE}, got {dims}")
         if self._job is not None:
             self._job.wait()  # one receiver per socket: the previous job's threads must be gone
         if not self.slaves:
             raise MasterError("no slaves connected")
-        self._job = RenderJob(self.slaves, view, tile_size, max(1, tiles_in_flight), self.scene_hash)
+        self._job = RenderJob(self.slaves, view, dims, max(1, int(tiles_in_flight)),
+                              self.scene_hash, model=model, payload=payload,
+                              compress=bool(compress), duplicates=duplicates,
+                              slave_timeout=self.slave_timeout)
         self._job.start()
         return self._job
 
@@ -256,40 +320,62 @@ class Master:
 
 
 class _SlaveWorker:
-    """One slave's part in one job: its sender and receiver threads and its tiles in flight."""
+    """One slave's part in one job: its threads (model 3b: a sender and a receiver; model 3a:
+    one that does both) and its tiles in flight."""
 
     def __init__(self, job: "RenderJob", connection: SlaveConnection):
         self.job, self.connection = job, connection
         self.in_flight: set = set()
         self.alive = True
         self.cancel_deadline = None     # set while waiting for the slave to confirm a cancel
+        self.last_heard = time.monotonic()
         self.tiles_done = 0
         self.state = threading.Condition()
-        self.threads = [
-            threading.Thread(target=self._send_loop, name=f"send {connection.label}", daemon=True),
-            threading.Thread(target=self._receive_loop, name=f"recv {connection.label}", daemon=True)]
+        label = connection.label
+        if job.model == "3a":
+            self.threads = [threading.Thread(target=self._simple_loop, name=f"slave {label}",
+                                             daemon=True)]
+        else:
+            self.threads = [
+                threading.Thread(target=self._send_loop, name=f"send {label}", daemon=True),
+                threading.Thread(target=self._receive_loop, name=f"recv {label}", daemon=True)]
+
+    # -- model 3b
+
+    def _frame_start(self) -> None:
+        job = self.job
+        self.connection.send(MsgType.FRAME_START, {
+            "frame_id": job.frame_id, "scene_hash": job.scene_hash, "view": job.view.to_dict(),
+            "tile_size": job.tile_w, "tile_height": job.tile_h, "model": job.model,
+            "payload": job.payload, "compress": job.compress})
+
+    def _take(self) -> int | None:
+        job = self.job
+        index = job.pool.take(POLL_S, holder=self, duplicates=job.duplicates)
+        if index is None:
+            return None
+        with self.state:
+            if not self.alive:
+                job.pool.put_back(index, self)
+                return None
+            if not self.in_flight:
+                self.last_heard = time.monotonic()  # the deadline runs from the first request
+            self.in_flight.add(index)
+        return index
 
     def _send_loop(self) -> None:
         job = self.job
         try:
-            self.connection.send(MsgType.FRAME_START, {
-                "frame_id": job.frame_id, "scene_hash": job.scene_hash,
-                "view": job.view.to_dict(), "tile_size": job.tile_size})
+            self._frame_start()
             while self.alive and not job.over:
                 with self.state:
                     if not self.state.wait_for(
                             lambda: len(self.in_flight) < job.tiles_in_flight or not self.alive,
                             POLL_S):
                         continue
-                index = job.pool.take(POLL_S)
-                if index is None:
-                    continue
-                with self.state:
-                    if not self.alive:
-                        job.pool.put_back(index)
-                        return
-                    self.in_flight.add(index)
-                self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
+                index = self._take()
+                if index is not None:
+                    self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
         except OSError as exc:
             self.lose(f"send failed ({_reason(exc)})")
 
@@ -301,30 +387,69 @@ class _SlaveWorker:
                     waiting = self.in_flight or self.cancel_deadline is not None
                     if not self.alive or (job.over and not waiting):
                         return
-                if self.cancel_deadline is not None and time.monotonic() > self.cancel_deadline:
-                    self.lose("did not confirm the cancel")
-                    return
+                    if job.over and self.in_flight and self.cancel_deadline is None:
+                        stale = True    # copies of tiles another slave finished first
+                    else:
+                        stale = False
+                if stale:
+                    self.cancel()
+                self._check_deadlines(waiting)
                 # Wait for data with a timeout, then read a whole message: a timeout inside a
                 # message would desynchronise the stream.
                 if not select.select([sock], [], [], POLL_S)[0]:
                     continue
                 self._handle(self.connection.recv(job.limits))
+        except _SlaveTimeout as exc:
+            self.lose(str(exc))
         except (ProtocolError, OSError, ValueError) as exc:
-            if isinstance(exc, protocol.ConnectionClosed):
-                reason = "disconnected"
-            elif isinstance(exc, OSError):
-                reason = f"connection lost ({_reason(exc)})"
-            else:
-                reason = str(exc)
-            self.lose(reason)
+            self.lose(_describe(exc))
+
+    def _check_deadlines(self, waiting) -> None:
+        now = time.monotonic()
+        if self.cancel_deadline is not None and now > self.cancel_deadline:
+            raise _SlaveTimeout("did not confirm the cancel")
+        if waiting and now - self.last_heard > self.job.slave_timeout:
+            raise _SlaveTimeout(f"did not answer within {self.job.slave_timeout:g} s")
+
+    # -- model 3a
+
+    def _simple_loop(self) -> None:
+        """Fig. 3a: ask for one tile, wait for it, deliver it, ask for the next."""
+        job, sock = self.job, self.connection.sock
+        try:
+            self._frame_start()
+            while self.alive and not job.over:
+                index = self._take()
+                if index is None:
+                    continue
+                self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
+                while self.alive and index in self.in_flight:
+                    if job.over and self.cancel_deadline is None:
+                        self.cancel()
+                    self._check_deadlines(True)
+                    if select.select([sock], [], [], POLL_S)[0]:
+                        self._handle(self.connection.recv(job.limits))
+            while self.alive and self.cancel_deadline is not None:  # a cancel being confirmed
+                self._check_deadlines(True)
+                if select.select([sock], [], [], POLL_S)[0]:
+                    self._handle(self.connection.recv(job.limits))
+        except _SlaveTimeout as exc:
+            self.lose(str(exc))
+        except (ProtocolError, OSError, ValueError) as exc:
+            self.lose(_describe(exc))
+
+    # -- both
 
     def _handle(self, msg: protocol.Message) -> None:
         job, h = self.job, msg.header
+        self.last_heard = time.monotonic()
         if msg.type == MsgType.CANCEL:
             if h.get("frame_id") == job.frame_id:
                 with self.state:
                     self.cancel_deadline = None
-                    self.in_flight.clear()  # the slave dropped what it had not rendered
+                    for index in self.in_flight:  # the slave dropped what it had not rendered
+                        job.pool.put_back(index, self)
+                    self.in_flight.clear()
                     self.state.notify_all()
             return
         if msg.type == MsgType.ERROR:
@@ -342,9 +467,7 @@ class _SlaveWorker:
         x, y, w, h_ = job.tiles[index]
         if [h.get(k) for k in ("x", "y", "w", "h")] != [x, y, w, h_]:
             raise ProtocolError(f"tile {index} has the wrong rectangle")
-        problem = protocol.tile_passes_ok(msg.arrays, w, h_)
-        if problem:
-            raise ProtocolError(f"tile {index}: {problem}")
+        passes = protocol.decode_tile(h, msg.arrays, w, h_, job.payload)
         render_ms = protocol.get_float(h, "render_ms")
         with self.state:
             self.in_flight.discard(index)
@@ -353,14 +476,14 @@ class _SlaveWorker:
             return
         if job.pool.mark_done(index):
             self.tiles_done += 1
-            job._deliver(TileResult(index, x, y, w, h_, dict(msg.arrays), self.connection.name,
+            job._deliver(TileResult(index, x, y, w, h_, passes, self.connection.name,
                                     self.connection.id, render_ms))
 
     def cancel(self) -> None:
         with self.state:
-            if not self.alive:
+            if not self.alive or self.cancel_deadline is not None:
                 return
-            self.cancel_deadline = time.monotonic() + CANCEL_TIMEOUT_S
+            self.cancel_deadline = time.monotonic() + self.job.slave_timeout
         try:
             self.connection.send(MsgType.CANCEL, {"frame_id": self.job.frame_id})
         except OSError as exc:
@@ -378,24 +501,44 @@ class _SlaveWorker:
             self.state.notify_all()
         self.connection.close()
         for index in lost:
-            self.job.pool.put_back(index)
+            self.job.pool.put_back(index, self)
         self.job._slave_lost(self, reason)
+
+
+class _SlaveTimeout(Exception):
+    pass
+
+
+def _describe(exc: Exception) -> str:
+    if isinstance(exc, protocol.ConnectionClosed):
+        return "disconnected"
+    if isinstance(exc, OSError):
+        return f"connection lost ({_reason(exc)})"
+    return str(exc)
 
 
 class RenderJob:
     """One frame in progress. Thread-safe; the caller polls next_result()."""
 
-    def __init__(self, connections: list, view: View, tile_size: int, tiles_in_flight: int,
-                 scene_hash: str):
-        self.view, self.tile_size, self.tiles_in_flight = view, tile_size, tiles_in_flight
+    def __init__(self, connections: list, view: View, tile_dims: tuple, tiles_in_flight: int,
+                 scene_hash: str, model: str = "3b", payload: str = "f32", compress: bool = False,
+                 duplicates: bool = True, slave_timeout: float = SLAVE_TIMEOUT_S):
+        self.view, self.tiles_in_flight = view, tiles_in_flight
+        self.tile_w, self.tile_h = tile_dims
+        self.tile_size = self.tile_w if self.tile_w == self.tile_h else tile_dims
+        self.model, self.payload, self.compress = model, payload, compress
+        self.duplicates, self.slave_timeout = duplicates, slave_timeout
         self.scene_hash = scene_hash
         self.frame_id = uuid.uuid4().int >> 65   # unique across masters and renders; fits JSON ints
-        self.tiles = tile_grid(view.region, tile_size)
-        self.pool = TilePool(len(self.tiles))
-        self.limits = protocol.Limits(max_tile_pixels=tile_size * tile_size)
+        self.tiles = tile_grid(view.region, tile_dims)
+        self.pool = TilePool(len(self.tiles), max_copies=2 if duplicates else 1)
+        self.limits = protocol.Limits(max_tile_pixels=self.tile_w * self.tile_h)
         self.errors: list = []       # every problem, including slaves lost and recovered from
         self.error: str | None = None  # set when the frame cannot be finished
         self.cancelled = False
+        self.started = time.monotonic()
+        self.first_tile_s: float | None = None   # seconds from start to the first result
+        self.elapsed_s: float | None = None      # seconds from start to the last tile
         self._results: queue.Queue = queue.Queue()
         self._delivered = self._taken = 0
         self._over = threading.Event()
@@ -427,6 +570,10 @@ class RenderJob:
     @property
     def tiles_by_slave(self) -> dict:
         return {w.connection.label: w.tiles_done for w in self._workers}
+
+    @property
+    def duplicates_handed_out(self) -> int:
+        return self.pool.duplicates_handed_out
 
     def next_result(self, timeout: float | None = None) -> TileResult | None:
         """The next finished tile, or None after `timeout` seconds or once the job is over."""
@@ -464,8 +611,12 @@ class RenderJob:
     def _deliver(self, result: TileResult) -> None:
         with self._lock:
             self._delivered += 1
+            now = time.monotonic() - self.started
+            if self.first_tile_s is None:
+                self.first_tile_s = now
         self._results.put(result)
         if self.pool.all_done:
+            self.elapsed_s = now
             self._end()
 
     def _slave_lost(self, worker: _SlaveWorker, reason: str) -> None:

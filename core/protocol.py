@@ -12,17 +12,21 @@ from __future__ import annotations
 
 import enum
 import hashlib
+import hmac
 import json
 import math
+import os
+import secrets
 import socket
 import struct
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .scene import INDEX_DTYPE, MATERIAL_ID_DTYPE, VERTEX_DTYPE, Geometry, SceneError
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2   # 2: HMAC handshake (CHALLENGE/AUTH), float16/zlib tile payloads, N x M tiles
 MAGIC = b"KDTR"
 HEADER = struct.Struct("!4sHHIQ")
 DEFAULT_PORT = 47600
@@ -47,13 +51,15 @@ class MsgType(enum.IntEnum):
     CANCEL = 9         # master -> slave: frame id; the slave answers CANCEL once the frame is quiet
     ERROR = 10         # either way: message (+ frame id when it concerns a frame)
     BYE = 11           # master -> slave: closing
+    CHALLENGE = 12     # slave -> master: slave nonce + the slave's proof (only with a shared secret)
+    AUTH = 13          # master -> slave: the master's proof; WELCOME follows if it is right
 
 
 MASTER_TO_SLAVE = frozenset({MsgType.HELLO, MsgType.SCENE_QUERY, MsgType.SCENE_UPLOAD,
                              MsgType.FRAME_START, MsgType.TILE_REQUEST, MsgType.CANCEL,
-                             MsgType.ERROR, MsgType.BYE})
+                             MsgType.ERROR, MsgType.BYE, MsgType.AUTH})
 SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_RESULT,
-                             MsgType.CANCEL, MsgType.ERROR})
+                             MsgType.CANCEL, MsgType.ERROR, MsgType.CHALLENGE})
 
 # Tile passes: name -> (channels, dtype); (h, w) or (h, w, channels).
 TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3}
@@ -141,8 +147,12 @@ def encode_message(msg_type: MsgType, header: dict | None = None, arrays: dict |
 
 def send_message(sock: socket.socket, msg_type: MsgType, header: dict | None = None,
                  arrays: dict | None = None) -> None:
-    """Send one message (the caller serialises senders on one socket)."""
-    for buffer in encode_message(msg_type, header, arrays):
+    """Send one message (the caller serialises senders on one socket). Small messages go out
+    in one write: several small writes meet Nagle's algorithm and delayed ACKs (40 ms stalls)."""
+    buffers = encode_message(msg_type, header, arrays)
+    if len(buffers) > 1 and sum(len(b) for b in buffers) <= 1 << 20:
+        buffers = [b"".join(buffers)]
+    for buffer in buffers:
         if len(buffer):
             sock.sendall(buffer)
 
@@ -339,3 +349,146 @@ def tile_passes_ok(arrays: dict, w: int, h: int) -> str | None:
         if not np.isfinite(array).all():
             return f"pass {name!r} contains NaN or infinity"
     return None
+
+
+# ----------------------------------------------------------------------------- tile payloads
+#
+# A TILE_RESULT carries the passes as float32 (default) or, with payload "f16", combined and
+# normal as float16 (depth stays float32: its miss value 1e10 and far distances do not fit
+# float16). With compression on, the slave deflates the passes (zlib level 1) and sends one u1
+# array "zlib" instead, but only when that saves at least 10 %; the master inflates it with a
+# bound of exactly the expected size, so a "zip bomb" costs nothing.
+
+PAYLOADS = ("f32", "f16")
+F16_PASSES = ("combined", "normal")
+F16_MAX = 65504.0
+
+
+def pass_dtypes(payload: str) -> dict:
+    if payload not in PAYLOADS:
+        raise ValueError(f"payload must be one of {PAYLOADS}, got {payload!r}")
+    return {name: np.dtype("<f2") if payload == "f16" and name in F16_PASSES else np.dtype("<f4")
+            for name in TILE_PASSES}
+
+
+def _pass_shape(name: str, w: int, h: int) -> tuple:
+    return (h, w) if TILE_PASSES[name] == 1 else (h, w, TILE_PASSES[name])
+
+
+def encode_tile(passes: dict, payload: str = "f32", compress: bool = False) -> tuple:
+    """(header fields, arrays) of a TILE_RESULT for float32 `passes`."""
+    dtypes = pass_dtypes(payload)
+    arrays = {}
+    for name, dtype in dtypes.items():
+        array = np.asarray(passes[name], np.float32)
+        if dtype.itemsize == 2:
+            array = np.clip(array, -F16_MAX, F16_MAX)
+        arrays[name] = np.ascontiguousarray(array, dtype)
+    fields = {"payload": payload, "compression": "none"}
+    if compress:
+        raw = b"".join(a.tobytes() for a in arrays.values())
+        packed = zlib.compress(raw, 1)
+        if len(packed) <= 0.9 * len(raw):
+            fields["compression"] = "zlib"
+            arrays = {"zlib": np.frombuffer(packed, np.uint8)}
+    return fields, arrays
+
+
+def decode_tile(header: dict, arrays: dict, w: int, h: int, payload: str) -> dict:
+    """The float32 passes of a w x h TILE_RESULT sent with `payload`; ProtocolError if anything
+    is off (format, names, shapes, dtypes, sizes, NaN or infinity)."""
+    if header.get("payload", "f32") != payload:
+        raise ProtocolError(f"tile payload {header.get('payload')!r}, expected {payload!r}")
+    dtypes = pass_dtypes(payload)
+    compression = header.get("compression", "none")
+    if compression == "zlib":
+        packed = arrays.get("zlib")
+        if set(arrays) != {"zlib"} or packed.dtype != np.uint8 or packed.ndim != 1:
+            raise ProtocolError("a zlib tile must carry exactly one u1 array 'zlib'")
+        expected = sum(math.prod(_pass_shape(n, w, h)) * d.itemsize for n, d in dtypes.items())
+        inflater = zlib.decompressobj()
+        try:
+            raw = inflater.decompress(packed.tobytes(), expected)
+        except zlib.error as exc:
+            raise ProtocolError(f"tile does not inflate: {exc}") from None
+        if len(raw) != expected or inflater.unconsumed_tail or not inflater.eof:
+            raise ProtocolError("inflated tile has the wrong size")
+        arrays, offset = {}, 0
+        for name, dtype in dtypes.items():
+            shape = _pass_shape(name, w, h)
+            arrays[name] = np.frombuffer(raw, dtype, math.prod(shape), offset).reshape(shape)
+            offset += math.prod(shape) * dtype.itemsize
+    elif compression != "none":
+        raise ProtocolError(f"unknown tile compression {compression!r}")
+    if set(arrays) != set(TILE_PASSES):
+        raise ProtocolError(f"tile passes must be {sorted(TILE_PASSES)}, got {sorted(arrays)}")
+    passes = {}
+    for name, dtype in dtypes.items():
+        shape, array = _pass_shape(name, w, h), arrays[name]
+        if array.dtype != dtype or array.shape != shape:
+            raise ProtocolError(f"pass {name!r} must be {dtype.str} {shape}, "
+                                f"got {array.dtype.str} {array.shape}")
+        array = array.astype(np.float32)
+        if not np.isfinite(array).all():
+            raise ProtocolError(f"pass {name!r} contains NaN or infinity")
+        passes[name] = array
+    return passes
+
+
+# ----------------------------------------------------------------------------- authentication
+#
+# With a shared secret the handshake is a mutual HMAC-SHA256 challenge-response:
+#   HELLO(nonce_m) -> CHALLENGE(nonce_s, proof_s) -> AUTH(proof_m) -> WELCOME
+# proof_s = HMAC(secret, "kdtrace-slave" | nonce_m | nonce_s), proof_m the same with
+# "kdtrace-master". Different labels keep one side's proof from being replayed as the other's;
+# fresh nonces on both sides keep old proofs useless. The secret never travels.
+
+SECRET_ENV = "KDTRACE_SECRET"
+NONCE_HEX = 64      # 32 random bytes
+PROOF_HEX = 64      # SHA-256
+
+
+class AuthError(Exception):
+    """A secret could not be read, or a proof was wrong."""
+
+
+def load_secret(secret_file: str | None = None, env: str = SECRET_ENV) -> bytes | None:
+    """The shared secret: the file's contents (stripped) if a file is given, else the environment
+    variable, else None (no authentication). An empty secret is an error, not 'no secret'."""
+    if secret_file:
+        try:
+            with open(secret_file, "rb") as handle:
+                data = handle.read(65536).strip()
+        except OSError as exc:
+            raise AuthError(f"cannot read secret file {secret_file}: {exc.strerror or exc}") from None
+        if not data:
+            raise AuthError(f"secret file {secret_file} is empty")
+        return data
+    value = os.environ.get(env)
+    if value is None:
+        return None
+    if not value.strip():
+        raise AuthError(f"environment variable {env} is set but empty")
+    return value.strip().encode("utf-8")
+
+
+def new_nonce() -> str:
+    return secrets.token_hex(NONCE_HEX // 2)
+
+
+def check_hex(value, length: int, what: str) -> str:
+    if not isinstance(value, str) or len(value) != length or any(c not in "0123456789abcdef" for c in value):
+        raise ProtocolError(f"bad {what}")
+    return value
+
+
+def auth_proof(secret: bytes, role: str, master_nonce: str, slave_nonce: str) -> str:
+    label = {"slave": b"kdtrace-slave", "master": b"kdtrace-master"}[role]
+    message = b"|".join((label, master_nonce.encode(), slave_nonce.encode()))
+    return hmac.new(secret, message, hashlib.sha256).hexdigest()
+
+
+def proof_ok(secret: bytes, role: str, master_nonce: str, slave_nonce: str, proof) -> bool:
+    if not isinstance(proof, str) or len(proof) != PROOF_HEX:
+        return False
+    return hmac.compare_digest(auth_proof(secret, role, master_nonce, slave_nonce), proof)

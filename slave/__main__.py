@@ -72,11 +72,23 @@ def parse_args(argv):
     parser.add_argument("--no-zeroconf", action="store_true", help="do not advertise on the LAN")
     parser.add_argument("--max-scene-mib", type=int, default=4096,
                         help="largest scene upload accepted, MiB (default 4096)")
+    parser.add_argument("--secret-file", default=None,
+                        help="file holding the secret shared with masters (default: the "
+                             f"{protocol.SECRET_ENV} environment variable; neither: no "
+                             "authentication)")
+    parser.add_argument("--cache-dir", default=None,
+                        help="also keep uploaded scenes on disk in this folder")
+    parser.add_argument("--cache-disk-mib", type=int, default=2048,
+                        help="size limit of the disk scene cache, MiB (default 2048)")
+    parser.add_argument("--cache-scenes", type=int, default=2,
+                        help="scenes kept in memory (default 2)")
     parser.add_argument("--list-devices", action="store_true", help="list OpenCL devices and exit")
     parser.add_argument("--verbose", action="store_true", help="log every connection event")
     args = parser.parse_args(argv)
     if args.max_scene_mib < 1:
         raise UsageError("--max-scene-mib must be at least 1")
+    if args.cache_disk_mib < 1 or args.cache_scenes < 1:
+        raise UsageError("--cache-disk-mib and --cache-scenes must be at least 1")
     return args
 
 
@@ -118,13 +130,20 @@ def run(args) -> int:
     from .tracer import Tracer
 
     try:
+        secret = protocol.load_secret(args.secret_file)
+    except protocol.AuthError as exc:
+        raise UsageError(str(exc)) from None
+    try:
         tracer = Tracer(device=args.device)
     except Exception as exc:
         raise UsageError(f"cannot use OpenCL device {args.device!r}: {exc}") from None
     name = args.name or _default_name()
     limits = protocol.Limits(max_scene_bytes=args.max_scene_mib * 2 ** 20)
     try:
-        server = SlaveServer(tracer, name, args.bind, args.port, limits)
+        server = SlaveServer(tracer, name, args.bind, args.port, limits,
+                             cache_size=args.cache_scenes, secret=secret,
+                             cache_dir=args.cache_dir,
+                             cache_disk_bytes=args.cache_disk_mib * 2 ** 20)
     except OSError as exc:
         raise UsageError(f"cannot listen on {args.bind}:{args.port}: {exc.strerror or exc}") from None
 
@@ -142,7 +161,8 @@ def run(args) -> int:
                 advertisement = advertise(name, port, {
                     "protocol": protocol.PROTOCOL_VERSION, "name": name, "id": server.slave_id,
                     "device": info["name"], "compute_units": info["compute_units"],
-                    "memory": info["memory"]}, addresses, interfaces)
+                    "memory": info["memory"], "auth": "hmac" if secret else "none"},
+                    addresses, interfaces)
             except Exception as exc:  # no multicast here: masters can still connect by address
                 logging.getLogger("kdtrace.slave").warning("zeroconf advertising failed: %s", exc)
         shown_host = addresses[0] if host == "0.0.0.0" else host

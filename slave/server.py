@@ -26,33 +26,12 @@ from core.protocol import MsgType, ProtocolError
 from core.scene import SCENE_FORMAT_VERSION, SceneError, View
 from core.tiles import tile_grid
 
+from .scene_cache import SceneCache
+
 log = logging.getLogger("kdtrace.slave")
 
 HANDSHAKE_TIMEOUT = 10.0   # seconds a new connection may take to say HELLO
 MAX_CONNECTIONS = 16
-
-
-class SceneCache:
-    """The last few scenes by hash (small LRU): a master that comes back uploads nothing."""
-
-    def __init__(self, size: int = 2):
-        self.size = size
-        self._scenes = collections.OrderedDict()
-        self._lock = threading.Lock()
-
-    def get(self, scene_hash: str):
-        with self._lock:
-            scene = self._scenes.get(scene_hash)
-            if scene is not None:
-                self._scenes.move_to_end(scene_hash)
-            return scene
-
-    def put(self, scene_hash: str, scene) -> None:
-        with self._lock:
-            self._scenes[scene_hash] = scene
-            self._scenes.move_to_end(scene_hash)
-            while len(self._scenes) > self.size:
-                self._scenes.popitem(last=False)
 
 
 @dataclass
@@ -62,6 +41,9 @@ class Frame:
     scene: tuple            # (Geometry, SceneTree)
     view: View
     tiles: list
+    model: str = "3b"         # "3a": the render thread sends each tile itself (Fig. 3a)
+    payload: str = "f32"
+    compress: bool = False
     cancelled: bool = False
 
 
@@ -101,6 +83,7 @@ class MasterConnection:
         self.work = WorkQueue()
         self.outbox: queue.Queue = queue.Queue()
         self.frame: Frame | None = None
+        self._send_lock = threading.Lock()
 
     # -- threads
 
@@ -130,6 +113,8 @@ class MasterConnection:
                 raise ProtocolError(f"scene format version mismatch: master uses version "
                                     f"{peer_scene}, slave uses version {SCENE_FORMAT_VERSION}")
             self.peer = f"{protocol.get_str(msg.header, 'name', 64) or '?'}@{self.peer}"
+            if self.server.secret is not None and not self._authenticate(msg.header.get("nonce")):
+                return False
         except protocol.VersionMismatch as exc:
             return self._refuse(f"protocol version mismatch: master speaks version "
                                 f"{exc.peer_version}, slave speaks version {protocol.PROTOCOL_VERSION}")
@@ -142,8 +127,28 @@ class MasterConnection:
             "scene_format_version": SCENE_FORMAT_VERSION,
             "name": self.server.name, "id": self.server.slave_id,
             "device": info["name"], "compute_units": info["compute_units"],
-            "memory": info["memory"], "platform": info.get("platform", "")})
+            "memory": info["memory"], "platform": info.get("platform", ""),
+            "authenticated": self.server.secret is not None})
         log.info("master %s connected", self.peer)
+        return True
+
+    def _authenticate(self, master_nonce) -> bool:
+        """The HMAC challenge-response (see core.protocol); nothing else is accepted before it."""
+        if master_nonce is None:
+            return self._refuse("this slave requires authentication: the master sent no nonce")
+        master_nonce = protocol.check_hex(master_nonce, protocol.NONCE_HEX, "master nonce")
+        secret, nonce = self.server.secret, protocol.new_nonce()
+        protocol.send_message(self.sock, MsgType.CHALLENGE, {
+            "nonce": nonce, "proof": protocol.auth_proof(secret, "slave", master_nonce, nonce)})
+        try:
+            reply = protocol.recv_message(self.sock, protocol.DEFAULT_LIMITS, {MsgType.AUTH})
+        except protocol.ConnectionClosed:
+            log.warning("master %s refused: it left during authentication (no or another "
+                        "secret)", self.peer)
+            return False
+        if not protocol.proof_ok(secret, "master", master_nonce, nonce, reply.header.get("proof")):
+            time.sleep(0.2)  # a little friction for guessers
+            return self._refuse("authentication failed: wrong shared secret")
         return True
 
     def _refuse(self, reason: str) -> bool:
@@ -200,9 +205,26 @@ class MasterConnection:
                                                  "message": f"rendering failed: {exc}"}, None))
                 continue
             ms = (time.perf_counter() - start) * 1000.0
-            self.outbox.put((MsgType.TILE_RESULT, {
-                "frame_id": frame.frame_id, "tile": index, "x": x, "y": y, "w": w, "h": h,
-                "render_ms": round(ms, 3)}, {name: passes[name] for name in protocol.TILE_PASSES}))
+            tile = ("tile", frame, {"frame_id": frame.frame_id, "tile": index, "x": x, "y": y,
+                                    "w": w, "h": h, "render_ms": round(ms, 3)}, passes)
+            if frame.model == "3a":
+                # Fig. 3a: this thread transmits the tile itself before it renders the next.
+                try:
+                    self._send(tile)
+                except OSError as exc:
+                    log.info("master %s: send failed: %s", self.peer, exc)
+                    self._close_socket()
+                    return
+            else:
+                self.outbox.put(tile)
+
+    def _send(self, item) -> None:
+        if item[0] == "tile":  # encoding (float16, zlib) happens here, off the render thread in 3b
+            _, frame, header, passes = item
+            fields, arrays = protocol.encode_tile(passes, frame.payload, frame.compress)
+            item = (MsgType.TILE_RESULT, {**header, **fields}, arrays)
+        with self._send_lock:
+            protocol.send_message(self.sock, *item)
 
     def _send_loop(self) -> None:
         while True:
@@ -210,7 +232,7 @@ class MasterConnection:
             if item is None:
                 return
             try:
-                protocol.send_message(self.sock, *item)
+                self._send(item)
             except OSError as exc:
                 log.info("master %s: send failed: %s", self.peer, exc)
                 self._close_socket()  # wakes the reader, which winds the connection down
@@ -274,24 +296,38 @@ class MasterConnection:
             material_ids = scene[0].material_ids
             if len(material_ids) and int(material_ids.max()) >= len(view.shading.materials):
                 raise SceneError("a triangle refers to a material that does not exist")
-            tile_size = protocol.get_int(h, "tile_size", 1, protocol.MAX_TILE_SIZE)
+            tile_w = protocol.get_int(h, "tile_size", 1, protocol.MAX_TILE_SIZE)
+            tile_h = protocol.get_int(h, "tile_height", 1, protocol.MAX_TILE_SIZE) \
+                if "tile_height" in h else tile_w
+            model = h.get("model", "3b")
+            payload = h.get("payload", "f32")
+            compress = h.get("compress", False)
+            if model not in ("3a", "3b") or payload not in protocol.PAYLOADS \
+                    or not isinstance(compress, bool):
+                raise ProtocolError("bad model, payload or compress field")
         except (SceneError, ProtocolError) as exc:
             log.warning("master %s: frame %d refused: %s", self.peer, frame_id, exc)
             self.outbox.put((MsgType.ERROR, {"frame_id": frame_id, "message": str(exc)}, None))
             return
-        self.frame = Frame(frame_id, scene_hash, scene, view, tile_grid(view.region, tile_size))
+        self.frame = Frame(frame_id, scene_hash, scene, view, tile_grid(view.region, (tile_w, tile_h)),
+                           model, payload, compress)
 
 
 class SlaveServer:
     """Listens for masters; one MasterConnection (thread) per master; one shared Tracer."""
 
     def __init__(self, tracer, name: str, bind: str = "0.0.0.0", port: int = 0,
-                 limits: protocol.Limits = protocol.DEFAULT_LIMITS, cache_size: int = 2):
+                 limits: protocol.Limits = protocol.DEFAULT_LIMITS, cache_size: int = 2,
+                 secret: bytes | None = None, cache_dir=None,
+                 cache_disk_bytes: int = 2 * 1024 ** 3):
+        """`secret`: masters must pass the HMAC challenge-response (None: anyone may connect).
+        `cache_dir`: also keep scenes on disk there, up to `cache_disk_bytes`."""
         self.tracer, self.name = tracer, name
         self.device_info = dict(tracer.device_info)
         self.slave_id = uuid.uuid4().hex[:12]
         self.limits = limits
-        self.scenes = SceneCache(cache_size)
+        self.secret = secret
+        self.scenes = SceneCache(cache_size, cache_dir, cache_disk_bytes)
         self._device_lock = threading.Lock()
         self._loaded_hash = None
         self._connections = set()
@@ -311,6 +347,10 @@ class SlaveServer:
             except OSError:
                 return  # listener closed
             peer = f"{address[0]}:{address[1]}"
+            try:  # tile requests and results must not wait for Nagle's algorithm
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            except OSError:
+                pass
             with self._connections_lock:
                 busy = len(self._connections) >= MAX_CONNECTIONS
                 if not busy:

@@ -196,7 +196,9 @@ def test_two_slaves_render_the_same_pixels_as_one_and_as_the_tracer(slaves, refe
         assert job.error is None and job.errors == []
         assert sorted(r.index for r in results) == list(range(len(job.tiles))) == list(range(12))
         assert all(r.render_ms >= 0 and r.slave_id for r in results)
-        assert all(count > 0 for count in job.tiles_by_slave.values()), job.tiles_by_slave
+        # Which slave renders how many is dynamic (a slave still compiling its kernel may lose
+        # all its tiles to duplicates); every tile is delivered once.
+        assert sum(job.tiles_by_slave.values()) == len(job.tiles), job.tiles_by_slave
     with Master([slaves[0].endpoint]) as master:
         master.connect()
         master.load_scene(geometry, tree)

@@ -1,0 +1,105 @@
+"""Scenes a slave holds, by content hash: a small LRU in memory and, optionally, a folder on
+disk with a size limit, so a restarted slave or a second master uploads nothing.
+
+The disk copy is read back through the same validation as an upload (`scene_from_arrays`) and
+its hash is recomputed: a damaged or tampered file is deleted, never trusted. Files are .npz
+written with numpy (no pickle: loaded with allow_pickle=False), via a temporary name + rename.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import pathlib
+import threading
+
+import numpy as np
+
+from core import protocol
+
+log = logging.getLogger("kdtrace.slave")
+
+
+class SceneCache:
+    def __init__(self, size: int = 2, disk_dir: str | os.PathLike | None = None,
+                 disk_limit_bytes: int = 2 * 1024 ** 3):
+        self.size = max(1, int(size))
+        self.disk_dir = pathlib.Path(disk_dir) if disk_dir else None
+        self.disk_limit_bytes = int(disk_limit_bytes)
+        self._scenes = collections.OrderedDict()
+        self._lock = threading.Lock()
+        if self.disk_dir is not None:
+            self.disk_dir.mkdir(parents=True, exist_ok=True)
+
+    def _path(self, scene_hash: str) -> pathlib.Path:
+        return self.disk_dir / f"{protocol.check_scene_hash(scene_hash)}.npz"
+
+    def get(self, scene_hash: str):
+        with self._lock:
+            scene = self._scenes.get(scene_hash)
+            if scene is not None:
+                self._scenes.move_to_end(scene_hash)
+                return scene
+        scene = self._load_from_disk(scene_hash)
+        if scene is not None:
+            self._remember(scene_hash, scene)
+        return scene
+
+    def put(self, scene_hash: str, scene) -> None:
+        self._remember(scene_hash, scene)
+        if self.disk_dir is not None:
+            try:
+                self._save_to_disk(scene_hash, scene)
+            except OSError as exc:  # a full disk costs a future upload, nothing else
+                log.warning("cannot write scene %s to the disk cache: %s", scene_hash, exc)
+
+    def _remember(self, scene_hash: str, scene) -> None:
+        with self._lock:
+            self._scenes[scene_hash] = scene
+            self._scenes.move_to_end(scene_hash)
+            while len(self._scenes) > self.size:
+                self._scenes.popitem(last=False)
+
+    def _save_to_disk(self, scene_hash: str, scene) -> None:
+        geometry, tree = scene
+        arrays = protocol.scene_arrays(geometry, tree)
+        if sum(a.nbytes for a in arrays.values()) > self.disk_limit_bytes:
+            return
+        path = self._path(scene_hash)
+        if path.exists():
+            os.utime(path)
+            return
+        temporary = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
+        with open(temporary, "wb") as handle:
+            np.savez(handle, **arrays)
+        os.replace(temporary, path)
+        self._trim_disk(keep=path)
+
+    def _trim_disk(self, keep: pathlib.Path) -> None:
+        files = sorted(self.disk_dir.glob("*.npz"), key=lambda p: p.stat().st_mtime)
+        total = sum(p.stat().st_size for p in files)
+        for path in files:  # oldest use first
+            if total <= self.disk_limit_bytes:
+                break
+            if path != keep:
+                total -= path.stat().st_size
+                path.unlink(missing_ok=True)
+
+    def _load_from_disk(self, scene_hash: str):
+        if self.disk_dir is None:
+            return None
+        path = self._path(scene_hash)
+        if not path.exists():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {name: np.ascontiguousarray(data[name]) for name in data.files}
+            scene = protocol.scene_from_arrays(arrays)
+            if protocol.scene_hash(*scene) != scene_hash:
+                raise protocol.ProtocolError("content does not match its hash")
+        except Exception as exc:  # damaged, truncated or foreign file: drop it
+            log.warning("disk cache: discarding %s: %s", path.name, exc)
+            path.unlink(missing_ok=True)
+            return None
+        os.utime(path)
+        return scene

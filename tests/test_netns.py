@@ -1,0 +1,421 @@
+"""Multi-host tests: every slave in a Linux network namespace of its own ("a host"), joined by a
+bridge in the root namespace (one veth pair per host); the master runs in this process in the
+root namespace. zeroconf multicast crosses the bridge. Needs root and iproute2 (`ip`); CI runs
+as root. Names are unique per run and everything is removed in the fixture's finally.
+"""
+from __future__ import annotations
+
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+import uuid
+
+import numpy as np
+import pytest
+
+from core import protocol
+from core.discovery import SlaveBrowser
+from core.master import Master, MasterError
+from core.protocol import HEADER, MAGIC, MsgType
+from core.scene import SCENE_FORMAT_VERSION
+from tests.conftest import ROOT
+from tests.test_network import (assert_images_equal, make_scene, make_view, raw_exchange,
+                                render_all)
+
+pytestmark = pytest.mark.skipif(
+    os.geteuid() != 0 or shutil.which("ip") is None,
+    reason="network-namespace tests need root and iproute2's `ip` (CI runs them as root)")
+
+PORT = 47600
+START_TIMEOUT = 60
+
+
+def ip(*args, check=True):
+    return subprocess.run(["ip", *args], check=check, capture_output=True, text=True, timeout=30)
+
+
+class Lan:
+    """A bridge with one namespace per host: host i has address 10.<net>.0.<i + 2>."""
+
+    def __init__(self, hosts: int):
+        tag = uuid.uuid4().hex[:6]
+        self.net = random.randint(100, 250)
+        self.bridge = f"kdbr{tag}"
+        self.master_ip = f"10.{self.net}.0.1"
+        self.namespaces, self.addresses = [], []
+        try:
+            ip("link", "add", self.bridge, "type", "bridge")
+            ip("addr", "add", f"{self.master_ip}/24", "dev", self.bridge)
+            ip("link", "set", self.bridge, "up")
+            for i in range(hosts):
+                ns, root_end = f"kdt{tag}h{i}", f"kdv{tag}{i}"
+                ip("netns", "add", ns)
+                self.namespaces.append(ns)
+                ip("link", "add", root_end, "type", "veth", "peer", "name", "eth0", "netns", ns)
+                ip("link", "set", root_end, "master", self.bridge)
+                ip("link", "set", root_end, "up")
+                address = f"10.{self.net}.0.{i + 2}"
+                ip("-n", ns, "addr", "add", f"{address}/24", "dev", "eth0")
+                ip("-n", ns, "link", "set", "eth0", "up")
+                ip("-n", ns, "link", "set", "lo", "up")
+                self.addresses.append(address)
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self):
+        for ns in self.namespaces:   # deleting a namespace deletes its veth pair
+            ip("netns", "del", ns, check=False)
+        ip("link", "del", self.bridge, check=False)
+
+
+class HostProcess:
+    """A process inside a host namespace; `ip netns exec` execs, so our pid is its pid."""
+
+    def __init__(self, ns: str, argv: list, env: dict | None = None):
+        env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1", PYTHONUNBUFFERED="1", **(env or {}))
+        self.proc = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, *argv], cwd=ROOT,
+                                     env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True)
+        self.lines, self.stderr_lines = [], []
+        threading.Thread(target=self._drain, args=(self.proc.stderr, self.stderr_lines), daemon=True).start()
+        threading.Thread(target=self._drain, args=(self.proc.stdout, self.lines), daemon=True).start()
+
+    @staticmethod
+    def _drain(stream, lines):
+        for line in stream:
+            lines.append(line)
+
+    def wait_line(self, prefix: str, timeout=START_TIMEOUT) -> str:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for line in self.lines:
+                if line.startswith(prefix):
+                    return line
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        self.stop()
+        pytest.fail(f"process did not print {prefix!r}: {''.join(self.stderr_lines)}")
+
+    def alive(self):
+        return self.proc.poll() is None
+
+    def kill(self):
+        if self.alive():
+            self.proc.kill()
+        self.proc.wait(10)
+
+    def stop(self):
+        if self.alive():
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.kill()
+
+    @property
+    def log(self) -> str:
+        return "".join(self.stderr_lines)
+
+
+def start_slave(lan: Lan, host: int, name: str, *extra, port=PORT) -> HostProcess:
+    address = lan.addresses[host]
+    slave = HostProcess(lan.namespaces[host], ["-m", "slave", "--bind", address, "--port", str(port),
+                                               "--name", name, *extra])
+    slave.wait_line(f"KD Trace slave {name} listening on {address}:{port}")
+    slave.name, slave.endpoint = name, (address, port)
+    return slave
+
+
+# A stand-in slave that handshakes correctly and then misbehaves. Run with `python -c`.
+FAKE_SLAVE = r"""
+import os, socket, sys, threading, time
+from core import protocol
+from core.protocol import MsgType, HEADER, MAGIC
+from core.scene import SCENE_FORMAT_VERSION
+mode, host, port = sys.argv[1], sys.argv[2], int(sys.argv[3])
+
+def serve(sock):
+    hello = protocol.recv_message(sock)
+    if mode == "newer":
+        text = b'{"message":"hello from the future"}'
+        sock.sendall(HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION + 1, MsgType.ERROR, len(text), 0) + text)
+        time.sleep(5); return
+    protocol.send_message(sock, MsgType.WELCOME, {"protocol_version": protocol.PROTOCOL_VERSION,
+        "scene_format_version": SCENE_FORMAT_VERSION, "name": "fake-" + mode, "id": "fake",
+        "device": "none", "compute_units": 1, "memory": 1, "platform": ""})
+    frame = None
+    while True:
+        msg = protocol.recv_message(sock, protocol.Limits())
+        if msg.type == MsgType.SCENE_QUERY:
+            protocol.send_message(sock, MsgType.SCENE_READY, {"scene_hash": msg.header["scene_hash"], "present": True})
+        elif msg.type == MsgType.FRAME_START:
+            frame = msg.header
+        elif msg.type == MsgType.TILE_REQUEST:
+            if mode == "hang":
+                continue              # reads on, answers nothing, never closes
+            if mode == "garbage":
+                sock.sendall(os.urandom(4096)); continue
+            w, h = frame["tile_size"], frame.get("tile_height", frame["tile_size"])
+            bad = {"combined": __import__("numpy").full((h, w, 4), float("nan"), "f4"),
+                   "depth": __import__("numpy").zeros((h, w), "f4"),
+                   "normal": __import__("numpy").zeros((h, w, 3), "f4")}
+            tile = msg.header["tile"] if mode == "nan" else msg.header["tile"] + 1
+            protocol.send_message(sock, MsgType.TILE_RESULT, {"frame_id": frame["frame_id"],
+                "tile": tile, "x": 0, "y": 0, "w": w, "h": h, "render_ms": 1.0}, bad)
+        elif msg.type == MsgType.BYE:
+            return
+
+listener = socket.create_server((host, port))
+print("fake slave ready", flush=True)
+while True:
+    conn, _ = listener.accept()
+    threading.Thread(target=lambda c=conn: (lambda: (serve(c)))() , daemon=True).start()
+"""
+
+
+def start_fake(lan: Lan, host: int, mode: str, port: int) -> HostProcess:
+    fake = HostProcess(lan.namespaces[host], ["-c", FAKE_SLAVE, mode, lan.addresses[host], str(port)])
+    fake.wait_line("fake slave ready")
+    fake.endpoint = (lan.addresses[host], port)
+    return fake
+
+
+@pytest.fixture(scope="module")
+def lan():
+    network = Lan(4)
+    try:
+        yield network
+    finally:
+        network.close()
+
+
+@pytest.fixture(scope="module")
+def slaves(lan):
+    started = []
+    try:
+        for i in range(3):
+            started.append(start_slave(lan, i, f"kdt-host-{i}"))
+        yield started
+    finally:
+        for slave in started:
+            slave.stop()
+    for slave in started:
+        assert "Traceback" not in slave.log and "unexpected error" not in slave.log, slave.log
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene()
+
+
+@pytest.fixture(scope="module")
+def one_slave_image(slaves, scene):
+    """The reference: the whole frame rendered by one slave over the LAN."""
+    with Master([slaves[0].endpoint], secret=None) as master:
+        master.connect()
+        master.load_scene(*scene)
+        images, _ = render_all(master.render(make_view(), tile_size=16))
+    return images
+
+
+def test_namespaces_are_separate_hosts(lan):
+    out = ip("-n", lan.namespaces[0], "-4", "-o", "addr", "show").stdout
+    assert lan.addresses[0] in out and lan.addresses[1] not in out
+
+
+def test_discovery_of_several_slaves_across_hosts(lan, slaves):
+    wanted = {s.name: s.endpoint for s in slaves}
+    browser = SlaveBrowser(interfaces=[lan.master_ip])
+    try:
+        deadline = time.monotonic() + 15
+        found = {}
+        while set(found) != set(wanted) and time.monotonic() < deadline:
+            found = {s.name: s.endpoint for s in browser.slaves() if s.name in wanted}
+            time.sleep(0.2)
+    finally:
+        browser.close()
+    assert found == wanted
+
+
+def test_render_across_hosts_equals_one_slave(slaves, scene, one_slave_image):
+    with Master([s.endpoint for s in slaves], secret=None) as master:
+        master.connect()
+        master.load_scene(*scene)
+        for model in ("3b", "3a"):
+            job = master.render(make_view(), partition=4, model=model)
+            images, results = render_all(job)
+            assert job.error is None and job.errors == []
+            assert len(results) == 16
+            assert_images_equal(images, one_slave_image)
+        # float16 + zlib: close to float32, depth exact.
+        images, _ = render_all(master.render(make_view(), tile_size=16, payload="f16", compress=True))
+        np.testing.assert_array_equal(images["depth"], one_slave_image["depth"])
+        assert np.abs(images["combined"] - one_slave_image["combined"]).max() < 2e-3
+
+
+def test_slave_killed_at_random_moments(lan, slaves, scene, one_slave_image):
+    seed = random.randrange(1 << 30)
+    rng = random.Random(seed)
+    for attempt, port in enumerate((47611, 47612, 47613)):
+        victim = start_slave(lan, 3, f"kdt-victim-{attempt}", port=port)
+        try:
+            with Master([slaves[0].endpoint, slaves[1].endpoint, victim.endpoint], secret=None) as master:
+                master.connect()
+                master.load_scene(*scene)
+                job = master.render(make_view(), tile_size=4)   # 192 tiles
+                kill_at = time.monotonic() + rng.uniform(0.0, 0.6)
+                images = {k: np.full_like(v, np.nan) for k, v in one_slave_image.items()}
+                deadline = time.monotonic() + 60
+                while not job.finished:
+                    assert time.monotonic() < deadline, "frame did not finish"
+                    if victim.alive() and time.monotonic() >= kill_at:
+                        victim.kill()
+                    result = job.next_result(0.02)
+                    if result is not None:
+                        for name, image in images.items():
+                            image[result.y:result.y + result.h, result.x:result.x + result.w] = result.passes[name]
+                victim.kill()
+                assert job.error is None, (seed, job.error)
+                assert job.progress == (192, 192)
+            assert_images_equal(images, one_slave_image)
+        finally:
+            victim.stop()
+
+
+@pytest.mark.parametrize("duplicates", [True, False])
+def test_slave_that_hangs_without_closing(lan, slaves, scene, one_slave_image, duplicates):
+    fake = start_fake(lan, 3, "hang", 47620 + duplicates)
+    try:
+        with Master([slaves[0].endpoint, fake.endpoint], secret=None, slave_timeout=2.0) as master:
+            master.connect()
+            master.load_scene(*scene)
+            start = time.monotonic()
+            job = master.render(make_view(), tile_size=16, duplicates=duplicates)
+            images, _ = render_all(job, timeout=30)
+            assert job.error is None and job.progress == (12, 12)
+            assert time.monotonic() - start < 15
+            assert job.wait(10)
+            assert any("fake-hang" in e and ("did not answer" in e or "did not confirm" in e)
+                       for e in job.errors), job.errors
+        assert_images_equal(images, one_slave_image)
+    finally:
+        fake.stop()
+
+
+@pytest.mark.parametrize("mode, reason", [("garbage", "not a KD Trace message"),
+                                          ("nan", "NaN"), ("badindex", "")])
+def test_slave_that_returns_garbage(lan, slaves, scene, one_slave_image, mode, reason):
+    fake = start_fake(lan, 3, mode, 47630 + len(mode))
+    try:
+        with Master([fake.endpoint, slaves[1].endpoint], secret=None) as master:
+            master.connect()
+            master.load_scene(*scene)
+            job = master.render(make_view(), tile_size=16)
+            images, _ = render_all(job, timeout=30)
+            assert job.error is None and job.progress == (12, 12)
+            assert any(f"fake-{mode}" in e and reason in e for e in job.errors), job.errors
+        assert_images_equal(images, one_slave_image)
+    finally:
+        fake.stop()
+
+
+def test_bad_frames_to_a_slave_then_a_real_master(slaves, scene, one_slave_image):
+    host, port = slaves[2].endpoint
+
+    def exchange(data: bytes) -> bytes:
+        import socket
+        with socket.create_connection((host, port), timeout=10) as sock:
+            sock.sendall(data)
+            sock.shutdown(socket.SHUT_WR)   # the frame ends here, whatever its header said
+            chunks = []
+            try:
+                while chunk := sock.recv(65536):
+                    chunks.append(chunk)
+            except (ConnectionResetError, TimeoutError):
+                pass
+            return b"".join(chunks)
+
+    assert b"not a KD Trace message" in exchange(os.urandom(512))
+    # Truncated header, then a truncated JSON body: the slave says why and closes.
+    assert b"in the middle of a message" in exchange(
+        HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION, MsgType.HELLO, 40, 0)[:9])
+    assert b"in the middle of a message" in exchange(
+        HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION, MsgType.HELLO, 40, 0) + b'{"proto')
+    assert b"exceeds" in exchange(HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION, MsgType.HELLO,
+                                              1 << 30, 1 << 40))
+    with Master([slaves[2].endpoint], secret=None) as master:
+        master.connect()
+        master.load_scene(*scene)
+        images, _ = render_all(master.render(make_view(), tile_size=16))
+    assert_images_equal(images, one_slave_image)
+
+
+def test_shared_secret(lan, scene, one_slave_image, tmp_path):
+    secret_file = tmp_path / "secret"
+    secret_file.write_text("correct horse battery staple\n")
+    slave = start_slave(lan, 3, "kdt-secret", "--secret-file", str(secret_file), port=47640)
+    open_slave = start_slave(lan, 3, "kdt-open", port=47641)
+    try:
+        with Master([slave.endpoint], secret="correct horse battery staple") as master:
+            master.connect()
+            master.load_scene(*scene)
+            images, _ = render_all(master.render(make_view(), tile_size=16))
+        assert_images_equal(images, one_slave_image)
+        with pytest.raises(MasterError, match="failed authentication"):
+            Master([slave.endpoint], secret="wrong").connect()
+        with pytest.raises(MasterError, match="requires a shared secret"):
+            Master([slave.endpoint], secret=None).connect()
+        with pytest.raises(MasterError, match="does not authenticate"):
+            Master([open_slave.endpoint], secret="correct horse battery staple").connect()
+        # A master that skips AUTH and sends scene data anyway is refused before it is read.
+        hello = protocol.encode_message(MsgType.HELLO, {
+            "protocol_version": protocol.PROTOCOL_VERSION, "scene_format_version": SCENE_FORMAT_VERSION,
+            "name": "sneaky", "nonce": "0" * 64})[0]
+        query = protocol.encode_message(MsgType.SCENE_QUERY, {"scene_hash": "0" * 32})[0]
+        reply = raw_exchange_at(slave.endpoint, hello + query)
+        assert b"unexpected message type SCENE_QUERY" in reply and b"SCENE_READY" not in reply
+        # A master that answers the challenge with a wrong proof.
+        auth = protocol.encode_message(MsgType.AUTH, {"proof": "0" * 64})[0]
+        reply = raw_exchange_at(slave.endpoint, hello + auth + query)
+        assert b"authentication failed: wrong shared secret" in reply and b"SCENE_READY" not in reply
+        assert slave.alive()
+        time.sleep(0.3)
+        assert "wrong shared secret" in slave.log and "left during authentication" in slave.log
+        assert "Traceback" not in slave.log
+    finally:
+        slave.stop()
+        open_slave.stop()
+
+
+def raw_exchange_at(endpoint, data: bytes) -> bytes:
+    import socket
+    with socket.create_connection(endpoint, timeout=10) as sock:
+        sock.sendall(data)
+        chunks = []
+        try:
+            while chunk := sock.recv(65536):
+                chunks.append(chunk)
+        except (ConnectionResetError, TimeoutError):
+            pass
+        return b"".join(chunks)
+
+
+def test_version_mismatch_reported_by_name_on_both_sides(lan, slaves):
+    newer = protocol.PROTOCOL_VERSION + 1
+    text = raw_exchange_at(slaves[0].endpoint, HEADER.pack(MAGIC, newer, MsgType.HELLO, 2, 0) + b"{}")
+    assert (f"protocol version mismatch: master speaks version {newer}, slave speaks version "
+            f"{protocol.PROTOCOL_VERSION}").encode() in text
+    fake = start_fake(lan, 3, "newer", 47650)
+    try:
+        with pytest.raises(MasterError, match=f"protocol version mismatch: slave speaks version "
+                                              f"{newer}, master speaks version {protocol.PROTOCOL_VERSION}"):
+            Master([fake.endpoint], secret=None).connect()
+    finally:
+        fake.stop()
