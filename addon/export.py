@@ -24,10 +24,9 @@ from ..core.scene import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geom
 DEFAULT_COLOR = (0.8, 0.8, 0.8, 1.0)
 
 
-def export_view(depsgraph, wire_compatible: bool = True) -> tuple[Geometry, View, dict]:
+def export_view(depsgraph) -> tuple[Geometry, View, dict]:
     """Export everything a render needs. Returns (geometry, view, info): info has
-    "export_seconds" and "warnings" (a list of messages for the user). wire_compatible=False
-    keeps optional arrays the wire format does not carry yet (in-process renders)."""
+    "export_seconds" and "warnings" (a list of messages for the user)."""
     started = time.perf_counter()
     scene = depsgraph.scene
     warnings = []
@@ -40,27 +39,7 @@ def export_view(depsgraph, wire_compatible: bool = True) -> tuple[Geometry, View
                 render_settings(scene))
     # Only what the scene needs travels (and the kernel compiles only that).
     geometry = strip_geometry(geometry, scene_features(geometry, view))
-    if wire_compatible:
-        geometry, view = _wire_compatible(geometry, view)
     return geometry, view, {"export_seconds": exported - started, "warnings": warnings}
-
-
-def _wire_compatible(geometry: Geometry, view: View):
-    """Drop optional arrays that the wire format (core/protocol.py SCENE_ARRAYS) does not carry
-    yet, so the scene hash the master announces matches what the slaves receive; without
-    textures on the wire, materials fall back to their base colour. Goes away by itself once
-    the arrays are in SCENE_ARRAYS."""
-    from ..core.protocol import SCENE_ARRAYS
-    missing = [name for name in Geometry.OPTIONAL
-               if getattr(geometry, name) is not None and name not in SCENE_ARRAYS]
-    if not missing:
-        return geometry, view
-    keep = {name: (getattr(geometry, name) if name in SCENE_ARRAYS else None)
-            for name in Geometry.OPTIONAL}
-    if keep["texels"] is None or keep["texture_sizes"] is None or keep["uvs"] is None:
-        keep["texels"] = keep["texture_sizes"] = keep["uvs"] = None
-        view.shading.material_params[:, MATERIAL_PARAMS.index("texture")] = -1.0
-    return Geometry(geometry.vertices, geometry.triangles, geometry.material_ids, **keep), view
 
 
 def render_settings(scene) -> RenderSettings:

@@ -74,6 +74,8 @@ SCENE_ARRAYS = {
     "leaf_indices": (np.dtype("<u4"), (-1,)),
     "bounds": (np.dtype("<f4"), (2, 3)),
 }
+# Geometry arrays that travel only when the scene needs them (smooth normals, textures).
+OPTIONAL_SCENE_ARRAYS = {name: (dtype, (-1, width)) for name, (dtype, width) in Geometry.OPTIONAL.items()}
 
 
 class ProtocolError(Exception):
@@ -292,12 +294,11 @@ def scene_hash(geometry: Geometry, tree) -> str:
 
 
 def scene_arrays(geometry: Geometry, tree) -> dict:
-    """The arrays of a SCENE_UPLOAD, in wire dtypes."""
-    arrays = {"vertices": geometry.vertices, "triangles": geometry.triangles,
-              "material_ids": geometry.material_ids, "nodes": tree.nodes,
-              "leaf_indices": tree.leaf_indices, "bounds": tree.bounds}
-    return {name: np.ascontiguousarray(arrays[name], dtype=SCENE_ARRAYS[name][0])
-            for name in SCENE_ARRAYS}
+    """The arrays of a SCENE_UPLOAD, in wire dtypes (optional geometry arrays when present)."""
+    arrays = dict(geometry.arrays(), nodes=tree.nodes, leaf_indices=tree.leaf_indices,
+                  bounds=tree.bounds)
+    specs = {**SCENE_ARRAYS, **OPTIONAL_SCENE_ARRAYS}
+    return {name: np.ascontiguousarray(array, dtype=specs[name][0]) for name, array in arrays.items()}
 
 
 def scene_from_arrays(arrays: dict) -> tuple[Geometry, SceneTree]:
@@ -307,15 +308,18 @@ def scene_from_arrays(arrays: dict) -> tuple[Geometry, SceneTree]:
     children lie inside the node array, every leaf's range inside leaf_indices, and every
     reference names an existing triangle (the tracer also rejects cycles by depth).
     """
-    if set(arrays) != set(SCENE_ARRAYS):
-        raise ProtocolError(f"scene upload must carry exactly the arrays {sorted(SCENE_ARRAYS)}")
-    for name, (dtype, pattern) in SCENE_ARRAYS.items():
-        array = arrays[name]
+    if not set(SCENE_ARRAYS) <= set(arrays) <= set(SCENE_ARRAYS) | set(OPTIONAL_SCENE_ARRAYS):
+        raise ProtocolError(f"scene upload must carry the arrays {sorted(SCENE_ARRAYS)} and "
+                            f"optionally {sorted(OPTIONAL_SCENE_ARRAYS)}, got {sorted(arrays)}")
+    specs = {**SCENE_ARRAYS, **OPTIONAL_SCENE_ARRAYS}
+    for name, array in arrays.items():
+        dtype, pattern = specs[name]
         if array.dtype != dtype or array.ndim != len(pattern) or any(
                 p != -1 and p != n for p, n in zip(pattern, array.shape)):
             raise ProtocolError(f"scene array {name!r} must be {dtype.str} of shape {pattern}, "
                                 f"got {array.dtype.str} {array.shape}")
-    geometry = Geometry(arrays["vertices"], arrays["triangles"], arrays["material_ids"])
+    geometry = Geometry(arrays["vertices"], arrays["triangles"], arrays["material_ids"],
+                        **{name: arrays.get(name) for name in OPTIONAL_SCENE_ARRAYS})
     try:
         geometry.validate()
     except SceneError as exc:

@@ -193,7 +193,9 @@ def test_scene_round_trip_and_hash(pair):
 
 
 @pytest.mark.parametrize("change, match", [
-    (lambda s: s.pop("bounds"), "exactly the arrays"),
+    (lambda s: s.pop("bounds"), "must carry the arrays"),
+    (lambda s: s.update(colours=s["bounds"]), "must carry the arrays"),
+    (lambda s: s.update(normals=s["vertices"][:5]), "normals"),
     (lambda s: s.update(nodes=s["nodes"].astype(np.int32)), "'nodes' must be"),
     (lambda s: s.update(vertices=s["vertices"].reshape(-1)), "'vertices' must be"),
     (lambda s: s.update(triangles=s["triangles"] + 7), "vertex that does not exist"),

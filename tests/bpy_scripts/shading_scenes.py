@@ -131,7 +131,7 @@ elif args["scene"] == "bad":
 
 bpy.context.view_layer.update()
 depsgraph = bpy.context.evaluated_depsgraph_get()
-geometry, view, info = export.export_view(depsgraph, wire_compatible=False)
+geometry, view, info = export.export_view(depsgraph)
 np.savez(args["out"] + "/scene.npz", **geometry.arrays())
 with open(args["out"] + "/view.json", "w") as f:
     json.dump(view.to_dict(), f)
