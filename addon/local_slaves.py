@@ -15,6 +15,8 @@ import sys
 import threading
 import time
 
+from ..core.protocol import SECRET_ENV
+
 EXTENSION_ROOT = pathlib.Path(__file__).resolve().parent.parent
 READY_LINE = re.compile(r"listening on (?P<host>[^\s:]+):(?P<port>\d+)")
 
@@ -24,11 +26,15 @@ class LocalSlaveError(RuntimeError):
 
 
 class LocalSlave:
-    def __init__(self, name: str, python: str, device: str, threads: int):
+    def __init__(self, name: str, python: str, device: str, threads: int, secret: bytes | None):
         # Blender's sys.path holds the folder where it installed the extension's wheels
         # (zeroconf, pyopencl, PoCL): the slave, run by Blender's own Python, needs them too.
         env = dict(os.environ, POCL_MAX_PTHREAD_COUNT=str(threads), PYTHONUNBUFFERED="1",
                    PYTHONPATH=os.pathsep.join(p for p in sys.path if p and os.path.isdir(p)))
+        # The master's secret reaches the slave through its environment, never its command line.
+        env.pop(SECRET_ENV, None)
+        if secret:
+            env[SECRET_ENV] = secret.decode("utf-8", "surrogateescape")
         command = [python, "-m", "slave", "--port", "0", "--bind", "127.0.0.1",
                    "--name", name, "--device", device, "--no-zeroconf"]
         self.name = name
@@ -83,12 +89,16 @@ class LocalSlaves:
 
     def __init__(self):
         self._slaves: list[LocalSlave] = []
+        self._secret: bytes | None = None
         self._lock = threading.Lock()
 
-    def ensure(self, count: int, python: str = "", device: str = "auto",
+    def ensure(self, count: int, python: str = "", device: str = "auto", secret: bytes | None = None,
                timeout: float = 60.0, cancelled=lambda: False) -> list[tuple[str, int]]:
         """Have `count` live local slaves; return their endpoints."""
         with self._lock:
+            if secret != self._secret:  # slaves started with another secret would refuse us
+                self._stop_locked()
+                self._secret = secret
             for slave in [s for s in self._slaves if not s.alive]:
                 slave.stop()
                 self._slaves.remove(slave)
@@ -97,7 +107,7 @@ class LocalSlaves:
             del self._slaves[count:]
             threads = max(1, (os.cpu_count() or 1) // max(1, count))
             started = [LocalSlave(f"{os.uname().nodename}-local-{len(self._slaves) + i + 1}",
-                                  python or sys.executable, device, threads)
+                                  python or sys.executable, device, threads, secret)
                        for i in range(count - len(self._slaves))]
             deadline = time.monotonic() + timeout
             try:
@@ -115,6 +125,9 @@ class LocalSlaves:
 
     def stop_all(self):
         with self._lock:
-            for slave in self._slaves:
-                slave.stop()
-            self._slaves.clear()
+            self._stop_locked()
+
+    def _stop_locked(self):
+        for slave in self._slaves:
+            slave.stop()
+        self._slaves.clear()

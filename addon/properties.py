@@ -1,7 +1,7 @@
 """Render settings stored in the .blend (Scene.kdtrace) and machine settings (add-on preferences)."""
 import bpy
-from bpy.props import (BoolProperty, CollectionProperty, FloatProperty, IntProperty,
-                       PointerProperty, StringProperty)
+from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
+                       IntProperty, PointerProperty, StringProperty)
 
 from ..core.protocol import DEFAULT_PORT, MAX_TILE_SIZE
 
@@ -24,6 +24,52 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
     discovery_seconds: FloatProperty(
         name="Discovery Time", description="How long to wait for slaves to answer before rendering",
         default=1.0, min=0.1, max=30.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
+    tile_partition: EnumProperty(
+        name="Tiles", description="How the image is cut into tiles",
+        items=[("SIZE", "By Size", "Square tiles of Tile Size pixels", 0),
+               ("2", "2 x 2", "The image cut into 2 x 2 tiles", 2),
+               ("4", "4 x 4", "The image cut into 4 x 4 tiles (the paper's choice)", 4),
+               ("8", "8 x 8", "The image cut into 8 x 8 tiles", 8),
+               ("16", "16 x 16", "The image cut into 16 x 16 tiles", 16)],
+        default="SIZE")
+    tiles_in_flight: IntProperty(
+        name="Tiles in Flight", description="Tiles handed to each slave ahead of time, to hide "
+        "network latency", default=2, min=1, max=16)
+    payload: EnumProperty(
+        name="Tile Format", description="How finished tiles travel back",
+        items=[("F32", "Float 32", "Exact", 0),
+               ("F16", "Float 16", "Half the bytes; colour error below 1e-3", 1),
+               ("F16_ZLIB", "Float 16, Compressed", "Smallest; for slow networks", 2)],
+        default="F32")
+    interaction: EnumProperty(
+        name="Interaction", description="How the master talks to each slave (the paper's Fig. 3)",
+        items=[("3b", "Overlapped", "Separate threads send tile indices and receive tiles, "
+                "so slaves render while tiles travel", 0),
+               ("3a", "Simple", "One thread per slave sends a tile index, then waits for the tile", 1)],
+        default="3b")
+
+    samples_per_axis: IntProperty(
+        name="Samples", description="N x N stratified samples per pixel", default=1, min=1, max=16)
+    adaptive: BoolProperty(
+        name="Adaptive Sampling", description="Spend samples only where pixels need them",
+        default=False)
+    adaptive_threshold: FloatProperty(
+        name="Noise Threshold", description="Error below which a pixel gets no more samples",
+        default=0.01, min=0.0001, max=1.0, precision=4)
+    adaptive_min_samples: IntProperty(
+        name="Min Samples", description="Samples every pixel gets before adaptive sampling decides",
+        default=4, min=1, max=256)
+    max_bounces: IntProperty(
+        name="Max Bounces", description="Mirror, glass and diffuse bounces after the camera hit",
+        default=8, min=0, max=64)
+    diffuse_bounces: IntProperty(
+        name="Diffuse Bounces", description="How many of the bounces may be diffuse (0: direct light only)",
+        default=0, min=0, max=64)
+    light_samples_per_axis: IntProperty(
+        name="Light Samples", description="L x L shadow samples per soft or area light", default=2,
+        min=1, max=16)
+    seed: IntProperty(name="Seed", description="Seed of the sampling pattern", default=0, min=0)
+
     hosts: CollectionProperty(type=KDTraceHost, name="Hosts",
                               description="Slaves to use in any case, by address")
     active_host: IntProperty(name="Active Host", default=0)
@@ -53,10 +99,15 @@ class KDTracePreferences(bpy.types.AddonPreferences):
     slave_device: StringProperty(
         name="Local Slave Device", description="OpenCL device of local slaves: auto, cpu, gpu or "
         "platform:device indices", default="auto")
+    secret_file: StringProperty(
+        name="Shared Secret File", description="File holding the secret shared with the slaves "
+        "(empty: the KDTRACE_SECRET environment variable, else no authentication)",
+        default="", subtype="FILE_PATH")
 
     def draw(self, context):
         self.layout.prop(self, "slave_python")
         self.layout.prop(self, "slave_device")
+        self.layout.prop(self, "secret_file")
 
 
 def preferences(context):

@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from ..core.master import Master, MasterError
+from ..core.protocol import AuthError, ProtocolError, load_secret
 from ..core.scene import SceneError
 from ..core.slave_colors import slave_color
 from . import session
@@ -39,7 +40,20 @@ def listed_hosts(settings) -> list[tuple[str, int]]:
     return endpoints
 
 
-def find_slaves(engine, settings, prefs) -> list[tuple[str, int]]:
+def shared_secret(prefs) -> bytes | None:
+    """The secret from the preferences' file, else $KDTRACE_SECRET, else None."""
+    try:
+        return load_secret(bpy_path(prefs.secret_file) if prefs.secret_file else None)
+    except AuthError as error:
+        raise RenderFailed(str(error)) from None
+
+
+def bpy_path(path: str) -> str:
+    import bpy
+    return bpy.path.abspath(path)
+
+
+def find_slaves(engine, settings, prefs, secret) -> list[tuple[str, int]]:
     """Manual hosts, then slaves found on the LAN; local slaves if none (or if asked to)."""
     state = session.current()
     endpoints = listed_hosts(settings)
@@ -56,7 +70,8 @@ def find_slaves(engine, settings, prefs) -> list[tuple[str, int]]:
     if (not endpoints or settings.use_local_slaves_always) and settings.local_slaves:
         engine.update_stats("", f"KD Trace | Starting {settings.local_slaves} local slave(s)")
         endpoints += state.local_slaves.ensure(settings.local_slaves, prefs.slave_python,
-                                               prefs.slave_device, cancelled=engine.test_break)
+                                               prefs.slave_device, secret,
+                                               cancelled=engine.test_break)
     if not endpoints:
         raise RenderFailed("no slave is reachable: none answered on the LAN, no host is listed "
                            "and local slaves are off")
@@ -71,7 +86,9 @@ def render(engine, depsgraph):
     started = time.perf_counter()
     try:
         engine.update_stats("", "KD Trace | Exporting scene")
-        geometry, view, _ = export_view(depsgraph)
+        geometry, view, info = export_view(depsgraph)
+        for warning in info["warnings"]:
+            engine.report({"WARNING"}, f"KD Trace: {warning}")
         geometry.validate(len(view.shading.materials))
         exported = time.perf_counter()
 
@@ -86,15 +103,21 @@ def render(engine, depsgraph):
         tree_done = time.perf_counter()
         if engine.test_break():
             return
-        endpoints = find_slaves(engine, settings, prefs)
-        with Master(endpoints) as master:
+        secret = shared_secret(prefs)
+        endpoints = find_slaves(engine, settings, prefs, secret)
+        with Master(endpoints, secret=secret) as master:
             master.connect()
             engine.update_stats("", f"KD Trace | Sending scene to {len(master.slaves)} slave(s)")
             master.load_scene(geometry, tree)
             for problem in master.errors:
                 engine.report({"WARNING"}, f"KD Trace: {problem}")
             legend = state.start_legend(master.slaves)
-            job = master.render(view, settings.tile_size)
+            job = master.render(view, settings.tile_size, settings.tiles_in_flight,
+                                partition=None if settings.tile_partition == "SIZE"
+                                else int(settings.tile_partition),
+                                model=settings.interaction,
+                                payload="f16" if settings.payload.startswith("F16") else "f32",
+                                compress=settings.payload.endswith("ZLIB"))
             canvas = TileCanvas(engine, view, depsgraph.view_layer)
             try:
                 _receive_tiles(engine, job, canvas, legend, master)
@@ -109,7 +132,7 @@ def render(engine, depsgraph):
         finished = time.perf_counter()
     except RenderCancelled:
         return
-    except (SceneError, RenderFailed, MasterError, OSError, RuntimeError) as error:
+    except (SceneError, RenderFailed, MasterError, ProtocolError, AuthError, OSError, RuntimeError) as error:
         engine.report({"ERROR"}, f"KD Trace: {error}")
         engine.error_set(f"KD Trace: {error}")
         return

@@ -20,7 +20,56 @@ class RENDER_PT_kdtrace(KDTracePanel, bpy.types.Panel):
         layout = self.layout
         layout.use_property_split = True
         settings = context.scene.kdtrace
-        layout.prop(settings, "tile_size")
+        layout.prop(settings, "tile_partition")
+        row = layout.row()
+        row.active = settings.tile_partition == "SIZE"
+        row.prop(settings, "tile_size")
+
+
+class RENDER_PT_kdtrace_sampling(KDTracePanel, bpy.types.Panel):
+    bl_label = "Sampling"
+    bl_parent_id = "RENDER_PT_kdtrace"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        settings = context.scene.kdtrace
+        layout.prop(settings, "samples_per_axis")
+        layout.prop(settings, "adaptive")
+        col = layout.column()
+        col.active = settings.adaptive
+        col.prop(settings, "adaptive_threshold")
+        col.prop(settings, "adaptive_min_samples")
+        layout.prop(settings, "light_samples_per_axis")
+        layout.prop(settings, "seed")
+
+
+class RENDER_PT_kdtrace_light_paths(KDTracePanel, bpy.types.Panel):
+    bl_label = "Light Paths"
+    bl_parent_id = "RENDER_PT_kdtrace"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        settings = context.scene.kdtrace
+        layout.prop(settings, "max_bounces")
+        layout.prop(settings, "diffuse_bounces")
+
+
+class RENDER_PT_kdtrace_network(KDTracePanel, bpy.types.Panel):
+    bl_label = "Network"
+    bl_parent_id = "RENDER_PT_kdtrace"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        from .properties import preferences
+        layout = self.layout
+        layout.use_property_split = True
+        settings = context.scene.kdtrace
+        layout.prop(settings, "tiles_in_flight")
+        layout.prop(settings, "payload")
+        layout.prop(settings, "interaction")
+        layout.prop(preferences(context), "secret_file")
 
 
 class KDTRACE_UL_hosts(bpy.types.UIList):
@@ -103,7 +152,9 @@ def color_icon(color) -> str:
     return min(palette, key=lambda icon: sum((a - b) ** 2 for a, b in zip(palette[icon], color)))
 
 
-classes = (KDTRACE_UL_hosts, RENDER_PT_kdtrace, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_legend)
+classes = (KDTRACE_UL_hosts, RENDER_PT_kdtrace, RENDER_PT_kdtrace_sampling,
+           RENDER_PT_kdtrace_light_paths, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_network,
+           RENDER_PT_kdtrace_legend)
 
 # Blender's own panels that show what KD Trace renders (camera, lights, material base colour,
 # world colour). Panels for Blender's generic engine list "BLENDER_RENDER"; the material and
