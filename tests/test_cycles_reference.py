@@ -10,16 +10,17 @@ MISS = 1e9  # Cycles writes 1e10 where nothing is hit; so do we
 CYCLES_JITTER_PIXELS = 0.005
 
 
-def steepest_neighbour_slope(depth: np.ndarray) -> np.ndarray:
-    """Per pixel, the largest relative depth change to a hit 4-neighbour (0 if none is a hit)."""
-    padded = np.pad(depth, 1, constant_values=np.inf)
-    slope = np.zeros_like(depth)
+def neighbour_change(values: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """Per pixel, the largest change (max over channels) to a 4-neighbour that is a hit."""
+    values = values.reshape(values.shape[0], values.shape[1], -1)
+    padded = np.pad(values, ((1, 1), (1, 1), (0, 0)))
+    padded_hit = np.pad(hit, 1)
+    change = np.zeros(hit.shape)
     for dy, dx in ((0, 1), (2, 1), (1, 0), (1, 2)):
-        neighbour = padded[dy:dy + depth.shape[0], dx:dx + depth.shape[1]]
-        with np.errstate(invalid="ignore"):
-            change = np.where(neighbour < MISS, np.abs(neighbour - depth) / depth, 0.0)
-        slope = np.maximum(slope, change)
-    return slope
+        window = np.s_[dy:dy + hit.shape[0], dx:dx + hit.shape[1]]
+        difference = np.abs(padded[window] - values).max(axis=-1)
+        change = np.maximum(change, np.where(padded_hit[window], difference, 0.0))
+    return change
 
 
 CAMERAS = {
@@ -47,7 +48,8 @@ def test_depth_matches_cycles(renders):
     both = cycles_hit & our_hit
     relative = np.abs(ours[both] - cycles[both]) / cycles[both]
     # Within 1e-4 wherever Cycles' own sub-pixel offset cannot move the depth by more.
-    jitter = CYCLES_JITTER_PIXELS * steepest_neighbour_slope(np.where(our_hit, ours, np.inf))[both]
+    slope = neighbour_change(np.where(our_hit, ours, 0.0), our_hit) / np.where(our_hit, ours, 1.0)
+    jitter = CYCLES_JITTER_PIXELS * slope[both]
     within = relative <= np.maximum(1e-4, jitter)
     # Where a silhouette passes within that offset of a pixel centre, Cycles' one sample can
     # land on the other surface (checked once in float64: the ray through the exact centre of
@@ -57,9 +59,16 @@ def test_depth_matches_cycles(renders):
     assert np.mean(relative <= 1e-4) >= 0.999, f"only {np.mean(relative <= 1e-4):.4%} within 1e-4"
 
 
-def test_normals_match_cycles_on_flat_surfaces(renders):
-    # The ground plane is flat-shaded in both renderers: normals must agree there exactly.
+def test_normals_match_cycles(renders):
+    # The smooth-shaded sphere (interpolated normals) and the flat bunny and ground plane.
     cycles, ours = renders["cycles_normal"], renders["kdtrace_normal"]
-    plane = (np.abs(cycles[..., 2] - 1.0) < 1e-6) & (renders["kdtrace_depth"] < MISS)
-    assert plane.sum() > 1000
-    assert np.abs(ours[plane] - cycles[plane]).max() < 1e-5
+    depth_ours, depth_cycles = renders["kdtrace_depth"], renders["cycles_depth"]
+    same_surface = (depth_ours < MISS) & (np.abs(depth_ours - depth_cycles) <= 1e-3 * depth_cycles)
+    assert same_surface.sum() > 0.2 * same_surface.size
+    error = np.abs(ours - cycles).max(axis=-1)
+    # As for depth: within 1e-4, or within what Cycles' sub-pixel offset explains on a curved
+    # surface; at the edges between flat faces its sample may land on the neighbouring face.
+    bound = np.maximum(1e-4, CYCLES_JITTER_PIXELS * neighbour_change(ours, depth_ours < MISS))
+    off = np.count_nonzero(same_surface & (error > bound))
+    assert off <= 0.005 * same_surface.sum(), f"{off} pixels off (of {same_surface.sum()})"
+    assert np.median(error[same_surface]) < 1e-5

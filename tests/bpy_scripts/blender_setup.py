@@ -55,6 +55,7 @@ def build_test_scene(width=160, height=120):
     from tests.meshes import load_bunny
     scene = bpy.context.scene
     bpy.ops.mesh.primitive_uv_sphere_add(radius=1.0, location=(-1.6, 0.5, 1.0), segments=48, ring_count=24)
+    bpy.ops.object.shade_smooth()  # interpolated normals on the sphere; the rest is flat
     bpy.ops.mesh.primitive_plane_add(size=12.0, location=(0, 0, 0))
     vertices, triangles = load_bunny()
     # The bunny is y-up and about 10 units tall: stand it on the plane, 2 units tall.
