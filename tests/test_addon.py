@@ -1,8 +1,12 @@
 """The whole path, headless: the extension zip is built and validated with Blender's own tool,
 installed into an isolated user folder, and renders through slaves that zeroconf found."""
+import json
 import os
+import socket
+import struct
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -45,14 +49,44 @@ def test_render_through_slaves_found_by_zeroconf(tmp_path, two_advertised_slaves
     assert report["tree_built"] and report["triangles"] > 3000
 
 
-@pytest.mark.parametrize("hosts, message", [
-    ([["127.0.0.1", 9]], "cannot reach slave 127.0.0.1:9 (connection refused)"),
-    ([["127.0.0.1", 9], ["  ", 47600]], "host 2 in the slave list has no valid address: '  '"),
+@pytest.fixture
+def slave_of_another_version():
+    """A TCP server that answers every HELLO as a slave speaking protocol version 99 would."""
+    server = socket.create_server(("127.0.0.1", 0))
+    server.settimeout(10)
+
+    def answer():
+        try:
+            connection, _ = server.accept()
+        except OSError:
+            return
+        with connection:
+            connection.recv(65536)
+            body = json.dumps({"message": "hello from the future"}).encode()
+            connection.sendall(struct.pack("!4sHHIQ", b"KDTR", 99, 2, len(body), 0) + body)
+
+    threading.Thread(target=answer, daemon=True).start()
+    yield server.getsockname()[1]
+    server.close()
+
+
+@pytest.mark.parametrize("case, message", [
+    ("dead host", "cannot reach slave 127.0.0.1:9 (connection refused)"),
+    ("empty host", "host 2 in the slave list has no valid address: '  '"),
+    ("other version", "speaks version 99"),
+    ("missing device", "cannot use OpenCL device '7:7'"),
 ])
-def test_unusable_hosts_are_reported_to_the_user(tmp_path, hosts, message):
+def test_problems_reach_the_user_as_reports(tmp_path, slave_of_another_version, case, message):
+    settings = {
+        "dead host": dict(hosts=[["127.0.0.1", 9]]),
+        "empty host": dict(hosts=[["127.0.0.1", 9], ["  ", 47600]]),
+        "other version": dict(hosts=[["127.0.0.1", slave_of_another_version]]),
+        "missing device": dict(local_slaves=1, slave_device="7:7"),
+    }[case]
     zip_path = build_extension(tmp_path / "dist")
-    result = run_bpy_script("render_dead_host", tmp_path, zip=str(zip_path), hosts=hosts)
-    assert message in result["log"], result["log"][-3000:]
+    result = run_bpy_script("render_failing", tmp_path, zip=str(zip_path), **settings)
+    reports = [line for line in result["log"].splitlines() if line.startswith("Error: KD Trace:")]
+    assert any(message in line for line in reports), result["log"][-3000:]
     assert "Traceback" not in result["log"]
     assert result["last_render"] == {}
 
