@@ -48,9 +48,10 @@ def main():
     mesh_object("dragon", vertices, triangles, color=(0.85, 0.55, 0.25, 1.0))
     bpy.ops.mesh.primitive_plane_add(size=20.0)
     bpy.ops.mesh.primitive_uv_sphere_add(radius=0.8, location=(-2.8, 1.5, 0.8))
+    bpy.ops.object.shade_smooth()
     bpy.ops.mesh.primitive_cube_add(size=1.2, location=(2.8, 1.2, 0.6))
     camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
-    camera.location, camera.rotation_euler = (0.0, -10.5, 4.2), (1.2, 0.0, 0.0)
+    camera.location, camera.rotation_euler = (0.0, -11.5, 3.2), (1.407, 0.0, 0.0)
     scene.collection.objects.link(camera)
     scene.camera = camera
     sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
@@ -60,6 +61,10 @@ def main():
     lamp.data.energy, lamp.location = 400.0, (-3.0, -3.0, 5.0)
     scene.collection.objects.link(lamp)
 
+    scene.world = bpy.data.worlds.new("sky")
+    scene.world.color = (0.35, 0.45, 0.6)
+    if scene.world.node_tree:  # new worlds have a Background node in Blender 5
+        scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.35, 0.45, 0.6, 1)
     scene.render.engine = "KDTRACE"
     scene.render.resolution_x, scene.render.resolution_y = args.width, args.height
     scene.render.resolution_percentage = 100
