@@ -111,50 +111,61 @@ def _next_slot(values: np.ndarray, slot_axis: int) -> np.ndarray:
     return np.roll(values, -1, slot_axis)
 
 
-def _crossings(poly, dist):
-    """Edges (slot i to i+1) crossing the plane strictly, and their crossing points."""
+def _crossing_edges(poly, dist, valid):
+    """Edges (slot i to i+1, cyclically) of the polygons that cross the plane strictly.
+
+    Returns the (W, K) mask and, for the m crossing edges in row-major order, their row, slot
+    and crossing point (3, m) (not yet snapped onto the plane). Only crossing edges are
+    interpolated: a convex polygon has at most two of them.
+    """
+    W = dist.shape[0]
     d_next = _next_slot(dist, 0)
     crossing = ((dist > 0) & (d_next < 0)) | ((dist < 0) & (d_next > 0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(crossing, dist / (dist - d_next), 0.0)
-    return crossing, poly + t * (_next_slot(poly, 1) - poly)
+    crossing &= valid
+    row, slot = np.nonzero(crossing.T)
+    d0, d1 = dist[slot, row], d_next[slot, row]
+    t = d0 / (d0 - d1)
+    nxt = slot + 1
+    nxt[nxt == W] = 0
+    start = poly[:, slot, row]
+    point = start + t * (poly[:, nxt, row] - start)
+    return crossing, row, slot, point
 
 
 def _clip_face(poly, count, axis: int, value, keep_below: bool):
     """Clip convex polygons to x[axis] <= value (keep_below) or >= value.
 
     A vertex on the plane counts as inside; crossing points are snapped onto the plane.
-    Rows with no vertex outside come back unchanged.
+    Returns the clipped polygons (3, width, n) and their vertex counts, for only the n rows
+    that had a vertex outside (`changed`, their indices); the others are unchanged. The width
+    is the largest new count: the caller pads wider rows with vertex 0.
     """
     _, W, K = poly.shape
     dist = value - poly[axis] if keep_below else poly[axis] - value
     valid = np.arange(W)[:, None] < count
-    sub = np.flatnonzero((valid & (dist < 0)).any(0))
-    if not len(sub):
-        return poly, count
-    p, d, v = poly[:, :, sub], dist[:, sub], valid[:, sub]
-    crossing, crossing_point = _crossings(p, d)
-    crossing &= v
-    crossing_point[axis] = value[sub]
-    inside = v & (d >= 0)
-    n = len(sub)
-    candidates = np.stack([p, crossing_point], 2).reshape(3, 2 * W, n)
+    changed = np.flatnonzero((valid & (dist < 0)).any(0))
+    if not len(changed):
+        return None, None, changed
+    if len(changed) < K:
+        poly, dist, valid = poly[:, :, changed], dist[:, changed], valid[:, changed]
+    crossing, row, slot, point = _crossing_edges(poly, dist, valid)
+    point[axis] = value[changed][row]
+    inside = valid & (dist >= 0)
+    n = len(changed)
+    # Vertex i in slot 2 i, the crossing point of edge i in slot 2 i + 1 (only read where kept).
+    candidates = np.empty((3, W, 2, n))
+    candidates[:, :, 0] = poly
+    candidates[:, slot, 1, row] = point
+    candidates = candidates.reshape(3, 2 * W, n)
     keep = np.stack([inside, crossing], 1).reshape(2 * W, n)
     slot = np.cumsum(keep, 0) - 1
     new_count = slot[-1] + 1
-    new_width = max(W, int(new_count.max()))
+    new_width = max(1, int(new_count.max()))
     first = candidates[:, np.argmax(keep, 0), np.arange(n)]
     out = np.repeat(first[:, None, :], new_width, 1)
     target = (slot * n + np.arange(n))[keep]
     out.reshape(3, -1)[:, target] = candidates.reshape(3, -1)[:, keep.reshape(-1)]
-    if new_width > W:
-        poly = np.concatenate([poly, np.repeat(poly[:, :1], new_width - W, 1)], 1)
-    else:
-        poly = poly.copy()
-    count = count.copy()
-    poly[:, :, sub] = out
-    count[sub] = new_count
-    return poly, count
+    return out, new_count, changed
 
 
 def _split_piece_boxes(poly, count, axis, plane):
@@ -167,16 +178,21 @@ def _split_piece_boxes(poly, count, axis, plane):
     rows = np.arange(K)
     d = poly[axis, :, rows].T - plane                         # (W, K)
     valid = np.arange(W)[:, None] < count
-    crossing, crossing_point = _crossings(poly, d)
-    crossing &= valid
-    crossing_point[axis, :, rows] = plane[:, None]
+    crossing, row, slot, point = _crossing_edges(poly, d, valid)
+    point[axis[row], np.arange(len(row))] = plane[row]
     lo = np.empty((2, 3, K))
     hi = np.empty((2, 3, K))
-    n_cross = crossing.sum(0)
-    # The crossing points belong to both halves: their extremes are taken once.
-    cross_lo = np.where(crossing, crossing_point, np.inf).min(1)          # (3, K)
-    cross_hi = np.where(crossing, crossing_point, -np.inf).max(1)
-    del crossing_point
+    n_cross = np.bincount(row, minlength=K)
+    # The crossing points belong to both halves: their extremes are taken once (per row: the
+    # crossing edges come row by row).
+    cross_lo = np.full((3, K), np.inf)
+    cross_hi = np.full((3, K), -np.inf)
+    if len(row):
+        cut = np.flatnonzero(n_cross)
+        first = _exclusive_cumsum(n_cross[cut])[:-1]
+        cross_lo[:, cut] = np.minimum.reduceat(point, first, axis=1)
+        cross_hi[:, cut] = np.maximum.reduceat(point, first, axis=1)
+    del point
     counts = []
     for side, keep in ((0, valid & (d <= 0)), (1, valid & (d >= 0))):
         np.minimum(np.where(keep, poly, np.inf).min(1), cross_lo, out=lo[side])
@@ -198,10 +214,14 @@ def _clip_straddlers(corners, cell_lo, cell_hi, axis, plane):
     itself does not lie in (flat in an axis where the triangle is not).
     """
     K = len(corners)
-    tri_lo, tri_hi = corners.min(1), corners.max(1)
+    # Elementwise over the 3 corners / axes: numpy reduces a length-3 axis slowly.
+    tri_lo = np.minimum(np.minimum(corners[:, 0], corners[:, 1]), corners[:, 2])
+    tri_hi = np.maximum(np.maximum(corners[:, 0], corners[:, 1]), corners[:, 2])
     lo64, hi64 = cell_lo.astype(np.float64), cell_hi.astype(np.float64)
     beyond_lo, beyond_hi = tri_lo < lo64, tri_hi > hi64
-    clipped = np.flatnonzero(beyond_lo.any(1) | beyond_hi.any(1))
+    outside = beyond_lo | beyond_hi
+    clipped = np.flatnonzero(outside[:, 0] | outside[:, 1] | outside[:, 2])
+    del outside
     piece_lo = np.empty((2, 3, K))
     piece_hi = np.empty((2, 3, K))
     piece_count = np.empty((2, K), np.int64)
@@ -221,22 +241,37 @@ def _clip_straddlers(corners, cell_lo, cell_hi, axis, plane):
                     sub = np.flatnonzero(beyond)
                     if not len(sub):
                         continue
-                    sub_poly, sub_count = _clip_face(poly[:, :, sub], count[sub], a, face[sub],
-                                                     keep_below)
-                    extra = sub_poly.shape[1] - poly.shape[1]
+                    # Only the slots in use (slots past a polygon's count repeat vertex 0).
+                    width = int(count[sub].max())
+                    out, new_count, changed = _clip_face(poly[:, :width, sub], count[sub], a,
+                                                         face[sub], keep_below)
+                    if not len(changed):
+                        continue
+                    changed = sub[changed]
+                    extra = out.shape[1] - poly.shape[1]
                     if extra > 0:
                         poly = np.concatenate([poly, np.repeat(poly[:, :1], extra, 1)], 1)
-                    poly[:, :sub_poly.shape[1], sub] = sub_poly
-                    count[sub] = sub_count
-        lo, hi, counts = _split_piece_boxes(poly, count, axis[rows], plane64[rows])
-        piece_lo[:, :, rows], piece_hi[:, :, rows] = lo, hi
-        piece_count[0, rows], piece_count[1, rows] = counts
+                    poly[:, :out.shape[1], changed] = out
+                    if out.shape[1] < poly.shape[1]:
+                        poly[:, out.shape[1]:, changed] = out[:, :1]
+                    count[changed] = new_count
+        # Cut polygons of equal vertex count together, each group only as wide as its count.
+        sizes = np.bincount(count)
+        for size in np.flatnonzero(sizes):
+            group = np.flatnonzero(count == size) if sizes[size] < len(rows) else slice(None)
+            width = max(int(size), 1)
+            part = poly[:, :width] if isinstance(group, slice) else poly[:, :width, group]
+            at = rows[group]
+            lo, hi, counts = _split_piece_boxes(part, count[group], axis[at], plane64[at])
+            piece_lo[:, :, at], piece_hi[:, :, at] = lo, hi
+            piece_count[0, at], piece_count[1, at] = counts
     triangle_flat = tri_hi == tri_lo
     halves = []
     for side in (0, 1):
         lo, hi = piece_lo[side].T, piece_hi[side].T
         flat = (hi - lo) == 0
-        positive = (piece_count[side] >= 3) & ~(flat & ~triangle_flat).any(1)
+        flat &= ~triangle_flat
+        positive = (piece_count[side] >= 3) & ~(flat[:, 0] | flat[:, 1] | flat[:, 2])
         child_lo, child_hi = cell_lo.copy(), cell_hi.copy()
         (child_hi if side == 0 else child_lo)[np.arange(K), axis] = plane
         lo32 = np.maximum(_round_down_f32(np.where(positive[:, None], lo, 0.0)), child_lo)
@@ -279,6 +314,9 @@ def _binned_best_splits(params, cell_lo, cell_hi, counts, ref_lo, ref_hi):
         best_axis[better] = axis
         best_plane[better] = plane[better]
 
+    # Every node has the same number of bins (the usual case: all binned nodes have more than
+    # max_bins / bins_per_reference references): clamp to a scalar, cheaper than to an array.
+    last_bin = np.float32(B - 1) if int(bins.min()) == B else ref_last_bin
     for axis in range(3):
         low = cell_lo[:, axis].astype(np.float64)
         width = dims[:, axis]
@@ -286,31 +324,51 @@ def _binned_best_splits(params, cell_lo, cell_hi, counts, ref_lo, ref_hi):
         scale = np.repeat((bins / width).astype(np.float32), counts)
         # A reference counts below plane k if its low end is below it, above if its high end is
         # above it: bin the low ends by floor and the high ends by ceil - 1.
-        start_bin = (ref_lo[:, axis] - ref_low) * scale
-        np.floor(start_bin, out=start_bin)
-        np.clip(start_bin, 0, ref_last_bin, out=start_bin)
-        end_bin = (ref_hi[:, axis] - ref_low) * scale
-        np.ceil(end_bin, out=end_bin)
-        end_bin -= 1
-        np.clip(end_bin, 0, ref_last_bin, out=end_bin)
-        count_below = np.bincount(ref_row + start_bin.astype(np.int64),
-                                  minlength=node_count * B).reshape(node_count, B).cumsum(1)
-        count_above = counts[:, None] - np.bincount(
-            ref_row + end_bin.astype(np.int64), minlength=node_count * B
-        ).reshape(node_count, B).cumsum(1)
+        per_ref = []
+        for ends, rounding, shift in ((ref_lo, np.floor, 0), (ref_hi, np.ceil, 1)):
+            b = np.subtract(ends[:, axis], ref_low)
+            b *= scale
+            rounding(b, out=b)
+            if shift:
+                b -= 1
+            np.maximum(b, 0, out=b)
+            np.minimum(b, last_bin, out=b)
+            key = b.astype(np.int64)
+            key += ref_row
+            per_ref.append(np.bincount(key, minlength=node_count * B).reshape(node_count, B))
+            del b, key
+        del ref_low, scale
+        count_below = per_ref[0].cumsum(1)
+        count_above = counts[:, None] - per_ref[1].cumsum(1)
+        del per_ref
         # Plane after bin k; the last bin of each node ends at the cell's high side.
         plane = (low[:, None] + (k + 1) * (width / bins)[:, None]).astype(np.float32)
         inside = ((k < bins[:, None] - 1) & (plane > cell_lo[:, axis, None])
                   & (plane < cell_hi[:, axis, None]))
         side_a, side_b = dims[:, (axis + 1) % 3, None], dims[:, (axis + 2) % 3, None]
-        width_below = plane - low[:, None]
-        width_above = width[:, None] - width_below
-        area_below = 2.0 * (width_below * (side_a + side_b) + side_a * side_b)
-        area_above = 2.0 * (width_above * (side_a + side_b) + side_a * side_b)
-        cost = params.traversal_cost + params.intersection_cost * (
-            area_below * count_below + area_above * count_above) / area[:, None]
-        cost = np.where((count_below == 0) | (count_above == 0), cost * params.empty_bonus, cost)
-        cost[~inside] = np.inf
+        perimeter, cap = side_a + side_b, side_a * side_b
+        # K_T + K_I (A_b N_b + A_a N_a) / A with A_b = 2 (w_b (a + b) + a b), in place (the
+        # same float64 operations in the same order as written out).
+        area_below = plane - low[:, None]                       # width below, then its area
+        area_above = width[:, None] - area_below
+        for part in (area_below, area_above):
+            part *= perimeter
+            part += cap
+            part *= 2.0
+        area_below *= count_below
+        area_above *= count_above
+        cost = area_below
+        cost += area_above
+        del area_above
+        cost *= params.intersection_cost
+        cost /= area[:, None]
+        cost += params.traversal_cost
+        empty = count_below == 0
+        empty |= count_above == 0
+        np.multiply(cost, params.empty_bonus, out=cost, where=empty)
+        np.logical_not(inside, out=inside)
+        np.copyto(cost, np.inf, where=inside)
+        del empty, inside
         index = np.argmin(cost, 1)
         consider(cost[rows, index], axis, plane[rows, index])
 
@@ -351,7 +409,6 @@ def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, ref_lo, ref_
         below = np.zeros(cand.shape, np.int8)
         above = np.zeros(cand.shape, np.int8)
         planar_rows = planar.any(1)
-        on_plane = np.zeros(cand.shape, np.int8) if planar_rows.any() else None
         test = np.empty(cand.shape, bool)
         test8 = test.view(np.int8)
         for j in range(width):
@@ -359,17 +416,55 @@ def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, ref_lo, ref_
             below += test8
             np.greater(hi[:, j:j + 1], cand, out=test)
             above += test8
-            if on_plane is not None:
-                np.equal(lo[:, j:j + 1], cand, out=test)
-                test &= planar[:, j:j + 1]
-                on_plane += test8
-        per_axis.append((cand, below, above, on_plane, planar_rows))
+        on_plane = None
+        if planar_rows.any():
+            # Planar references are rare: count them only in the rows that have some.
+            pr = np.flatnonzero(planar_rows)
+            p_lo, p_cand, p_planar = lo[pr], cand[pr], planar[pr]
+            p_on = np.zeros(p_cand.shape, np.int8)
+            test = np.empty(p_cand.shape, bool)
+            test8 = test.view(np.int8)
+            for j in range(width):
+                np.equal(p_lo[:, j:j + 1], p_cand, out=test)
+                test &= p_planar[:, j:j + 1]
+                p_on += test8
+            on_plane = np.zeros(cand.shape, np.int8)
+            on_plane[pr] = p_on
+        per_axis.append(_ranking_terms(params, cand, below, above, on_plane, planar_rows))
     del group_lo, group_hi
     cost, axis, plane, n_below, n_above, n_planar = _rank_exact(params, per_axis, cell_lo,
                                                                 cell_hi, None)
     chained = _exact_chain(params, per_axis, cell_lo, cell_hi, counts, chain, axis, plane,
                            cost, n_below, n_above, n_planar)
     return cost, axis, plane, chained
+
+
+def _ranking_terms(params, cand, below, above, on_plane, planar_rows):
+    """What `_rank_exact` needs of one axis of `_exact_best_splits`' counts, with the parts
+    that do not depend on the cell (counts as float32, the empty-bonus factor) formed once:
+    a node's chain re-ranks the same counts for up to CHAIN other cells.
+
+    Planar variants (planar references below / above) only for the rows that have planar
+    references, `planar_at[row]` a planar row's index among them.
+    """
+    bonus = np.float32(params.empty_bonus)
+    one = np.float32(1)
+
+    def factor(n_below, n_above):
+        return np.where((n_below == 0) | (n_above == 0), bonus, one)
+
+    terms = dict(cand=cand, below=below, above=above, on_plane=on_plane,
+                 nb=below.astype(np.float32), na=above.astype(np.float32),
+                 fac=factor(below, above), planar_rows=planar_rows)
+    if on_plane is not None:
+        pr = np.flatnonzero(planar_rows)
+        b, a, o = below[pr], above[pr], on_plane[pr]
+        b_o, a_o = b + o, a + o
+        terms.update(
+            planar_at=np.cumsum(planar_rows) - 1,
+            variants=((b_o.astype(np.float32), terms["na"][pr], factor(b_o, a)),
+                      (terms["nb"][pr], a_o.astype(np.float32), factor(b, a_o))))
+    return terms
 
 
 def _rank_exact(params, per_axis, cell_lo, cell_hi, rows_of):
@@ -386,13 +481,15 @@ def _rank_exact(params, per_axis, cell_lo, cell_hi, rows_of):
     best_counts = np.zeros((3, n), np.int8)
     rows = np.arange(n)
     K_T = np.float32(params.traversal_cost)
-    bonus = np.float32(params.empty_bonus)
-    for axis, (cand, below, above, on_plane, planar_rows) in enumerate(per_axis):
+    for axis, terms in enumerate(per_axis):
+        cand, below, above, on_plane = (terms["cand"], terms["below"], terms["above"],
+                                        terms["on_plane"])
+        nb, na, fac, planar_rows = terms["nb"], terms["na"], terms["fac"], terms["planar_rows"]
         if rows_of is not None:
-            cand, below, above = cand[rows_of], below[rows_of], above[rows_of]
+            cand, nb, na, fac = cand[rows_of], nb[rows_of], na[rows_of], fac[rows_of]
             planar_rows = planar_rows[rows_of]
-            if on_plane is not None:
-                on_plane = on_plane[rows_of] if planar_rows.any() else None
+            if on_plane is not None and not planar_rows.any():
+                on_plane = None
         # Costs in float32 (they only rank candidates; the caller recounts the chosen plane).
         # With w the width below the plane, area_below = w P + Q and area_above = R - w P
         # (all scaled by K_I / area).
@@ -408,31 +505,40 @@ def _rank_exact(params, per_axis, cell_lo, cell_hi, rows_of):
         no_plane = np.where(inside, np.float32(1), np.float32(np.inf))
         del inside
 
-        def variant(n_below, n_above, wP=wP, Q=Q, R=R, no_plane=no_plane):
-            cost = (wP + Q) * n_below.astype(np.float32)
-            cost += (R - wP) * n_above.astype(np.float32)
+        def variant(n_below, n_above, fac, wP=wP, Q=Q, R=R, no_plane=no_plane):
+            # The same float32 operations, in the same order, as the cost written out:
+            # ((wP + Q) n_below + (R - wP) n_above + K_T) (lambda if a side is empty) no_plane.
+            cost = wP + Q
+            cost *= n_below
+            cost += (R - wP) * n_above
             cost += K_T
-            cost *= np.where((n_below == 0) | (n_above == 0), bonus * no_plane, no_plane)
+            cost *= fac
+            cost *= no_plane
             return cost
 
-        cost = variant(below, above)
+        cost = variant(nb, na, fac)
         if on_plane is not None:
             # Planar references on the cheaper side, with its empty bonus; only rows that have
             # planar references (elsewhere both variants equal the plain one).
             pr = np.flatnonzero(planar_rows)
-            b, a, o = below[pr], above[pr], on_plane[pr]
             sub = dict(wP=wP[pr], Q=Q[pr], R=R[pr], no_plane=no_plane[pr])
-            cost[pr] = np.minimum(variant(b + o, a, **sub), variant(b, a + o, **sub))
+            variants = terms["variants"]
+            if rows_of is not None:
+                at = terms["planar_at"][rows_of[pr]]
+                variants = [[part[at] for part in v] for v in variants]
+            cost[pr] = np.minimum(variant(*variants[0], **sub), variant(*variants[1], **sub))
         k = np.argmin(cost, 1)
         c = cost[rows, k].astype(np.float64)
         better = c < best_cost
         best_cost[better] = c[better]
         best_axis[better] = axis
-        best_plane[better] = cand[rows, k][better]
-        best_counts[0, better] = below[rows, k][better]
-        best_counts[1, better] = above[rows, k][better]
+        rb = rows[better]
+        best_plane[better] = cand[rb, k[better]]
+        src_rows = rb if rows_of is None else rows_of[rb]
+        best_counts[0, better] = below[src_rows, k[better]]
+        best_counts[1, better] = above[src_rows, k[better]]
         if on_plane is not None:
-            best_counts[2, better] = on_plane[rows, k][better]
+            best_counts[2, better] = on_plane[src_rows, k[better]]
         else:
             best_counts[2, better] = 0
     return best_cost, best_axis, best_plane, best_counts[0], best_counts[1], best_counts[2]
@@ -485,6 +591,7 @@ def _exact_chain(params, per_axis, cell_lo, cell_hi, counts, chain, axis, plane,
 
 EXACT_WIDTHS = (1, 2, 4, 8, 16)   # nodes with up to 16 references: exact SAH in padded groups
 EXACT_CHUNK = 16384               # nodes per exact-SAH step (temporaries stay in cache)
+BINNED_CHUNK = 1024               # nodes per binned-SAH step (cost arrays stay in cache)
 CHAIN = 6                         # later decisions carried down chains of empty-space cuts
 
 
@@ -537,8 +644,13 @@ def _best_splits(params, cell_lo, cell_hi, counts, ref_start, ref_lo, ref_hi, ch
             ref_sel = np.arange(int(big_counts.sum())) + np.repeat(
                 ref_start[big] - _exclusive_cumsum(big_counts)[:-1], big_counts)
             ref_lo, ref_hi = ref_lo[ref_sel], ref_hi[ref_sel]
-        cost[big], axis[big], plane[big] = _binned_best_splits(
-            params, cell_lo[big], cell_hi[big], counts[big], ref_lo, ref_hi)
+        # In chunks of BINNED_CHUNK nodes: the (nodes, bins) cost arrays stay in cache.
+        big_first = _exclusive_cumsum(counts[big])
+        for at in range(0, len(big), BINNED_CHUNK):
+            part = big[at:at + BINNED_CHUNK]
+            refs = slice(big_first[at], big_first[at + len(part)])
+            cost[part], axis[part], plane[part] = _binned_best_splits(
+                params, cell_lo[part], cell_hi[part], counts[part], ref_lo[refs], ref_hi[refs])
     return cost, axis, plane, (fut_cost, fut_axis, fut_plane, fut_len)
 
 

@@ -294,3 +294,90 @@ def test_bad_input_is_rejected():
         build_kdtree(vertices, np.array([[0, 1, 3]]))
     with pytest.raises(ValueError):
         build_kdtree(np.full((3, 3), np.nan, np.float32), np.array([[0, 1, 2]]))
+
+
+@pytest.mark.parametrize("name", ["bunny", "cube_of_quads"])
+def test_binned_sah_in_chunks_gives_the_same_tree(name, monkeypatch):
+    # Binned SAH runs in chunks of BINNED_CHUNK nodes; the chunking must not change the tree.
+    import core.kdtree as kd
+    vertices, triangles = SCENES[name]()
+    reference = build_kdtree(vertices, triangles)
+    monkeypatch.setattr(kd, "BINNED_CHUNK", 3)
+    chunked = build_kdtree(vertices, triangles)
+    assert np.array_equal(reference.nodes, chunked.nodes)
+    assert np.array_equal(reference.leaf_indices, chunked.leaf_indices)
+
+
+def _round_f32(x, down):
+    f = np.float32(x)
+    if (float(f) > x) if down else (float(f) < x):
+        f = np.nextafter(f, np.float32(-np.inf if down else np.inf))
+    return f
+
+
+def _reference_halves(tri, cell_lo, cell_hi, axis, plane):
+    """Perfect split of one triangle, one polygon at a time (plain Sutherland-Hodgman): the
+    triangle clipped to the faces of the cell that its box crosses, then cut at the plane."""
+    def clip(poly, a, value, keep_below):
+        dist = [value - p[a] if keep_below else p[a] - value for p in poly]
+        out = []
+        for i, p in enumerate(poly):
+            j = (i + 1) % len(poly)
+            if dist[i] >= 0:
+                out.append(p)
+            if (dist[i] > 0 and dist[j] < 0) or (dist[i] < 0 and dist[j] > 0):
+                t = dist[i] / (dist[i] - dist[j])
+                q = p + t * (poly[j] - p)
+                q[a] = value
+                out.append(q)
+        return out
+
+    lo64, hi64 = cell_lo.astype(np.float64), cell_hi.astype(np.float64)
+    poly = [tri[i].copy() for i in range(3)]
+    for a in range(3):
+        if tri[:, a].min() < lo64[a]:
+            poly = clip(poly, a, lo64[a], False)
+        if tri[:, a].max() > hi64[a]:
+            poly = clip(poly, a, hi64[a], True)
+    halves = []
+    for side in (0, 1):
+        piece = clip(poly, axis, float(plane), side == 0) if poly else []
+        tri_flat = tri.min(0) == tri.max(0)
+        if len(piece) < 3:
+            halves.append(None)
+            continue
+        lo, hi = np.min(piece, 0), np.max(piece, 0)
+        if ((hi - lo == 0) & ~tri_flat).any():
+            halves.append(None)
+            continue
+        child_lo, child_hi = cell_lo.copy(), cell_hi.copy()
+        (child_hi if side == 0 else child_lo)[axis] = plane
+        halves.append((np.maximum([_round_f32(x, True) for x in lo], child_lo),
+                       np.minimum([_round_f32(x, False) for x in hi], child_hi)))
+    return halves
+
+
+def test_batched_straddler_clipping_matches_one_polygon_at_a_time():
+    # _clip_straddlers clips only crossing faces, groups polygons by vertex count and
+    # interpolates only crossing edges; the boxes must equal a plain per-polygon clip exactly.
+    import core.kdtree as kd
+    rng = np.random.default_rng(5)
+    count = 600
+    tri = rng.uniform(-1, 1, (count, 3, 3)).astype(np.float32).astype(np.float64)
+    tri[:50, :, 2] = np.float32(0.25)                       # flat triangles
+    tri[50:100, 0] = [0.0, 0.0, 0.0]                        # a vertex on the plane below
+    cell_lo = rng.uniform(-0.8, -0.1, (count, 3)).astype(np.float32)
+    cell_hi = rng.uniform(0.1, 0.8, (count, 3)).astype(np.float32)
+    cell_lo[:20], cell_hi[:20] = -2, 2                       # triangles inside their cell
+    axis = rng.integers(0, 3, count)
+    plane = np.zeros(count, np.float32)
+    plane[100:] = rng.uniform(-0.05, 0.05, count - 100).astype(np.float32)
+    halves = kd._clip_straddlers(tri, cell_lo, cell_hi, axis, plane)
+    for k in range(count):
+        expected = _reference_halves(tri[k], cell_lo[k], cell_hi[k], axis[k], plane[k])
+        for side in (0, 1):
+            lo, hi, ok = halves[side]
+            assert ok[k] == (expected[side] is not None), (k, side)
+            if ok[k]:
+                assert np.array_equal(lo[k], expected[side][0]), (k, side)
+                assert np.array_equal(hi[k], expected[side][1]), (k, side)
