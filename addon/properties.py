@@ -70,6 +70,29 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         min=1, max=16)
     seed: IntProperty(name="Seed", description="Seed of the sampling pattern", default=0, min=0)
 
+    # The kd-tree layout (core/kdtree_compact.py, docs/kdtree_compression.md); part of the scene
+    # the slaves receive, so a change gives another scene hash (and one upload).
+    kdtree_mode: EnumProperty(
+        name="kd-Tree", description="How the kd-tree is stored (smaller trees send and fit better; "
+        "tracing may take a little longer)",
+        items=[("standard", "Standard", "SAH kd-tree in the 8-byte node layout (Wald 2004)", 0),
+               ("choi", "Choi et al.", "One triangle reference per inner node, no path limit, "
+                "2-byte leaves", 1),
+               ("ours", "Compressed", "Up to two triangle references per inner node and 8 per "
+                "path, 2-byte leaves (the paper's kd-tree)", 2)],
+        default="ours")
+    tau_occu: FloatProperty(
+        name="Occupancy Threshold", description="Lift a triangle to an inner node only if rays "
+        "entering the node met it at least this often in the leaves below (tau_occu)",
+        default=0.5, min=0.0, max=16.0, precision=3)
+    tau_freq: FloatProperty(
+        name="Frequency Threshold", description="Lift a triangle only if it appears in at least "
+        "this share of the leaves below the node (tau_freq)", default=0.4, min=0.0, max=1.0,
+        precision=3, subtype="FACTOR")
+    refs_per_path: IntProperty(
+        name="References per Path", description="Triangle references on any root-to-leaf path "
+        "(mode Compressed)", default=8, min=0, max=64)
+
     hosts: CollectionProperty(type=KDTraceHost, name="Hosts",
                               description="Slaves to use in any case, by address")
     active_host: IntProperty(name="Active Host", default=0)

@@ -99,7 +99,9 @@ def render(engine, depsgraph):
             engine.update_stats("", f"KD Trace | Building kd-tree: {message}")
 
         engine.update_stats("", f"KD Trace | Building kd-tree over {geometry.triangle_count:,} triangles")
-        tree, built = state.trees.get(geometry, tree_progress)
+        tree, built = state.trees.get(geometry, tree_progress, mode=settings.kdtree_mode,
+                                      tau_occu=settings.tau_occu, tau_freq=settings.tau_freq,
+                                      refs_per_path=settings.refs_per_path)
         tree_done = time.perf_counter()
         if engine.test_break():
             return
@@ -144,7 +146,8 @@ def render(engine, depsgraph):
         "slave_colors": {name: slave_color(name) for name in per_slave},
         "uploaded_to": uploaded_to, "cancelled": job.cancelled}
     summary = (f"export {exported - started:.2f} s, kd-tree {'built' if built else 'reused'} "
-               f"{tree_done - exported:.2f} s ({tree.stats['nodes']:,} nodes), render "
+               f"{tree_done - exported:.2f} s ({tree.stats['mode']}: {tree.stats['nodes']:,} nodes, "
+               f"{tree.nbytes / 1e6:.1f} MB), render "
                f"{finished - tree_done:.2f} s; tiles: "
                + ", ".join(f"{name} {count}" for name, count in sorted(per_slave.items())))
     engine.update_stats("", f"KD Trace | Done: {summary}")

@@ -7,32 +7,64 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 from ..core.kdtree import build_kdtree
+from ..core.kdtree_compact import compact_tree
 from ..core.slave_colors import slave_color
 from .local_slaves import LocalSlaves
 
 
 class TreeCache:
-    """Built kd-trees by geometry hash, so a re-render of unchanged geometry does not rebuild."""
+    """Built kd-trees in the compact layout, by (geometry hash, mode, thresholds), so a re-render
+    of unchanged geometry with unchanged kd-tree settings does not rebuild. The standard SAH tree
+    of a geometry is kept too, so another mode or threshold only redoes the compaction."""
 
     def __init__(self, capacity: int = 2):
         self.capacity = capacity
-        self.builds = 0  # how many trees were built (tests count rebuilds with it)
-        self._trees: OrderedDict = OrderedDict()
+        self.builds = 0        # how many standard trees were built (tests count rebuilds with it)
+        self.compactions = 0   # how many compact trees were made from them
+        self._trees: OrderedDict = OrderedDict()      # key -> CompactTree
+        self._standard: OrderedDict = OrderedDict()   # geometry hash -> KDTree
         self._lock = threading.Lock()
 
-    def get(self, geometry, progress=None):
-        key = geometry.content_hash()
+    @staticmethod
+    def key(geometry, mode="ours", tau_occu=0.5, tau_freq=0.4, refs_per_path=8):
+        """Only what changes the tree: choi ignores the path limit, standard every threshold."""
+        if mode == "standard":
+            return geometry.content_hash(), mode
+        if mode == "choi":
+            return geometry.content_hash(), mode, float(tau_occu), float(tau_freq)
+        return geometry.content_hash(), mode, float(tau_occu), float(tau_freq), int(refs_per_path)
+
+    def get(self, geometry, progress=None, mode="ours", tau_occu=0.5, tau_freq=0.4,
+            refs_per_path=8):
+        """(compact tree, built): built is True when anything had to be built or compacted.
+        progress(fraction, message) covers both steps: the SAH build 0-0.8, compaction 0.8-1."""
+        report = progress or (lambda fraction, message: None)
+        key = self.key(geometry, mode, tau_occu, tau_freq, refs_per_path)
         with self._lock:
             if key in self._trees:
                 self._trees.move_to_end(key)
                 return self._trees[key], False
-        tree = build_kdtree(geometry.vertices, geometry.triangles, progress=progress)
+            standard = self._standard.get(key[0])
+        if standard is None:
+            standard = build_kdtree(geometry.vertices, geometry.triangles,
+                                    progress=lambda f, m: report(0.8 * f, m))
+            with self._lock:
+                self.builds += 1
+                self._remember(self._standard, key[0], standard)
+        compact = compact_tree(standard, geometry.triangle_count, mode, tau_occu=tau_occu,
+                               tau_freq=tau_freq,
+                               refs_per_path=refs_per_path if mode == "ours" else -1,
+                               progress=lambda f, m: report(0.8 + 0.2 * f, m))
         with self._lock:
-            self.builds += 1
-            self._trees[key] = tree
-            while len(self._trees) > self.capacity:
-                self._trees.popitem(last=False)
-        return tree, True
+            self.compactions += 1
+            self._remember(self._trees, key, compact)
+        return compact, True
+
+    def _remember(self, store, key, value):
+        store[key] = value
+        store.move_to_end(key)
+        while len(store) > self.capacity:
+            store.popitem(last=False)
 
 
 @dataclass

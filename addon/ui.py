@@ -56,6 +56,25 @@ class RENDER_PT_kdtrace_light_paths(KDTracePanel, bpy.types.Panel):
         layout.prop(settings, "diffuse_bounces")
 
 
+class RENDER_PT_kdtrace_kdtree(KDTracePanel, bpy.types.Panel):
+    bl_label = "kd-Tree"
+    bl_parent_id = "RENDER_PT_kdtrace"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        settings = context.scene.kdtrace
+        layout.prop(settings, "kdtree_mode")
+        col = layout.column()
+        col.active = settings.kdtree_mode != "standard"   # thresholds only matter when lifting
+        col.prop(settings, "tau_occu")
+        col.prop(settings, "tau_freq")
+        row = col.row()
+        row.active = settings.kdtree_mode == "ours"        # choi: unlimited per path
+        row.prop(settings, "refs_per_path")
+
+
 class RENDER_PT_kdtrace_network(KDTracePanel, bpy.types.Panel):
     bl_label = "Network"
     bl_parent_id = "RENDER_PT_kdtrace"
@@ -153,7 +172,7 @@ def color_icon(color) -> str:
 
 
 classes = (KDTRACE_UL_hosts, RENDER_PT_kdtrace, RENDER_PT_kdtrace_sampling,
-           RENDER_PT_kdtrace_light_paths, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_network,
+           RENDER_PT_kdtrace_light_paths, RENDER_PT_kdtrace_kdtree, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_network,
            RENDER_PT_kdtrace_legend)
 
 # Blender's own panels that show what KD Trace renders (camera, lights, material base colour,

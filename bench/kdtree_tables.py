@@ -2,12 +2,19 @@
 memory per kd-tree mode (standard, choi, ours), and an optional threshold sweep.
 
     .venv/bin/python bench/kdtree_tables.py [--scenes dragon architecture dragons12]
-        [--sweep] [--check-rays N]
+        [--sweep] [--check-rays N] [--table3 [--repeats R] [--size S]] [--reuse]
 
 Each scene's standard tree is built once in a child process (its time and peak RSS reported),
 saved under --cache, and every mode is compacted from it in its own child process (time and peak
 RSS of that process, tree loading included). A mode's build time is build + compaction; its peak
-memory is the larger of the two processes' peaks. Table 3 (render time) comes with the kernel.
+memory is the larger of the two processes' peaks.
+
+--table3: render time per mode (Table 3): render_tile of an S x S image (1 sample per pixel, one
+point light: primary and shadow rays) on PoCL with POCL_MAX_PTHREAD_COUNT=1, the three modes
+side by side in one process, R rounds (each round renders every mode once, in turn), median
+reported. --check-rays N also runs N random rays through the OpenCL kernel for every mode: the
+three must agree exactly, and a sample of them with the kernel's own brute force (one leaf
+holding every triangle).
 """
 from __future__ import annotations
 
@@ -122,6 +129,11 @@ def main():
     parser.add_argument("--sweep", action="store_true", help="tau_occu / tau_freq sweep (bytes)")
     parser.add_argument("--check-rays", type=int, default=0,
                         help="compare every mode with brute force on this many random rays")
+    parser.add_argument("--table3", action="store_true", help="render time per mode")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--size", type=int, default=1024)
+    parser.add_argument("--skip-tables", action="store_true",
+                        help="only --table3 / --check-rays (standard trees from --cache)")
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     cache = pathlib.Path(args.cache)
@@ -135,11 +147,23 @@ def main():
         print(json.dumps(result, default=float))
         return
 
+    if args.table3:
+        os.environ["POCL_MAX_PTHREAD_COUNT"] = "1"   # before the OpenCL platform loads
     from core.kdtree_compact import geometry_nbytes
     print("command:", " ".join(["python"] + sys.argv))
     print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs),",
           f"{os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.0f} GiB RAM,",
           f"numpy {np.__version__}")
+    if args.skip_tables:
+        for name in args.scenes:
+            if not (cache / f"{name}.npz").exists():
+                raise SystemExit(f"no standard tree for {name} in {cache}: run without "
+                                 "--skip-tables first")
+        if args.table3:
+            table3(args.scenes, cache, args.repeats, args.size)
+        if args.check_rays:
+            check_kernel(args.scenes, cache, args.check_rays)
+        return
     results = {}
     for name in args.scenes:
         meta = cache / f"{name}.json"
@@ -203,6 +227,9 @@ def main():
         sweep(results, cache)
     if args.check_rays:
         check(args.scenes, cache, args.check_rays)
+        check_kernel(args.scenes, cache, args.check_rays)
+    if args.table3:
+        table3(args.scenes, cache, args.repeats, args.size)
 
 
 SWEEP = [
@@ -271,6 +298,139 @@ def check(names, cache, count):
             print(f"  {name} {mode}: {int((tri != btri).sum())} rays with another triangle, "
                   f"{int((t != bt).sum())} with another distance; {visits / count:.1f} node "
                   f"visits per ray", flush=True)
+
+
+def _compact_trees(name, cache, triangle_count):
+    from core.kdtree import KDTree
+    from core.kdtree_compact import compact_tree
+    data = np.load(cache / f"{name}.npz")
+    tree = KDTree(data["nodes"], data["leaf_indices"], data["bounds"])
+    return {mode: compact_tree(tree, triangle_count, mode) for mode in MODES}
+
+
+def _look_at(eye, target, up=(0.0, 0.0, 1.0)):
+    eye, target, up = (np.asarray(a, np.float64) for a in (eye, target, up))
+    forward = target - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, np.cross(right, forward), -forward, eye
+    return m
+
+
+def table3_view(name, vertices, size):
+    """The Table 3 camera: the dragon seen from the front; the architecture from inside a room
+    of the ground floor, looking diagonally through the doors. One point light, diffuse grey."""
+    from core.scene import Camera, Light, RenderSettings, Shading, View
+    lo, hi = vertices.min(0).astype(np.float64), vertices.max(0).astype(np.float64)
+    centre, extent = (lo + hi) / 2, hi - lo
+    if name.startswith("architecture"):
+        eye = lo + np.array([8.5, 7.0, 1.6])
+        target = eye + np.array([6.0, 4.0, -0.4])
+        light = eye + np.array([0.5, 0.3, 0.8])
+        up = (0.0, 0.0, 1.0)
+    else:   # the Stanford models are y-up and face +z
+        eye = centre + np.array([0.0, 0.15 * extent[1], 0.5 * extent[2] + 0.95 * extent[0]])
+        target = centre
+        light = eye + 0.5 * np.array([extent[0], extent[1], 0.0])
+        up = (0.0, 1.0, 0.0)
+    camera = Camera("PERSP", _look_at(eye, target, up), (0.6, 0.6), (0.0, 0.0), 1e-3, 1e5)
+    power = float(4 * np.pi * (np.linalg.norm(target - eye) ** 2)) * 2.0
+    shading = Shading(np.array([[0.7, 0.7, 0.7, 1.0]], np.float32),
+                      [Light("POINT", (1.0, 1.0, 1.0), power, tuple(light))], (0.1, 0.1, 0.1))
+    settings = RenderSettings(samples_per_axis=1, max_bounces=0, light_samples_per_axis=1)
+    return View(camera, size, size, shading, settings=settings)
+
+
+def table3(names, cache, repeats, size):
+    """Render time per mode: the modes in turn within each round, median over the rounds."""
+    from core.scene import Geometry
+    from slave.tracer import Tracer
+    print(f"\nTable 3: render time, {size}x{size}, 1 sample/pixel + 1 shadow ray, "
+          f"POCL_MAX_PTHREAD_COUNT={os.environ.get('POCL_MAX_PTHREAD_COUNT')}, "
+          f"{repeats} rounds (median; min in brackets)")
+    rows = []
+    for name in names:
+        vertices, triangles = load_scene(name)
+        geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
+        trees = _compact_trees(name, cache, len(triangles))
+        view = table3_view(name, vertices, size)
+        tracers, images = {}, {}
+        for mode in MODES:
+            tracers[mode] = Tracer("cpu")
+            tracers[mode].load(geometry, trees[mode])
+            images[mode] = tracers[mode].render_tile(view, 0, 0, size, size)   # warm-up, build
+        depth = images["standard"]["depth"]
+        hit = float((depth < 1e10).mean())
+        hit_depth = depth[depth < 1e10]
+        spread = (f"depth quartiles {np.percentile(hit_depth, [25, 50, 75]).round(2).tolist()}"
+                  if len(hit_depth) else "no hits")
+        same = all(np.array_equal(images[m][k], images["standard"][k])
+                   for m in MODES for k in images[m])
+        times = {mode: [] for mode in MODES}
+        for _ in range(repeats):
+            for mode in MODES:
+                started = time.perf_counter()
+                tracers[mode].render_tile(view, 0, 0, size, size)
+                times[mode].append(time.perf_counter() - started)
+        med = {m: float(np.median(times[m])) for m in MODES}
+        rows.append((name, med, {m: min(times[m]) for m in MODES}))
+        print(f"  {name}: {hit:.1%} of pixels hit ({spread}), images identical across modes: {same}; "
+              + ", ".join(f"{m} " + " ".join(f"{t:.3f}" for t in times[m]) for m in MODES),
+              flush=True)
+        del tracers, trees
+    print("| scene | standard s | choi s (% of standard) | ours s (% of standard) |")
+    print("|---|---|---|---|")
+    for name, med, best in rows:
+        base = med["standard"]
+        print(f"| {name} | {base:.3f} [{best['standard']:.3f}] | "
+              + " | ".join(f"{med[m]:.3f} [{best[m]:.3f}] ({100 * med[m] / base:.1f} %)"
+                           for m in ("choi", "ours")) + " |")
+
+
+def check_kernel(names, cache, count, brute_sample=1000):
+    """The OpenCL kernel on `count` random rays: the three modes agree exactly (triangle, t, u,
+    v); the first `brute_sample` rays also against the kernel's brute force (one leaf)."""
+    from types import SimpleNamespace
+    from core.scene import Geometry
+    from slave.tracer import Tracer
+    from tests.test_kdtree_compact import random_rays
+    print(f"\nKernel check: {count:,} random rays per scene through the OpenCL tracer")
+    for name in names:
+        vertices, triangles = load_scene(name)
+        T = len(triangles)
+        geometry = Geometry(vertices, triangles, np.zeros(T, np.uint16))
+        corners = vertices.astype(np.float64)[triangles.astype(np.int64)]
+        origins, directions = random_rays(corners, count, seed=11)
+        origins, directions = origins.astype(np.float32), directions.astype(np.float32)
+        del corners
+        tracer = Tracer("cpu")
+        hits = {}
+        for mode, ct in _compact_trees(name, cache, T).items():
+            tracer.load(geometry, ct)
+            started = time.perf_counter()
+            hits[mode] = tracer.intersect(origins, directions)
+            print(f"  {name} {mode}: {time.perf_counter() - started:.1f} s, "
+                  f"{np.isfinite(hits[mode].t).mean():.1%} hit", flush=True)
+        for mode in ("choi", "ours"):
+            diff_tri = int((hits[mode].triangle != hits["standard"].triangle).sum())
+            diff_t = int((hits[mode].t != hits["standard"].t).sum())
+            print(f"  {name} {mode} vs standard: {diff_tri} rays with another triangle, "
+                  f"{diff_t} with another distance", flush=True)
+        one_leaf = SimpleNamespace(nodes=np.array([[3 | (T << 3), 0]], np.uint32),
+                                   leaf_index32=np.arange(T, dtype=np.uint32),
+                                   leaf_index16=np.zeros(0, np.uint16), leaf_shift=0,
+                                   bounds=np.array([vertices.min(0), vertices.max(0)], np.float32))
+        tracer.load(geometry, one_leaf)
+        k = min(brute_sample, count)
+        started = time.perf_counter()
+        ref = tracer.intersect(origins[:k], directions[:k])
+        for mode in MODES:
+            bad = int(((hits[mode].triangle[:k] != ref.triangle)
+                       | (hits[mode].t[:k] != ref.t)).sum())
+            print(f"  {name} {mode} vs kernel brute force on the first {k:,} rays: {bad} differ "
+                  f"({time.perf_counter() - started:.0f} s)", flush=True)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ import uuid
 from dataclasses import dataclass
 
 from . import protocol
+from .kdtree_compact import as_compact
 from .protocol import MsgType, ProtocolError
 from .scene import SCENE_FORMAT_VERSION, Geometry, View
 from .tiles import TilePool, partition_tile_size, tile_dims, tile_grid
@@ -226,9 +227,14 @@ class Master:
 
     def load_scene(self, geometry: Geometry, tree) -> str:
         """Make the scene present on every slave, uploading only where its hash is unknown.
-        Slaves that fail are dropped (see .errors). Returns the scene hash."""
+        Slaves that fail are dropped (see .errors). Returns the scene hash.
+
+        `tree`: the compact kd-tree the caller built (core.kdtree_compact.compact_tree, any mode;
+        its mode and thresholds shape the arrays and therefore the hash), or a plain KDTree,
+        converted here with mode "standard"."""
         if self._job is not None:
             self._job.wait()  # its threads may still read the sockets (copies being cancelled)
+        tree = as_compact(tree, geometry.triangle_count)
         scene_hash = protocol.scene_hash(geometry, tree)
         arrays = protocol.scene_arrays(geometry, tree)
         upload_bytes = sum(a.nbytes for a in arrays.values())

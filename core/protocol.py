@@ -24,9 +24,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .kdtree_compact import as_compact, validate_compact
 from .scene import INDEX_DTYPE, MATERIAL_ID_DTYPE, VERTEX_DTYPE, Geometry, SceneError
 
-PROTOCOL_VERSION = 2   # 2: HMAC handshake (CHALLENGE/AUTH), float16/zlib tile payloads, N x M tiles
+PROTOCOL_VERSION = 3   # 2: HMAC handshake, float16/zlib tiles, N x M tiles; 3: compact kd-tree arrays
 MAGIC = b"KDTR"
 HEADER = struct.Struct("!4sHHIQ")
 DEFAULT_PORT = 47600
@@ -70,10 +71,14 @@ SCENE_ARRAYS = {
     "vertices": (VERTEX_DTYPE, (-1, 3)),
     "triangles": (INDEX_DTYPE, (-1, 3)),
     "material_ids": (MATERIAL_ID_DTYPE, (-1,)),
+    # The compact kd-tree (core/kdtree_compact.py, any mode; docs/kdtree_compression.md).
     "nodes": (np.dtype("<u4"), (-1, 2)),
-    "leaf_indices": (np.dtype("<u4"), (-1,)),
+    "leaf_index32": (np.dtype("<u4"), (-1,)),
+    "leaf_index16": (np.dtype("<u2"), (-1,)),
     "bounds": (np.dtype("<f4"), (2, 3)),
+    "leaf_shift": (np.dtype("<u4"), (1,)),
 }
+TREE_ARRAYS = ("nodes", "leaf_index32", "leaf_index16", "bounds", "leaf_shift")
 # Geometry arrays that travel only when the scene needs them (smooth normals, textures).
 OPTIONAL_SCENE_ARRAYS = {name: (dtype, (-1, width)) for name, (dtype, width) in Geometry.OPTIONAL.items()}
 
@@ -275,19 +280,32 @@ def check_scene_hash(value) -> str:
 
 @dataclass
 class SceneTree:
-    """The kd-tree arrays as they travel (the tracer needs only these)."""
+    """The compact kd-tree arrays as they travel (the tracer needs only these)."""
 
-    nodes: np.ndarray         # (N, 2) uint32
-    leaf_indices: np.ndarray  # (R,) uint32
-    bounds: np.ndarray        # (2, 3) float32
+    nodes: np.ndarray          # (N, 2) uint32
+    leaf_index32: np.ndarray   # (R32,) uint32
+    leaf_index16: np.ndarray   # (R16,) uint16
+    bounds: np.ndarray         # (2, 3) float32
+    leaf_shift: int
+
+
+def _tree_arrays(geometry: Geometry, tree) -> dict:
+    """The kd-tree's wire arrays; a plain core.kdtree.KDTree is converted to the compact layout
+    with mode "standard" first (callers that build a compact tree pass it as is)."""
+    tree = as_compact(tree, geometry.triangle_count)
+    return {"nodes": tree.nodes, "leaf_index32": tree.leaf_index32,
+            "leaf_index16": tree.leaf_index16, "bounds": tree.bounds,
+            "leaf_shift": np.array([int(np.asarray(tree.leaf_shift).reshape(-1)[0])])}
 
 
 def scene_hash(geometry: Geometry, tree) -> str:
-    """The one content hash of a scene: the geometry's hash plus the kd-tree arrays."""
+    """The one content hash of a scene: the geometry's hash plus the compact kd-tree arrays
+    (so another kd-tree mode or other thresholds, which give other arrays, give another hash)."""
     digest = hashlib.blake2b(digest_size=16)
     digest.update(geometry.content_hash().encode())
-    for name in ("nodes", "leaf_indices", "bounds"):
-        array = np.ascontiguousarray(getattr(tree, name), dtype=SCENE_ARRAYS[name][0])
+    arrays = _tree_arrays(geometry, tree)
+    for name in TREE_ARRAYS:
+        array = np.ascontiguousarray(arrays[name], dtype=SCENE_ARRAYS[name][0])
         digest.update(f"{name}{array.shape}".encode())
         digest.update(array.tobytes())
     return digest.hexdigest()
@@ -295,8 +313,7 @@ def scene_hash(geometry: Geometry, tree) -> str:
 
 def scene_arrays(geometry: Geometry, tree) -> dict:
     """The arrays of a SCENE_UPLOAD, in wire dtypes (optional geometry arrays when present)."""
-    arrays = dict(geometry.arrays(), nodes=tree.nodes, leaf_indices=tree.leaf_indices,
-                  bounds=tree.bounds)
+    arrays = dict(geometry.arrays(), **_tree_arrays(geometry, tree))
     specs = {**SCENE_ARRAYS, **OPTIONAL_SCENE_ARRAYS}
     return {name: np.ascontiguousarray(array, dtype=specs[name][0]) for name, array in arrays.items()}
 
@@ -304,9 +321,11 @@ def scene_arrays(geometry: Geometry, tree) -> dict:
 def scene_from_arrays(arrays: dict) -> tuple[Geometry, SceneTree]:
     """Rebuild and validate a scene from uploaded arrays; ProtocolError names the problem.
 
-    The tree is checked so that the kernel never indexes outside its buffers: every inner node's
-    children lie inside the node array, every leaf's range inside leaf_indices, and every
-    reference names an existing triangle (the tracer also rejects cycles by depth).
+    The tree is checked so that the kernel never indexes outside its buffers
+    (core.kdtree_compact.validate_compact): children and reference slots inside the node array
+    and after their parent, every node reached at most once, every leaf's range inside its
+    index list, every triangle index (slots, 32- and 16-bit lists) naming an existing triangle,
+    depth bounded.
     """
     if not set(SCENE_ARRAYS) <= set(arrays) <= set(SCENE_ARRAYS) | set(OPTIONAL_SCENE_ARRAYS):
         raise ProtocolError(f"scene upload must carry the arrays {sorted(SCENE_ARRAYS)} and "
@@ -324,21 +343,18 @@ def scene_from_arrays(arrays: dict) -> tuple[Geometry, SceneTree]:
         geometry.validate()
     except SceneError as exc:
         raise ProtocolError(f"invalid scene geometry: {exc}") from None
-    nodes, refs, bounds = arrays["nodes"], arrays["leaf_indices"], arrays["bounds"]
-    if len(nodes) == 0:
+    if len(arrays["nodes"]) == 0:
         raise ProtocolError("kd-tree has no nodes")
-    if not np.isfinite(bounds).all():
+    if not np.isfinite(arrays["bounds"]).all():
         raise ProtocolError("kd-tree bounds are not finite")
-    word0, word1 = nodes[:, 0].astype(np.int64), nodes[:, 1].astype(np.int64)
-    leaf = (word0 & 3) == 3
-    first_child = word0 >> 2
-    inner_ok = first_child + 1 < len(nodes)
-    leaf_ok = word1 + (word0 >> 2) <= len(refs)
-    if not np.where(leaf, leaf_ok, inner_ok).all():
-        raise ProtocolError("kd-tree nodes point outside the tree")
-    if len(refs) and int(refs.max()) >= len(geometry.triangles):
-        raise ProtocolError("kd-tree refers to a triangle that does not exist")
-    return geometry, SceneTree(nodes, refs, bounds)
+    tree = SceneTree(arrays["nodes"], arrays["leaf_index32"], arrays["leaf_index16"],
+                     arrays["bounds"], int(arrays["leaf_shift"][0]))
+    try:
+        validate_compact(tree.nodes, tree.leaf_index32, tree.leaf_index16, tree.bounds,
+                         tree.leaf_shift, len(geometry.triangles))
+    except ValueError as exc:
+        raise ProtocolError(f"invalid kd-tree: {exc}") from None
+    return geometry, tree
 
 
 def tile_passes_ok(arrays: dict, w: int, h: int) -> str | None:

@@ -3,7 +3,8 @@
 
 __kernel void intersect_rays(__global const float *origins, __global const float *directions,
                              float tmin, float tmax, uint ray_count,
-                             __global const uint2 *nodes, __global const uint *leaf_indices,
+                             __global const uint2 *nodes, __global const uint *leaf_index32,
+                             __global const ushort *leaf_index16, uint leaf_shift,
                              __global const float4 *tri_verts, __global const float4 *bounds,
                              __global float *out_t, __global int *out_tri,
                              __global float *out_u, __global float *out_v)
@@ -12,9 +13,15 @@ __kernel void intersect_rays(__global const float *origins, __global const float
     if (i >= ray_count)
         return;
     Ray r = make_ray(vload3(i, origins), vload3(i, directions));
+    KdTree kd;
+    kd.nodes = nodes;
+    kd.leaf32 = leaf_index32;
+    kd.leaf16 = leaf_index16;
+    kd.leaf_shift = leaf_shift;
+    kd.bmin = bounds[0].xyz;
+    kd.bmax = bounds[1].xyz;
     Hit h;
-    trace_ray(&r, tmin, tmax, false, NO_HIT, nodes, leaf_indices, tri_verts,
-              bounds[0].xyz, bounds[1].xyz, &h);
+    trace_ray(&r, tmin, tmax, false, NO_HIT, &kd, tri_verts, &h);
     out_t[i] = h.t;
     out_tri[i] = h.tri == NO_HIT ? -1 : (int)h.tri;
     out_u[i] = h.u;

@@ -178,7 +178,8 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
                              __global const int *pixels, int pixel_count, int sample_start,
                              int sample_count, int strata, int max_bounces, int diffuse_bounces,
                              int light_n, uint seed, int write_aux,
-                             __global const uint2 *nodes, __global const uint *leaf_indices,
+                             __global const uint2 *nodes, __global const uint *leaf_index32,
+                             __global const ushort *leaf_index16, uint leaf_shift,
                              __global const float4 *tri_verts, __global const float4 *bounds,
                              __global const ushort *material_ids,
                              __global const float4 *materials, __global const float4 *lights,
@@ -196,8 +197,12 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     uint pixel_index = (uint)py * (uint)cam[5].z + (uint)px;     // global: same on every slave
 
     Scene sc;
-    sc.nodes = nodes;
-    sc.leaf_indices = leaf_indices;
+    sc.kd.nodes = nodes;
+    sc.kd.leaf32 = leaf_index32;
+    sc.kd.leaf16 = leaf_index16;
+    sc.kd.leaf_shift = leaf_shift;
+    sc.kd.bmin = bounds[0].xyz;
+    sc.kd.bmax = bounds[1].xyz;
     sc.tri_verts = tri_verts;
     sc.material_ids = material_ids;
     sc.materials = materials;
@@ -206,8 +211,6 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     sc.uvs = uvs;
     sc.texels = texels;
     sc.tex_sizes = tex_sizes;
-    sc.bmin = bounds[0].xyz;
-    sc.bmax = bounds[1].xyz;
     sc.light_count = light_count;
     sc.light_n = light_n;
 

@@ -27,8 +27,7 @@
 #endif
 
 typedef struct {
-    __global const uint2 *nodes;
-    __global const uint *leaf_indices;
+    KdTree kd;                          // the compact kd-tree (trace.cl)
     __global const float4 *tri_verts;
     __global const ushort *material_ids;
     __global const float4 *materials;
@@ -37,7 +36,6 @@ typedef struct {
     __global const float *uvs;          // (3T, 2) when HAS_TEXTURES
     __global const half *texels;        // (N, 4) when HAS_TEXTURES
     __global const uint *tex_sizes;     // (K, 3) when HAS_TEXTURES
-    float3 bmin, bmax;
     uint light_count;
     int light_n;                        // light samples per axis
 } Scene;
@@ -63,8 +61,7 @@ inline bool trace(const Scene *sc, float3 o, float3 d, float tmin, float tmax, b
                   uint ignore, Hit *h)
 {
     Ray r = make_ray(o, d);
-    return trace_ray(&r, tmin, tmax, any_hit, ignore, sc->nodes, sc->leaf_indices,
-                     sc->tri_verts, sc->bmin, sc->bmax, h);
+    return trace_ray(&r, tmin, tmax, any_hit, ignore, &sc->kd, sc->tri_verts, h);
 }
 
 inline Surface surface_at(const Scene *sc, const Hit *h, float3 d)

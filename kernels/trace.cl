@@ -104,17 +104,60 @@ inline bool intersect_triangle(const Ray *r, float3 v0, float3 v1, float3 v2,
     return true;
 }
 
+// The compact kd-tree (docs/kdtree_compression.md; one layout for the modes standard, choi and
+// ours): nodes, the 32- and 16-bit leaf index lists, and the shift of 16-bit leaves' bases.
+#define KD_REF 4u           // inner word0 bit 2: a T-reference slot heads the node's group
+#define KD_EMPTY_BELOW 8u   // bit 3: the below child is an empty leaf, not stored
+#define KD_EMPTY_ABOVE 16u  // bit 4: likewise the above child
+#define KD_LEAF16 4u        // leaf word0 bit 2: 16-bit list
+// Tolerance of the stopping test, relative to t and to the scene's size along the ray: a
+// triangle coplanar with the best hit (a column on a floor) may sit in a cell whose computed
+// entry rounds just past that hit; visiting it lets the tie go to the lower index.
+#define KD_TIE_EPS 1e-6f
+
+typedef struct {
+    __global const uint2 *nodes;
+    __global const uint *leaf32;
+    __global const ushort *leaf16;
+    uint leaf_shift;
+    float3 bmin, bmax;
+} KdTree;
+
+// Test triangle `tri` against [tmin, best]; keep it when it is nearer, or as near with a lower
+// index (ties go to the lower triangle index, as brute force).
+inline bool consider(const Ray *r, uint tri, uint ignore_tri, __global const float4 *tri_verts,
+                     float tmin, float *best, uint *best_tri, Hit *hit)
+{
+    float t, u, v;
+    if (tri != ignore_tri && intersect_triangle(r, tri_verts[3 * tri].xyz, tri_verts[3 * tri + 1].xyz,
+                                                tri_verts[3 * tri + 2].xyz, tmin, *best, &t, &u, &v)
+        && (t < *best || tri < *best_tri)) {
+        *best = t;
+        *best_tri = tri;
+        hit->t = t;
+        hit->u = u;
+        hit->v = v;
+        hit->tri = tri;
+        return true;
+    }
+    return false;
+}
+
 // Nearest hit with t in [tmin, tmax] (ties to the lower triangle index), or, when any_hit,
 // the first hit found (shadow rays). Front-to-back stack traversal with t intervals (pbrt).
+// Triangles referenced by an inner node are tested when it is visited (against [tmin, best]);
+// such a hit is only a candidate, kept until a nearer one appears: traversal stops when the
+// next node starts beyond the best hit (by more than the tie tolerance) or the stack is empty.
 // `ignore_tri` (NO_HIT for none) is never reported: the triangle a secondary ray leaves from,
 // which a ray leaving its plane cannot meet again (a guard beside the origin offset).
 inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint ignore_tri,
-                      __global const uint2 *nodes, __global const uint *leaf_indices,
-                      __global const float4 *tri_verts, float3 bmin, float3 bmax, Hit *hit)
+                      const KdTree *kd, __global const float4 *tri_verts, Hit *hit)
 {
     hit->tri = NO_HIT;
     hit->t = INFINITY;
     hit->u = hit->v = 0.0f;
+    __global const uint2 *nodes = kd->nodes;
+    float3 bmin = kd->bmin, bmax = kd->bmax;
 
     // Clip to the root box. NaN slab distances (origin on a face, ray parallel to it) compare
     // false and are thereby ignored; the far distance is widened by pbrt's error bound.
@@ -130,6 +173,9 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
     }
     if (t0 > t1)
         return false;
+    // The scene's size in units of t along this ray, for the tie tolerance.
+    float3 extent = fmax(fabs(bmin), fabs(bmax));
+    float tie_abs = KD_TIE_EPS * fmax(extent.x, fmax(extent.y, extent.z)) / length(r->d);
 
     float best = tmax;              // accepted hits satisfy t <= best
     uint best_tri = NO_HIT;         // any index is lower than NO_HIT: ties go to the lower one
@@ -138,13 +184,25 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
     uint node = 0;
 
     while (true) {
-        // Everything left starts beyond the best hit. Strict: a node starting exactly at the
-        // best t is still visited, so equal-t hits there can win the tie by index.
-        if (best < t0)
+        // Everything left starts at t0 or later (front to back). Not strict, and widened by
+        // the tie tolerance: a node starting at (or within rounding of) the best t is still
+        // visited, so equal-t hits there can win the tie by index.
+        if (t0 > best + (KD_TIE_EPS * best + tie_abs))
             break;
         uint2 n = nodes[node];
         uint kind = n.x & 3u;
         if (kind != KD_LEAF) {
+            uint group = n.x >> 5;
+            uint has_ref = (n.x >> 2) & 1u;
+            if (has_ref) {
+                // T-reference slot: one or two triangles lifted from the leaves below.
+                uint2 refs = nodes[group];
+                if (consider(r, refs.x, ignore_tri, tri_verts, tmin, &best, &best_tri, hit) && any_hit)
+                    return true;
+                if (refs.y != NO_HIT
+                    && consider(r, refs.y, ignore_tri, tri_verts, tmin, &best, &best_tri, hit) && any_hit)
+                    return true;
+            }
             float split = as_float(n.y);
             float o = lane(r->o, kind), inv = lane(r->inv_d, kind);
             float tplane = (split - o) * inv;
@@ -157,40 +215,59 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
             float err = isfinite(tplane) ? 2.0f * GAMMA3 * fabs(tplane) : 0.0f;
             // The child holding the origin comes first; on the plane the direction decides.
             bool below_first = (o < split) || (o == split && lane(r->d, kind) <= 0.0f);
-            uint child = n.x >> 2;
-            uint first = below_first ? child : child + 1u;
-            uint second = below_first ? child + 1u : child;
+            // Elided (empty) children are not stored: below = c + R, above = below + 1 - Eb.
+            uint below = group + has_ref;
+            uint above = below + 1u - ((n.x >> 3) & 1u);
+            bool below_ok = (n.x & KD_EMPTY_BELOW) == 0u, above_ok = (n.x & KD_EMPTY_ABOVE) == 0u;
+            uint first = below_first ? below : above;
+            uint second = below_first ? above : below;
+            bool first_ok = below_first ? below_ok : above_ok;
+            bool second_ok = below_first ? above_ok : below_ok;
             // A NaN tplane fails every test and both children are visited: safe.
             if (tplane - err > t1 || tplane + err <= 0.0f) {
-                node = first;
+                if (first_ok) {
+                    node = first;
+                    continue;
+                }
             } else if (tplane + err < t0 && tplane - err > 0.0f) {
-                node = second;
-            } else {
+                if (second_ok) {
+                    node = second;
+                    continue;
+                }
+            } else if (first_ok && second_ok) {
                 stack[sp].node = second;
                 stack[sp].t0 = fmax(t0, tplane - err);      // fmax/fmin ignore a NaN tplane
                 stack[sp].t1 = t1;
                 ++sp;
                 node = first;
                 t1 = fmin(t1, tplane + err);
+                continue;
+            } else if (first_ok) {
+                node = first;
+                t1 = fmin(t1, tplane + err);
+                continue;
+            } else {
+                node = second;
+                t0 = fmax(t0, tplane - err);
+                continue;
             }
-            continue;
-        }
-        // Leaf: test its triangles against [tmin, best] (not the cell interval: a hit found
-        // here outside the cell is still a valid candidate, kept until a nearer one appears).
-        uint count = n.x >> 2, offset = n.y;
-        for (uint i = 0; i < count; ++i) {
-            uint tri = leaf_indices[offset + i];
-            float t, u, v;
-            if (tri != ignore_tri && intersect_triangle(r, tri_verts[3 * tri].xyz, tri_verts[3 * tri + 1].xyz,
-                                   tri_verts[3 * tri + 2].xyz, tmin, best, &t, &u, &v)
-                && (t < best || tri < best_tri)) {
-                best = t;
-                best_tri = tri;
-                hit->t = t;
-                hit->u = u;
-                hit->v = v;
-                hit->tri = tri;
-                if (any_hit)
+            // The only child to visit is elided: nothing here, pop.
+        } else if ((n.x & KD_LEAF16) != 0u) {
+            // 16-bit list: triangle = (B << leaf_shift) + leaf16[offset + i].
+            // Tested against [tmin, best] (not the cell interval: a hit found here outside the
+            // cell is still a valid candidate, kept until a nearer one appears).
+            uint count = (n.x >> 3) & 0x1FFFu, offset = n.y;
+            uint base = (n.x >> 16) << kd->leaf_shift;
+            for (uint i = 0; i < count; ++i) {
+                if (consider(r, base + (uint)kd->leaf16[offset + i], ignore_tri, tri_verts, tmin,
+                             &best, &best_tri, hit) && any_hit)
+                    return true;
+            }
+        } else {
+            uint count = n.x >> 3, offset = n.y;
+            for (uint i = 0; i < count; ++i) {
+                if (consider(r, kd->leaf32[offset + i], ignore_tri, tri_verts, tmin,
+                             &best, &best_tri, hit) && any_hit)
                     return true;
             }
         }

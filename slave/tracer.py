@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from core.features import ALL_FEATURES, MIRROR_ROUGHNESS, needed_arrays, scene_features
+from core.kdtree_compact import as_compact, validate_compact
 from core.scene import MATERIAL_PARAMS, Geometry, View
 
 KERNEL_DIR = pathlib.Path(__file__).resolve().parent.parent / "kernels"
@@ -112,22 +113,6 @@ def _select_device(cl, device):
                           f"{len(platforms)} platform(s)") from None
 
 
-def _tree_depth(nodes: np.ndarray) -> int:
-    """Depth of the kd-tree (root = 1), level by level; also checks child indices."""
-    depth, level = 0, np.zeros(1, np.int64)
-    while len(level):
-        depth += 1
-        if depth > 1024:
-            raise TracerError("kd-tree deeper than 1024 levels (cycle?)")
-        words = nodes[level, 0]
-        inner = (words & 3) != 3
-        children = (words[inner] >> 2).astype(np.int64)
-        if len(children) and children.max() + 1 >= len(nodes):
-            raise TracerError("kd-tree node refers to a child that does not exist")
-        level = np.concatenate([children, children + 1])
-    return depth
-
-
 class Tracer:
     """Ray queries and tile rendering on one OpenCL device (docs/architecture.md, "Tracer")."""
 
@@ -195,27 +180,33 @@ class Tracer:
 
     # -- scene ---------------------------------------------------------------------------
     def load(self, geometry: Geometry, tree) -> None:
-        """Upload the geometry and its kd-tree once; later calls trace against them."""
+        """Upload the geometry and its kd-tree once; later calls trace against them.
+
+        `tree`: a compact kd-tree (core.kdtree_compact.CompactTree, or anything with its arrays
+        nodes, leaf_index32, leaf_index16, bounds, leaf_shift: any of the modes standard, choi,
+        ours), or a plain core.kdtree.KDTree, which is converted with mode "standard". Checked
+        before upload, since it may come from the network (validate_compact).
+        """
         cl = self._cl
-        nodes = np.ascontiguousarray(tree.nodes, dtype=np.uint32)
-        leaf_indices = np.ascontiguousarray(tree.leaf_indices, dtype=np.uint32).reshape(-1)
-        bounds = np.asarray(tree.bounds, dtype=np.float32)
-        if nodes.ndim != 2 or nodes.shape[1] != 2 or len(nodes) == 0:
-            raise TracerError(f"kd-tree nodes must be a non-empty (N, 2) uint32 array, got {nodes.shape}")
-        if bounds.shape != (2, 3) or not np.isfinite(bounds).all():
-            raise TracerError(f"kd-tree bounds must be a finite (2, 3) array, got {bounds.shape}")
         tri_count = geometry.triangle_count
+        try:
+            tree = as_compact(tree, tri_count)
+        except ValueError as error:
+            raise TracerError(f"invalid kd-tree: {error}") from None
+        nodes = np.ascontiguousarray(tree.nodes, dtype=np.uint32)
+        leaf32 = np.ascontiguousarray(tree.leaf_index32, dtype=np.uint32).reshape(-1)
+        leaf16 = np.ascontiguousarray(tree.leaf_index16, dtype=np.uint16).reshape(-1)
+        bounds = np.asarray(tree.bounds, dtype=np.float32)
+        leaf_shift = int(np.asarray(tree.leaf_shift).reshape(-1)[0])
         if len(geometry.material_ids) != tri_count:
             raise TracerError("one material id per triangle is required")
         if tri_count and int(geometry.triangles.max()) >= len(geometry.vertices):
             raise TracerError("a triangle refers to a vertex that does not exist")
-        leaves = (nodes[:, 0] & 3) == 3
-        ends = (nodes[leaves, 0] >> 2).astype(np.int64) + nodes[leaves, 1]
-        if len(ends) and ends.max() > len(leaf_indices):
-            raise TracerError("a kd-tree leaf reaches past the end of leaf_indices")
-        if len(leaf_indices) and int(leaf_indices.max()) >= tri_count:
-            raise TracerError("a kd-tree leaf refers to a triangle that does not exist")
-        self._stack_size = max(MIN_STACK_SIZE, -(-(_tree_depth(nodes) + 1) // 16) * 16)
+        try:
+            depth = validate_compact(nodes, leaf32, leaf16, bounds, leaf_shift, tri_count)
+        except ValueError as error:
+            raise TracerError(f"invalid kd-tree: {error}") from None
+        self._stack_size = max(MIN_STACK_SIZE, -(-(depth + 1) // 16) * 16)
 
         # Triangles as three float4 corners each: one gather per triangle in the kernel.
         corners = np.zeros((max(tri_count, 1), 3, 4), np.float32)
@@ -238,7 +229,8 @@ class Tracer:
         def optional(array, dtype):
             return upload(np.zeros(4, dtype) if array is None else np.ascontiguousarray(array, dtype))
 
-        self._scene = {"nodes": upload(nodes), "leaf_indices": upload(leaf_indices),
+        self._scene = {"nodes": upload(nodes), "leaf_index32": upload(leaf32),
+                       "leaf_index16": upload(leaf16), "leaf_shift": np.uint32(leaf_shift),
                        "tri_verts": upload(corners), "bounds": upload(box),
                        "material_ids": upload(geometry.material_ids),
                        "normals": optional(geometry.normals, np.float32),
@@ -281,7 +273,8 @@ class Tracer:
         outs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in out]
         kernel = self._program(self._features())["intersect_rays"]
         kernel(self.queue, self._global_size(n), self._local(), o_buf, d_buf, np.float32(tmin), np.float32(tmax),
-               np.uint32(n), scene["nodes"], scene["leaf_indices"], scene["tri_verts"],
+               np.uint32(n), scene["nodes"], scene["leaf_index32"], scene["leaf_index16"],
+               scene["leaf_shift"], scene["tri_verts"],
                scene["bounds"], *outs)
         for host, buf in zip(out, outs):
             cl.enqueue_copy(self.queue, host, buf)
@@ -333,7 +326,8 @@ class Tracer:
         depth_buf = cl.Buffer(ctx, mf.WRITE_ONLY, depth.nbytes)
         normal_buf = cl.Buffer(ctx, mf.WRITE_ONLY, normal.nbytes)
         fixed = (upload(_pack_camera(view)), np.int32(x), np.int32(y), np.int32(w))
-        scene_args = (scene["nodes"], scene["leaf_indices"], scene["tri_verts"], scene["bounds"],
+        scene_args = (scene["nodes"], scene["leaf_index32"], scene["leaf_index16"],
+               scene["leaf_shift"], scene["tri_verts"], scene["bounds"],
                       scene["material_ids"], upload(_pack_materials(shading)),
                       upload(_pack_lights(shading.lights)), np.uint32(len(shading.lights)),
                       scene["normals"], scene["uvs"], scene["texels"], scene["texture_sizes"],

@@ -207,6 +207,23 @@ def test_two_slaves_render_the_same_pixels_as_one_and_as_the_tracer(slaves, refe
     assert_images_equal(two, reference)
 
 
+def test_compressed_kdtree_renders_the_same_pixels_over_the_network(slaves, reference):
+    """Mode "ours" (triangle references in inner nodes, 2-byte leaves) travels to real slaves,
+    gets its own scene hash (another upload), and renders what the standard tree renders."""
+    from core.kdtree_compact import compact_tree
+    geometry, tree = make_scene()
+    ours = compact_tree(tree, geometry.triangle_count, "ours")
+    assert ours.stats["inner_references"] > 0 and ours.stats["leaves_16bit"] > 0
+    view = make_view()
+    with Master([s.endpoint for s in slaves]) as master:
+        master.connect()
+        standard_hash = protocol.scene_hash(geometry, tree)
+        ours_hash = master.load_scene(geometry, ours)
+        assert ours_hash != standard_hash
+        images, _ = render_all(master.render(view, tile_size=16))
+    assert_images_equal(images, reference)
+
+
 def test_render_border_region_and_odd_tile_size(slaves, reference):
     geometry, tree = make_scene()
     view = make_view(region=(5, 7, 50, 40))

@@ -192,6 +192,27 @@ def test_scene_round_trip_and_hash(pair):
     assert protocol.scene_hash(geometry, tree) != scene_hash
 
 
+def test_scene_hash_depends_on_the_kdtree_mode():
+    """The mode and thresholds are part of what the master builds: other arrays, another hash;
+    the compact arrays round-trip through the upload unchanged."""
+    from core.kdtree import build_kdtree
+    from core.kdtree_compact import compact_tree
+    from tests.meshes import uv_sphere
+    vertices, triangles = uv_sphere(32, 16)
+    geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
+    tree = build_kdtree(vertices, triangles)
+    trees = {mode: compact_tree(tree, len(triangles), mode) for mode in ("standard", "choi", "ours")}
+    hashes = {mode: protocol.scene_hash(geometry, ct) for mode, ct in trees.items()}
+    assert len(set(hashes.values())) == 3
+    assert protocol.scene_hash(geometry, tree) == hashes["standard"]   # plain = standard
+    loose = compact_tree(tree, len(triangles), "ours", tau_occu=0.05, tau_freq=0.05)
+    assert protocol.scene_hash(geometry, loose) != hashes["ours"]
+    geometry2, tree2 = protocol.scene_from_arrays(protocol.scene_arrays(geometry, trees["ours"]))
+    assert protocol.scene_hash(geometry2, tree2) == hashes["ours"]
+    assert np.array_equal(tree2.leaf_index16, trees["ours"].leaf_index16)
+    assert tree2.leaf_shift == trees["ours"].leaf_shift
+
+
 @pytest.mark.parametrize("change, match", [
     (lambda s: s.pop("bounds"), "must carry the arrays"),
     (lambda s: s.update(colours=s["bounds"]), "must carry the arrays"),
@@ -200,9 +221,19 @@ def test_scene_round_trip_and_hash(pair):
     (lambda s: s.update(vertices=s["vertices"].reshape(-1)), "'vertices' must be"),
     (lambda s: s.update(triangles=s["triangles"] + 7), "vertex that does not exist"),
     (lambda s: s.update(vertices=s["vertices"] * np.float32(np.nan)), "NaN"),
-    (lambda s: s.update(nodes=np.array([[(9 << 2) | 3, 0]], np.uint32)), "outside the tree"),
-    (lambda s: s.update(nodes=np.array([[(5 << 2) | 0, 0]], np.uint32)), "outside the tree"),
-    (lambda s: s.update(leaf_indices=np.array([0, 5], np.uint32)), "triangle that does not exist"),
+    (lambda s: s.update(nodes=np.array([[(9 << 3) | 3, 0]], np.uint32)), "past the end"),
+    (lambda s: s.update(nodes=np.array([[(5 << 5) | 0, 0]], np.uint32)), "outside the tree"),
+    (lambda s: s.update(nodes=np.array([[(0 << 5) | 0, 0]], np.uint32)), "backwards"),
+    (lambda s: s.update(leaf_index32=np.array([0, 5], np.uint32)), "triangle that does not exist"),
+    # 16-bit leaf (W = 1, count 2, base 0) whose second entry names triangle 7 of 2.
+    (lambda s: s.update(nodes=np.array([[(2 << 3) | 4 | 3, 0]], np.uint32),
+                        leaf_index16=np.array([0, 7], np.uint16)), "triangle that does not exist"),
+    # Inner node with a reference slot naming triangle 9, two leaves.
+    (lambda s: s.update(nodes=np.array([[(1 << 5) | 4, 0], [9, 0xFFFFFFFF], [3, 0], [3, 0]],
+                                       np.uint32)), "slot names a triangle"),
+    (lambda s: s.update(leaf_shift=np.array([40], np.uint32)), "leaf_shift"),
+    (lambda s: s.update(leaf_shift=np.array([0, 0], np.uint32)), "'leaf_shift' must be"),
+    (lambda s: s.pop("leaf_index16"), "must carry the arrays"),
     (lambda s: s.update(nodes=np.zeros((0, 2), np.uint32)), "no nodes"),
 ])
 def test_bad_scenes_are_rejected(change, match):

@@ -1,0 +1,175 @@
+"""The OpenCL traversal of the compact kd-tree layout (issue 3): all three modes (standard, choi,
+ours) against brute force through the same kernel, and pixel-identical tiles across the modes.
+
+Brute force here is the tracer itself over a one-leaf tree holding every triangle: the same
+watertight test on the same float32 rays, so nearest triangle and distance must agree exactly
+(bit for bit), ties included (to the lower triangle index). The float64 reference traversal of
+the layout is tests/test_kdtree_compact.py `trace_compact`.
+"""
+from __future__ import annotations
+
+import functools
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from core.kdtree import build_kdtree
+from core.kdtree_compact import MODES, compact_tree
+from core.scene import Camera, Geometry, Light, RenderSettings, Shading, View
+from slave.tracer import Tracer, TracerError
+from tests.meshes import grid_plane, load_bunny, merge, uv_sphere
+from tests.scenes_architecture import architecture_scene
+from tests.test_kdtree_compact import random_rays
+
+SCENES = {
+    "sphere": lambda: uv_sphere(48, 24),
+    "bunny": load_bunny,
+    "architecture": lambda: architecture_scene(rooms=(3, 2), floors=2, seed=3),
+}
+RAYS = 12_000
+
+
+@pytest.fixture(scope="module")
+def tracer():
+    return Tracer()
+
+
+def one_leaf(triangle_count, vertices):
+    """Every triangle in one 32-bit leaf of the compact layout: the kernel's brute force."""
+    return SimpleNamespace(nodes=np.array([[3 | (triangle_count << 3), 0]], np.uint32),
+                           leaf_index32=np.arange(triangle_count, dtype=np.uint32),
+                           leaf_index16=np.zeros(0, np.uint16), leaf_shift=0,
+                           bounds=np.array([vertices.min(0), vertices.max(0)], np.float32))
+
+
+@functools.lru_cache(maxsize=None)
+def scene(name):
+    vertices, triangles = SCENES[name]()
+    geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
+    tree = build_kdtree(vertices, triangles)
+    corners = vertices.astype(np.float64)[triangles.astype(np.int64)]
+    origins, directions = random_rays(corners, RAYS, seed=7 + len(name))
+    return geometry, tree, origins.astype(np.float32), directions.astype(np.float32)
+
+
+@functools.lru_cache(maxsize=None)
+def brute(name):
+    geometry, _, origins, directions = scene(name)
+    t = Tracer()
+    t.load(geometry, one_leaf(geometry.triangle_count, geometry.vertices))
+    return t.intersect(origins, directions)
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("name", list(SCENES))
+def test_modes_match_brute_force(tracer, name, mode):
+    geometry, tree, origins, directions = scene(name)
+    ct = compact_tree(tree, geometry.triangle_count, mode)
+    tracer.load(geometry, ct)
+    hits = tracer.intersect(origins, directions)
+    ref = brute(name)
+    assert np.isfinite(ref.t).mean() > 0.3, "the rays should hit often"
+    wrong = np.flatnonzero(hits.triangle != ref.triangle)
+    assert not len(wrong), (f"{len(wrong)} rays found another triangle, e.g. ray {wrong[0]}: "
+                            f"{hits.triangle[wrong[0]]} at {hits.t[wrong[0]]!r} instead of "
+                            f"{ref.triangle[wrong[0]]} at {ref.t[wrong[0]]!r}")
+    assert np.array_equal(hits.t, ref.t)
+    assert np.array_equal(hits.u, ref.u) and np.array_equal(hits.v, ref.v)
+
+
+def test_plain_tree_is_loaded_as_standard(tracer):
+    """tracer.load(geometry, KDTree) keeps working (README's ray-query API)."""
+    geometry, tree, origins, directions = scene("sphere")
+    tracer.load(geometry, tree)
+    plain = tracer.intersect(origins, directions)
+    tracer.load(geometry, compact_tree(tree, geometry.triangle_count, "standard"))
+    standard = tracer.intersect(origins, directions)
+    assert np.array_equal(plain.triangle, standard.triangle)
+    assert np.array_equal(plain.t, standard.t)
+
+
+def test_16bit_leaves_with_a_shift(tracer):
+    """> 65,536 triangles: 16-bit leaves with a nonzero leaf_shift in the kernel."""
+    rng = np.random.default_rng(5)
+    count = 70_000
+    centres = rng.uniform(-1, 1, (count, 1, 3))
+    vertices = (centres + rng.normal(scale=0.01, size=(count, 3, 3))).reshape(-1, 3)
+    vertices = vertices.astype(np.float32)
+    triangles = np.arange(3 * count, dtype=np.uint32).reshape(-1, 3)
+    geometry = Geometry(vertices, triangles, np.zeros(count, np.uint16))
+    tree = build_kdtree(vertices, triangles)
+    ct = compact_tree(tree, count, "ours")
+    assert ct.leaf_shift == 1 and ct.stats["leaves_16bit"] > 0
+    origins = rng.uniform(-1.5, 1.5, (4000, 3)).astype(np.float32)
+    directions = (rng.uniform(-1, 1, (4000, 3)) - origins).astype(np.float32)
+    tracer.load(geometry, ct)
+    hits = tracer.intersect(origins, directions)
+    t = Tracer()
+    t.load(geometry, one_leaf(count, vertices))
+    ref = t.intersect(origins, directions)
+    assert np.isfinite(ref.t).mean() > 0.3
+    assert np.array_equal(hits.triangle, ref.triangle) and np.array_equal(hits.t, ref.t)
+
+
+def small_scene():
+    """A sphere on a plane with a box beside it: shadows, a mirror bounce, two materials."""
+    sphere_v, sphere_t = uv_sphere(40, 20, 1.0, (0, 0, 1.0))
+    plane_v, plane_t = grid_plane(8.0, 16, 0.0)
+    v, t = merge((sphere_v, sphere_t), (plane_v, plane_t))
+    mats = np.zeros(len(t), np.uint16)
+    mats[len(sphere_t):] = 1
+    return Geometry(v, t, mats)
+
+
+def test_render_tile_identical_across_modes(tracer):
+    geometry = small_scene()
+    tree = build_kdtree(geometry.vertices, geometry.triangles)
+    m = np.eye(4)
+    m[:3, 3] = (0.5, -6.0, 3.0)
+    angle = np.radians(70)
+    m[:3, :3] = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)],
+                          [0, np.sin(angle), np.cos(angle)]])
+    lights = [Light("POINT", (1, 1, 1), 600.0, (2, -2, 4), radius=0.2),
+              Light("SUN", (1, 0.9, 0.8), 2.0, direction=(-0.3, 0.2, -1))]
+    materials = np.array([[0.8, 0.3, 0.2, 1], [0.7, 0.7, 0.7, 1]], np.float32)
+    settings = RenderSettings(samples_per_axis=2, max_bounces=2)
+    view = View(Camera("PERSP", m, (0.6, 0.6), (0, 0), 0.1, 100), 64, 64,
+                Shading(materials, lights, (0.1, 0.2, 0.3)), settings=settings)
+    images = {}
+    for mode in MODES:
+        tracer.load(geometry, compact_tree(tree, geometry.triangle_count, mode))
+        images[mode] = tracer.render_tile(view, 0, 0, 64, 64)
+    assert (images["standard"]["depth"] < 1e10).mean() > 0.5
+    for mode in ("choi", "ours"):
+        for name in ("combined", "depth", "normal"):
+            assert np.array_equal(images[mode][name], images["standard"][name]), (mode, name)
+
+
+def test_bad_compact_trees_are_rejected(tracer):
+    geometry, tree, _, _ = scene("sphere")
+    ct = compact_tree(tree, geometry.triangle_count, "ours")
+    T = geometry.triangle_count
+
+    def broken(**changes):
+        base = dict(nodes=ct.nodes.copy(), leaf_index32=ct.leaf_index32.copy(),
+                    leaf_index16=ct.leaf_index16.copy(), bounds=ct.bounds, leaf_shift=ct.leaf_shift)
+        base.update(changes)
+        return SimpleNamespace(**base)
+
+    slot_owner = next(i for i in range(len(ct.nodes))
+                      if (ct.nodes[i, 0] & 3) != 3 and ct.nodes[i, 0] & 4)
+    bad_slot = ct.nodes.copy()
+    bad_slot[ct.nodes[slot_owner, 0] >> 5, 0] = T
+    cycle = ct.nodes.copy()
+    cycle[0, 0] = (cycle[0, 0] & 31)          # group 0: points back at the root
+    leaf16 = ct.leaf_index16.copy()
+    leaf16[:] = 0xFFFF
+    cases = [(broken(nodes=bad_slot), "triangle that does not exist"),
+             (broken(nodes=cycle), "backwards"),
+             (broken(leaf_index16=ct.leaf_index16[:10]), "past the end"),
+             (broken(leaf_index16=leaf16), "triangle that does not exist"),
+             (broken(leaf_shift=17), "leaf_shift")]
+    for bad, message in cases:
+        with pytest.raises(TracerError, match=message):
+            tracer.load(geometry, bad)
