@@ -12,7 +12,9 @@ __kernel void intersect_rays(__global const float *origins, __global const float
     uint i = get_global_id(0);
     if (i >= ray_count)
         return;
-    Ray r = make_ray(vload3(i, origins), vload3(i, directions));
+    // Component loads rather than vload3, which PoCL calls out of line.
+    Ray r = make_ray((float3)(origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]),
+                     (float3)(directions[3 * i], directions[3 * i + 1], directions[3 * i + 2]));
     KdTree kd;
     kd.nodes = nodes;
     kd.leaf32 = leaf_index32;
@@ -20,6 +22,7 @@ __kernel void intersect_rays(__global const float *origins, __global const float
     kd.leaf_shift = leaf_shift;
     kd.bmin = bounds[0].xyz;
     kd.bmax = bounds[1].xyz;
+    kd.extent = bounds[0].w;
     Hit h;
     trace_ray(&r, tmin, tmax, false, NO_HIT, &kd, tri_verts, &h);
     out_t[i] = h.t;

@@ -203,6 +203,7 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     sc.kd.leaf_shift = leaf_shift;
     sc.kd.bmin = bounds[0].xyz;
     sc.kd.bmax = bounds[1].xyz;
+    sc.kd.extent = bounds[0].w;
     sc.tri_verts = tri_verts;
     sc.material_ids = material_ids;
     sc.materials = materials;

@@ -18,10 +18,25 @@
 // pbrt's gamma(3): bound on the error of the slab distances, used to widen the root interval.
 #define GAMMA3 (3.0f * 0x1.0p-24f / (1.0f - 3.0f * 0x1.0p-24f))
 
+// Helpers of the hot paths are forced inline: PoCL (LLVM 14) otherwise calls even its own
+// fmin/fmax/fabs/isfinite out of line, and every call spills all live float registers.
+#define KD_INLINE inline __attribute__((always_inline))
+
 // Component `axis` (0, 1, 2) of a vector; OpenCL C has no run-time indexing of vector lanes.
-inline float lane(float3 v, uint axis)
+KD_INLINE float lane(float3 v, uint axis)
 {
     return axis == 0 ? v.x : (axis == 1 ? v.y : v.z);
+}
+
+// fabs and isfinite as bit operations (exactly the builtins' results, inlined).
+KD_INLINE float kd_fabs(float x)
+{
+    return as_float(as_uint(x) & 0x7FFFFFFFu);
+}
+
+KD_INLINE bool kd_isfinite(float x)
+{
+    return kd_fabs(x) < INFINITY;     // false for +-inf and NaN
 }
 
 typedef struct {
@@ -40,7 +55,7 @@ typedef struct {
     float t0, t1;
 } StackEntry;
 
-inline Ray make_ray(float3 o, float3 d)
+KD_INLINE Ray make_ray(float3 o, float3 d)
 {
     Ray r;
     r.o = o;
@@ -48,7 +63,7 @@ inline Ray make_ray(float3 o, float3 d)
     // 1/0 = +-inf is wanted here: slab and plane distances then become +-inf (or NaN when the
     // origin lies on the plane), which the comparisons below treat conservatively.
     r.inv_d = (float3)(1.0f / d.x, 1.0f / d.y, 1.0f / d.z);
-    float3 a = fabs(d);
+    float3 a = (float3)(kd_fabs(d.x), kd_fabs(d.y), kd_fabs(d.z));
     r.kz = (a.x > a.y) ? (a.x > a.z ? 0u : 2u) : (a.y > a.z ? 1u : 2u);
     r.kx = (r.kz + 1u) % 3u;
     r.ky = (r.kx + 1u) % 3u;
@@ -71,16 +86,25 @@ inline float diff_of_products(float a, float b, float c, float d)
     return fma(a, b, -cd) + err;
 }
 
-// Watertight ray/triangle test (Woop, Benthin, Wald 2013). On a hit with t in [tmin, tmax]
-// returns true and sets t, u (weight of v1), v (weight of v2).
-inline bool intersect_triangle(const Ray *r, float3 v0, float3 v1, float3 v2,
-                               float tmin, float tmax, float *t_out, float *u_out, float *v_out)
+// Per-ray constants of the watertight test, unpacked from the Ray once per traversal.
+typedef struct {
+    uint kx, ky, kz;        // the permutation (kz = dominant axis of d)
+    float okx, oky, okz;    // the origin's components in that order
+    float sx, sy, sz;       // shear constants
+} TriRay;
+
+// Watertight ray/triangle test (Woop, Benthin, Wald 2013) on the triangle whose three float4
+// corners start at `tv`. On a hit with t in [tmin, tmax] returns true and sets t, u (weight of
+// v1), v (weight of v2). The permutation is applied by indexed loads: `tv[k] - o[k]` is
+// lane(v - o, k) exactly, without a select per component.
+KD_INLINE bool intersect_triangle(const TriRay *q, __global const float *tv,
+                                  float tmin, float tmax, float *t_out, float *u_out, float *v_out)
 {
-    float3 a = v0 - r->o, b = v1 - r->o, c = v2 - r->o;
-    float az = lane(a, r->kz), bz = lane(b, r->kz), cz = lane(c, r->kz);
-    float ax = lane(a, r->kx) - r->sx * az, ay = lane(a, r->ky) - r->sy * az;
-    float bx = lane(b, r->kx) - r->sx * bz, by = lane(b, r->ky) - r->sy * bz;
-    float cx = lane(c, r->kx) - r->sx * cz, cy = lane(c, r->ky) - r->sy * cz;
+    uint kx = q->kx, ky = q->ky, kz = q->kz;
+    float az = tv[kz] - q->okz, bz = tv[4 + kz] - q->okz, cz = tv[8 + kz] - q->okz;
+    float ax = (tv[kx] - q->okx) - q->sx * az, ay = (tv[ky] - q->oky) - q->sy * az;
+    float bx = (tv[4 + kx] - q->okx) - q->sx * bz, by = (tv[4 + ky] - q->oky) - q->sy * bz;
+    float cx = (tv[8 + kx] - q->okx) - q->sx * cz, cy = (tv[8 + ky] - q->oky) - q->sy * cz;
     float e0 = cx * by - cy * bx;   // weight of v0
     float e1 = ax * cy - ay * cx;   // weight of v1
     float e2 = bx * ay - by * ax;   // weight of v2
@@ -94,7 +118,7 @@ inline bool intersect_triangle(const Ray *r, float3 v0, float3 v1, float3 v2,
     float det = e0 + e1 + e2;
     if (det == 0.0f)
         return false;
-    float tscaled = e0 * (r->sz * az) + e1 * (r->sz * bz) + e2 * (r->sz * cz);
+    float tscaled = e0 * (q->sz * az) + e1 * (q->sz * bz) + e2 * (q->sz * cz);
     float t = tscaled / det;
     if (!(t >= tmin && t <= tmax))   // also rejects NaN
         return false;
@@ -121,26 +145,45 @@ typedef struct {
     __global const ushort *leaf16;
     uint leaf_shift;
     float3 bmin, bmax;
+    float extent;           // max |bmin|, |bmax| over the axes (the host puts it in bounds[0].w)
 } KdTree;
+
+// The best hit so far, in registers (written to the caller's Hit once, at the end).
+typedef struct {
+    float best;             // accepted hits satisfy t <= best (tmax at first)
+    float limit;            // traversal stops at nodes starting beyond this (see below)
+    float tie_abs;
+    float t, u, v;
+    uint tri;               // NO_HIT: none yet; any index is lower, so ties go to the lower one
+} Best;
 
 // Test triangle `tri` against [tmin, best]; keep it when it is nearer, or as near with a lower
 // index (ties go to the lower triangle index, as brute force).
-inline bool consider(const Ray *r, uint tri, uint ignore_tri, __global const float4 *tri_verts,
-                     float tmin, float *best, uint *best_tri, Hit *hit)
+KD_INLINE bool consider(const TriRay *q, uint tri, uint ignore_tri, __global const float4 *tri_verts,
+                        float tmin, Best *b)
 {
     float t, u, v;
-    if (tri != ignore_tri && intersect_triangle(r, tri_verts[3 * tri].xyz, tri_verts[3 * tri + 1].xyz,
-                                                tri_verts[3 * tri + 2].xyz, tmin, *best, &t, &u, &v)
-        && (t < *best || tri < *best_tri)) {
-        *best = t;
-        *best_tri = tri;
-        hit->t = t;
-        hit->u = u;
-        hit->v = v;
-        hit->tri = tri;
+    if (tri != ignore_tri
+        && intersect_triangle(q, (__global const float *)(tri_verts + 3 * tri), tmin, b->best,
+                              &t, &u, &v)
+        && (t < b->best || tri < b->tri)) {
+        b->best = t;
+        b->limit = t + (KD_TIE_EPS * t + b->tie_abs);
+        b->t = t;
+        b->u = u;
+        b->v = v;
+        b->tri = tri;
         return true;
     }
     return false;
+}
+
+KD_INLINE void store_hit(const Best *b, Hit *hit)
+{
+    hit->t = b->t;
+    hit->u = b->u;
+    hit->v = b->v;
+    hit->tri = b->tri;
 }
 
 // Nearest hit with t in [tmin, tmax] (ties to the lower triangle index), or, when any_hit,
@@ -157,15 +200,19 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
     hit->t = INFINITY;
     hit->u = hit->v = 0.0f;
     __global const uint2 *nodes = kd->nodes;
-    float3 bmin = kd->bmin, bmax = kd->bmax;
+    // The ray's components as arrays: the traversal indexes them by the split axis.
+    float org[3] = {r->o.x, r->o.y, r->o.z};
+    float inv[3] = {r->inv_d.x, r->inv_d.y, r->inv_d.z};
+    float dir[3] = {r->d.x, r->d.y, r->d.z};
+    float bmin[3] = {kd->bmin.x, kd->bmin.y, kd->bmin.z};
+    float bmax[3] = {kd->bmax.x, kd->bmax.y, kd->bmax.z};
 
     // Clip to the root box. NaN slab distances (origin on a face, ray parallel to it) compare
     // false and are thereby ignored; the far distance is widened by pbrt's error bound.
     float t0 = tmin, t1 = tmax;
     for (uint axis = 0; axis < 3; ++axis) {
-        float o = lane(r->o, axis), inv = lane(r->inv_d, axis);
-        float tn = (lane(bmin, axis) - o) * inv;
-        float tf = (lane(bmax, axis) - o) * inv;
+        float tn = (bmin[axis] - org[axis]) * inv[axis];
+        float tf = (bmax[axis] - org[axis]) * inv[axis];
         if (tn > tf) { float s = tn; tn = tf; tf = s; }
         tf *= 1.0f + 2.0f * GAMMA3;
         if (tn > t0) t0 = tn;
@@ -173,103 +220,127 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
     }
     if (t0 > t1)
         return false;
-    // The scene's size in units of t along this ray, for the tie tolerance.
-    float3 extent = fmax(fabs(bmin), fabs(bmax));
-    float tie_abs = KD_TIE_EPS * fmax(extent.x, fmax(extent.y, extent.z)) / length(r->d);
 
-    float best = tmax;              // accepted hits satisfy t <= best
-    uint best_tri = NO_HIT;         // any index is lower than NO_HIT: ties go to the lower one
+    TriRay q;
+    q.kx = r->kx; q.ky = r->ky; q.kz = r->kz;
+    q.okx = org[r->kx]; q.oky = org[r->ky]; q.okz = org[r->kz];
+    q.sx = r->sx; q.sy = r->sy; q.sz = r->sz;
+    Best b;
+    // The scene's size in units of t along this ray, for the tie tolerance.
+    b.tie_abs = KD_TIE_EPS * kd->extent / length(r->d);
+    b.best = tmax;
+    b.limit = tmax + (KD_TIE_EPS * tmax + b.tie_abs);
+    b.t = INFINITY;
+    b.u = b.v = 0.0f;
+    b.tri = NO_HIT;
+    uint leaf_shift = kd->leaf_shift;
     StackEntry stack[KD_STACK_SIZE];
     int sp = 0;
     uint node = 0;
 
     while (true) {
         // Everything left starts at t0 or later (front to back). Not strict, and widened by
-        // the tie tolerance: a node starting at (or within rounding of) the best t is still
-        // visited, so equal-t hits there can win the tie by index.
-        if (t0 > best + (KD_TIE_EPS * best + tie_abs))
+        // the tie tolerance (b.limit = best + 1e-6 (best + S)): a node starting at (or within
+        // rounding of) the best t is still visited, so equal-t hits there can win the tie.
+        if (t0 > b.limit)
             break;
         uint2 n = nodes[node];
-        uint kind = n.x & 3u;
-        if (kind != KD_LEAF) {
-            uint group = n.x >> 5;
-            uint has_ref = (n.x >> 2) & 1u;
+        uint w = n.x;
+        uint axis = w & 3u;
+        if (axis != KD_LEAF) {
+            uint group = w >> 5;
+            uint has_ref = (w >> 2) & 1u;
             if (has_ref) {
                 // T-reference slot: one or two triangles lifted from the leaves below.
                 uint2 refs = nodes[group];
-                if (consider(r, refs.x, ignore_tri, tri_verts, tmin, &best, &best_tri, hit) && any_hit)
-                    return true;
-                if (refs.y != NO_HIT
-                    && consider(r, refs.y, ignore_tri, tri_verts, tmin, &best, &best_tri, hit) && any_hit)
-                    return true;
+                if (consider(&q, refs.x, ignore_tri, tri_verts, tmin, &b) && any_hit)
+                    break;
+                if (refs.y != NO_HIT && consider(&q, refs.y, ignore_tri, tri_verts, tmin, &b)
+                    && any_hit)
+                    break;
             }
             float split = as_float(n.y);
-            float o = lane(r->o, kind), inv = lane(r->inv_d, kind);
-            float tplane = (split - o) * inv;
+            float o = org[axis];
+            float tplane = (split - o) * inv[axis];
             // Bound on tplane's rounding error (one rounding in split - o, which is exact when
             // they are close, one in 1/d, one in the product). Cells that the ray meets within
             // it are visited too, so a ray through an edge or vertex lying in a split plane,
             // whose triangles sit in a cell it only touches there, still finds them (leaves
             // test [tmin, best], so an extra cell costs time, never a wrong answer). 0 when
             // tplane is +-inf (ray parallel to the plane) or NaN (origin on it as well).
-            float err = isfinite(tplane) ? 2.0f * GAMMA3 * fabs(tplane) : 0.0f;
+            float abs_tplane = kd_fabs(tplane);
+            float err = abs_tplane < INFINITY ? 2.0f * GAMMA3 * abs_tplane : 0.0f;
+            float enter = tplane - err, leave = tplane + err;
             // The child holding the origin comes first; on the plane the direction decides.
-            bool below_first = (o < split) || (o == split && lane(r->d, kind) <= 0.0f);
+            bool below_first = (o < split) || (o == split && dir[axis] <= 0.0f);
             // Elided (empty) children are not stored: below = c + R, above = below + 1 - Eb.
             uint below = group + has_ref;
-            uint above = below + 1u - ((n.x >> 3) & 1u);
-            bool below_ok = (n.x & KD_EMPTY_BELOW) == 0u, above_ok = (n.x & KD_EMPTY_ABOVE) == 0u;
+            uint above = below + 1u - ((w >> 3) & 1u);
+            bool below_ok = (w & KD_EMPTY_BELOW) == 0u, above_ok = (w & KD_EMPTY_ABOVE) == 0u;
             uint first = below_first ? below : above;
             uint second = below_first ? above : below;
             bool first_ok = below_first ? below_ok : above_ok;
             bool second_ok = below_first ? above_ok : below_ok;
-            // A NaN tplane fails every test and both children are visited: safe.
-            if (tplane - err > t1 || tplane + err <= 0.0f) {
+            // A NaN tplane fails every test and both children are visited: safe. Max/min are
+            // comparisons that keep t0/t1 when tplane is NaN (as fmax/fmin would; t0 and t1
+            // are never NaN, and the signs of their zeros are never read).
+            if (enter > t1 || leave <= 0.0f) {
                 if (first_ok) {
                     node = first;
                     continue;
                 }
-            } else if (tplane + err < t0 && tplane - err > 0.0f) {
+            } else if (leave < t0 && enter > 0.0f) {
                 if (second_ok) {
                     node = second;
                     continue;
                 }
             } else if (first_ok && second_ok) {
                 stack[sp].node = second;
-                stack[sp].t0 = fmax(t0, tplane - err);      // fmax/fmin ignore a NaN tplane
+                stack[sp].t0 = enter > t0 ? enter : t0;
                 stack[sp].t1 = t1;
                 ++sp;
                 node = first;
-                t1 = fmin(t1, tplane + err);
+                t1 = leave < t1 ? leave : t1;
                 continue;
             } else if (first_ok) {
                 node = first;
-                t1 = fmin(t1, tplane + err);
+                t1 = leave < t1 ? leave : t1;
                 continue;
             } else {
                 node = second;
-                t0 = fmax(t0, tplane - err);
+                t0 = enter > t0 ? enter : t0;
                 continue;
             }
             // The only child to visit is elided: nothing here, pop.
-        } else if ((n.x & KD_LEAF16) != 0u) {
-            // 16-bit list: triangle = (B << leaf_shift) + leaf16[offset + i].
-            // Tested against [tmin, best] (not the cell interval: a hit found here outside the
-            // cell is still a valid candidate, kept until a nearer one appears).
-            uint count = (n.x >> 3) & 0x1FFFu, offset = n.y;
-            uint base = (n.x >> 16) << kd->leaf_shift;
-            for (uint i = 0; i < count; ++i) {
-                if (consider(r, base + (uint)kd->leaf16[offset + i], ignore_tri, tri_verts, tmin,
-                             &best, &best_tri, hit) && any_hit)
-                    return true;
-            }
         } else {
-            uint count = n.x >> 3, offset = n.y;
-            for (uint i = 0; i < count; ++i) {
-                if (consider(r, kd->leaf32[offset + i], ignore_tri, tri_verts, tmin,
-                             &best, &best_tri, hit) && any_hit)
-                    return true;
+            // A leaf. Its triangles are tested against [tmin, best] (not the cell interval: a
+            // hit found here outside the cell is still a valid candidate, kept until a nearer
+            // one appears).
+            bool found = false;
+            if ((w & KD_LEAF16) != 0u) {
+                // 16-bit list: triangle = (B << leaf_shift) + leaf16[offset + i].
+                uint count = (w >> 3) & 0x1FFFu;
+                uint base = (w >> 16) << leaf_shift;
+                __global const ushort *list = kd->leaf16 + n.y;
+                for (uint i = 0; i < count; ++i) {
+                    if (consider(&q, base + (uint)list[i], ignore_tri, tri_verts, tmin, &b)
+                        && any_hit) {
+                        found = true;
+                        break;
+                    }
+                }
+            } else {
+                uint count = w >> 3;
+                __global const uint *list = kd->leaf32 + n.y;
+                for (uint i = 0; i < count; ++i) {
+                    if (consider(&q, list[i], ignore_tri, tri_verts, tmin, &b) && any_hit) {
+                        found = true;
+                        break;
+                    }
+                }
             }
+            if (found)
+                break;
         }
         if (sp == 0)
             break;
@@ -278,5 +349,6 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
         t0 = stack[sp].t0;
         t1 = stack[sp].t1;
     }
-    return hit->tri != NO_HIT;
+    store_hit(&b, hit);
+    return b.tri != NO_HIT;
 }

@@ -131,6 +131,7 @@ class Tracer:
         self.specialise = True      # False: compile every feature (for measuring specialisation)
         self.last_render = {}       # kernel seconds, samples traced, features of the last tile
         self.local_size = None      # work-group size; None lets the driver choose (measured best on PoCL)
+        self._orders = {}           # (w, h) -> pixel order of a tile (_pixel_order)
 
     @property
     def device_info(self) -> dict:
@@ -213,6 +214,7 @@ class Tracer:
         corners[:tri_count, :, :3] = geometry.vertices[geometry.triangles]
         box = np.zeros((2, 4), np.float32)
         box[:, :3] = bounds
+        box[0, 3] = np.abs(bounds).max()   # the scene's extent, for the tie tolerance (trace.cl)
         mf = cl.mem_flags
 
         def upload(array):  # OpenCL has no empty buffers
@@ -256,7 +258,8 @@ class Tracer:
                              f"{origins.shape} and {directions.shape}")
         if not (np.isfinite(origins).all() and np.isfinite(directions).all()):
             raise ValueError("ray origins and directions must be finite")
-        if (directions == 0).all(axis=1).any():
+        # Column by column: 10x faster than (directions == 0).all(axis=1) on a million rays.
+        if ((directions[:, 0] == 0) & (directions[:, 1] == 0) & (directions[:, 2] == 0)).any():
             raise ValueError("a ray direction is the zero vector")
         if math.isnan(tmin) or math.isnan(tmax):
             raise ValueError("tmin and tmax must not be NaN")
@@ -347,7 +350,7 @@ class Tracer:
                    np.uint32(settings.seed), np.int32(aux), *scene_args)
             traced += len(pixels) * count
 
-        every = np.arange(n, dtype=np.int32)
+        every = self._pixel_order(w, h)
         if not settings.adaptive or total <= settings.adaptive_min_samples:
             run(every, 0, total, 1)
         else:
@@ -375,6 +378,26 @@ class Tracer:
                             "samples": traced, "features": sorted(flags)}
         return {"combined": combined.reshape(h, w, 4), "depth": depth, "normal": normal}
 
+
+    def _pixel_order(self, w: int, h: int) -> np.ndarray:
+        """Tile-local pixel indices in the order the render kernel takes them: 16 x 16 blocks
+        (row by row), Morton order inside each. Neighbouring work-items then trace neighbouring
+        pixels, whose rays visit the same kd-tree nodes and triangles while they are in cache
+        (PoCL runs a work-group's items one after another on one core): measured about 15 %
+        faster on the dragon than row order. Each pixel's result does not depend on the order.
+        Cached per tile size."""
+        order = self._orders.get((w, h))
+        if order is None:
+            gy, gx = np.divmod(np.arange(w * h, dtype=np.int64), w)
+            inside = np.zeros_like(gx)
+            for bit in range(4):        # interleave the low 4 bits of x and y
+                inside |= ((gx >> bit) & 1) << (2 * bit) | ((gy >> bit) & 1) << (2 * bit + 1)
+            key = ((gy >> 4) * ((w + 15) >> 4) + (gx >> 4)) << 8 | inside
+            order = np.argsort(key, kind="stable").astype(np.int32)
+            if len(self._orders) >= 8:
+                self._orders.clear()
+            self._orders[(w, h)] = order
+        return order
 
     def _undersample(self, run, accum_buf, stats_buf, accum, stats, x, y, w, h, count,
                      threshold):
