@@ -5,8 +5,9 @@ in Wald's 8-byte node layout described in docs/architecture.md. docs/kdtree.md d
 algorithm and its measured numbers.
 
 The build keeps one flat list of *references* (triangle id, node, clipped float32 box) sorted by
-node, and processes a whole level of the tree at a time: every step below is a numpy operation
-over all references or all nodes of the level, never a Python loop per node or per triangle.
+node, each one row of 7 float32 words (box, then the triangle id's int32 bits), and processes a
+whole level of the tree at a time: every step below is a numpy operation over all references or
+all nodes of the level, never a Python loop per node or per triangle.
 
 Zero-area triangles (exactly zero cross product in float64) are dropped: a watertight ray test
 never reports a hit on them, and their clipped pieces would all look like zero-area contacts.
@@ -74,6 +75,23 @@ def _exclusive_cumsum(counts: np.ndarray) -> np.ndarray:
     out = np.zeros(len(counts) + 1, np.int64)
     np.cumsum(counts, out=out[1:])
     return out
+
+
+# A reference is one row of 7 float32 words: box lo (3), box hi (3), triangle id (int32 bits),
+# so that moving references is one gather of 28-byte rows instead of three gathers.
+REF_WORDS = 7
+_REF_ROW = np.dtype((np.void, 4 * REF_WORDS))
+_BOX_ROW = np.dtype((np.void, 4 * 6))
+
+
+def _gather_refs(refs: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Rows `index` of the (N, 7) float32 reference array, as one gather of whole rows."""
+    rows = np.take(refs.view(_REF_ROW).reshape(-1), index.reshape(-1))
+    return rows.view(np.float32).reshape(index.shape + (REF_WORDS,))
+
+
+def _ref_triangles(refs: np.ndarray) -> np.ndarray:
+    return refs[:, 6].view(np.int32)
 
 
 def _surface_area(dims: np.ndarray) -> np.ndarray:
@@ -383,8 +401,7 @@ def _binned_best_splits(params, cell_lo, cell_hi, counts, ref_lo, ref_hi):
     return best_cost, best_axis, best_plane
 
 
-def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, ref_lo, ref_hi, width,
-                       chain=0):
+def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, refs, width, chain=0):
     """Exact SAH over all candidate planes of small nodes (at most `width` references each).
 
     Every reference bound is a candidate. The nodes' references are packed into (n, width)
@@ -395,14 +412,13 @@ def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, ref_lo, ref_
     """
     slots = np.arange(width)
     used = slots[None, :] < counts[:, None]
-    index = np.minimum(first_ref[:, None] + slots, len(ref_lo) - 1)
-    group_lo = np.where(used[..., None], ref_lo[index], np.float32(np.inf))       # (n, width, 3)
-    group_hi = np.where(used[..., None], ref_hi[index], np.float32(-np.inf))
+    index = np.minimum(first_ref[:, None] + slots, len(refs) - 1)
+    group = _gather_refs(refs, index)                                   # (n, width, 7)
     del index
     per_axis = []
     for axis in range(3):
-        lo = np.ascontiguousarray(group_lo[:, :, axis])
-        hi = np.ascontiguousarray(group_hi[:, :, axis])
+        lo = np.where(used, group[:, :, axis], np.float32(np.inf))
+        hi = np.where(used, group[:, :, 3 + axis], np.float32(-np.inf))
         planar = used & (lo == hi)
         cand = np.concatenate([lo, hi], 1)                      # (n, 2 width)
         # Counts as int8 (width <= 16), viewing each comparison's bools as 0/1 bytes.
@@ -431,7 +447,7 @@ def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, ref_lo, ref_
             on_plane = np.zeros(cand.shape, np.int8)
             on_plane[pr] = p_on
         per_axis.append(_ranking_terms(params, cand, below, above, on_plane, planar_rows))
-    del group_lo, group_hi
+    del group
     cost, axis, plane, n_below, n_above, n_planar = _rank_exact(params, per_axis, cell_lo,
                                                                 cell_hi, None)
     chained = _exact_chain(params, per_axis, cell_lo, cell_hi, counts, chain, axis, plane,
@@ -612,7 +628,7 @@ def _root_bounds(boxes_lo, boxes_hi, vertices):
     return np.stack([_round_down_f32(lo), _round_up_f32(hi)]).astype(np.float32)
 
 
-def _best_splits(params, cell_lo, cell_hi, counts, ref_start, ref_lo, ref_hi, chain):
+def _best_splits(params, cell_lo, cell_hi, counts, ref_start, refs, chain):
     """Best split of every node given (all with at least one reference).
 
     Small nodes get exact SAH over all their references' bounds, in chunks of EXACT_CHUNK
@@ -635,16 +651,17 @@ def _best_splits(params, cell_lo, cell_hi, counts, ref_start, ref_lo, ref_hi, ch
             part = group[at:at + EXACT_CHUNK]
             cost[part], axis[part], plane[part], chained = _exact_best_splits(
                 params, cell_lo[part], cell_hi[part], counts[part], ref_start[part],
-                ref_lo, ref_hi, width, chain)
+                refs, width, chain)
             fut_cost[part], fut_axis[part], fut_plane[part], fut_len[part] = chained
     big = np.flatnonzero(counts > smaller)
     if len(big):
-        if int(counts[big].sum()) < len(ref_lo):     # the big nodes' references only
+        if int(counts[big].sum()) < len(refs):       # the big nodes' references only
             big_counts = counts[big]
             ref_sel = np.arange(int(big_counts.sum())) + np.repeat(
                 ref_start[big] - _exclusive_cumsum(big_counts)[:-1], big_counts)
-            ref_lo, ref_hi = ref_lo[ref_sel], ref_hi[ref_sel]
+            refs = _gather_refs(refs, ref_sel)
         # In chunks of BINNED_CHUNK nodes: the (nodes, bins) cost arrays stay in cache.
+        ref_lo, ref_hi = refs[:, 0:3], refs[:, 3:6]
         big_first = _exclusive_cumsum(counts[big])
         for at in range(0, len(big), BINNED_CHUNK):
             part = big[at:at + BINNED_CHUNK]
@@ -676,10 +693,11 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
     kept = np.flatnonzero((normal != 0).any(1))                        # drop zero-area triangles
     del normal, c64
 
-    ref_tri = kept.astype(np.int64)
-    ref_lo = corners[kept].min(1)                                     # exact: corners are float32
-    ref_hi = corners[kept].max(1)
-    bounds = _root_bounds(ref_lo, ref_hi, vertices)
+    refs = np.empty((len(kept), REF_WORDS), np.float32)
+    refs[:, 0:3] = corners[kept].min(1)                               # exact: corners are float32
+    refs[:, 3:6] = corners[kept].max(1)
+    refs[:, 6].view(np.int32)[:] = kept
+    bounds = _root_bounds(refs[:, 0:3], refs[:, 3:6], vertices)
 
     depth_cap = params.depth_cap(triangle_count)
     root_area = float(_surface_area(bounds[1].astype(np.float64) - bounds[0]))
@@ -699,7 +717,7 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
         node_count = len(cell_lo)
         if progress is not None:
             progress(min(level / (depth_cap + 1), 1.0),
-                     f"kd-tree level {level}: {node_count} nodes, {len(ref_tri)} references")
+                     f"kd-tree level {level}: {node_count} nodes, {len(refs)} references")
         ref_start = _exclusive_cumsum(counts)
         dims = cell_hi.astype(np.float64) - cell_lo
         area = _surface_area(dims)
@@ -720,7 +738,7 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
             if len(cand):
                 cost[cand], axis[cand], plane[cand], chained = _best_splits(
                     params, cell_lo[cand], cell_hi[cand], counts[cand], ref_start[cand],
-                    ref_lo, ref_hi, chain)
+                    refs, chain)
                 for fut, part in zip((fut_cost, fut_axis, fut_plane), chained):
                     fut[cand, :chain] = part
                 fut_len[cand] = chained[3]
@@ -745,10 +763,11 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
         sel = np.flatnonzero(ref_has_plane)
         sel_counts = counts[cand]
         sel_starts = _exclusive_cumsum(sel_counts)[:-1]
-        flat_index = 3 * sel + np.repeat(axis[cand], sel_counts)
+        flat_index = REF_WORDS * sel + np.repeat(axis[cand], sel_counts)
         ref_plane = np.repeat(plane[cand], sel_counts)
-        lo_on_axis = ref_lo.reshape(-1)[flat_index]
-        hi_on_axis = ref_hi.reshape(-1)[flat_index]
+        lo_on_axis = refs.reshape(-1)[flat_index]
+        flat_index += 3
+        hi_on_axis = refs.reshape(-1)[flat_index]
         del flat_index
         below = lo_on_axis < ref_plane
         above = hi_on_axis > ref_plane
@@ -758,14 +777,22 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
             n_below[cand] = np.add.reduceat(below, sel_starts, dtype=np.int64)
             n_above[cand] = np.add.reduceat(above, sel_starts, dtype=np.int64)
             n_planar[cand] = np.add.reduceat(planar, sel_starts, dtype=np.int64)
-        width_below = plane.astype(np.float64) - np.take_along_axis(cell_lo, axis[:, None], 1)[:, 0]
-        safe_area = np.where(area > 0, area, 1.0)
-        cost_planar_below = _split_cost(params, dims, safe_area, axis, width_below,
-                                        n_below + n_planar, n_above)
-        cost_planar_above = _split_cost(params, dims, safe_area, axis, width_below,
-                                        n_below, n_above + n_planar)
-        planar_below = cost_planar_below <= cost_planar_above
-        split_cost = np.where(has_plane, np.minimum(cost_planar_below, cost_planar_above), np.inf)
+        # Split costs only where there is a plane (empty nodes and the last level have none).
+        planar_below = np.ones(node_count, bool)
+        split_cost = np.full(node_count, np.inf)
+        if len(cand):
+            c_axis = axis[cand]
+            width_below = plane[cand].astype(np.float64) - cell_lo[cand, c_axis]
+            c_area = area[cand]
+            safe_area = np.where(c_area > 0, c_area, 1.0)
+            c_dims, c_below, c_above = dims[cand], n_below[cand], n_above[cand]
+            c_planar = n_planar[cand]
+            cost_planar_below = _split_cost(params, c_dims, safe_area, c_axis, width_below,
+                                            c_below + c_planar, c_above)
+            cost_planar_above = _split_cost(params, c_dims, safe_area, c_axis, width_below,
+                                            c_below, c_above + c_planar)
+            planar_below[cand] = cost_planar_below <= cost_planar_above
+            split_cost[cand] = np.minimum(cost_planar_below, cost_planar_above)
 
         # 3. Leaf or split: automatic termination with pbrt's allowance of bad refines.
         leaf_cost = params.intersection_cost * counts
@@ -788,7 +815,7 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
         words[:, 1] = np.where(make_leaf, leaf_offset, plane.view(np.uint32))
         level_words.append(words)
         ref_in_leaf = np.repeat(make_leaf, counts)
-        leaf_lists.append(ref_tri[ref_in_leaf].astype(np.uint32))
+        leaf_lists.append(_ref_triangles(refs)[ref_in_leaf].astype(np.uint32))
         leaf_total += int(counts[make_leaf].sum())
         leaf_area = area[make_leaf] / root_area
         sah_cost += (params.traversal_cost * area[split].sum() / root_area
@@ -816,8 +843,8 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
         if len(straddles):
             s_node = np.repeat(split_nodes, split_counts)[straddles]
             (b_lo, b_hi, b_ok), (a_lo, a_hi, a_ok) = _clip_straddlers(
-                corners[ref_tri[src[straddles]]].astype(np.float64), cell_lo[s_node],
-                cell_hi[s_node], axis[s_node], plane[s_node])
+                corners[_ref_triangles(refs)[src[straddles]]].astype(np.float64),
+                cell_lo[s_node], cell_hi[s_node], axis[s_node], plane[s_node])
             goes_below[straddles] = b_ok
             goes_above[straddles] = a_ok
 
@@ -840,15 +867,15 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
             if len(straddles):
                 ok = (b_ok, a_ok)[side]
                 at_straddler.append(where[(np.cumsum(goes) - 1)[straddles[ok]]])
-        new_lo = ref_lo[new_src]
-        new_hi = ref_hi[new_src]
+        new_refs = _gather_refs(refs, new_src)
         if len(straddles):
-            # Straddlers get their clipped box on each side they go to.
+            # Straddlers get their clipped box on each side they go to (the 6 box words of
+            # a row written as one 24-byte item).
+            box_items = new_refs[:, 0:6].view(_BOX_ROW)[:, 0]
             for at, lo_s, hi_s, ok in ((at_straddler[0], b_lo, b_hi, b_ok),
                                        (at_straddler[1], a_lo, a_hi, a_ok)):
-                new_lo[at] = lo_s[ok]
-                new_hi[at] = hi_s[ok]
-        new_tri = ref_tri[new_src]
+                box = np.concatenate([lo_s, hi_s], 1)
+                box_items[at] = box.view(_BOX_ROW)[:, 0][ok]
         del new_src
 
         # 6. Children's cells and bad-refine counts.
@@ -876,7 +903,7 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
         for pend, fut in ((pend_cost, fut_cost), (pend_axis, fut_axis), (pend_plane, fut_plane)):
             pend[heir] = fut[heirs]
         pend_len[heir] = fut_len[heirs]
-        ref_tri, ref_lo, ref_hi = new_tri, new_lo, new_hi
+        refs = new_refs
         level += 1
 
     nodes = np.concatenate(level_words)

@@ -381,3 +381,22 @@ def test_batched_straddler_clipping_matches_one_polygon_at_a_time():
             if ok[k]:
                 assert np.array_equal(lo[k], expected[side][0]), (k, side)
                 assert np.array_equal(hi[k], expected[side][1]), (k, side)
+
+
+def test_reference_rows_keep_boxes_and_triangle_ids_bit_exact():
+    # References live in one (N, 7) float32 array (box lo, box hi, triangle id as int32 bits)
+    # moved by whole-row gathers; ids whose bits read as float32 NaN or denormals (very large
+    # or small ids) and the boxes must come through unchanged.
+    import core.kdtree as kd
+    rng = np.random.default_rng(3)
+    ids = np.array([0, 1, 5, 2**23 + 1, 0x7F800001, 0x7FC00000, 2**31 - 1], np.int32)
+    refs = np.empty((len(ids), kd.REF_WORDS), np.float32)
+    refs[:, 0:3] = rng.uniform(-1, 1, (len(ids), 3))
+    refs[:, 3:6] = refs[:, 0:3] + 1
+    refs[:, 6].view(np.int32)[:] = ids
+    index = np.array([[6, 0, 4], [5, 5, 3]])
+    moved = kd._gather_refs(refs, index)
+    assert moved.shape == (2, 3, kd.REF_WORDS)
+    assert np.array_equal(moved.view(np.int32), refs.view(np.int32)[index])
+    triangles = kd._ref_triangles(moved.reshape(-1, kd.REF_WORDS))
+    assert np.array_equal(triangles, ids[index.reshape(-1)])
