@@ -1,11 +1,14 @@
 """Issue 2's benchmark: the Stanford dragon at 1024x1024 through the whole pipeline, against Embree.
 
-    .venv/bin/python bench/dragon.py [--size 1024] [--repeat 3]
+    .venv/bin/python bench/dragon.py [--size 1024] [--repeat 3] [--mode ours]
 
 Export (the installed add-on's exporter on Blender's evaluated depsgraph), kd-tree build, a full
 render of the image (primary rays, one shadow ray per light, diffuse shading) on the OpenCL
 tracer, and the camera's primary rays through our intersect() and through Embree (embreex), one
-core each (PoCL limited to one thread, the process pinned to one CPU for Embree).
+core each (PoCL limited to one thread, the process pinned to one CPU for Embree). The render uses
+the compact tree of --mode (the add-on's default, "ours"); the primary rays are timed on both the
+"standard" and the "ours" tree. Ray timings are process CPU time (the best of --repeat), so other
+jobs on the machine do not count.
 """
 import argparse
 import os
@@ -21,7 +24,7 @@ sys.path.insert(0, str(ROOT / "tests" / "bpy_scripts"))
 
 import numpy as np  # noqa: E402
 
-from bench.trace_vs_embree import best_time, cpu_model  # noqa: E402
+from bench.trace_vs_embree import best_cpu_time, best_time, cpu_model  # noqa: E402
 
 
 def camera_rays(view):
@@ -43,6 +46,8 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=1024)
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--mode", choices=("ours", "standard", "choi"), default="ours",
+                        help="compact kd-tree mode of the render (the add-on's default: ours)")
     args = parser.parse_args()
     print("command:", " ".join(["python"] + sys.argv))
     print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs); one core for each tracer")
@@ -86,19 +91,30 @@ def main():
           f"depth {stats['depth']}, {stats['refs_per_triangle']:.2f} refs/triangle, "
           f"{tree.nbytes / 2**20:.1f} MiB")
 
+    from core.kdtree_compact import compact_tree
+    modes = [args.mode] + [m for m in ("ours", "standard") if m != args.mode]
+    compact = {}
+    for mode in modes:
+        compact_s, compact[mode] = best_time(
+            lambda: compact_tree(tree, geometry.triangle_count, mode), 1)
+        print(f"compact tree:  {compact_s:8.3f} s  {mode}: {compact[mode].nbytes / 2**20:.1f} MiB")
+
     from slave.tracer import Tracer
     tracer = Tracer("cpu")
-    tracer.load(geometry, tree)
+    tracer.load(geometry, compact[args.mode])
     tracer.render_tile(view, 0, 0, 16, 16)  # build the kernels outside the timing
     render_s, passes = best_time(lambda: tracer.render_tile(view, 0, 0, view.width, view.height),
                                  args.repeat)
     hit_fraction = (passes["depth"] < 1e9).mean()
     print(f"render:        {render_s:8.3f} s  ({hit_fraction:.1%} of pixels hit; primary + "
-          f"{len(view.shading.lights)} shadow ray(s) per hit, diffuse shading)")
+          f"{len(view.shading.lights)} shadow ray(s) per hit, diffuse shading; {args.mode} tree)")
 
     origins, directions = camera_rays(view)
-    tracer.intersect(origins[:1024], directions[:1024])
-    ours_s, hits = best_time(lambda: tracer.intersect(origins, directions), args.repeat)
+    ours = {}
+    for mode in modes:
+        tracer.load(geometry, compact[mode])
+        tracer.intersect(origins[:1024], directions[:1024])
+        ours[mode] = best_cpu_time(lambda: tracer.intersect(origins, directions), args.repeat)
 
     from embreex import rtcore_scene
     from embreex.mesh_construction import TriangleMesh
@@ -106,14 +122,17 @@ def main():
     embree = rtcore_scene.EmbreeScene()
     TriangleMesh(embree, geometry.vertices[geometry.triangles])
     embree.run(origins[:1024], directions[:1024], output=1)
-    embree_s, reference = best_time(lambda: embree.run(origins, directions, output=1), args.repeat)
+    embree_s, reference = best_cpu_time(lambda: embree.run(origins, directions, output=1),
+                                        args.repeat)
     embree_hit = np.asarray(reference["primID"]) >= 0
-    agree = ((hits.triangle >= 0) == embree_hit).mean()
 
     rays = len(origins)
-    print(f"primary rays:  ours {rays / ours_s / 1e6:6.2f} Mrays/s ({ours_s:.3f} s), "
-          f"Embree {rays / embree_s / 1e6:6.2f} Mrays/s ({embree_s:.3f} s)")
-    print(f"ratio ours/Embree per core: {embree_s / ours_s:.3f}  (hit/miss agreement {agree:.4%})")
+    print(f"primary rays (CPU time): Embree {rays / embree_s / 1e6:6.2f} Mrays/s ({embree_s:.3f} s)")
+    for mode in modes:
+        ours_s, hits = ours[mode]
+        agree = ((hits.triangle >= 0) == embree_hit).mean()
+        print(f"  ours, {mode + ' tree:':14s} {rays / ours_s / 1e6:6.2f} Mrays/s ({ours_s:.3f} s)  "
+              f"ratio ours/Embree per core {embree_s / ours_s:.3f}  (hit/miss agreement {agree:.4%})")
 
 
 if __name__ == "__main__":
