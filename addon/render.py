@@ -78,6 +78,15 @@ def find_slaves(engine, settings, prefs, secret) -> list[tuple[str, int]]:
     return endpoints
 
 
+def job_options(settings) -> dict:
+    """The panel's tile and network settings as Master.render() arguments."""
+    return {"tile_size": settings.tile_size, "tiles_in_flight": settings.tiles_in_flight,
+            "partition": None if settings.tile_partition == "SIZE" else int(settings.tile_partition),
+            "model": settings.interaction,
+            "payload": "f16" if settings.payload.startswith("F16") else "f32",
+            "compress": settings.payload.endswith("ZLIB")}
+
+
 def render(engine, depsgraph):
     import bpy
     settings = depsgraph.scene.kdtrace
@@ -114,12 +123,7 @@ def render(engine, depsgraph):
             for problem in master.errors:
                 engine.report({"WARNING"}, f"KD Trace: {problem}")
             legend = state.start_legend(master.slaves)
-            job = master.render(view, settings.tile_size, settings.tiles_in_flight,
-                                partition=None if settings.tile_partition == "SIZE"
-                                else int(settings.tile_partition),
-                                model=settings.interaction,
-                                payload="f16" if settings.payload.startswith("F16") else "f32",
-                                compress=settings.payload.endswith("ZLIB"))
+            job = master.render(view, **job_options(settings))
             canvas = TileCanvas(engine, view, depsgraph.view_layer)
             try:
                 _receive_tiles(engine, job, canvas, legend, master)
