@@ -143,3 +143,16 @@ def test_animation_rebuilds_and_uploads_only_when_geometry_changes(tmp_path):
     for frame in (2, 5):
         assert np.array_equal(images[frame], np.load(tmp_path / f"still_{frame:04d}.npy"))
 
+
+
+def test_every_panel_draws_the_settings_it_offers(tmp_path):
+    result = run_bpy_script("draw_panels", tmp_path, zip=str(build_extension(tmp_path / "dist")))
+    drawn = result["drawn"]
+    assert {"tile_partition", "tile_size"} <= set(drawn["RENDER_PT_kdtrace"])
+    assert {"samples_per_axis", "adaptive"} <= set(drawn["RENDER_PT_kdtrace_sampling"])
+    assert {"kdtree_mode", "tau_occu", "tau_freq"} <= set(drawn["RENDER_PT_kdtrace_kdtree"])
+    assert {"payload", "interaction", "secret_file"} <= set(drawn["RENDER_PT_kdtrace_network"])
+    assert {"use_zeroconf", "local_slaves"} <= set(drawn["RENDER_PT_kdtrace_slaves"])
+    # The legend lists the local slave that rendered (named <host>-local-1).
+    assert any(line.startswith("label:") and line.endswith("-local-1")
+               for line in drawn["RENDER_PT_kdtrace_legend"])

@@ -1,0 +1,45 @@
+"""Run every KD Trace panel's draw() against a recording layout (there is no UI in background
+mode): each property a panel shows must exist, and drawing must not raise."""
+from types import SimpleNamespace
+
+import bpy
+
+from blender_setup import arguments, build_test_scene, install_extension, write_result
+
+
+class RecordingLayout:
+    """Stands in for UILayout: records prop() and label() calls, checks the properties exist."""
+
+    def __init__(self, shown):
+        self.shown = shown
+
+    def prop(self, data, name, **_):
+        if name not in data.bl_rna.properties:
+            raise AttributeError(f"{type(data).__name__} has no property {name!r}")
+        self.shown.append(name)
+
+    def label(self, text="", **_):
+        self.shown.append(f"label:{text}")
+
+    def __getattr__(self, name):  # row(), column(), box(), operator(), template_list(), ...
+        return lambda *args, **kwargs: self
+
+    def __setattr__(self, name, value):  # use_property_split, active, ...
+        object.__setattr__(self, name, value)
+
+
+args, result_path = arguments()
+addon = install_extension(args["zip"])
+scene = build_test_scene(32, 24)
+scene.render.engine = "KDTRACE"
+scene.kdtrace.use_zeroconf = False
+scene.kdtrace.local_slaves = 1
+bpy.ops.render.render()  # so the Last Render legend has something to show
+context = SimpleNamespace(scene=scene, engine="KDTRACE", preferences=bpy.context.preferences)
+drawn = {}
+for panel in addon.addon.ui.classes:
+    if issubclass(panel, bpy.types.Panel):
+        shown = []
+        panel.draw(SimpleNamespace(layout=RecordingLayout(shown)), context)
+        drawn[panel.__name__] = shown
+write_result(result_path, {"drawn": drawn})
