@@ -30,17 +30,7 @@ from core.kdtree import build_kdtree  # noqa: E402
 from core.scene import (Camera, Geometry, Light, RenderSettings, Shading, View,  # noqa: E402
                         default_material_params)
 from slave.tracer import Tracer  # noqa: E402
-from tests.meshes import grid_plane, load_bunny, merge, uv_sphere  # noqa: E402
-
-
-def look_at(eye, target, up=(0, 0, 1)):
-    eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
-    forward = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, np.cross(right, forward), -forward, eye
-    return m
+from tests.meshes import grid_plane, load_bunny, look_at, merge, uv_sphere  # noqa: E402
 
 
 def smooth_normals(vertices, triangles):

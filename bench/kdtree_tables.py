@@ -308,21 +308,11 @@ def _compact_trees(name, cache, triangle_count):
     return {mode: compact_tree(tree, triangle_count, mode) for mode in MODES}
 
 
-def _look_at(eye, target, up=(0.0, 0.0, 1.0)):
-    eye, target, up = (np.asarray(a, np.float64) for a in (eye, target, up))
-    forward = target - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, np.cross(right, forward), -forward, eye
-    return m
-
-
 def table3_view(name, vertices, size):
     """The Table 3 camera: the dragon seen from the front; the architecture from inside a room
     of the ground floor, looking diagonally through the doors. One point light, diffuse grey."""
     from core.scene import Camera, Light, RenderSettings, Shading, View
+    from tests.meshes import look_at
     lo, hi = vertices.min(0).astype(np.float64), vertices.max(0).astype(np.float64)
     centre, extent = (lo + hi) / 2, hi - lo
     if name.startswith("architecture"):
@@ -335,7 +325,7 @@ def table3_view(name, vertices, size):
         target = centre
         light = eye + 0.5 * np.array([extent[0], extent[1], 0.0])
         up = (0.0, 1.0, 0.0)
-    camera = Camera("PERSP", _look_at(eye, target, up), (0.6, 0.6), (0.0, 0.0), 1e-3, 1e5)
+    camera = Camera("PERSP", look_at(eye, target, up), (0.6, 0.6), (0.0, 0.0), 1e-3, 1e5)
     power = float(4 * np.pi * (np.linalg.norm(target - eye) ** 2)) * 2.0
     shading = Shading(np.array([[0.7, 0.7, 0.7, 1.0]], np.float32),
                       [Light("POINT", (1.0, 1.0, 1.0), power, tuple(light))], (0.1, 0.1, 0.1))

@@ -107,3 +107,15 @@ def merge(*meshes) -> tuple[np.ndarray, np.ndarray]:
         triangles.append(t + offset)
         offset += len(v)
     return np.vstack(vertices).astype(np.float32), np.vstack(triangles).astype(np.uint32)
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """A camera-to-world matrix (Blender's convention: the camera looks along its -Z, +Y up) for
+    a camera at `eye` looking at `target`; for the test and benchmark scenes."""
+    eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    matrix = np.eye(4)
+    matrix[:3, 0], matrix[:3, 1], matrix[:3, 2], matrix[:3, 3] = right, np.cross(right, forward), -forward, eye
+    return matrix

@@ -13,24 +13,13 @@ from core.kdtree import build_kdtree
 from core.scene import (Camera, Geometry, Light, RenderSettings, Shading, View,
                         default_material_params)
 from slave.tracer import Tracer, TracerError
-from tests.meshes import grid_plane, merge, uv_sphere
+from tests.meshes import grid_plane, look_at, merge, uv_sphere
 from tests.test_tracer import single_leaf_tree, two_level_tree
 
 
 @pytest.fixture(scope="module")
 def tracer():
     return Tracer()
-
-
-def look_at(eye, target, up=(0, 0, 1)):
-    eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
-    forward = target - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, np.cross(right, forward), -forward, eye
-    return m
 
 
 def sphere_on_plane():
