@@ -1,38 +1,25 @@
 """The whole path, headless: the extension zip is built and validated with Blender's own tool,
 installed into an isolated user folder, and renders through slaves that zeroconf found."""
 import json
-import os
 import socket
 import struct
-import subprocess
-import sys
 import threading
 
 import numpy as np
 import pytest
 
-from tests.blender import ROOT, build_extension, run_bpy_script
 from core.tiles import tile_grid
-
-
-def start_slave(name: str) -> tuple[subprocess.Popen, str]:
-    """A real slave process on loopback, advertised with zeroconf there."""
-    env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1", PYTHONUNBUFFERED="1")
-    process = subprocess.Popen(
-        [sys.executable, "-m", "slave", "--port", "0", "--bind", "127.0.0.1", "--name", name],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    line = process.stdout.readline()
-    assert "listening on" in line, line + process.stdout.read()
-    return process, line
+from tests.blender import build_extension, run_bpy_script
+from tests.processes import SlaveProcess
 
 
 @pytest.fixture
 def two_advertised_slaves():
-    slaves = [start_slave(name) for name in ("zc-slave-a", "zc-slave-b")]
+    """Real slave processes on loopback, advertised with zeroconf there."""
+    slaves = [SlaveProcess(name) for name in ("zc-slave-a", "zc-slave-b")]
     yield slaves
-    for process, _ in slaves:
-        process.terminate()
-        process.wait(timeout=10)
+    for slave in slaves:
+        slave.stop()
 
 
 def test_render_through_slaves_found_by_zeroconf(tmp_path, two_advertised_slaves):

@@ -8,10 +8,8 @@ from __future__ import annotations
 import os
 import random
 import shutil
-import signal
 import subprocess
 import sys
-import threading
 import time
 import uuid
 
@@ -23,7 +21,7 @@ from core.discovery import SlaveBrowser
 from core.master import Master, MasterError
 from core.protocol import HEADER, MAGIC, MsgType
 from core.scene import SCENE_FORMAT_VERSION
-from tests.conftest import ROOT
+from tests.processes import ChildProcess
 from tests.test_network import (assert_images_equal, make_scene, make_view, raw_exchange,
                                 render_all)
 
@@ -32,7 +30,6 @@ pytestmark = pytest.mark.skipif(
     reason="network-namespace tests need root and iproute2's `ip` (CI runs them as root)")
 
 PORT = 47600
-START_TIMEOUT = 60
 
 
 def ip(*args, check=True):
@@ -74,54 +71,9 @@ class Lan:
         ip("link", "del", self.bridge, check=False)
 
 
-class HostProcess:
+def HostProcess(ns: str, argv: list, env: dict | None = None) -> ChildProcess:
     """A process inside a host namespace; `ip netns exec` execs, so our pid is its pid."""
-
-    def __init__(self, ns: str, argv: list, env: dict | None = None):
-        env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1", PYTHONUNBUFFERED="1", **(env or {}))
-        self.proc = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, *argv], cwd=ROOT,
-                                     env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True)
-        self.lines, self.stderr_lines = [], []
-        threading.Thread(target=self._drain, args=(self.proc.stderr, self.stderr_lines), daemon=True).start()
-        threading.Thread(target=self._drain, args=(self.proc.stdout, self.lines), daemon=True).start()
-
-    @staticmethod
-    def _drain(stream, lines):
-        for line in stream:
-            lines.append(line)
-
-    def wait_line(self, prefix: str, timeout=START_TIMEOUT) -> str:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            for line in self.lines:
-                if line.startswith(prefix):
-                    return line
-            if self.proc.poll() is not None:
-                break
-            time.sleep(0.05)
-        self.stop()
-        pytest.fail(f"process did not print {prefix!r}: {''.join(self.stderr_lines)}")
-
-    def alive(self):
-        return self.proc.poll() is None
-
-    def kill(self):
-        if self.alive():
-            self.proc.kill()
-        self.proc.wait(10)
-
-    def stop(self):
-        if self.alive():
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.kill()
-
-    @property
-    def log(self) -> str:
-        return "".join(self.stderr_lines)
+    return ChildProcess(argv, wrapper=("ip", "netns", "exec", ns), env=env)
 
 
 def start_slave(lan: Lan, host: int, name: str, *extra, port=PORT) -> HostProcess:
@@ -330,17 +282,7 @@ def test_bad_frames_to_a_slave_then_a_real_master(slaves, scene, one_slave_image
     host, port = slaves[2].endpoint
 
     def exchange(data: bytes) -> bytes:
-        import socket
-        with socket.create_connection((host, port), timeout=10) as sock:
-            sock.sendall(data)
-            sock.shutdown(socket.SHUT_WR)   # the frame ends here, whatever its header said
-            chunks = []
-            try:
-                while chunk := sock.recv(65536):
-                    chunks.append(chunk)
-            except (ConnectionResetError, TimeoutError):
-                pass
-            return b"".join(chunks)
+        return raw_exchange((host, port), data, half_close=True)
 
     assert b"not a KD Trace message" in exchange(os.urandom(512))
     # Truncated header, then a truncated JSON body: the slave says why and closes.
@@ -379,11 +321,11 @@ def test_shared_secret(lan, scene, one_slave_image, tmp_path):
             "protocol_version": protocol.PROTOCOL_VERSION, "scene_format_version": SCENE_FORMAT_VERSION,
             "name": "sneaky", "nonce": "0" * 64})[0]
         query = protocol.encode_message(MsgType.SCENE_QUERY, {"scene_hash": "0" * 32})[0]
-        reply = raw_exchange_at(slave.endpoint, hello + query)
+        reply = raw_exchange(slave.endpoint, hello + query)
         assert b"unexpected message type SCENE_QUERY" in reply and b"SCENE_READY" not in reply
         # A master that answers the challenge with a wrong proof.
         auth = protocol.encode_message(MsgType.AUTH, {"proof": "0" * 64})[0]
-        reply = raw_exchange_at(slave.endpoint, hello + auth + query)
+        reply = raw_exchange(slave.endpoint, hello + auth + query)
         assert b"authentication failed: wrong shared secret" in reply and b"SCENE_READY" not in reply
         assert slave.alive()
         time.sleep(0.3)
@@ -394,22 +336,9 @@ def test_shared_secret(lan, scene, one_slave_image, tmp_path):
         open_slave.stop()
 
 
-def raw_exchange_at(endpoint, data: bytes) -> bytes:
-    import socket
-    with socket.create_connection(endpoint, timeout=10) as sock:
-        sock.sendall(data)
-        chunks = []
-        try:
-            while chunk := sock.recv(65536):
-                chunks.append(chunk)
-        except (ConnectionResetError, TimeoutError):
-            pass
-        return b"".join(chunks)
-
-
 def test_version_mismatch_reported_by_name_on_both_sides(lan, slaves):
     newer = protocol.PROTOCOL_VERSION + 1
-    text = raw_exchange_at(slaves[0].endpoint, HEADER.pack(MAGIC, newer, MsgType.HELLO, 2, 0) + b"{}")
+    text = raw_exchange(slaves[0].endpoint, HEADER.pack(MAGIC, newer, MsgType.HELLO, 2, 0) + b"{}")
     assert (f"protocol version mismatch: master speaks version {newer}, slave speaks version "
             f"{protocol.PROTOCOL_VERSION}").encode() in text
     fake = start_fake(lan, 3, "newer", 47650)

@@ -5,11 +5,9 @@ from __future__ import annotations
 import math
 import os
 import queue
-import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
@@ -23,56 +21,7 @@ from core.protocol import HEADER, MAGIC, MsgType
 from core.scene import Camera, Geometry, Light, Shading, View
 from tests.conftest import ROOT
 from tests.meshes import grid_plane, merge, uv_sphere
-
-LINE_PREFIX = "KD Trace slave "
-START_TIMEOUT = 60
-
-
-class SlaveProcess:
-    """A `python -m slave` subprocess; its start line gives the port."""
-
-    def __init__(self, name: str, *extra: str):
-        self.name = name
-        # One PoCL thread per slave so that two slaves share this machine's two cores.
-        env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1", PYTHONUNBUFFERED="1")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "slave", "--port", "0", "--bind", "127.0.0.1", "--name", name,
-             *extra], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self.stderr_lines = []
-        threading.Thread(target=self._drain_stderr, daemon=True).start()
-        line = self._first_line()
-        assert line.startswith(LINE_PREFIX + name + " listening on 127.0.0.1:"), line
-        self.port = int(line.split("listening on 127.0.0.1:")[1].split()[0])
-        self.endpoint = ("127.0.0.1", self.port)
-
-    def _drain_stderr(self):
-        for line in self.proc.stderr:
-            self.stderr_lines.append(line)
-
-    def _first_line(self) -> str:
-        result = []
-        reader = threading.Thread(target=lambda: result.append(self.proc.stdout.readline()), daemon=True)
-        reader.start()
-        reader.join(START_TIMEOUT)
-        if not result or not result[0]:
-            self.stop()
-            pytest.fail(f"slave {self.name} did not start: {''.join(self.stderr_lines)}")
-        return result[0].strip()
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def kill(self):
-        self.proc.kill()
-        self.proc.wait(10)
-
-    def stop(self):
-        if self.alive():
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.kill()
+from tests.processes import SlaveProcess
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +36,7 @@ def slaves():
             slave.stop()
     # Every misbehaving master was handled: logged, never an unexpected exception.
     for slave in started:
-        log = "".join(slave.stderr_lines)
+        log = slave.log
         assert "Traceback" not in log and "unexpected error" not in log, log
 
 
@@ -329,16 +278,22 @@ def test_job_fails_clearly_when_every_slave_is_lost(slaves):
 
 
 # -- misbehaving peers --------------------------------------------------------------------------
-def raw_exchange(port: int, data: bytes, read=True) -> bytes:
-    with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
+def raw_exchange(endpoint, data: bytes, read=True, half_close=False) -> bytes:
+    """Send raw bytes to a slave and read what it answers until it closes. half_close ends the
+    stream after `data`, whatever the frame header promised."""
+    if isinstance(endpoint, int):
+        endpoint = ("127.0.0.1", endpoint)
+    with socket.create_connection(endpoint, timeout=10) as sock:
         sock.sendall(data)
+        if half_close:
+            sock.shutdown(socket.SHUT_WR)
         if not read:
             return b""
         chunks = []
         try:
             while chunk := sock.recv(65536):
                 chunks.append(chunk)
-        except ConnectionResetError:
+        except (ConnectionResetError, TimeoutError):
             pass
         return b"".join(chunks)
 
