@@ -628,6 +628,14 @@ def _root_bounds(boxes_lo, boxes_hi, vertices):
     return np.stack([_round_down_f32(lo), _round_up_f32(hi)]).astype(np.float32)
 
 
+def _no_decisions(n: int, chain: int) -> tuple:
+    """Split decisions of n nodes, none made yet: cost, axis, plane, and the carried chains'
+    costs, axes, planes and lengths."""
+    return (np.full(n, np.inf), np.zeros(n, np.int64), np.zeros(n, np.float32),
+            np.full((n, chain), np.inf, np.float32), np.zeros((n, chain), np.int8),
+            np.zeros((n, chain), np.float32), np.zeros(n, np.int8))
+
+
 def _best_splits(params, cell_lo, cell_hi, counts, ref_start, refs, chain):
     """Best split of every node given (all with at least one reference).
 
@@ -636,13 +644,7 @@ def _best_splits(params, cell_lo, cell_hi, counts, ref_start, refs, chain):
     bigger ones binned SAH. Returns cost, axis, plane and the chains (length 0 for binned).
     """
     n = len(counts)
-    cost = np.full(n, np.inf)
-    axis = np.zeros(n, np.int64)
-    plane = np.zeros(n, np.float32)
-    fut_cost = np.full((n, chain), np.inf, np.float32)
-    fut_axis = np.zeros((n, chain), np.int8)
-    fut_plane = np.zeros((n, chain), np.float32)
-    fut_len = np.zeros(n, np.int8)
+    cost, axis, plane, fut_cost, fut_axis, fut_plane, fut_len = _no_decisions(n, chain)
     smaller = 0
     for width in EXACT_WIDTHS:
         group = np.flatnonzero((counts > smaller) & (counts <= width))
@@ -725,13 +727,7 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
         # 1. Best split of every non-empty node that may still split.
         #    A node that an empty-space cut left with its parent's references carries its
         #    decision (and those of its own such children) from `_exact_chain`.
-        cost = np.full(node_count, np.inf)
-        axis = np.zeros(node_count, np.int64)
-        plane = np.zeros(node_count, np.float32)
-        fut_cost = np.full((node_count, CHAIN), np.inf, np.float32)
-        fut_axis = np.zeros((node_count, CHAIN), np.int8)
-        fut_plane = np.zeros((node_count, CHAIN), np.float32)
-        fut_len = np.zeros(node_count, np.int8)
+        cost, axis, plane, fut_cost, fut_axis, fut_plane, fut_len = _no_decisions(node_count, CHAIN)
         if level < depth_cap:
             chain = min(CHAIN, depth_cap - level - 1)
             cand = np.flatnonzero((counts > 0) & (pend_len == 0))
