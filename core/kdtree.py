@@ -14,7 +14,11 @@ never reports a hit on them, and their clipped pieces would all look like zero-a
 """
 from __future__ import annotations
 
+import concurrent.futures
 import math
+import os
+import queue
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -37,6 +41,12 @@ class KDTreeParams:
     max_bad_refines: int = 3          # pbrt: give up after this many splits costlier than a leaf
     small_node: int = 16              # nodes with fewer references never refine badly
     max_depth: int | None = None      # None: 8 + 1.3 log2(triangle count), rounded
+    threads: int | None = None        # None: every CPU this process may run on
+
+    def thread_count(self) -> int:
+        if self.threads is not None:
+            return max(1, int(self.threads))
+        return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
     def depth_cap(self, triangle_count: int) -> int:
         if self.max_depth is not None:
@@ -673,10 +683,338 @@ def _best_splits(params, cell_lo, cell_hi, counts, ref_start, refs, chain):
     return cost, axis, plane, (fut_cost, fut_axis, fut_plane, fut_len)
 
 
+@dataclass
+class _Frontier:
+    """The nodes of one level, not yet decided, with their references (rows sorted by node)
+    and what each inherits: its path's bad-refine count and a carried chain of decisions."""
+
+    cell_lo: np.ndarray        # (n, 3) float32
+    cell_hi: np.ndarray
+    counts: np.ndarray         # (n,) int64 references per node
+    bad_refines: np.ndarray    # (n,) int64
+    pend_cost: np.ndarray      # (n, CHAIN) float32, inf where nothing is carried
+    pend_axis: np.ndarray      # (n, CHAIN) int8
+    pend_plane: np.ndarray     # (n, CHAIN) float32
+    pend_len: np.ndarray       # (n,) int8 carried decisions
+    refs: np.ndarray           # (R, REF_WORDS) float32
+
+    def __len__(self) -> int:
+        return len(self.counts)
+
+    def part(self, first: int, last: int) -> "_Frontier":
+        """Nodes first..last-1 with their references: a part whose subtrees grow on their own."""
+        ref_first, ref_last = int(self.counts[:first].sum()), int(self.counts[:last].sum())
+        nodes = slice(first, last)
+        return _Frontier(self.cell_lo[nodes], self.cell_hi[nodes], self.counts[nodes],
+                         self.bad_refines[nodes], self.pend_cost[nodes], self.pend_axis[nodes],
+                         self.pend_plane[nodes], self.pend_len[nodes],
+                         self.refs[ref_first:ref_last])
+
+
+@dataclass
+class _Level:
+    """One level's nodes as decided: their words with the fields that depend on the nodes
+    before them left at zero (an inner node's child index, a leaf's offset into
+    leaf_indices), which nodes are leaves, the leaves' triangle ids and the level's share
+    of the SAH cost."""
+
+    words: np.ndarray          # (n, 2) uint32
+    make_leaf: np.ndarray      # (n,) bool
+    leaf_triangles: np.ndarray  # uint32
+    sah_cost: float
+
+    @staticmethod
+    def join(parts: list) -> "_Level":
+        """The parts of one level, side by side in node order."""
+        if len(parts) == 1:
+            return parts[0]
+        return _Level(np.concatenate([p.words for p in parts]),
+                      np.concatenate([p.make_leaf for p in parts]),
+                      np.concatenate([p.leaf_triangles for p in parts]),
+                      sum(p.sah_cost for p in parts))
+
+
+@dataclass(frozen=True)
+class _BuildContext:
+    params: KDTreeParams
+    depth_cap: int
+    corners: np.ndarray        # (T, 3, 3) float32 triangle corners, for clipping
+    root_area: float
+
+
+def _step(fr: _Frontier, level: int, ctx: _BuildContext):
+    """Decide every node of one level: (_Level, the next level's frontier or None)."""
+    params = ctx.params
+    cell_lo, cell_hi, counts, refs = fr.cell_lo, fr.cell_hi, fr.counts, fr.refs
+    node_count = len(counts)
+    ref_start = _exclusive_cumsum(counts)
+    dims = cell_hi.astype(np.float64) - cell_lo
+    area = _surface_area(dims)
+
+    # 1. Best split of every non-empty node that may still split.
+    #    A node that an empty-space cut left with its parent's references carries its
+    #    decision (and those of its own such children) from `_exact_chain`.
+    cost, axis, plane, fut_cost, fut_axis, fut_plane, fut_len = _no_decisions(node_count, CHAIN)
+    if level < ctx.depth_cap:
+        chain = min(CHAIN, ctx.depth_cap - level - 1)
+        cand = np.flatnonzero((counts > 0) & (fr.pend_len == 0))
+        if len(cand):
+            cost[cand], axis[cand], plane[cand], chained = _best_splits(
+                params, cell_lo[cand], cell_hi[cand], counts[cand], ref_start[cand],
+                refs, chain)
+            for fut, part in zip((fut_cost, fut_axis, fut_plane), chained):
+                fut[cand, :chain] = part
+            fut_len[cand] = chained[3]
+        carried = np.flatnonzero(fr.pend_len > 0)
+        if len(carried):
+            cost[carried] = fr.pend_cost[carried, 0]
+            axis[carried] = fr.pend_axis[carried, 0]
+            plane[carried] = fr.pend_plane[carried, 0]
+            for fut, pend in ((fut_cost, fr.pend_cost), (fut_axis, fr.pend_axis),
+                              (fut_plane, fr.pend_plane)):
+                fut[carried, :-1] = pend[carried, 1:]
+            fut_len[carried] = fr.pend_len[carried] - 1
+    has_plane = np.isfinite(cost)
+
+    # 2. Exact counts at the chosen planes (references of nodes with a plane only); planar
+    #    references go to the cheaper side.
+    n_below = np.zeros(node_count, np.int64)
+    n_above = np.zeros(node_count, np.int64)
+    n_planar = np.zeros(node_count, np.int64)
+    ref_has_plane = np.repeat(has_plane, counts)
+    cand = np.flatnonzero(has_plane)          # all non-empty
+    sel = np.flatnonzero(ref_has_plane)
+    sel_counts = counts[cand]
+    sel_starts = _exclusive_cumsum(sel_counts)[:-1]
+    flat_index = REF_WORDS * sel + np.repeat(axis[cand], sel_counts)
+    ref_plane = np.repeat(plane[cand], sel_counts)
+    lo_on_axis = refs.reshape(-1)[flat_index]
+    flat_index += 3
+    hi_on_axis = refs.reshape(-1)[flat_index]
+    del flat_index
+    below = lo_on_axis < ref_plane
+    above = hi_on_axis > ref_plane
+    planar = (lo_on_axis == ref_plane) & (hi_on_axis == ref_plane)
+    del lo_on_axis, hi_on_axis, ref_plane
+    if len(cand):
+        n_below[cand] = np.add.reduceat(below, sel_starts, dtype=np.int64)
+        n_above[cand] = np.add.reduceat(above, sel_starts, dtype=np.int64)
+        n_planar[cand] = np.add.reduceat(planar, sel_starts, dtype=np.int64)
+    # Split costs only where there is a plane (empty nodes and the last level have none).
+    planar_below = np.ones(node_count, bool)
+    split_cost = np.full(node_count, np.inf)
+    if len(cand):
+        c_axis = axis[cand]
+        width_below = plane[cand].astype(np.float64) - cell_lo[cand, c_axis]
+        c_area = area[cand]
+        safe_area = np.where(c_area > 0, c_area, 1.0)
+        c_dims, c_below, c_above = dims[cand], n_below[cand], n_above[cand]
+        c_planar = n_planar[cand]
+        cost_planar_below = _split_cost(params, c_dims, safe_area, c_axis, width_below,
+                                        c_below + c_planar, c_above)
+        cost_planar_above = _split_cost(params, c_dims, safe_area, c_axis, width_below,
+                                        c_below, c_above + c_planar)
+        planar_below[cand] = cost_planar_below <= cost_planar_above
+        split_cost[cand] = np.minimum(cost_planar_below, cost_planar_above)
+
+    # 3. Leaf or split: automatic termination with pbrt's allowance of bad refines.
+    leaf_cost = params.intersection_cost * counts
+    bad = split_cost >= leaf_cost
+    bad_refines = fr.bad_refines + bad
+    # Unlike pbrt, a small node never refines badly: that only deepened the tree (docs/kdtree.md).
+    make_leaf = ~has_plane | (bad & ((bad_refines >= params.max_bad_refines)
+                                     | (counts < params.small_node)))
+    split = ~make_leaf
+    split_count = int(split.sum())
+
+    # 4. This level's nodes (child indices and leaf offsets are added by `_write_nodes`).
+    if int(counts.max(initial=0)) > MAX_NODE_FIELD:
+        raise ValueError("kd-tree leaf too large for the 30-bit reference count")
+    words = np.zeros((node_count, 2), np.uint32)
+    words[:, 0] = np.where(make_leaf, LEAF_TAG | (counts << 2), axis)
+    words[:, 1] = np.where(make_leaf, 0, plane.view(np.uint32))
+    leaf_triangles = _ref_triangles(refs)[np.repeat(make_leaf, counts)].astype(np.uint32)
+    leaf_area = area[make_leaf] / ctx.root_area
+    sah_cost = (params.traversal_cost * area[split].sum() / ctx.root_area
+                + params.intersection_cost * (leaf_area * counts[make_leaf]).sum())
+    decided = _Level(words, make_leaf, leaf_triangles, float(sah_cost))
+    if not split_count:
+        return decided, None
+
+    # 5. Send the references of split nodes (a subset of `sel`) to the children; clip those
+    #    that straddle the plane.
+    split_nodes = np.flatnonzero(split)
+    split_rank = np.cumsum(split) - 1
+    in_split = split[cand]                                  # per node of `cand`
+    sel_split = np.repeat(in_split, sel_counts)
+    src = sel[sel_split]                                    # reference ids, by node
+    below, above, planar = below[sel_split], above[sel_split], planar[sel_split]
+    split_counts = counts[split_nodes]
+    planar_side_below = np.repeat(planar_below[split_nodes], split_counts)
+    goes_below = (below & ~planar) | (planar & planar_side_below)
+    goes_above = (above & ~planar) | (planar & ~planar_side_below)
+    del below, above, planar, planar_side_below
+    straddles = np.flatnonzero(goes_below & goes_above)     # positions in src
+    if len(straddles):
+        s_node = np.repeat(split_nodes, split_counts)[straddles]
+        (b_lo, b_hi, b_ok), (a_lo, a_hi, a_ok) = _clip_straddlers(
+            ctx.corners[_ref_triangles(refs)[src[straddles]]].astype(np.float64),
+            cell_lo[s_node], cell_hi[s_node], axis[s_node], plane[s_node])
+        goes_below[straddles] = b_ok
+        goes_above[straddles] = a_ok
+
+    # Children in parent order, each parent's below child first: node j's children are
+    # 2 rank(j) and 2 rank(j) + 1. References keep their order within a child.
+    seg = _exclusive_cumsum(split_counts)[:-1]
+    n_child_below = np.add.reduceat(goes_below, seg, dtype=np.int64)
+    n_child_above = np.add.reduceat(goes_above, seg, dtype=np.int64)
+    child_counts = np.stack([n_child_below, n_child_above], 1).reshape(-1)
+    child_start = _exclusive_cumsum(child_counts)
+    total = int(child_start[-1])
+    new_src = np.empty(total, np.int64)
+    at_straddler = []
+    for side, goes, n_child in ((0, goes_below, n_child_below), (1, goes_above, n_child_above)):
+        pos_in_src = np.flatnonzero(goes)
+        shift = child_start[0::2][:-1] if side == 0 else child_start[1::2]
+        shift = shift - _exclusive_cumsum(n_child)[:-1]
+        where = np.arange(len(pos_in_src)) + np.repeat(shift, n_child)
+        new_src[where] = src[pos_in_src]
+        if len(straddles):
+            ok = (b_ok, a_ok)[side]
+            at_straddler.append(where[(np.cumsum(goes) - 1)[straddles[ok]]])
+    new_refs = _gather_refs(refs, new_src)
+    if len(straddles):
+        # Straddlers get their clipped box on each side they go to (the 6 box words of
+        # a row written as one 24-byte item).
+        box_items = new_refs[:, 0:6].view(_BOX_ROW)[:, 0]
+        for at, lo_s, hi_s, ok in ((at_straddler[0], b_lo, b_hi, b_ok),
+                                   (at_straddler[1], a_lo, a_hi, a_ok)):
+            box = np.concatenate([lo_s, hi_s], 1)
+            box_items[at] = box.view(_BOX_ROW)[:, 0][ok]
+    del new_src
+
+    # 6. Children's cells and bad-refine counts.
+    child_lo = np.repeat(cell_lo[split_nodes], 2, 0)
+    child_hi = np.repeat(cell_hi[split_nodes], 2, 0)
+    child_axis = np.repeat(axis[split_nodes], 2)
+    child_plane = np.repeat(plane[split_nodes], 2)
+    rows = np.arange(2 * split_count)
+    child_hi[rows[0::2], child_axis[0::2]] = child_plane[0::2]
+    child_lo[rows[1::2], child_axis[1::2]] = child_plane[1::2]
+    # The child of an empty-space cut that keeps all references inherits the chain.
+    pend_cost, pend_axis, pend_plane, pend_len = _no_decisions(2 * split_count, CHAIN)[3:]
+    heirs = split_nodes[fut_len[split_nodes] > 0]
+    heir = 2 * split_rank[heirs] + (n_below[heirs] != counts[heirs])
+    same = child_counts[heir] == counts[heirs]                   # always, by construction
+    heirs, heir = heirs[same], heir[same]
+    for pend, fut in ((pend_cost, fut_cost), (pend_axis, fut_axis), (pend_plane, fut_plane)):
+        pend[heir] = fut[heirs]
+    pend_len[heir] = fut_len[heirs]
+    return decided, _Frontier(child_lo, child_hi, child_counts,
+                              np.repeat(bad_refines[split_nodes], 2),
+                              pend_cost, pend_axis, pend_plane, pend_len, new_refs)
+
+
+class _Cancelled(Exception):
+    """Another part of a parallel build failed or the caller's progress callback raised."""
+
+
+def _grow(frontier, level, ctx, stop=lambda frontier: False, on_level=None):
+    """Decide level after level until nothing splits or `stop(frontier)`.
+    Returns (the decided levels, the frontier left or None, the next level)."""
+    decided = []
+    while frontier is not None and not stop(frontier):
+        if on_level is not None:
+            on_level(level, frontier)
+        record, frontier = _step(frontier, level, ctx)
+        decided.append(record)
+        level += 1
+    return decided, frontier, level
+
+
+PARALLEL_NODES = 16      # a level this wide is split into parts that grow in parallel
+PARTS_PER_THREAD = 2     # parts per thread, for balance (each part pays Python per level)
+
+
+def _grow_in_parallel(frontier, level, ctx, threads, progress):
+    """Grow contiguous node ranges of `frontier` in `threads` threads (numpy releases the
+    GIL in its loops). Node ranges in order give each level's nodes in order, so the tree is
+    the one a single thread builds. `progress` is called on this thread only."""
+    counts = frontier.counts
+    part_count = min(PARTS_PER_THREAD * threads, len(counts))
+    shares = counts.sum() * np.arange(1, part_count) / part_count
+    ends = np.searchsorted(np.cumsum(counts), shares) + 1   # a part ends at the node reaching its share
+    bounds = np.unique(np.concatenate([[0], ends, [len(counts)]]).clip(0, len(counts)))
+    parts = [frontier.part(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+    del frontier
+    reached = queue.Queue()
+    cancel = threading.Event()
+
+    def grow(part):
+        def on_level(lvl, fr):
+            if cancel.is_set():
+                raise _Cancelled
+            reached.put((lvl, len(fr), len(fr.refs)))
+        return _grow(part, level, ctx, on_level=on_level)[0]
+
+    with concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="kdtree") as pool:
+        # Biggest parts first, so that no thread is left with a big one at the end.
+        order = sorted(range(len(parts)), key=lambda i: -len(parts[i].refs))
+        futures = {pool.submit(grow, parts[i]): i for i in order}
+        del parts
+        try:
+            pending = set(futures)
+            levels_done = 0
+            while pending:
+                done, pending = concurrent.futures.wait(pending, timeout=0.1,
+                                                        return_when="FIRST_COMPLETED")
+                for future in done:
+                    future.result()                 # a part's error is raised here
+                while not reached.empty():
+                    lvl, nodes, refs = reached.get()
+                    levels_done += 1
+                    if progress is not None:
+                        fraction = level + levels_done / len(futures)
+                        progress(min(fraction / (ctx.depth_cap + 1), 1.0),
+                                 f"kd-tree level {lvl} ({len(futures)} parts in {threads} "
+                                 f"threads): {nodes} nodes, {refs} references")
+        except BaseException:
+            cancel.set()
+            raise
+        decided = [None] * len(futures)
+        for future, i in futures.items():
+            decided[i] = future.result()
+    depth = max(len(d) for d in decided)
+    return [_Level.join([d[k] for d in decided if k < len(d)]) for k in range(depth)]
+
+
+def _write_nodes(levels: list) -> tuple:
+    """Nodes breadth-first, level after level, and the leaves' triangle lists: fills in the
+    child index of every inner node and the leaf_indices offset of every leaf."""
+    level_base = leaf_total = 0
+    for decided in levels:
+        words, make_leaf = decided.words, decided.make_leaf
+        split_rank = np.cumsum(~make_leaf) - 1
+        first_child = level_base + len(words) + 2 * split_rank
+        if (~make_leaf).any() and first_child.max() > MAX_NODE_FIELD:
+            raise ValueError("kd-tree too large for the 30-bit child index")
+        leaf_counts = np.where(make_leaf, words[:, 0] >> 2, 0).astype(np.int64)
+        leaf_offset = leaf_total + _exclusive_cumsum(leaf_counts)[:-1]
+        words[:, 0] |= np.where(make_leaf, 0, first_child << 2).astype(np.uint32)
+        words[:, 1] |= np.where(make_leaf, leaf_offset, 0).astype(np.uint32)
+        level_base += len(words)
+        leaf_total += int(leaf_counts.sum())
+    nodes = np.concatenate([d.words for d in levels])
+    leaf_indices = np.concatenate([d.leaf_triangles for d in levels]).astype(np.uint32)
+    return nodes, leaf_indices
+
+
 def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progress=None) -> KDTree:
     """Build an SAH kd-tree with perfect splits over triangles (see module docstring).
 
-    `progress(fraction, message)`, if given, is called once per level.
+    `progress(fraction, message)`, if given, is called once per level (once per level of
+    each part in the parallel phase), always on the calling thread; an exception it raises
+    stops the build.
     """
     params = params or KDTreeParams()
     started = time.perf_counter()
@@ -701,222 +1039,41 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
     refs[:, 6].view(np.int32)[:] = kept
     bounds = _root_bounds(refs[:, 0:3], refs[:, 3:6], vertices)
 
-    depth_cap = params.depth_cap(triangle_count)
-    root_area = float(_surface_area(bounds[1].astype(np.float64) - bounds[0]))
-    cell_lo, cell_hi = bounds[:1].copy(), bounds[1:].copy()
-    counts = np.array([len(kept)], np.int64)
-    bad_refines = np.zeros(1, np.int64)
-    pend_len = np.zeros(1, np.int8)
+    ctx = _BuildContext(params, params.depth_cap(triangle_count), corners,
+                        float(_surface_area(bounds[1].astype(np.float64) - bounds[0])))
+    root = _Frontier(bounds[:1].copy(), bounds[1:].copy(), np.array([len(kept)], np.int64),
+                     np.zeros(1, np.int64), *_no_decisions(1, CHAIN)[3:], refs)
+    del refs
 
-    level_words, leaf_lists = [], []
-    leaf_total = 0
-    level_base = 0
-    level = 0
-    sah_cost = 0.0
-    leaf_count = empty_leaves = 0
-    max_leaf_depth = 0
-    while len(cell_lo):
-        node_count = len(cell_lo)
+    def on_level(level, frontier):
         if progress is not None:
-            progress(min(level / (depth_cap + 1), 1.0),
-                     f"kd-tree level {level}: {node_count} nodes, {len(refs)} references")
-        ref_start = _exclusive_cumsum(counts)
-        dims = cell_hi.astype(np.float64) - cell_lo
-        area = _surface_area(dims)
+            progress(min(level / (ctx.depth_cap + 1), 1.0),
+                     f"kd-tree level {level}: {len(frontier)} nodes, "
+                     f"{len(frontier.refs)} references")
 
-        # 1. Best split of every non-empty node that may still split.
-        #    A node that an empty-space cut left with its parent's references carries its
-        #    decision (and those of its own such children) from `_exact_chain`.
-        cost, axis, plane, fut_cost, fut_axis, fut_plane, fut_len = _no_decisions(node_count, CHAIN)
-        if level < depth_cap:
-            chain = min(CHAIN, depth_cap - level - 1)
-            cand = np.flatnonzero((counts > 0) & (pend_len == 0))
-            if len(cand):
-                cost[cand], axis[cand], plane[cand], chained = _best_splits(
-                    params, cell_lo[cand], cell_hi[cand], counts[cand], ref_start[cand],
-                    refs, chain)
-                for fut, part in zip((fut_cost, fut_axis, fut_plane), chained):
-                    fut[cand, :chain] = part
-                fut_len[cand] = chained[3]
-            carried = np.flatnonzero(pend_len > 0)
-            if len(carried):
-                cost[carried] = pend_cost[carried, 0]
-                axis[carried] = pend_axis[carried, 0]
-                plane[carried] = pend_plane[carried, 0]
-                for fut, pend in ((fut_cost, pend_cost), (fut_axis, pend_axis),
-                                  (fut_plane, pend_plane)):
-                    fut[carried, :-1] = pend[carried, 1:]
-                fut_len[carried] = pend_len[carried] - 1
-        has_plane = np.isfinite(cost)
-
-        # 2. Exact counts at the chosen planes (references of nodes with a plane only); planar
-        #    references go to the cheaper side.
-        n_below = np.zeros(node_count, np.int64)
-        n_above = np.zeros(node_count, np.int64)
-        n_planar = np.zeros(node_count, np.int64)
-        ref_has_plane = np.repeat(has_plane, counts)
-        cand = np.flatnonzero(has_plane)          # all non-empty
-        sel = np.flatnonzero(ref_has_plane)
-        sel_counts = counts[cand]
-        sel_starts = _exclusive_cumsum(sel_counts)[:-1]
-        flat_index = REF_WORDS * sel + np.repeat(axis[cand], sel_counts)
-        ref_plane = np.repeat(plane[cand], sel_counts)
-        lo_on_axis = refs.reshape(-1)[flat_index]
-        flat_index += 3
-        hi_on_axis = refs.reshape(-1)[flat_index]
-        del flat_index
-        below = lo_on_axis < ref_plane
-        above = hi_on_axis > ref_plane
-        planar = (lo_on_axis == ref_plane) & (hi_on_axis == ref_plane)
-        del lo_on_axis, hi_on_axis, ref_plane
-        if len(cand):
-            n_below[cand] = np.add.reduceat(below, sel_starts, dtype=np.int64)
-            n_above[cand] = np.add.reduceat(above, sel_starts, dtype=np.int64)
-            n_planar[cand] = np.add.reduceat(planar, sel_starts, dtype=np.int64)
-        # Split costs only where there is a plane (empty nodes and the last level have none).
-        planar_below = np.ones(node_count, bool)
-        split_cost = np.full(node_count, np.inf)
-        if len(cand):
-            c_axis = axis[cand]
-            width_below = plane[cand].astype(np.float64) - cell_lo[cand, c_axis]
-            c_area = area[cand]
-            safe_area = np.where(c_area > 0, c_area, 1.0)
-            c_dims, c_below, c_above = dims[cand], n_below[cand], n_above[cand]
-            c_planar = n_planar[cand]
-            cost_planar_below = _split_cost(params, c_dims, safe_area, c_axis, width_below,
-                                            c_below + c_planar, c_above)
-            cost_planar_above = _split_cost(params, c_dims, safe_area, c_axis, width_below,
-                                            c_below, c_above + c_planar)
-            planar_below[cand] = cost_planar_below <= cost_planar_above
-            split_cost[cand] = np.minimum(cost_planar_below, cost_planar_above)
-
-        # 3. Leaf or split: automatic termination with pbrt's allowance of bad refines.
-        leaf_cost = params.intersection_cost * counts
-        bad = split_cost >= leaf_cost
-        bad_refines = bad_refines + bad
-        # Unlike pbrt, a small node never refines badly: that only deepened the tree (docs/kdtree.md).
-        make_leaf = ~has_plane | (bad & ((bad_refines >= params.max_bad_refines)
-                                         | (counts < params.small_node)))
-        split = ~make_leaf
-        split_rank = np.cumsum(split) - 1
-        split_count = int(split.sum())
-
-        # 4. Write this level's nodes: leaves point into leaf_indices, inner nodes at children.
-        words = np.zeros((node_count, 2), np.uint32)
-        leaf_offset = leaf_total + _exclusive_cumsum(np.where(make_leaf, counts, 0))[:-1]
-        first_child = level_base + node_count + 2 * split_rank
-        if split_count and first_child.max() > MAX_NODE_FIELD:
-            raise ValueError("kd-tree too large for the 30-bit child index")
-        words[:, 0] = np.where(make_leaf, LEAF_TAG | (counts << 2), axis | (first_child << 2))
-        words[:, 1] = np.where(make_leaf, leaf_offset, plane.view(np.uint32))
-        level_words.append(words)
-        ref_in_leaf = np.repeat(make_leaf, counts)
-        leaf_lists.append(_ref_triangles(refs)[ref_in_leaf].astype(np.uint32))
-        leaf_total += int(counts[make_leaf].sum())
-        leaf_area = area[make_leaf] / root_area
-        sah_cost += (params.traversal_cost * area[split].sum() / root_area
-                     + params.intersection_cost * (leaf_area * counts[make_leaf]).sum())
-        leaf_count += int(make_leaf.sum())
-        empty_leaves += int((make_leaf & (counts == 0)).sum())
-        if make_leaf.any():
-            max_leaf_depth = level
-        if not split_count:
-            break
-
-        # 5. Send the references of split nodes (a subset of `sel`) to the children; clip those
-        #    that straddle the plane.
-        split_nodes = np.flatnonzero(split)
-        in_split = split[cand]                                  # per node of `cand`
-        sel_split = np.repeat(in_split, sel_counts)
-        src = sel[sel_split]                                    # reference ids, by node
-        below, above, planar = below[sel_split], above[sel_split], planar[sel_split]
-        split_counts = counts[split_nodes]
-        planar_side_below = np.repeat(planar_below[split_nodes], split_counts)
-        goes_below = (below & ~planar) | (planar & planar_side_below)
-        goes_above = (above & ~planar) | (planar & ~planar_side_below)
-        del below, above, planar, planar_side_below
-        straddles = np.flatnonzero(goes_below & goes_above)     # positions in src
-        if len(straddles):
-            s_node = np.repeat(split_nodes, split_counts)[straddles]
-            (b_lo, b_hi, b_ok), (a_lo, a_hi, a_ok) = _clip_straddlers(
-                corners[_ref_triangles(refs)[src[straddles]]].astype(np.float64),
-                cell_lo[s_node], cell_hi[s_node], axis[s_node], plane[s_node])
-            goes_below[straddles] = b_ok
-            goes_above[straddles] = a_ok
-
-        # Children in parent order, each parent's below child first: node j's children are
-        # 2 rank(j) and 2 rank(j) + 1. References keep their order within a child.
-        seg = _exclusive_cumsum(split_counts)[:-1]
-        n_child_below = np.add.reduceat(goes_below, seg, dtype=np.int64)
-        n_child_above = np.add.reduceat(goes_above, seg, dtype=np.int64)
-        child_counts = np.stack([n_child_below, n_child_above], 1).reshape(-1)
-        child_start = _exclusive_cumsum(child_counts)
-        total = int(child_start[-1])
-        new_src = np.empty(total, np.int64)
-        at_straddler = []
-        for side, goes, n_child in ((0, goes_below, n_child_below), (1, goes_above, n_child_above)):
-            pos_in_src = np.flatnonzero(goes)
-            shift = child_start[0::2][:-1] if side == 0 else child_start[1::2]
-            shift = shift - _exclusive_cumsum(n_child)[:-1]
-            where = np.arange(len(pos_in_src)) + np.repeat(shift, n_child)
-            new_src[where] = src[pos_in_src]
-            if len(straddles):
-                ok = (b_ok, a_ok)[side]
-                at_straddler.append(where[(np.cumsum(goes) - 1)[straddles[ok]]])
-        new_refs = _gather_refs(refs, new_src)
-        if len(straddles):
-            # Straddlers get their clipped box on each side they go to (the 6 box words of
-            # a row written as one 24-byte item).
-            box_items = new_refs[:, 0:6].view(_BOX_ROW)[:, 0]
-            for at, lo_s, hi_s, ok in ((at_straddler[0], b_lo, b_hi, b_ok),
-                                       (at_straddler[1], a_lo, a_hi, a_ok)):
-                box = np.concatenate([lo_s, hi_s], 1)
-                box_items[at] = box.view(_BOX_ROW)[:, 0][ok]
-        del new_src
-
-        # 6. Children's cells and bad-refine counts.
-        child_lo = np.repeat(cell_lo[split_nodes], 2, 0)
-        child_hi = np.repeat(cell_hi[split_nodes], 2, 0)
-        child_axis = np.repeat(axis[split_nodes], 2)
-        child_plane = np.repeat(plane[split_nodes], 2)
-        rows = np.arange(2 * split_count)
-        child_hi[rows[0::2], child_axis[0::2]] = child_plane[0::2]
-        child_lo[rows[1::2], child_axis[1::2]] = child_plane[1::2]
-
-        level_base += node_count
-        cell_lo, cell_hi = child_lo, child_hi
-        parent_counts, counts = counts, child_counts
-        bad_refines = np.repeat(bad_refines[split_nodes], 2)
-        # The child of an empty-space cut that keeps all references inherits the chain.
-        pend_cost = np.full((2 * split_count, CHAIN), np.inf, np.float32)
-        pend_axis = np.zeros((2 * split_count, CHAIN), np.int8)
-        pend_plane = np.zeros((2 * split_count, CHAIN), np.float32)
-        pend_len = np.zeros(2 * split_count, np.int8)
-        heirs = split_nodes[fut_len[split_nodes] > 0]
-        heir = 2 * split_rank[heirs] + (n_below[heirs] != parent_counts[heirs])
-        same = child_counts[heir] == parent_counts[heirs]            # always, by construction
-        heirs, heir = heirs[same], heir[same]
-        for pend, fut in ((pend_cost, fut_cost), (pend_axis, fut_axis), (pend_plane, fut_plane)):
-            pend[heir] = fut[heirs]
-        pend_len[heir] = fut_len[heirs]
-        refs = new_refs
-        level += 1
-
-    nodes = np.concatenate(level_words)
-    leaf_indices = np.concatenate(leaf_lists).astype(np.uint32)
+    threads = params.thread_count()
+    levels, frontier, level = _grow(
+        root, 0, ctx, stop=lambda fr: threads > 1 and len(fr) >= PARALLEL_NODES,
+        on_level=on_level)
+    if frontier is not None:
+        levels += _grow_in_parallel(frontier, level, ctx, threads, progress)
+    nodes, leaf_indices = _write_nodes(levels)
+    leaf_levels = [k for k, d in enumerate(levels) if d.make_leaf.any()]
     tree = KDTree(nodes, leaf_indices, bounds)
     tree.stats = {
         "nodes": len(nodes),
-        "leaves": leaf_count,
-        "empty_leaves": empty_leaves,
-        "depth": max_leaf_depth,
-        "depth_cap": depth_cap,
+        "leaves": sum(int(d.make_leaf.sum()) for d in levels),
+        "empty_leaves": sum(int((d.make_leaf & (d.words[:, 0] == LEAF_TAG)).sum())
+                            for d in levels),
+        "depth": max(leaf_levels, default=0),
+        "depth_cap": ctx.depth_cap,
         "references": len(leaf_indices),
         "refs_per_triangle": len(leaf_indices) / max(len(kept), 1),
         "dropped_degenerate": triangle_count - len(kept),
         "bytes": tree.nbytes,
-        "sah_cost": float(sah_cost),
+        "sah_cost": float(sum(d.sah_cost for d in levels)),
         "build_seconds": time.perf_counter() - started,
+        "threads": threads,
     }
     if progress is not None:
         progress(1.0, f"kd-tree done: {len(nodes)} nodes, {len(leaf_indices)} references")

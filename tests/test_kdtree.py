@@ -400,3 +400,44 @@ def test_reference_rows_keep_boxes_and_triangle_ids_bit_exact():
     assert np.array_equal(moved.view(np.int32), refs.view(np.int32)[index])
     triangles = kd._ref_triangles(moved.reshape(-1, kd.REF_WORDS))
     assert np.array_equal(triangles, ids[index.reshape(-1)])
+
+
+@pytest.mark.parametrize("name", ["bunny", "cube_of_quads", "slivers"])
+def test_parallel_parts_give_the_same_tree(name, monkeypatch):
+    # Subtrees grown in threads (core.kdtree._grow_in_parallel) are joined level by level;
+    # the layout must be exactly the single-thread one whatever the thread and part counts.
+    import core.kdtree as kd
+    vertices, triangles = SCENES[name]()
+    reference = build_kdtree(vertices, triangles, KDTreeParams(threads=1))
+    assert reference.stats["threads"] == 1
+    monkeypatch.setattr(kd, "PARALLEL_NODES", 2)
+    for threads in (2, 3):
+        parallel = build_kdtree(vertices, triangles, KDTreeParams(threads=threads))
+        assert parallel.stats["threads"] == threads
+        assert np.array_equal(reference.nodes, parallel.nodes)
+        assert np.array_equal(reference.leaf_indices, parallel.leaf_indices)
+        assert parallel.stats["sah_cost"] == pytest.approx(reference.stats["sah_cost"], rel=1e-12)
+
+
+def test_parallel_progress_runs_on_the_calling_thread_and_can_stop_the_build():
+    import threading
+    vertices, triangles = SCENES["bunny"]()
+    callers, fractions = set(), []
+
+    def progress(fraction, message):
+        callers.add(threading.get_ident())
+        fractions.append(fraction)
+
+    build_kdtree(vertices, triangles, KDTreeParams(threads=2), progress=progress)
+    assert callers == {threading.get_ident()}
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+
+    class Stop(Exception):
+        pass
+
+    def stop_in_parallel_phase(fraction, message):
+        if "threads" in message:
+            raise Stop
+    with pytest.raises(Stop):
+        build_kdtree(vertices, triangles, KDTreeParams(threads=2), progress=stop_in_parallel_phase)
+    assert not [t for t in threading.enumerate() if t.name.startswith("kdtree")]
