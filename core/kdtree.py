@@ -7,7 +7,9 @@ algorithm and its measured numbers.
 The build keeps one flat list of *references* (triangle id, node, clipped float32 box) sorted by
 node, each one row of 7 float32 words (box, then the triangle id's int32 bits), and processes a
 whole level of the tree at a time: every step below is a numpy operation over all references or
-all nodes of the level, never a Python loop per node or per triangle.
+all nodes of the level, never a Python loop per node or per triangle. Once a level is wide
+enough, contiguous ranges of its nodes grow their subtrees in threads (numpy releases the GIL in
+its loops) and are joined level by level, giving the same tree as one thread.
 
 Zero-area triangles (exactly zero cross product in float64) are dropped: a watertight ray test
 never reports a hit on them, and their clipped pieces would all look like zero-area contacts.
