@@ -2,7 +2,8 @@
 memory per kd-tree mode (standard, choi, ours), and an optional threshold sweep.
 
     .venv/bin/python bench/kdtree_tables.py [--scenes dragon architecture dragons12]
-        [--sweep] [--check-rays N] [--table3 [--repeats R] [--size S]] [--reuse]
+        [--sweep] [--check-rays N] [--table3] [--collapse-sweep K_T ...] [--repeats R]
+        [--size S] [--reuse] [--skip-tables]
 
 Each scene's standard tree is built once in a child process (its time and peak RSS reported),
 saved under --cache, and every mode is compacted from it in its own child process (time and peak
@@ -12,7 +13,8 @@ memory is the larger of the two processes' peaks.
 --table3: render time per mode (Table 3): render_tile of an S x S image (1 sample per pixel, one
 point light: primary and shadow rays) on PoCL with POCL_MAX_PTHREAD_COUNT=1, the three modes
 side by side in one process, R rounds (each round renders every mode once, in turn), median
-reported. --check-rays N also runs N random rays through the OpenCL kernel for every mode: the
+reported. --collapse-sweep K_T... renders "ours" with those collapse traversal costs beside
+standard the same way (tree bytes and render time as % of standard). --check-rays N also runs N random rays through the OpenCL kernel for every mode: the
 three must agree exactly, and a sample of them with the kernel's own brute force (one leaf
 holding every triangle).
 """
@@ -132,6 +134,8 @@ def main():
     parser.add_argument("--table3", action="store_true", help="render time per mode")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--size", type=int, default=1024)
+    parser.add_argument("--collapse-sweep", type=float, nargs="+", metavar="K_T",
+                        help="ours at these collapse traversal costs: tree bytes and render time")
     parser.add_argument("--skip-tables", action="store_true",
                         help="only --table3 / --check-rays (standard trees from --cache)")
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
@@ -147,7 +151,7 @@ def main():
         print(json.dumps(result, default=float))
         return
 
-    if args.table3:
+    if args.table3 or args.collapse_sweep:
         os.environ["POCL_MAX_PTHREAD_COUNT"] = "1"   # before the OpenCL platform loads
     from core.kdtree_compact import geometry_nbytes
     print("command:", " ".join(["python"] + sys.argv))
@@ -161,6 +165,8 @@ def main():
                                  "--skip-tables first")
         if args.table3:
             table3(args.scenes, cache, args.repeats, args.size)
+        if args.collapse_sweep:
+            collapse_sweep(args.scenes, cache, args.collapse_sweep, args.repeats, args.size)
         if args.check_rays:
             check_kernel(args.scenes, cache, args.check_rays)
         return
@@ -230,6 +236,8 @@ def main():
         check_kernel(args.scenes, cache, args.check_rays)
     if args.table3:
         table3(args.scenes, cache, args.repeats, args.size)
+    if args.collapse_sweep:
+        collapse_sweep(args.scenes, cache, args.collapse_sweep, args.repeats, args.size)
 
 
 SWEEP = [
@@ -333,50 +341,78 @@ def table3_view(name, vertices, size):
     return View(camera, size, size, shading, settings=settings)
 
 
-def table3(names, cache, repeats, size):
-    """Render time per mode: the modes in turn within each round, median over the rounds."""
+def render_times(name, cache, variants, repeats, size):
+    """Render time of one scene per tree variant ({label: (mode, compact_tree options)}): the
+    variants in turn within each round, median over the rounds. Returns {label: (median s,
+    min s, tree bytes)}; prints the hit rate and whether all variants give identical images."""
+    from core.kdtree import KDTree
+    from core.kdtree_compact import compact_tree
     from core.scene import Geometry
     from slave.tracer import Tracer
+    vertices, triangles = load_scene(name)
+    geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
+    data = np.load(cache / f"{name}.npz")
+    tree = KDTree(data["nodes"], data["leaf_indices"], data["bounds"])
+    view = table3_view(name, vertices, size)
+    tracers, images, nbytes = {}, {}, {}
+    for label, (mode, options) in variants.items():
+        compact = compact_tree(tree, len(triangles), mode, **options)
+        nbytes[label] = compact.nbytes
+        tracers[label] = Tracer("cpu")
+        tracers[label].load(geometry, compact)
+        images[label] = tracers[label].render_tile(view, 0, 0, size, size)   # warm-up, build
+    first = images[next(iter(variants))]
+    depth = first["depth"]
+    hit_depth = depth[depth < 1e10]
+    spread = (f"depth quartiles {np.percentile(hit_depth, [25, 50, 75]).round(2).tolist()}"
+              if len(hit_depth) else "no hits")
+    same = all(np.array_equal(images[label][k], first[k]) for label in variants for k in first)
+    times = {label: [] for label in variants}
+    for _ in range(repeats):
+        for label in variants:
+            started = time.perf_counter()
+            tracers[label].render_tile(view, 0, 0, size, size)
+            times[label].append(time.perf_counter() - started)
+    print(f"  {name}: {(depth < 1e10).mean():.1%} of pixels hit ({spread}), images identical "
+          f"across variants: {same}; " + ", ".join(
+              f"{label} " + " ".join(f"{t:.3f}" for t in times[label]) for label in variants),
+          flush=True)
+    return {label: (float(np.median(times[label])), min(times[label]), nbytes[label])
+            for label in variants}
+
+
+def table3(names, cache, repeats, size):
+    """Render time per mode (Table 3)."""
     print(f"\nTable 3: render time, {size}x{size}, 1 sample/pixel + 1 shadow ray, "
           f"POCL_MAX_PTHREAD_COUNT={os.environ.get('POCL_MAX_PTHREAD_COUNT')}, "
           f"{repeats} rounds (median; min in brackets)")
-    rows = []
-    for name in names:
-        vertices, triangles = load_scene(name)
-        geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
-        trees = _compact_trees(name, cache, len(triangles))
-        view = table3_view(name, vertices, size)
-        tracers, images = {}, {}
-        for mode in MODES:
-            tracers[mode] = Tracer("cpu")
-            tracers[mode].load(geometry, trees[mode])
-            images[mode] = tracers[mode].render_tile(view, 0, 0, size, size)   # warm-up, build
-        depth = images["standard"]["depth"]
-        hit = float((depth < 1e10).mean())
-        hit_depth = depth[depth < 1e10]
-        spread = (f"depth quartiles {np.percentile(hit_depth, [25, 50, 75]).round(2).tolist()}"
-                  if len(hit_depth) else "no hits")
-        same = all(np.array_equal(images[m][k], images["standard"][k])
-                   for m in MODES for k in images[m])
-        times = {mode: [] for mode in MODES}
-        for _ in range(repeats):
-            for mode in MODES:
-                started = time.perf_counter()
-                tracers[mode].render_tile(view, 0, 0, size, size)
-                times[mode].append(time.perf_counter() - started)
-        med = {m: float(np.median(times[m])) for m in MODES}
-        rows.append((name, med, {m: min(times[m]) for m in MODES}))
-        print(f"  {name}: {hit:.1%} of pixels hit ({spread}), images identical across modes: {same}; "
-              + ", ".join(f"{m} " + " ".join(f"{t:.3f}" for t in times[m]) for m in MODES),
-              flush=True)
-        del tracers, trees
+    rows = [(name, render_times(name, cache, {m: (m, {}) for m in MODES}, repeats, size))
+            for name in names]
     print("| scene | standard s | choi s (% of standard) | ours s (% of standard) |")
     print("|---|---|---|---|")
-    for name, med, best in rows:
-        base = med["standard"]
-        print(f"| {name} | {base:.3f} [{best['standard']:.3f}] | "
-              + " | ".join(f"{med[m]:.3f} [{best[m]:.3f}] ({100 * med[m] / base:.1f} %)"
+    for name, r in rows:
+        base = r["standard"][0]
+        print(f"| {name} | {base:.3f} [{r['standard'][1]:.3f}] | "
+              + " | ".join(f"{r[m][0]:.3f} [{r[m][1]:.3f}] ({100 * r[m][0] / base:.1f} %)"
                            for m in ("choi", "ours")) + " |")
+
+
+def collapse_sweep(names, cache, costs, repeats, size):
+    """What the collapse's traversal cost K_T trades in mode ours: tree bytes against render
+    time, both as % of standard, rendered side by side."""
+    print(f"\nCollapse sweep (mode ours, K_I = 20): {size}x{size} render as Table 3, {repeats} "
+          "rounds (median)")
+    print("| scene | collapse K_T | tree MB (% of standard) | render s (% of standard) |")
+    print("|---|---|---|---|")
+    for name in names:
+        variants = {"standard": ("standard", {})}
+        variants.update({f"K_T {k:g}": ("ours", {"traversal_cost": k}) for k in costs})
+        r = render_times(name, cache, variants, repeats, size)
+        base_s, base_bytes = r["standard"][0], r["standard"][2]
+        for k in costs:
+            s, _, nbytes = r[f"K_T {k:g}"]
+            print(f"| {name} | {k:g} | {percent(nbytes, base_bytes)} | {s:.3f} "
+                  f"({100 * s / base_s:.1f} %) |", flush=True)
 
 
 def check_kernel(names, cache, count, brute_sample=1000):
