@@ -221,7 +221,39 @@ class _Topology:
             child = self.field[inner]
             self.pre[child] = self.pre[inner] + 1
             self.pre[child + 1] = self.pre[inner] + 1 + size[child]
+        self.pre_end = self.pre + size
         self.max_depth = len(self.levels) - 1
+
+    def subtree_sum(self, values) -> np.ndarray:
+        """Sum of `values` (one per node) over each node's subtree, bottom-up level by level
+        (siblings are neighbours in memory, unlike a preorder prefix sum's scattered reads)."""
+        total = np.array(values, copy=True)
+        for level in reversed(self.levels):
+            inner = level[~self.is_leaf[level]]
+            child = self.field[inner]
+            total[inner] += total[child] + total[child + 1]
+        return total
+
+    def lca(self, a, b) -> np.ndarray:
+        """Lowest common ancestor of each node pair (a, b) with pre[a] <= pre[b].
+
+        Binary lifting: climb from a by the largest jumps (2^k ancestors) that stay outside the
+        subtree holding b; the parent of where it stops is the LCA (a itself when a is b or an
+        ancestor of b). A constant number of passes instead of one per level; int32 tables and
+        each subtree's preorder range in one row halve the scattered reads.
+        """
+        jumps = [np.maximum(self.parent, 0).astype(np.int32)]   # the root is its own parent
+        for _ in range(max(self.max_depth, 1).bit_length() - 1):
+            jumps.append(jumps[-1][jumps[-1]])
+        span = np.stack([self.pre, self.pre_end], 1).astype(np.int32)
+        pre_b = self.pre[b].astype(np.int32)
+        x = np.asarray(a).astype(np.int32)
+        for up in reversed(jumps):
+            y = up[x]
+            y_span = span[y]
+            x = np.where((y_span[:, 0] <= pre_b) & (pre_b < y_span[:, 1]), x, y)
+        a_holds_b = span[a, 1] > pre_b
+        return np.where(a_holds_b, a, jumps[0][x]).astype(np.int64)
 
     def leaf_references(self, tree):
         """(leaf node, triangle) of every reference of the standard tree."""
@@ -236,50 +268,112 @@ class _Topology:
 # ---------------------------------------------------------------------------------------------
 # 1. Lifting
 
-def _lift_candidates(topo, s_leaf, s_tri, r_total, params):
-    """Every (inner node, triangle) pair that passes both thresholds, bottom-up, per depth.
+def _nearest_lower(values, index, step, strict):
+    """For each i in `index`, the nearest k in direction `step` (+1 or -1) with values[k] below
+    values[i] (`strict`) or at most values[i]. `values` must end in sentinels lower than any
+    queried value on both sides. Pointer jumping: every pointer k -> p[k] skips only values
+    that do not stop k, hence none that would stop i either."""
+    pointer = np.arange(len(values)) + step
+    target = values[index]
+    active = np.arange(len(index))
+    while len(active):
+        at = pointer[index[active]]
+        seen = values[at]
+        move = (seen >= target[active]) if strict else (seen > target[active])
+        active = active[move]
+        pointer[index[active]] = pointer[at[move]]
+    return pointer[index]
+
+
+def _neighbour_lcas(topo, s_leaf, s_tri):
+    """Gap j lies before sorted reference j: the LCA of the leaves of references j-1 and j when
+    they hold the same triangle, and its depth; depth -1 between triangles and at both ends."""
+    count = len(s_tri)
+    gap_depth = np.full(count + 1, -1, np.int64)
+    gap_node = np.zeros(count + 1, np.int64)
+    same = np.flatnonzero(s_tri[1:] == s_tri[:-1]) + 1
+    gap_node[same] = topo.lca(s_leaf[same - 1], s_leaf[same])
+    gap_depth[same] = topo.depth[gap_node[same]]
+    return gap_node, gap_depth
+
+
+def _lift_candidates(topo, s_leaf, s_tri, gap_node, gap_depth, params):
+    """Every (inner node, triangle) pair that passes both thresholds, per depth.
 
     s_leaf/s_tri: references sorted by (triangle, preorder of the leaf), so that the references of
-    a triangle inside any subtree are one contiguous run. Returns per depth a tuple of arrays
-    (node, triangle, references removed, first and end position of the run in the sorted list).
+    a triangle inside any subtree are one contiguous run. The run of t below a node at depth d is
+    a maximal stretch of t's references whose gaps (`_neighbour_lcas`) lie at depth >= d: it
+    appears at the depth of its LCA and lasts, unchanged but for its node, up to the depth where
+    it merges with a neighbour (a triangle whose references have all met is dropped there:
+    higher up its occupancy only falls). Each run is walked up from its LCA only while it
+    qualifies: occupancy and frequency only fall going up where cells grow (checked per path),
+    so no pair above a failure can qualify. A triangle with fewer than min_refs references has
+    no run long enough. Returns per depth a tuple of arrays (node, triangle, references removed,
+    first and end position of the run in the sorted list).
     """
-    nonempty = topo.is_leaf & (topo.field > 0)
-    nonempty_below = nonempty.astype(np.int64)
-    for level in reversed(topo.levels):
-        inner = level[~topo.is_leaf[level]]
-        child = topo.field[inner]
-        nonempty_below[inner] = nonempty_below[child] + nonempty_below[child + 1]
+    same = np.flatnonzero(gap_depth >= 0)
+    # Runs of two or more references: one per gap that is the first of its depth in its run.
+    left = _nearest_lower(gap_depth, same, -1, strict=False)
+    right = _nearest_lower(gap_depth, same, +1, strict=True)
+    first = gap_depth[left] < gap_depth[same]
+    run_lo, run_hi = left[first], right[first]   # references run_lo .. run_hi - 1
+    run_node, run_depth = gap_node[same[first]], gap_depth[same[first]]
+    # Copies of a triangle within one leaf (never made by core/kdtree.py): the leaf is no
+    # candidate, the run starts at its parent.
+    in_leaf = np.flatnonzero(topo.is_leaf[run_node])
+    run_node[in_leaf], run_depth[in_leaf] = topo.parent[run_node[in_leaf]], run_depth[in_leaf] - 1
+    if params.min_refs <= 1:                     # single references are runs of their own
+        single = np.flatnonzero(topo.depth[s_leaf] > 0)
+        run_lo = np.concatenate([run_lo, single])
+        run_hi = np.concatenate([run_hi, single + 1])
+        run_node = np.concatenate([run_node, topo.parent[s_leaf[single]]])
+        run_depth = np.concatenate([run_depth, topo.depth[s_leaf[single]] - 1])
+    # The run merges with a neighbour one level above the deeper of its two bounding gaps; a
+    # run bounded by the triangle's ends on both sides holds all its references: last depth.
+    bound_lo, bound_hi = gap_depth[run_lo], gap_depth[run_hi]
+    top_depth = np.where((bound_lo < 0) & (bound_hi < 0), run_depth,
+                         np.maximum(bound_lo, bound_hi) + 1)
+    r = run_hi - run_lo
+    keep = (r >= params.min_refs) & (run_depth >= top_depth) & (run_depth >= 0)
+    run_lo, run_hi, run_node, run_depth, r, top_depth = (
+        run_lo[keep], run_hi[keep], run_node[keep], run_depth[keep], r[keep], top_depth[keep])
+    # Summed per run over the same contiguous values as a run-by-run reduceat (same bits).
+    edges = np.stack([run_lo, run_hi], 1).reshape(-1)
+    area_sum = np.add.reduceat(np.append(topo.area[s_leaf], 0.0), edges)[0::2] \
+        if len(edges) else np.zeros(0)
+    run_tri, first, end = s_tri[run_lo], run_lo, run_hi
+    nonempty_below = topo.subtree_sum((topo.is_leaf & (topo.field > 0)).astype(np.int64))
+    stops = _falls_going_up(topo)
 
-    pos = np.flatnonzero(r_total[s_tri] >= params.min_refs)
-    tri, anc = s_tri[pos], s_leaf[pos]
-    leaf_area = topo.area[anc]
-    anc_depth = topo.depth[anc].astype(np.int64)
+    found = []                                   # (depth, node, triangle, r, first, end)
+    node, depth = run_node, run_depth
+    active = np.arange(len(node))
+    while len(active):
+        occupancy = area_sum[active] / topo.area[node]
+        frequency = r[active] / np.maximum(nonempty_below[node], 1)
+        ok = (occupancy >= params.tau_occu) & (frequency >= params.tau_freq)
+        hit = active[ok]
+        found.append((depth[ok], node[ok], run_tri[hit], r[hit], first[hit], end[hit]))
+        go_on = (depth > top_depth[active]) & (ok | ~stops[node])
+        active, node, depth = active[go_on], topo.parent[node[go_on]], depth[go_on] - 1
+    found = [np.concatenate(column) for column in zip(*found)] if found else [np.zeros(0)] * 6
+    order = np.argsort(found[0], kind="stable")
+    found = [column[order] for column in found]
+    bounds = np.searchsorted(found[0], np.arange(topo.max_depth + 2))
     per_depth = [None] * (topo.max_depth + 1)
-    for d in range(topo.max_depth - 1, -1, -1):
-        deeper = np.flatnonzero(anc_depth > d)
-        if not len(deeper):
-            continue
-        anc[deeper] = topo.parent[anc[deeper]]
-        anc_depth[deeper] = d
-        g_tri, g_anc = tri[deeper], anc[deeper]
-        starts = _run_starts(g_tri, g_anc)
-        ends = np.append(starts[1:], len(deeper))
-        r = ends - starts
-        node, t = g_anc[starts], g_tri[starts]
-        occupancy = np.add.reduceat(leaf_area[deeper], starts) / topo.area[node]
-        frequency = r / np.maximum(nonempty_below[node], 1)
-        ok = (r >= params.min_refs) & (occupancy >= params.tau_occu) \
-            & (frequency >= params.tau_freq)
-        per_depth[d] = (node[ok], t[ok], r[ok], pos[deeper[starts[ok]]],
-                        pos[deeper[ends[ok] - 1]] + 1)
-        # A triangle whose references all met in one run only loses occupancy higher up.
-        done = r == r_total[t]
-        if done.any():
-            keep = np.ones(len(tri), bool)
-            keep[deeper[_ranges(starts[done], r[done])]] = False
-            tri, anc, leaf_area, anc_depth, pos = (tri[keep], anc[keep], leaf_area[keep],
-                                                   anc_depth[keep], pos[keep])
+    for d in range(topo.max_depth + 1):
+        if bounds[d] < bounds[d + 1]:
+            per_depth[d] = tuple(column[bounds[d]:bounds[d + 1]] for column in found[1:])
     return per_depth
+
+
+def _falls_going_up(topo):
+    """Nodes from which the cell area never shrinks up to the root (and is positive, finite):
+    there occupancy, like frequency, can only fall going up, so a failed test ends a walk."""
+    ok = np.isfinite(topo.area) & (topo.area > 0)
+    for level in topo.levels[1:]:
+        ok[level] &= ok[topo.parent[level]] & (topo.area[topo.parent[level]] >= topo.area[level])
+    return ok
 
 
 def _select_lifts(topo, per_depth, ref_count, params):
@@ -287,13 +381,14 @@ def _select_lifts(topo, per_depth, ref_count, params):
 
     At each node the candidates that remove the most references win. A candidate is void when
     its triangle was already lifted to an ancestor (its whole run is then removed).
-    Returns (removed mask over sorted references, lift node, lift triangle).
+    Returns (removed mask over sorted references, lift node, lift triangle, references per
+    node, first position of each lift's run).
     """
     removed = np.zeros(ref_count, bool)
     refs_at = np.zeros(topo.n, np.int64)
     on_path = np.zeros(topo.n, np.int64)          # references on the proper ancestors
     path_cap = params.refs_per_path if params.refs_per_path is not None else 1 << 30
-    lift_node, lift_tri = [], []
+    lift_node, lift_tri, lift_first = [], [], []
     for d, level in enumerate(topo.levels):
         cand = per_depth[d] if d < len(per_depth) else None
         if cand is not None and len(cand[0]) and params.refs_per_node:
@@ -310,62 +405,35 @@ def _select_lifts(topo, per_depth, ref_count, params):
             np.add.at(refs_at, node[take], 1)
             lift_node.append(node[take])
             lift_tri.append(tri[take])
+            lift_first.append(first[take])
         inner = level[~topo.is_leaf[level]]
         child = topo.field[inner]
         on_path[child] = on_path[inner] + refs_at[inner]
         on_path[child + 1] = on_path[child]
-    lift_node = np.concatenate(lift_node) if lift_node else np.zeros(0, np.int64)
-    lift_tri = np.concatenate(lift_tri) if lift_tri else np.zeros(0, np.int64)
-    return removed, lift_node, lift_tri, refs_at
+    lift_node, lift_tri, lift_first = (np.concatenate(part) if part else np.zeros(0, np.int64)
+                                       for part in (lift_node, lift_tri, lift_first))
+    return removed, lift_node, lift_tri, refs_at, lift_first
 
 
 # ---------------------------------------------------------------------------------------------
 # 2. Collapsing
 
-def _distinct_below(topo, item_node, item_tri, triangle_count):
-    """Number of distinct triangles among the items (node, triangle) in each node's subtree.
+def _distinct_below(topo, removed, s_leaf, gap_node, gap_depth, lift_node, lift_first):
+    """Number of distinct triangles among the kept references and the lifts in each subtree.
 
-    Items sorted by (triangle, preorder) climb one level per step; at depth d the runs of equal
-    (triangle, ancestor) are the distinct triangles below each depth-d node. A triangle whose
-    items have all met in one run is counted once in `finished` and dropped from later steps.
+    The kept references and the lifts' runs partition the sorted references into segments,
+    in (triangle, preorder) order: a triangle's segments inside any subtree are consecutive, and
+    each neighbouring pair of them has its LCA inside the subtree while a pair reaching outside
+    has it above. The LCA of two neighbouring segments is the gap before the second (inside a
+    lift's run every gap lies below the lift). So items below a node minus those gaps below it
+    counts every triangle once.
     """
-    order = np.argsort(item_tri * topo.n + topo.pre[item_node], kind="stable")
-    tri, anc = item_tri[order], item_node[order]
-    del order
-    total = np.bincount(tri, minlength=triangle_count)
-    anc_depth = topo.depth[anc].astype(np.int64)
-    finished = np.zeros(topo.n, np.int64)     # finished triangles in the subtree
-    runs_at = np.zeros(topo.n, np.int64)
-    finished_here = np.zeros(topo.n, np.int64)
-    distinct = np.zeros(topo.n, np.int64)
-    for d in range(topo.max_depth, -1, -1):
-        deeper = np.flatnonzero(anc_depth > d)
-        if len(deeper):
-            anc[deeper] = topo.parent[anc[deeper]]
-            anc_depth[deeper] = d
-        here = np.flatnonzero(anc_depth == d)
-        level = topo.levels[d]
-        inner = level[~topo.is_leaf[level]]
-        child = topo.field[inner]
-        finished[inner] = finished[child] + finished[child + 1]
-        if not len(here):
-            distinct[level] = finished[level]
-            continue
-        starts = _run_starts(tri[here], anc[here])
-        lengths = np.diff(np.append(starts, len(here)))
-        run_node = anc[here[starts]]
-        np.add.at(runs_at, run_node, 1)
-        done = lengths == total[tri[here[starts]]]
-        np.add.at(finished_here, run_node[done], 1)
-        distinct[level] = runs_at[level] + finished[level]
-        finished[level] += finished_here[level]
-        runs_at[level] = 0
-        finished_here[level] = 0
-        if done.any():
-            keep = np.ones(len(tri), bool)
-            keep[here[_ranges(starts[done], lengths[done])]] = False
-            tri, anc, anc_depth = tri[keep], anc[keep], anc_depth[keep]
-    return distinct
+    starts = np.concatenate([np.flatnonzero(~removed), lift_first])
+    starts = starts[gap_depth[starts] >= 0]
+    per_node = (np.bincount(s_leaf[~removed], minlength=topo.n)
+                + np.bincount(lift_node, minlength=topo.n)
+                - np.bincount(gap_node[starts], minlength=topo.n))
+    return topo.subtree_sum(per_node)
 
 
 def _collapse(topo, leaf_count, refs_at, distinct, params):
@@ -416,30 +484,33 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
     order = np.argsort(ref_tri * topo.n + topo.pre[ref_leaf], kind="stable")
     s_leaf, s_tri = ref_leaf[order], ref_tri[order]
     del order, ref_leaf, ref_tri
-    r_total = np.bincount(s_tri, minlength=triangles_count)
     report(0.2, "compact: tree decoded")
 
     lifting = params.refs_per_node > 0 and (params.refs_per_path is None
                                             or params.refs_per_path > 0)
+    if lifting or params.collapse:
+        gap_node, gap_depth = _neighbour_lcas(topo, s_leaf, s_tri)
     if lifting:
-        per_depth = _lift_candidates(topo, s_leaf, s_tri, r_total, params)
-        removed, lift_node, lift_tri, refs_at = _select_lifts(topo, per_depth, len(s_tri), params)
+        per_depth = _lift_candidates(topo, s_leaf, s_tri, gap_node, gap_depth, params)
+        removed, lift_node, lift_tri, refs_at, lift_first = _select_lifts(
+            topo, per_depth, len(s_tri), params)
         del per_depth
     else:
         removed = np.zeros(len(s_tri), bool)
-        lift_node = lift_tri = np.zeros(0, np.int64)
+        lift_node = lift_tri = lift_first = np.zeros(0, np.int64)
         refs_at = np.zeros(topo.n, np.int64)
     report(0.5, f"compact: {len(lift_tri)} triangle references lifted")
 
+    # 2. Collapse subtrees (the triangles lifted inside a subtree come back into its leaf).
+    if params.collapse:
+        distinct = _distinct_below(topo, removed, s_leaf, gap_node, gap_depth, lift_node,
+                                   lift_first)
+        del gap_node, gap_depth
     keep_ref = ~removed
     k_leaf, k_tri = s_leaf[keep_ref], s_tri[keep_ref]
     del s_leaf, s_tri, removed, keep_ref
     leaf_count = np.bincount(k_leaf, minlength=topo.n)
-
-    # 2. Collapse subtrees (the triangles lifted inside a subtree come back into its leaf).
     if params.collapse:
-        distinct = _distinct_below(topo, np.concatenate([k_leaf, lift_node]),
-                                   np.concatenate([k_tri, lift_tri]), triangles_count)
         collapsed = _collapse(topo, leaf_count, refs_at, distinct, params)
     else:
         collapsed = np.zeros(topo.n, bool)
