@@ -481,9 +481,15 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
     topo = _Topology(tree)
     ref_leaf, ref_tri = topo.leaf_references(tree)
     reference_count = len(ref_tri)
-    order = np.argsort(ref_tri * topo.n + topo.pre[ref_leaf], kind="stable")
-    s_leaf, s_tri = ref_leaf[order], ref_tri[order]
-    del order, ref_leaf, ref_tri
+    # Sorted by (triangle, preorder of the leaf): sorting the keys themselves and decoding
+    # them is cheaper than an argsort and two gathers (equal keys are equal references).
+    key = np.sort(ref_tri * topo.n + topo.pre[ref_leaf])
+    del ref_leaf, ref_tri
+    node_at_pre = np.empty(topo.n, np.int64)
+    node_at_pre[topo.pre] = np.arange(topo.n)
+    s_tri, s_leaf = np.divmod(key, topo.n)
+    s_leaf = node_at_pre[s_leaf]
+    del key, node_at_pre
     report(0.2, "compact: tree decoded")
 
     lifting = params.refs_per_node > 0 and (params.refs_per_path is None
@@ -601,7 +607,8 @@ def _layout(topo, params, is_final_leaf, dead, final_count, item_leaf, item_tri,
         inner = level[~dead[level] & ~is_final_leaf[level]]
         if not len(inner):
             continue
-        inner = inner[np.argsort(new_index[inner], kind="stable")]
+        if (np.diff(new_index[inner]) < 0).any():     # already in order for breadth-first trees
+            inner = inner[np.argsort(new_index[inner], kind="stable")]
         child = topo.field[inner]
         has_ref = (refs_at[inner] > 0).astype(np.int64)
         keep_b = (~elided[child]).astype(np.int64)

@@ -13,8 +13,9 @@ import functools
 import numpy as np
 import pytest
 
-from core.kdtree import build_kdtree
-from core.kdtree_compact import (LEAF_TAG, MODES, NO_TRIANGLE, compact_params, compact_tree,
+from core.kdtree import KDTree, build_kdtree
+from core.kdtree_compact import (LEAF_TAG, MODES, NO_TRIANGLE, _lift_candidates,
+                                 _neighbour_lcas, _Topology, compact_params, compact_tree,
                                  geometry_nbytes)
 from tests.meshes import load_bunny, uv_sphere
 from tests.scenes_architecture import architecture_scene
@@ -541,3 +542,64 @@ def test_params_validation():
         compact_params("ours", refs_per_node=3)
     assert compact_params("choi").refs_per_path is None
     assert compact_params("ours").refs_per_path == 8
+
+
+def naive_candidates(tree, params):
+    """(depth, node, triangle, references, first, end) of every lift candidate, node by node from
+    the definitions (docs/kdtree_compression.md): the references of t in the node's subtree, no
+    candidate above the inner node where all of t's references have met."""
+    topo = _Topology(tree)
+    ref_leaf, ref_tri = topo.leaf_references(tree)
+    order = np.lexsort((topo.pre[ref_leaf], ref_tri))
+    leaf, tri, pre = ref_leaf[order], ref_tri[order], topo.pre[ref_leaf[order]]
+    r_total = np.bincount(tri)
+    nonempty = (topo.is_leaf & (topo.field > 0)).astype(np.int64)
+    found = set()
+    for n in np.flatnonzero(~topo.is_leaf):
+        inside = np.flatnonzero((pre >= topo.pre[n]) & (pre < topo.pre_end[n]))
+        ne = nonempty[(topo.pre >= topo.pre[n]) & (topo.pre < topo.pre_end[n])].sum()
+        for t in np.unique(tri[inside]):
+            run = inside[tri[inside] == t]
+            r = len(run)
+            below = [c for c in (topo.field[n], topo.field[n] + 1) if not topo.is_leaf[c]
+                     and ((pre[run] >= topo.pre[c]) & (pre[run] < topo.pre_end[c])).all()]
+            if r == r_total[t] and below:
+                continue                      # all met in an inner node below n: dropped
+            occupancy = np.add.reduceat(topo.area[leaf[run]], [0])[0] / topo.area[n]
+            if (r >= params.min_refs and occupancy >= params.tau_occu
+                    and r / max(ne, 1) >= params.tau_freq):
+                found.add((int(topo.depth[n]), int(n), int(t), r, int(run[0]), int(run[-1]) + 1))
+    return found
+
+
+def fast_candidates(tree, params):
+    topo = _Topology(tree)
+    ref_leaf, ref_tri = topo.leaf_references(tree)
+    order = np.lexsort((topo.pre[ref_leaf], ref_tri))
+    s_leaf, s_tri = ref_leaf[order], ref_tri[order]
+    gap_node, gap_depth = _neighbour_lcas(topo, s_leaf, s_tri)
+    per_depth = _lift_candidates(topo, s_leaf, s_tri, gap_node, gap_depth, params)
+    return {(d, *map(int, row)) for d, cand in enumerate(per_depth) if cand is not None
+            for row in zip(*cand)}
+
+
+@pytest.mark.parametrize("stretched", [False, True])
+@pytest.mark.parametrize("thresholds", [(0.5, 0.4, 2), (0.1, 0.1, 1), (0.0, 0.0, 2)])
+def test_lift_candidates_match_definition(thresholds, stretched):
+    """The run-based candidate search (one LCA per neighbour pair, walks stopped at the first
+    failure where cells grow going up) finds exactly the pairs of the definition, also where
+    a split lies outside its cell (`stretched`: a child then has a larger area than its
+    parent, so a walk may not stop at a failure)."""
+    vertices, triangles = uv_sphere(12, 16)
+    tree = build_kdtree(vertices, triangles)
+    if stretched:
+        nodes = tree.nodes.copy()
+        inner = np.flatnonzero((nodes[:, 0] & 3) != LEAF_TAG)[1::7]
+        split = nodes[inner, 1].view(np.float32)
+        nodes[inner, 1] = (split + np.float32(3) * np.sign(split)).view(np.uint32)
+        tree = KDTree(nodes, tree.leaf_indices, tree.bounds)
+    tau_occu, tau_freq, min_refs = thresholds
+    params = compact_params("ours", tau_occu=tau_occu, tau_freq=tau_freq, min_refs=min_refs)
+    expected = naive_candidates(tree, params)
+    assert expected
+    assert fast_candidates(tree, params) == expected
