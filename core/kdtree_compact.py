@@ -63,7 +63,10 @@ class CompactParams:
     collapse: bool = True          # replace subtrees by leaves where the SAH says so
     elide_empty: bool = True       # empty leaves are flags in the parent, not nodes
     leaf16: bool = True            # the 2-byte leaf mode
-    traversal_cost: float = 15.0   # K_T, K_I of the collapse decision (as KDTreeParams)
+    # K_T, K_I of the collapse decision. K_T is twice the builder's 15: collapsing subtrees at
+    # that price makes trees 10-17 points smaller at the same render time within the noise
+    # (the collapse sweep in docs/kdtree_compression.md).
+    traversal_cost: float = 30.0
     intersection_cost: float = 20.0
 
 
@@ -478,6 +481,13 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
     if len(tree.leaf_indices) and int(tree.leaf_indices.max()) >= triangles_count:
         raise ValueError("the tree refers to triangles beyond triangles_count")
 
+    if params == compact_params("standard"):
+        out = _standard_reencoded(tree, triangles_count, params)
+        if out is not None:
+            out.stats["compact_seconds"] = time.perf_counter() - started
+            report(1.0, f"compact (standard): {len(out.nodes)} nodes, {out.nbytes} bytes")
+            return out
+
     topo = _Topology(tree)
     ref_leaf, ref_tri = topo.leaf_references(tree)
     reference_count = len(ref_tri)
@@ -579,6 +589,56 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
         "compact_seconds": time.perf_counter() - started,
     }
     report(1.0, f"compact ({params.mode}): {len(nodes)} nodes, {out.nbytes} bytes")
+    return out
+
+
+def _standard_reencoded(tree, triangles_count, params):
+    """Mode standard without decoding the topology, for a tree in the builder's own order:
+    breadth-first with the k-th inner node's children at 1 + 2k, leaf lists in node order,
+    each ascending. The general path lays such a tree out node for node the same way, so only
+    the words are re-encoded (the same arrays and stats). None for any other tree."""
+    nodes, lists = tree.nodes, tree.leaf_indices
+    word0 = nodes[:, 0]
+    is_leaf = (word0 & 3) == LEAF_TAG
+    field = (word0 >> 2).astype(np.int64)
+    inner = np.flatnonzero(~is_leaf)
+    if len(nodes) != 1 + 2 * len(inner) or len(nodes) - 1 > MAX_GROUP_INDEX:
+        return None
+    if not np.array_equal(field[inner], 1 + 2 * np.arange(len(inner))):
+        return None
+    leaves = np.flatnonzero(is_leaf)
+    count = field[leaves]
+    nonempty = count > 0
+    offset = _exclusive_cumsum(count)
+    if (int(offset[-1]) != len(lists) or (count > MAX_LEAF32_COUNT).any()
+            or not np.array_equal(nodes[leaves[nonempty], 1], offset[:-1][nonempty])):
+        return None
+    if len(lists) > 1:
+        ascending = np.diff(lists.astype(np.int64)) > 0
+        starts = offset[1:-1]
+        ascending[starts[(starts > 0) & (starts < len(lists))] - 1] = True   # across leaves
+        if not ascending.all():
+            return None
+    out_nodes = np.empty_like(nodes)
+    out_nodes[inner, 0] = (word0[inner] & 3) | (field[inner] << 5).astype(np.uint32)
+    out_nodes[inner, 1] = nodes[inner, 1]
+    out_nodes[leaves, 0] = (LEAF_TAG | (count << 3)).astype(np.uint32)
+    out_nodes[leaves, 1] = np.where(nonempty, offset[:-1], 0)
+    shift = max(0, (max(triangles_count, 1) - 1).bit_length() - 16)
+    out = CompactTree(out_nodes, lists.astype(np.uint32), np.zeros(0, np.uint16),
+                      tree.bounds.astype(np.float32), shift, params)
+    leaf_refs = len(lists)
+    out.stats = {
+        "mode": params.mode, "nodes": len(nodes),
+        "node_kinds": {"inner": len(inner), "tref": 0, "leaf": len(leaves)},
+        "standard_nodes": len(nodes), "references_standard": leaf_refs,
+        "leaf_references": leaf_refs, "references_removed": 0, "inner_references": 0,
+        "lifted_triangles": 0, "tref_nodes": 0, "nodes_with_two_refs": 0,
+        "max_refs_on_path": 0, "collapsed_subtrees": 0,
+        "leaves": len(leaves), "empty_leaves_stored": int((~nonempty).sum()),
+        "empty_leaves_elided": 0, "leaves_16bit": 0, "leaves_32bit": int(nonempty.sum()),
+        "leaf16_share": 0.0, "leaf_shift": shift, "bytes": out.nbytes,
+    }
     return out
 
 

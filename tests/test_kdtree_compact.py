@@ -603,3 +603,51 @@ def test_lift_candidates_match_definition(thresholds, stretched):
     expected = naive_candidates(tree, params)
     assert expected
     assert fast_candidates(tree, params) == expected
+
+
+def _general_standard(tree, triangle_count, monkeypatch):
+    import core.kdtree_compact as kc
+    with monkeypatch.context() as m:
+        m.setattr(kc, "_standard_reencoded", lambda *args: None)
+        return compact_tree(tree, triangle_count, "standard")
+
+
+def _same_compact(a, b):
+    for name in ("nodes", "leaf_index32", "leaf_index16", "bounds"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and np.array_equal(x, y), name
+    assert a.leaf_shift == b.leaf_shift
+    strip = lambda stats: {k: v for k, v in stats.items() if k != "compact_seconds"}
+    assert strip(a.stats) == strip(b.stats)
+
+
+@pytest.mark.parametrize("name", list(SCENES))
+def test_standard_reencoding_equals_the_general_layout(name, monkeypatch):
+    # Mode standard re-encodes a builder-ordered tree's words directly (_standard_reencoded);
+    # it must give exactly what the general decode-and-lay-out path gives.
+    import core.kdtree_compact as kc
+    _, triangles, _, tree = scene(name)
+    assert kc._standard_reencoded(tree, len(triangles), compact_params("standard")) is not None
+    _same_compact(compact_tree(tree, len(triangles), "standard"),
+                  _general_standard(tree, len(triangles), monkeypatch))
+
+
+def test_standard_reencoding_falls_back_for_other_orders(monkeypatch):
+    import core.kdtree_compact as kc
+    # Root with two leaves: an empty one first, then one whose list is not ascending.
+    tree = KDTree(np.array([[0 | (1 << 2), np.float32(0.5).view(np.uint32)],
+                            [LEAF_TAG, 7], [LEAF_TAG | (2 << 2), 0]], np.uint32),
+                  np.array([3, 1], np.uint32), np.array([[0, 0, 0], [1, 1, 1]], np.float32))
+    params = compact_params("standard")
+    assert kc._standard_reencoded(tree, 4, params) is None
+    _same_compact(compact_tree(tree, 4, "standard"), _general_standard(tree, 4, monkeypatch))
+    ascending = KDTree(tree.nodes, np.array([1, 3], np.uint32), tree.bounds)
+    assert kc._standard_reencoded(ascending, 4, params) is not None
+    _same_compact(compact_tree(ascending, 4, "standard"),
+                  _general_standard(ascending, 4, monkeypatch))
+    # Children not at 1 + 2k (a tree laid out in another order) also fall back.
+    _, triangles, _, built = scene("sphere")
+    inner = np.flatnonzero((built.nodes[:, 0] & 3) != LEAF_TAG)
+    assert len(inner) > 2
+    assert kc._standard_reencoded(KDTree(built.nodes[::-1].copy(), built.leaf_indices,
+                                         built.bounds), len(triangles), params) is None
