@@ -2,6 +2,13 @@
 import bpy
 
 
+def property_layout(panel, context):
+    """A panel's layout with labels beside values (as Cycles' panels), and the scene settings."""
+    layout = panel.layout
+    layout.use_property_split = True
+    return layout, context.scene.kdtrace
+
+
 class KDTracePanel:
     bl_space_type = "PROPERTIES"
     bl_region_type = "WINDOW"
@@ -17,9 +24,7 @@ class RENDER_PT_kdtrace(KDTracePanel, bpy.types.Panel):
     bl_label = "KD Trace"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        settings = context.scene.kdtrace
+        layout, settings = property_layout(self, context)
         layout.prop(settings, "tile_partition")
         row = layout.row()
         row.active = settings.tile_partition == "SIZE"
@@ -31,9 +36,7 @@ class RENDER_PT_kdtrace_sampling(KDTracePanel, bpy.types.Panel):
     bl_parent_id = "RENDER_PT_kdtrace"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        settings = context.scene.kdtrace
+        layout, settings = property_layout(self, context)
         layout.prop(settings, "samples_per_axis")
         layout.prop(settings, "adaptive")
         col = layout.column()
@@ -49,9 +52,7 @@ class RENDER_PT_kdtrace_light_paths(KDTracePanel, bpy.types.Panel):
     bl_parent_id = "RENDER_PT_kdtrace"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        settings = context.scene.kdtrace
+        layout, settings = property_layout(self, context)
         layout.prop(settings, "max_bounces")
         layout.prop(settings, "diffuse_bounces")
 
@@ -62,9 +63,7 @@ class RENDER_PT_kdtrace_kdtree(KDTracePanel, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        settings = context.scene.kdtrace
+        layout, settings = property_layout(self, context)
         layout.prop(settings, "kdtree_mode")
         col = layout.column()
         col.active = settings.kdtree_mode != "standard"   # thresholds only matter when lifting
@@ -82,9 +81,7 @@ class RENDER_PT_kdtrace_network(KDTracePanel, bpy.types.Panel):
 
     def draw(self, context):
         from .properties import preferences
-        layout = self.layout
-        layout.use_property_split = True
-        settings = context.scene.kdtrace
+        layout, settings = property_layout(self, context)
         layout.prop(settings, "tiles_in_flight")
         layout.prop(settings, "payload")
         layout.prop(settings, "interaction")

@@ -53,24 +53,20 @@ def camera_rays(vertices, size):
             np.ascontiguousarray(dirs.reshape(-1, 3), np.float32))
 
 
-def best_time(fn, repeat):
+def best_time(fn, repeat, clock=time.perf_counter):
+    """The fastest of `repeat` runs of fn by `clock`, and fn's result."""
     times, result = [], None
     for _ in range(repeat):
-        start = time.perf_counter()
+        start = clock()
         result = fn()
-        times.append(time.perf_counter() - start)
+        times.append(clock() - start)
     return min(times), result
 
 
 def best_cpu_time(fn, repeat):
-    """Like best_time, in process CPU time: other jobs on the machine do not count (each tracer
-    runs on one core here, so CPU time is its running time)."""
-    times, result = [], None
-    for _ in range(repeat):
-        start = time.process_time()
-        result = fn()
-        times.append(time.process_time() - start)
-    return min(times), result
+    """best_time in process CPU time: other jobs on the machine do not count (each tracer runs
+    on one core here, so CPU time is its running time)."""
+    return best_time(fn, repeat, time.process_time)
 
 
 def main():

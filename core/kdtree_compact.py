@@ -592,6 +592,11 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
     return out
 
 
+def _leaf_shift(triangles_count: int) -> int:
+    """Shift of a 16-bit leaf's base B, so that B << shift reaches every triangle index."""
+    return max(0, (max(triangles_count, 1) - 1).bit_length() - 16)
+
+
 def _standard_reencoded(tree, triangles_count, params):
     """Mode standard without decoding the topology, for a tree in the builder's own order:
     breadth-first with the k-th inner node's children at 1 + 2k, leaf lists in node order,
@@ -624,7 +629,7 @@ def _standard_reencoded(tree, triangles_count, params):
     out_nodes[inner, 1] = nodes[inner, 1]
     out_nodes[leaves, 0] = (LEAF_TAG | (count << 3)).astype(np.uint32)
     out_nodes[leaves, 1] = np.where(nonempty, offset[:-1], 0)
-    shift = max(0, (max(triangles_count, 1) - 1).bit_length() - 16)
+    shift = _leaf_shift(triangles_count)
     out = CompactTree(out_nodes, lists.astype(np.uint32), np.zeros(0, np.uint16),
                       tree.bounds.astype(np.float32), shift, params)
     leaf_refs = len(lists)
@@ -700,7 +705,7 @@ def _layout(topo, params, is_final_leaf, dead, final_count, item_leaf, item_tri,
     # Leaves, in new index order (which is the old index order restricted to survivors).
     leaves = np.flatnonzero(is_final_leaf & ~elided)
     count = final_count[leaves]
-    shift = max(0, (max(triangles_count, 1) - 1).bit_length() - 16)
+    shift = _leaf_shift(triangles_count)
     starts = _exclusive_cumsum(final_count)[:-1][leaves]
     nonempty = count > 0
     low = np.zeros(len(leaves), np.int64)
