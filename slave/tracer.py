@@ -24,12 +24,13 @@ from core.scene import MATERIAL_PARAMS, Geometry, View
 
 KERNEL_DIR = pathlib.Path(__file__).resolve().parent.parent / "kernels"
 # Concatenated in this order: each file uses only what the ones before it define.
-KERNEL_FILES = ("trace.cl", "sampling.cl", "shading.cl", "intersect.cl", "render.cl")
+KERNEL_FILES = ("trace.cl", "sampling.cl", "shading.cl", "intersect.cl", "packet.cl", "render.cl")
 LIGHT_CODES = {"POINT": 0, "SUN": 1, "SPOT": 2, "AREA": 3}
 LIGHT_FLOAT4S = 6           # float4 slots per light in the kernel's light buffer
 MATERIAL_FLOAT4S = 4
 CAMERA_FLOAT4S = 7
 MIN_STACK_SIZE = 32
+PACKET_RAYS = 8             # rays per work-item of intersect_packets on CPU devices
 LIGHT_KINDS = tuple(LIGHT_CODES)
 
 
@@ -55,7 +56,8 @@ def kernel_options(features: dict) -> list:
     set from core.features.scene_features: light kinds and shading features, each becomes
     -DHAS_<NAME>), "light_kinds" (extra light kinds, for callers that only name those),
     "correct_divide_sqrt" (bool: the device can round / and sqrt correctly, which keeps pixels
-    identical across devices). Never fast-math: traversal needs inf/NaN/-0.
+    identical across devices), "packet" (rays per work-item of intersect_packets: 8 on CPU
+    devices, 0 elsewhere). Never fast-math: traversal needs inf/NaN/-0.
     """
     options = [f"-DKD_STACK_SIZE={int(features.get('stack_size', MIN_STACK_SIZE))}",
                f"-DMIRROR_ROUGHNESS={MIRROR_ROUGHNESS!r}f"]
@@ -63,6 +65,8 @@ def kernel_options(features: dict) -> list:
     options += [f"-DHAS_{flag}" for flag in sorted(flags)]
     if features.get("correct_divide_sqrt"):
         options.append("-cl-fp32-correctly-rounded-divide-sqrt")
+    if features.get("packet"):
+        options.append(f"-DKD_PACKET={int(features['packet'])}")
     return options
 
 
@@ -132,6 +136,9 @@ class Tracer:
         self.last_render = {}       # kernel seconds, samples traced, features of the last tile
         self.local_size = None      # work-group size; None lets the driver choose (measured best on PoCL)
         self._orders = {}           # (w, h) -> pixel order of a tile (_pixel_order)
+        # Rays per work-item in intersect(): CPU devices trace 8 neighbouring rays together in
+        # vector lanes (kernels/packet.cl); 0 = one ray per work-item (GPUs).
+        self.packet = PACKET_RAYS if self.device.type & cl.device_type.CPU else 0
 
     @property
     def device_info(self) -> dict:
@@ -143,7 +150,8 @@ class Tracer:
     def _features(self, flags=()) -> dict:
         fp = getattr(self.device, "single_fp_config", 0)
         return {"stack_size": self._stack_size, "flags": tuple(sorted(flags)),
-                "correct_divide_sqrt": bool(fp & self._cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT)}
+                "correct_divide_sqrt": bool(fp & self._cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT),
+                "packet": self.packet}
 
     def _program(self, features: dict):
         cl = self._cl
@@ -274,8 +282,13 @@ class Tracer:
         o_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=origins)
         d_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=directions)
         outs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in out]
-        kernel = self._program(self._features())["intersect_rays"]
-        kernel(self.queue, self._global_size(n), self._local(), o_buf, d_buf, np.float32(tmin), np.float32(tmax),
+        if self.packet:
+            kernel = self._program(self._features())["intersect_packets"]
+            work_items = -(-n // self.packet)
+        else:
+            kernel = self._program(self._features())["intersect_rays"]
+            work_items = n
+        kernel(self.queue, self._global_size(work_items), self._local(), o_buf, d_buf, np.float32(tmin), np.float32(tmax),
                np.uint32(n), scene["nodes"], scene["leaf_index32"], scene["leaf_index16"],
                scene["leaf_shift"], scene["tri_verts"],
                scene["bounds"], *outs)

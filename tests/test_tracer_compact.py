@@ -17,7 +17,7 @@ import pytest
 from core.kdtree import build_kdtree
 from core.kdtree_compact import MODES, compact_tree
 from core.scene import Camera, Geometry, Light, RenderSettings, Shading, View
-from slave.tracer import Tracer, TracerError
+from slave.tracer import RayHits, Tracer, TracerError
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere
 from tests.scenes_architecture import architecture_scene
 from tests.test_kdtree_compact import random_rays
@@ -76,6 +76,55 @@ def test_modes_match_brute_force(tracer, name, mode):
                             f"{ref.triangle[wrong[0]]} at {ref.t[wrong[0]]!r}")
     assert np.array_equal(hits.t, ref.t)
     assert np.array_equal(hits.u, ref.u) and np.array_equal(hits.v, ref.v)
+
+
+def camera_fan(geometry, count, seed):
+    """Coherent rays as a camera makes them (one origin, neighbouring directions in rows),
+    the kind the packets are for; origin outside the scene, looking at its centre."""
+    rng = np.random.default_rng(seed)
+    lo, hi = geometry.vertices.min(0), geometry.vertices.max(0)
+    centre, size = (lo + hi) / 2, float(np.abs(hi - lo).max())
+    away = rng.normal(size=3)
+    eye = centre + 1.5 * size * away / np.linalg.norm(away)
+    forward = (centre - eye) / np.linalg.norm(centre - eye)
+    right = np.cross(forward, rng.normal(size=3))
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    side = int(np.ceil(np.sqrt(count)))
+    s = ((np.arange(side) + 0.5) / side - 0.5) * 0.7
+    x, y = np.meshgrid(s, s)
+    directions = forward + x.reshape(-1, 1) * right + y.reshape(-1, 1) * up
+    origins = np.broadcast_to(eye, directions.shape)
+    return origins[:count].astype(np.float32), directions[:count].astype(np.float32)
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("name", list(SCENES))
+def test_packets_match_the_one_ray_kernel(name, mode):
+    """intersect_packets (8 rays per work-item, CPU devices) gives the same bits as
+    intersect_rays: incoherent rays (lanes disagree on the child order), camera rays, rays
+    starting inside the scene, ray counts that leave a packet part-full, tmin/tmax."""
+    geometry, tree, origins, directions = scene(name)
+    tracer = Tracer("cpu")
+    assert tracer.packet == 8
+    tracer.load(geometry, compact_tree(tree, geometry.triangle_count, mode))
+    cam_o, cam_d = camera_fan(geometry, 4099, seed=len(name))
+    size = float(np.abs(geometry.vertices.max(0) - geometry.vertices.min(0)).max())
+    inside_o = np.repeat(((geometry.vertices.min(0) + geometry.vertices.max(0)) / 2)[None], 500, 0)
+    cases = [(origins, directions, 0.0, np.inf), (cam_o, cam_d, 0.0, np.inf),
+             (inside_o, directions[:500], 0.0, np.inf), (origins[:9], directions[:9], 0.0, np.inf),
+             (origins[:1], directions[:1], 0.0, np.inf), (cam_o, cam_d, 1.2 * size, 1.5 * size)]
+    for o, d, tmin, tmax in cases:
+        tracer.packet = 8
+        packets = tracer.intersect(o, d, tmin, tmax)
+        tracer.packet = 0
+        single = tracer.intersect(o, d, tmin, tmax)
+        assert len(o) < 10 or (single.triangle >= 0).mean() > 0.02
+        for field in RayHits._fields:
+            ours, ref = getattr(packets, field), getattr(single, field)
+            differ = np.flatnonzero(ours.view(np.uint32) != ref.view(np.uint32))
+            assert not len(differ), (f"{len(differ)} of {len(o)} rays differ in {field}, e.g. "
+                                     f"ray {differ[0]}: {ours[differ[0]]!r} vs {ref[differ[0]]!r}")
 
 
 def test_plain_tree_is_loaded_as_standard(tracer):

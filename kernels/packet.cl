@@ -1,0 +1,261 @@
+// Ray packets for CPU devices: KD_PACKET (8) rays per work-item, traversed together.
+// PoCL runs work-items one after another and cannot vectorise the data-dependent node loop,
+// so one work-item takes 8 neighbouring rays and does each node's plane test for all of them
+// in one float8 operation: neighbouring rays share most of their path through the tree.
+// Compiled only where the host defines KD_PACKET (CPU devices; a GPU already runs neighbouring
+// work-items in lock step and keeps the one-ray kernel of intersect.cl).
+//
+// Each lane does exactly what trace_ray does for its ray: the same child cases, intervals and
+// tie tolerance, the same triangles in the same order (a lane is masked off where its ray
+// would not go), and it stops for good where trace_ray would stop. Where the lanes disagree
+// on which child comes first, the packet visits the first child for the lanes that want it
+// first, then the second for all, then the first again for the others; so the results are
+// bit-identical to intersect_rays.
+#ifdef KD_PACKET
+
+#if KD_PACKET != 8
+#error "KD_PACKET must be 8 (the float8 lanes below)"
+#endif
+
+typedef union { float8 v; float s[8]; } Lanes;    // per-lane floats, read as a vector or by lane
+typedef union { int8 v; int s[8]; } LaneMask;     // -1: the lane takes part, 0: it does not
+
+KD_INLINE bool any_lane(int8 m)
+{
+    int4 a = m.lo | m.hi;
+    int2 b = a.lo | a.hi;
+    return (b.x | b.y) != 0;
+}
+
+// select() by bit operations on the all-ones/zero masks: PoCL calls its select out of line.
+KD_INLINE float8 pick8(float8 if_clear, float8 if_set, int8 m)
+{
+    return as_float8((as_int8(if_clear) & ~m) | (as_int8(if_set) & m));
+}
+
+KD_INLINE int8 pick_mask8(int8 if_clear, int8 if_set, int8 m)
+{
+    return (if_clear & ~m) | (if_set & m);
+}
+
+KD_INLINE float8 fabs8(float8 x)
+{
+    return as_float8(as_uint8(x) & 0x7FFFFFFFu);
+}
+
+// Test triangle `tri` for every lane in `m`, in lane order (each lane's own order of tests is
+// that of trace_ray, which is all that matters for its result).
+KD_INLINE void consider_lanes(int8 m, uint tri, const TriRay *q, __global const float4 *tri_verts,
+                              float tmin, Best *b, Lanes *limit)
+{
+    LaneMask mm;
+    mm.v = m;
+    for (uint k = 0; k < KD_PACKET; ++k) {
+        if (mm.s[k] && consider(&q[k], tri, NO_HIT, tri_verts, tmin, &b[k]))
+            limit->s[k] = b[k].limit;
+    }
+}
+
+// Nearest hits of the rays r[k] for the lanes in `live` (the others are left as misses).
+void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree *kd,
+                  __global const float4 *tri_verts, Hit *hits)
+{
+    __global const uint2 *nodes = kd->nodes;
+    Lanes org[3], inv[3], dir[3];
+    TriRay q[KD_PACKET];
+    Best b[KD_PACKET];
+    Lanes limit;
+    for (uint k = 0; k < KD_PACKET; ++k) {
+        org[0].s[k] = r[k].o.x; org[1].s[k] = r[k].o.y; org[2].s[k] = r[k].o.z;
+        inv[0].s[k] = r[k].inv_d.x; inv[1].s[k] = r[k].inv_d.y; inv[2].s[k] = r[k].inv_d.z;
+        dir[0].s[k] = r[k].d.x; dir[1].s[k] = r[k].d.y; dir[2].s[k] = r[k].d.z;
+        float o3[3] = {r[k].o.x, r[k].o.y, r[k].o.z};
+        q[k].kx = r[k].kx; q[k].ky = r[k].ky; q[k].kz = r[k].kz;
+        q[k].okx = o3[r[k].kx]; q[k].oky = o3[r[k].ky]; q[k].okz = o3[r[k].kz];
+        q[k].sx = r[k].sx; q[k].sy = r[k].sy; q[k].sz = r[k].sz;
+        b[k].tie_abs = KD_TIE_EPS * kd->extent / length(r[k].d);
+        b[k].best = tmax;
+        b[k].limit = limit.s[k] = tmax + (KD_TIE_EPS * tmax + b[k].tie_abs);
+        b[k].t = INFINITY;
+        b[k].u = b[k].v = 0.0f;
+        b[k].tri = NO_HIT;
+    }
+
+    // Clip to the root box, as trace_ray (comparisons that keep t0/t1 on NaN).
+    float bmin[3] = {kd->bmin.x, kd->bmin.y, kd->bmin.z};
+    float bmax[3] = {kd->bmax.x, kd->bmax.y, kd->bmax.z};
+    float8 t0 = (float8)(tmin), t1 = (float8)(tmax);
+    for (uint axis = 0; axis < 3; ++axis) {
+        float8 tn = (bmin[axis] - org[axis].v) * inv[axis].v;
+        float8 tf = (bmax[axis] - org[axis].v) * inv[axis].v;
+        int8 swap = tn > tf;
+        float8 near = pick8(tn, tf, swap), far = pick8(tf, tn, swap);
+        far *= 1.0f + 2.0f * GAMMA3;
+        t0 = pick8(t0, near, near > t0);
+        t1 = pick8(t1, far, far < t1);
+    }
+    int8 alive = live & (t0 <= t1);     // lanes that have not stopped
+    int8 m = alive;                     // lanes that visit the current node
+
+    uint stack_node[2 * KD_STACK_SIZE];   // a node pushes at most two entries
+    int8 stack_mask[2 * KD_STACK_SIZE];
+    float8 stack_t0[2 * KD_STACK_SIZE], stack_t1[2 * KD_STACK_SIZE];
+    int sp = 0;
+    uint node = 0;
+    uint leaf_shift = kd->leaf_shift;
+
+    while (true) {
+        // trace_ray stops a ray for good at a node that starts beyond its best hit.
+        int8 stop = m & (t0 > limit.v);
+        alive &= ~stop;
+        m &= ~stop;
+        if (any_lane(m)) {
+            uint2 n = nodes[node];
+            uint w = n.x;
+            uint axis = w & 3u;
+            if (axis != KD_LEAF) {
+                uint group = w >> 5;
+                uint has_ref = (w >> 2) & 1u;
+                if (has_ref) {
+                    uint2 refs = nodes[group];
+                    LaneMask mm;
+                    mm.v = m;
+                    for (uint k = 0; k < KD_PACKET; ++k) {
+                        if (!mm.s[k])
+                            continue;
+                        if (consider(&q[k], refs.x, NO_HIT, tri_verts, tmin, &b[k]))
+                            limit.s[k] = b[k].limit;
+                        if (refs.y != NO_HIT && consider(&q[k], refs.y, NO_HIT, tri_verts, tmin, &b[k]))
+                            limit.s[k] = b[k].limit;
+                    }
+                }
+                float split = as_float(n.y);
+                float8 o = org[axis].v, d = dir[axis].v;
+                float8 tplane = (split - o) * inv[axis].v;
+                float8 abs_tplane = fabs8(tplane);
+                float8 err = as_float8(as_int8((2.0f * GAMMA3) * abs_tplane)
+                                       & (abs_tplane < INFINITY));
+                float8 enter = tplane - err, leave = tplane + err;
+                int8 below_first = (o < split) | ((o == split) & (d <= 0.0f));
+                uint below = group + has_ref;
+                uint above = below + 1u - ((w >> 3) & 1u);
+                int8 below_ok = (w & KD_EMPTY_BELOW) == 0u ? (int8)(-1) : (int8)(0);
+                int8 above_ok = (w & KD_EMPTY_ABOVE) == 0u ? (int8)(-1) : (int8)(0);
+                int8 first_ok = pick_mask8(above_ok, below_ok, below_first);
+                int8 second_ok = pick_mask8(below_ok, above_ok, below_first);
+                // trace_ray's three cases: first child only, second only, both.
+                int8 only_first = (enter > t1) | (leave <= 0.0f);
+                int8 only_second = ~only_first & (leave < t0) & (enter > 0.0f);
+                int8 both = ~(only_first | only_second);
+                int8 go_first = m & first_ok & (only_first | both);
+                int8 go_second = m & second_ok & (only_second | both);
+                float8 first_t1 = pick8(t1, leave, both & (leave < t1));
+                float8 second_t0 = pick8(t0, enter, both & (enter > t0));
+                int8 go_below = pick_mask8(go_second, go_first, below_first);
+                int8 go_above = pick_mask8(go_first, go_second, below_first);
+                float8 below_t0 = pick8(second_t0, t0, below_first);
+                float8 below_t1 = pick8(t1, first_t1, below_first);
+                float8 above_t0 = pick8(t0, second_t0, below_first);
+                float8 above_t1 = pick8(first_t1, t1, below_first);
+                // Visit order: below for the lanes that want it first, above, below for the rest.
+                int8 m1 = go_below & below_first, m2 = go_above, m3 = go_below & ~below_first;
+                bool v1 = any_lane(m1), v2 = any_lane(m2), v3 = any_lane(m3);
+                if (v3 && (v1 || v2)) {
+                    stack_node[sp] = below;
+                    stack_mask[sp] = m3;
+                    stack_t0[sp] = below_t0;
+                    stack_t1[sp] = below_t1;
+                    ++sp;
+                }
+                if (v1) {
+                    if (v2) {
+                        stack_node[sp] = above;
+                        stack_mask[sp] = m2;
+                        stack_t0[sp] = above_t0;
+                        stack_t1[sp] = above_t1;
+                        ++sp;
+                    }
+                    node = below; m = m1; t0 = below_t0; t1 = below_t1;
+                    continue;
+                }
+                if (v2) {
+                    node = above; m = m2; t0 = above_t0; t1 = above_t1;
+                    continue;
+                }
+                if (v3) {
+                    node = below; m = m3; t0 = below_t0; t1 = below_t1;
+                    continue;
+                }
+                // No lane goes on from here: pop.
+            } else {
+                // A leaf: each triangle for every lane here, against the lane's [tmin, best].
+                if ((w & KD_LEAF16) != 0u) {
+                    uint count = (w >> 3) & 0x1FFFu;
+                    uint base = (w >> 16) << leaf_shift;
+                    __global const ushort *list = kd->leaf16 + n.y;
+                    for (uint i = 0; i < count; ++i)
+                        consider_lanes(m, base + (uint)list[i], q, tri_verts, tmin, b, &limit);
+                } else {
+                    uint count = w >> 3;
+                    __global const uint *list = kd->leaf32 + n.y;
+                    for (uint i = 0; i < count; ++i)
+                        consider_lanes(m, list[i], q, tri_verts, tmin, b, &limit);
+                }
+            }
+        }
+        // Pop the next entry that still has a lane going on.
+        do {
+            if (sp == 0) {
+                for (uint k = 0; k < KD_PACKET; ++k)
+                    store_hit(&b[k], &hits[k]);
+                return;
+            }
+            --sp;
+            m = stack_mask[sp] & alive;
+        } while (!any_lane(m));
+        node = stack_node[sp];
+        t0 = stack_t0[sp];
+        t1 = stack_t1[sp];
+    }
+}
+
+// intersect_rays for packets: work-item i traces rays 8i .. 8i+7 (same arguments and results).
+__kernel void intersect_packets(__global const float *origins, __global const float *directions,
+                                float tmin, float tmax, uint ray_count,
+                                __global const uint2 *nodes, __global const uint *leaf_index32,
+                                __global const ushort *leaf_index16, uint leaf_shift,
+                                __global const float4 *tri_verts, __global const float4 *bounds,
+                                __global float *out_t, __global int *out_tri,
+                                __global float *out_u, __global float *out_v)
+{
+    uint first = get_global_id(0) * KD_PACKET;
+    if (first >= ray_count)
+        return;
+    Ray r[KD_PACKET];
+    LaneMask live;
+    for (uint k = 0; k < KD_PACKET; ++k) {
+        uint i = min(first + k, ray_count - 1u);    // past the end: a copy of the last ray, off
+        r[k] = make_ray((float3)(origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]),
+                        (float3)(directions[3 * i], directions[3 * i + 1], directions[3 * i + 2]));
+        live.s[k] = first + k < ray_count ? -1 : 0;
+    }
+    KdTree kd;
+    kd.nodes = nodes;
+    kd.leaf32 = leaf_index32;
+    kd.leaf16 = leaf_index16;
+    kd.leaf_shift = leaf_shift;
+    kd.bmin = bounds[0].xyz;
+    kd.bmax = bounds[1].xyz;
+    kd.extent = bounds[0].w;
+    Hit h[KD_PACKET];
+    trace_packet(r, live.v, tmin, tmax, &kd, tri_verts, h);
+    for (uint k = 0; k < KD_PACKET && first + k < ray_count; ++k) {
+        uint i = first + k;
+        out_t[i] = h[k].t;
+        out_tri[i] = h[k].tri == NO_HIT ? -1 : (int)h[k].tri;
+        out_u[i] = h[k].u;
+        out_v[i] = h[k].v;
+    }
+}
+
+#endif
