@@ -43,17 +43,89 @@ KD_INLINE float8 fabs8(float8 x)
     return as_float8(as_uint8(x) & 0x7FFFFFFFu);
 }
 
-// Test triangle `tri` for every lane in `m`, in lane order (each lane's own order of tests is
-// that of trace_ray, which is all that matters for its result).
-KD_INLINE void consider_lanes(int8 m, uint tri, const TriRay *q, __global const float4 *tri_verts,
-                              float tmin, Best *b, Lanes *limit)
+typedef union { uint8 v; uint s[8]; } LaneUints;
+
+// The lanes' ray constants of the watertight test, as vectors (kx, ky, kz: when all lanes
+// share the permutation, `same_axes`).
+typedef struct {
+    Lanes okx, oky, okz, sx, sy, sz;
+    uint kx, ky, kz;
+    bool same_axes;
+} PacketRay;
+
+// The lanes' best hits (Best of trace_ray, one lane each).
+typedef struct {
+    Lanes best, limit, tie_abs, t, u, v;
+    LaneUints tri;
+} PacketBest;
+
+// consider() for lane k.
+KD_INLINE void consider_lane(uint k, uint tri, const TriRay *q, __global const float4 *tri_verts,
+                             float tmin, PacketBest *b)
 {
-    LaneMask mm;
-    mm.v = m;
-    for (uint k = 0; k < KD_PACKET; ++k) {
-        if (mm.s[k] && consider(&q[k], tri, NO_HIT, tri_verts, tmin, &b[k]))
-            limit->s[k] = b[k].limit;
+    float t, u, v;
+    if (intersect_triangle(&q[k], (__global const float *)(tri_verts + 3 * tri), tmin, b->best.s[k],
+                           &t, &u, &v)
+        && (t < b->best.s[k] || tri < b->tri.s[k])) {
+        b->best.s[k] = t;
+        b->limit.s[k] = t + (KD_TIE_EPS * t + b->tie_abs.s[k]);
+        b->t.s[k] = t;
+        b->u.s[k] = u;
+        b->v.s[k] = v;
+        b->tri.s[k] = tri;
     }
+}
+
+// consider() for every lane in `m`. When the lanes share the permutation, intersect_triangle's
+// arithmetic runs on all lanes at once (the same operations, so the same bits); a lane whose
+// edge function is exactly 0, or all lanes otherwise, take the scalar path.
+KD_INLINE void consider_lanes(int8 m, uint tri, const PacketRay *p, const TriRay *q,
+                              __global const float4 *tri_verts, float tmin, PacketBest *b)
+{
+    LaneMask one;
+    if (p->same_axes) {
+        __global const float *tv = (__global const float *)(tri_verts + 3 * tri);
+        uint kx = p->kx, ky = p->ky, kz = p->kz;
+        float8 okx = p->okx.v, oky = p->oky.v, okz = p->okz.v, sx = p->sx.v, sy = p->sy.v;
+        float8 az = tv[kz] - okz, bz = tv[4 + kz] - okz, cz = tv[8 + kz] - okz;
+        float8 ax = (tv[kx] - okx) - sx * az, ay = (tv[ky] - oky) - sy * az;
+        float8 bx = (tv[4 + kx] - okx) - sx * bz, by = (tv[4 + ky] - oky) - sy * bz;
+        float8 cx = (tv[8 + kx] - okx) - sx * cz, cy = (tv[8 + ky] - oky) - sy * cz;
+        float8 e0 = cx * by - cy * bx;
+        float8 e1 = ax * cy - ay * cx;
+        float8 e2 = bx * ay - by * ax;
+        one.v = m & ((e0 == 0.0f) | (e1 == 0.0f) | (e2 == 0.0f));
+        if (any_lane(one.v)) {
+            for (uint k = 0; k < KD_PACKET; ++k)
+                if (one.s[k])
+                    consider_lane(k, tri, q, tri_verts, tmin, b);
+            m &= ~one.v;
+        }
+        int8 outside = ((e0 < 0.0f) | (e1 < 0.0f) | (e2 < 0.0f))
+                       & ((e0 > 0.0f) | (e1 > 0.0f) | (e2 > 0.0f));
+        float8 det = e0 + e1 + e2;
+        m &= ~outside & (det != 0.0f);
+        if (!any_lane(m))
+            return;
+        float8 sz = p->sz.v;
+        float8 tscaled = e0 * (sz * az) + e1 * (sz * bz) + e2 * (sz * cz);
+        float8 t = tscaled / det;
+        float8 best = b->best.v;
+        m &= (t >= tmin) & (t <= best) & ((t < best) | ((uint8)(tri) < b->tri.v));
+        if (!any_lane(m))
+            return;
+        b->best.v = pick8(best, t, m);
+        b->limit.v = pick8(b->limit.v, t + (KD_TIE_EPS * t + b->tie_abs.v), m);
+        b->t.v = pick8(b->t.v, t, m);
+        b->u.v = pick8(b->u.v, e1 / det, m);
+        b->v.v = pick8(b->v.v, e2 / det, m);
+        b->tri.v = as_uint8(pick_mask8(as_int8(b->tri.v), (int8)(tri), m));
+        return;
+    }
+    one.v = m;
+    for (uint k = 0; k < KD_PACKET; ++k)
+        if (one.s[k])
+            consider_lane(k, tri, q, tri_verts, tmin, b);
 }
 
 // Nearest hits of the rays r[k] for the lanes in `live` (the others are left as misses).
@@ -63,8 +135,11 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
     __global const uint2 *nodes = kd->nodes;
     Lanes org[3], inv[3], dir[3];
     TriRay q[KD_PACKET];
-    Best b[KD_PACKET];
-    Lanes limit;
+    PacketRay p;
+    PacketBest b;
+    LaneMask lm;
+    lm.v = live;
+    p.same_axes = true;
     for (uint k = 0; k < KD_PACKET; ++k) {
         org[0].s[k] = r[k].o.x; org[1].s[k] = r[k].o.y; org[2].s[k] = r[k].o.z;
         inv[0].s[k] = r[k].inv_d.x; inv[1].s[k] = r[k].inv_d.y; inv[2].s[k] = r[k].inv_d.z;
@@ -73,12 +148,19 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
         q[k].kx = r[k].kx; q[k].ky = r[k].ky; q[k].kz = r[k].kz;
         q[k].okx = o3[r[k].kx]; q[k].oky = o3[r[k].ky]; q[k].okz = o3[r[k].kz];
         q[k].sx = r[k].sx; q[k].sy = r[k].sy; q[k].sz = r[k].sz;
-        b[k].tie_abs = KD_TIE_EPS * kd->extent / length(r[k].d);
-        b[k].best = tmax;
-        b[k].limit = limit.s[k] = tmax + (KD_TIE_EPS * tmax + b[k].tie_abs);
-        b[k].t = INFINITY;
-        b[k].u = b[k].v = 0.0f;
-        b[k].tri = NO_HIT;
+        p.okx.s[k] = q[k].okx; p.oky.s[k] = q[k].oky; p.okz.s[k] = q[k].okz;
+        p.sx.s[k] = q[k].sx; p.sy.s[k] = q[k].sy; p.sz.s[k] = q[k].sz;
+        if (k == 0) {
+            p.kx = q[0].kx; p.ky = q[0].ky; p.kz = q[0].kz;
+        } else if (lm.s[k] && (q[k].kx != p.kx || q[k].ky != p.ky || q[k].kz != p.kz)) {
+            p.same_axes = false;
+        }
+        b.tie_abs.s[k] = KD_TIE_EPS * kd->extent / length(r[k].d);
+        b.best.s[k] = tmax;
+        b.limit.s[k] = tmax + (KD_TIE_EPS * tmax + b.tie_abs.s[k]);
+        b.t.s[k] = INFINITY;
+        b.u.s[k] = b.v.s[k] = 0.0f;
+        b.tri.s[k] = NO_HIT;
     }
 
     // Clip to the root box, as trace_ray (comparisons that keep t0/t1 on NaN).
@@ -106,7 +188,7 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
 
     while (true) {
         // trace_ray stops a ray for good at a node that starts beyond its best hit.
-        int8 stop = m & (t0 > limit.v);
+        int8 stop = m & (t0 > b.limit.v);
         alive &= ~stop;
         m &= ~stop;
         if (any_lane(m)) {
@@ -117,17 +199,11 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
                 uint group = w >> 5;
                 uint has_ref = (w >> 2) & 1u;
                 if (has_ref) {
+                    // Each lane tests refs.x, then refs.y, as trace_ray does.
                     uint2 refs = nodes[group];
-                    LaneMask mm;
-                    mm.v = m;
-                    for (uint k = 0; k < KD_PACKET; ++k) {
-                        if (!mm.s[k])
-                            continue;
-                        if (consider(&q[k], refs.x, NO_HIT, tri_verts, tmin, &b[k]))
-                            limit.s[k] = b[k].limit;
-                        if (refs.y != NO_HIT && consider(&q[k], refs.y, NO_HIT, tri_verts, tmin, &b[k]))
-                            limit.s[k] = b[k].limit;
-                    }
+                    consider_lanes(m, refs.x, &p, q, tri_verts, tmin, &b);
+                    if (refs.y != NO_HIT)
+                        consider_lanes(m, refs.y, &p, q, tri_verts, tmin, &b);
                 }
                 float split = as_float(n.y);
                 float8 o = org[axis].v, d = dir[axis].v;
@@ -194,20 +270,24 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
                     uint base = (w >> 16) << leaf_shift;
                     __global const ushort *list = kd->leaf16 + n.y;
                     for (uint i = 0; i < count; ++i)
-                        consider_lanes(m, base + (uint)list[i], q, tri_verts, tmin, b, &limit);
+                        consider_lanes(m, base + (uint)list[i], &p, q, tri_verts, tmin, &b);
                 } else {
                     uint count = w >> 3;
                     __global const uint *list = kd->leaf32 + n.y;
                     for (uint i = 0; i < count; ++i)
-                        consider_lanes(m, list[i], q, tri_verts, tmin, b, &limit);
+                        consider_lanes(m, list[i], &p, q, tri_verts, tmin, &b);
                 }
             }
         }
         // Pop the next entry that still has a lane going on.
         do {
             if (sp == 0) {
-                for (uint k = 0; k < KD_PACKET; ++k)
-                    store_hit(&b[k], &hits[k]);
+                for (uint k = 0; k < KD_PACKET; ++k) {
+                    hits[k].t = b.t.s[k];
+                    hits[k].u = b.u.s[k];
+                    hits[k].v = b.v.s[k];
+                    hits[k].tri = b.tri.s[k];
+                }
                 return;
             }
             --sp;

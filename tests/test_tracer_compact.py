@@ -103,7 +103,9 @@ def camera_fan(geometry, count, seed):
 def test_packets_match_the_one_ray_kernel(name, mode):
     """intersect_packets (8 rays per work-item, CPU devices) gives the same bits as
     intersect_rays: incoherent rays (lanes disagree on the child order), camera rays, rays
-    starting inside the scene, ray counts that leave a packet part-full, tmin/tmax."""
+    starting inside the scene, rays straight down through vertices (edge functions exactly 0,
+    ties between the triangles sharing the vertex), ray counts that leave a packet part-full,
+    tmin/tmax."""
     geometry, tree, origins, directions = scene(name)
     tracer = Tracer("cpu")
     assert tracer.packet == 8
@@ -111,7 +113,10 @@ def test_packets_match_the_one_ray_kernel(name, mode):
     cam_o, cam_d = camera_fan(geometry, 4099, seed=len(name))
     size = float(np.abs(geometry.vertices.max(0) - geometry.vertices.min(0)).max())
     inside_o = np.repeat(((geometry.vertices.min(0) + geometry.vertices.max(0)) / 2)[None], 500, 0)
+    down_o = geometry.vertices[:2000] + np.float32([0, 0, size])
+    down_d = np.repeat(np.float32([[0, 0, -1]]), len(down_o), 0)
     cases = [(origins, directions, 0.0, np.inf), (cam_o, cam_d, 0.0, np.inf),
+             (down_o, down_d, 0.0, np.inf),
              (inside_o, directions[:500], 0.0, np.inf), (origins[:9], directions[:9], 0.0, np.inf),
              (origins[:1], directions[:1], 0.0, np.inf), (cam_o, cam_d, 1.2 * size, 1.5 * size)]
     for o, d, tmin, tmax in cases:
