@@ -147,11 +147,11 @@ class Tracer:
                 "memory": int(d.global_mem_size), "platform": d.platform.name.strip()}
 
     # -- programs ------------------------------------------------------------------------
-    def _features(self, flags=()) -> dict:
+    def _features(self, flags=(), packet=0) -> dict:
         fp = getattr(self.device, "single_fp_config", 0)
         return {"stack_size": self._stack_size, "flags": tuple(sorted(flags)),
                 "correct_divide_sqrt": bool(fp & self._cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT),
-                "packet": self.packet}
+                "packet": packet}
 
     def _program(self, features: dict):
         cl = self._cl
@@ -282,8 +282,9 @@ class Tracer:
         o_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=origins)
         d_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=directions)
         outs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in out]
+        # Only intersect() compiles the packet kernel (render programs build without it).
         if self.packet:
-            kernel = self._program(self._features())["intersect_packets"]
+            kernel = self._program(self._features(packet=self.packet))["intersect_packets"]
             work_items = -(-n // self.packet)
         else:
             kernel = self._program(self._features())["intersect_rays"]
