@@ -3,7 +3,7 @@
     .venv/bin/python bench/dragon.py [--size 1024] [--repeat 3] [--mode ours]
 
 Export (the installed add-on's exporter on Blender's evaluated depsgraph), kd-tree build, a full
-render of the image (primary rays, one shadow ray per light, diffuse shading) on the OpenCL
+render of the image (primary rays, shadow rays to each light, diffuse shading) on the OpenCL
 tracer, and the camera's primary rays through our intersect() and through Embree (embreex), one
 core each (PoCL limited to one thread, the process pinned to one CPU for Embree). The render uses
 the compact tree of --mode (the add-on's default, "ours"); the primary rays are timed on both the
@@ -107,8 +107,10 @@ def main():
     render_s, passes = best_time(lambda: tracer.render_tile(view, 0, 0, view.width, view.height),
                                  args.repeat)
     hit_fraction = (passes["depth"] < 1e9).mean()
+    shadow = view.settings.light_samples_per_axis ** 2 if "SOFT_LIGHTS" in tracer.last_render["features"] else 1
     print(f"render:        {render_s:8.3f} s  ({hit_fraction:.1%} of pixels hit; primary + "
-          f"{len(view.shading.lights)} shadow ray(s) per hit, diffuse shading; {args.mode} tree)")
+          f"{len(view.shading.lights)} light(s) x {shadow} shadow ray(s) per hit, diffuse shading; "
+          f"{args.mode} tree)")
 
     origins, directions = camera_rays(view)
     # intersect() with 8-ray packets (CPU devices' default) and with one ray per work-item.
