@@ -7,9 +7,9 @@ render of the image (primary rays, shadow rays to each light, diffuse shading) o
 tracer, and the camera's primary rays through our intersect() and through Embree (embreex), one
 core each (PoCL limited to one thread, the process pinned to one CPU for Embree). The render uses
 the compact tree of --mode (the add-on's default, "ours"); the primary rays are timed on both the
-"standard" and the "ours" tree, with intersect()'s 8-ray packets (the CPU default) and with one ray per work-item.
-Ray timings are process CPU time (the best of --repeat), so other
-jobs on the machine do not count.
+"standard" and the "ours" tree, with intersect()'s 8-ray packets (the CPU default) and with one
+ray per work-item. Ray timings are process CPU time (the best of --repeat), so other jobs on the
+machine do not count.
 """
 import argparse
 import os
@@ -107,7 +107,8 @@ def main():
     render_s, passes = best_time(lambda: tracer.render_tile(view, 0, 0, view.width, view.height),
                                  args.repeat)
     hit_fraction = (passes["depth"] < 1e9).mean()
-    shadow = view.settings.light_samples_per_axis ** 2 if "SOFT_LIGHTS" in tracer.last_render["features"] else 1
+    soft = "SOFT_LIGHTS" in tracer.last_render["features"]
+    shadow = view.settings.light_samples_per_axis ** 2 if soft else 1
     print(f"render:        {render_s:8.3f} s  ({hit_fraction:.1%} of pixels hit; primary + "
           f"{len(view.shading.lights)} light(s) x {shadow} shadow ray(s) per hit, diffuse shading; "
           f"{args.mode} tree)")

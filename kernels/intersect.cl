@@ -1,6 +1,23 @@
 // Arbitrary rays: one work-item per ray, nearest hit in [tmin, tmax].
 // origins/directions: n packed float3 (the (n, 3) float32 arrays of the host).
 
+// Ray i of the packed float3 arrays (component loads rather than vload3, which PoCL calls out
+// of line).
+KD_INLINE Ray load_ray(__global const float *origins, __global const float *directions, uint i)
+{
+    return make_ray((float3)(origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]),
+                    (float3)(directions[3 * i], directions[3 * i + 1], directions[3 * i + 2]));
+}
+
+KD_INLINE void write_hit(const Hit *h, uint i, __global float *out_t, __global int *out_tri,
+                         __global float *out_u, __global float *out_v)
+{
+    out_t[i] = h->t;
+    out_tri[i] = h->tri == NO_HIT ? -1 : (int)h->tri;
+    out_u[i] = h->u;
+    out_v[i] = h->v;
+}
+
 __kernel void intersect_rays(__global const float *origins, __global const float *directions,
                              float tmin, float tmax, uint ray_count,
                              __global const uint2 *nodes, __global const uint *leaf_index32,
@@ -12,21 +29,9 @@ __kernel void intersect_rays(__global const float *origins, __global const float
     uint i = get_global_id(0);
     if (i >= ray_count)
         return;
-    // Component loads rather than vload3, which PoCL calls out of line.
-    Ray r = make_ray((float3)(origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]),
-                     (float3)(directions[3 * i], directions[3 * i + 1], directions[3 * i + 2]));
-    KdTree kd;
-    kd.nodes = nodes;
-    kd.leaf32 = leaf_index32;
-    kd.leaf16 = leaf_index16;
-    kd.leaf_shift = leaf_shift;
-    kd.bmin = bounds[0].xyz;
-    kd.bmax = bounds[1].xyz;
-    kd.extent = bounds[0].w;
+    Ray r = load_ray(origins, directions, i);
+    KdTree kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
     Hit h;
     trace_ray(&r, tmin, tmax, false, NO_HIT, &kd, tri_verts, &h);
-    out_t[i] = h.t;
-    out_tri[i] = h.tri == NO_HIT ? -1 : (int)h.tri;
-    out_u[i] = h.u;
-    out_v[i] = h.v;
+    write_hit(&h, i, out_t, out_tri, out_u, out_v);
 }

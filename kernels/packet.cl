@@ -314,28 +314,15 @@ __kernel void intersect_packets(__global const float *origins, __global const fl
     Ray r[KD_PACKET];
     LaneMask live;
     for (uint k = 0; k < KD_PACKET; ++k) {
-        uint i = min(first + k, ray_count - 1u);    // past the end: a copy of the last ray, off
-        r[k] = make_ray((float3)(origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]),
-                        (float3)(directions[3 * i], directions[3 * i + 1], directions[3 * i + 2]));
+        // Past the end: a copy of the last ray, switched off.
+        r[k] = load_ray(origins, directions, min(first + k, ray_count - 1u));
         live.s[k] = first + k < ray_count ? -1 : 0;
     }
-    KdTree kd;
-    kd.nodes = nodes;
-    kd.leaf32 = leaf_index32;
-    kd.leaf16 = leaf_index16;
-    kd.leaf_shift = leaf_shift;
-    kd.bmin = bounds[0].xyz;
-    kd.bmax = bounds[1].xyz;
-    kd.extent = bounds[0].w;
+    KdTree kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
     Hit h[KD_PACKET];
     trace_packet(r, live.v, tmin, tmax, &kd, tri_verts, h);
-    for (uint k = 0; k < KD_PACKET && first + k < ray_count; ++k) {
-        uint i = first + k;
-        out_t[i] = h[k].t;
-        out_tri[i] = h[k].tri == NO_HIT ? -1 : (int)h[k].tri;
-        out_u[i] = h[k].u;
-        out_v[i] = h[k].v;
-    }
+    for (uint k = 0; k < KD_PACKET && first + k < ray_count; ++k)
+        write_hit(&h[k], first + k, out_t, out_tri, out_u, out_v);
 }
 
 #endif

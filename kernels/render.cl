@@ -197,13 +197,7 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     uint pixel_index = (uint)py * (uint)cam[5].z + (uint)px;     // global: same on every slave
 
     Scene sc;
-    sc.kd.nodes = nodes;
-    sc.kd.leaf32 = leaf_index32;
-    sc.kd.leaf16 = leaf_index16;
-    sc.kd.leaf_shift = leaf_shift;
-    sc.kd.bmin = bounds[0].xyz;
-    sc.kd.bmax = bounds[1].xyz;
-    sc.kd.extent = bounds[0].w;
+    sc.kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
     sc.tri_verts = tri_verts;
     sc.material_ids = material_ids;
     sc.materials = materials;

@@ -148,6 +148,22 @@ typedef struct {
     float extent;           // max |bmin|, |bmax| over the axes (the host puts it in bounds[0].w)
 } KdTree;
 
+// The kernels' tree arguments as a KdTree (the scene's extent comes in bounds[0].w).
+KD_INLINE KdTree make_kdtree(__global const uint2 *nodes, __global const uint *leaf32,
+                             __global const ushort *leaf16, uint leaf_shift,
+                             __global const float4 *bounds)
+{
+    KdTree kd;
+    kd.nodes = nodes;
+    kd.leaf32 = leaf32;
+    kd.leaf16 = leaf16;
+    kd.leaf_shift = leaf_shift;
+    kd.bmin = bounds[0].xyz;
+    kd.bmax = bounds[1].xyz;
+    kd.extent = bounds[0].w;
+    return kd;
+}
+
 // The best hit so far, in registers (written to the caller's Hit once, at the end).
 typedef struct {
     float best;             // accepted hits satisfy t <= best (tmax at first)
