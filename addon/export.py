@@ -8,17 +8,16 @@ core.scene's material parameters (docs/shading.md); a node setup that cannot be 
 back to its base colour with one warning per material. Warnings (that, and cleaned geometry:
 skipped empty meshes, dropped zero-area faces) are returned in the info dict under "warnings"
 for the render engine to report. Optional geometry arrays (corner normals, UVs, textures) are
-exported only when the scene needs them (core/features.py).
+exported only when the scene needs them (core/scene/features.py).
 """
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
-from ..core.features import scene_features, strip_geometry
-from ..core.scene import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
+from ..core.scene.features import scene_features, strip_geometry
+from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
                           MAX_MATERIALS, RenderSettings, SceneError, Shading, View)
 
 DEFAULT_COLOR = (0.8, 0.8, 0.8, 1.0)
@@ -26,20 +25,18 @@ DEFAULT_COLOR = (0.8, 0.8, 0.8, 1.0)
 
 def export_view(depsgraph) -> tuple[Geometry, View, dict]:
     """Export everything a render needs. Returns (geometry, view, info): info has
-    "export_seconds" and "warnings" (a list of messages for the user)."""
-    started = time.perf_counter()
+    "warnings" (a list of messages for the user)."""
     scene = depsgraph.scene
     warnings = []
     materials = _MaterialTable(warnings)
     geometry = _export_geometry(depsgraph, materials, warnings)
-    exported = time.perf_counter()
     shading = Shading(materials.colors(), _export_lights(depsgraph), _world_color(scene),
                       materials.params())
     view = View(_export_camera(depsgraph), *render_size(scene), shading, render_region(scene),
                 render_settings(scene))
     # Only what the scene needs travels (and the kernel compiles only that).
     geometry = strip_geometry(geometry, scene_features(geometry, view))
-    return geometry, view, {"export_seconds": exported - started, "warnings": warnings}
+    return geometry, view, {"warnings": warnings}
 
 
 def render_settings(scene) -> RenderSettings:
@@ -244,11 +241,6 @@ def material_parameters(material):
     color = tuple(min(max(c, 0.0), 1e6) for c in color[:3]) + (min(max(color[3], 0.0), 1.0),)
     # Only the first problem per material: one warning per material, as the user sees it.
     return color, params, image, problems[:1]
-
-
-def base_color(material) -> tuple:
-    """The base colour KD Trace renders a material with (unlinked input or viewport colour)."""
-    return material_parameters(material)[0]
 
 
 def _mesh_arrays(mesh, want_normals: bool, want_uvs: bool) -> dict:

@@ -15,7 +15,7 @@ import sys
 import threading
 import time
 
-from ..core.protocol import SECRET_ENV
+from ..core.net.protocol import SECRET_ENV
 
 EXTENSION_ROOT = pathlib.Path(__file__).resolve().parent.parent
 READY_LINE = re.compile(r"listening on (?P<host>[^\s:]+):(?P<port>\d+)")

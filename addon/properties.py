@@ -3,7 +3,7 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
 
-from ..core.protocol import DEFAULT_PORT, MAX_TILE_SIZE
+from ..core.net.protocol import DEFAULT_PORT, MAX_TILE_SIZE
 
 
 class KDTraceHost(bpy.types.PropertyGroup):
@@ -70,7 +70,7 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         min=1, max=16)
     seed: IntProperty(name="Seed", description="Seed of the sampling pattern", default=0, min=0)
 
-    # The kd-tree layout (core/kdtree_compact.py, docs/kdtree_compression.md); part of the scene
+    # The kd-tree layout (core/accel/compact.py, docs/kdtree_compression.md); part of the scene
     # the slaves receive, so a change gives another scene hash (and one upload).
     kdtree_mode: EnumProperty(
         name="kd-Tree", description="How the kd-tree is stored (smaller trees send and fit better; "

@@ -7,10 +7,11 @@ import time
 
 import numpy as np
 
-from ..core.master import Master, MasterError
-from ..core.protocol import AuthError, ProtocolError, load_secret
-from ..core.scene import SceneError
-from ..core.slave_colors import slave_color
+from ..core.net.master import Master, MasterError
+from ..core.net.protocol import AuthError, ProtocolError, load_secret
+from ..core.scene.model import SceneError
+from ..core.scene.scene import Scene
+from ..core.net.slave_colors import slave_color
 from . import session
 from .export import export_view
 from .properties import preferences
@@ -98,7 +99,6 @@ def render(engine, depsgraph):
         geometry, view, info = export_view(depsgraph)
         for warning in info["warnings"]:
             engine.report({"WARNING"}, f"KD Trace: {warning}")
-        geometry.validate(len(view.shading.materials))
         exported = time.perf_counter()
 
         def tree_progress(fraction, message):
@@ -111,6 +111,8 @@ def render(engine, depsgraph):
         tree, built = state.trees.get(geometry, tree_progress, mode=settings.kdtree_mode,
                                       tau_occu=settings.tau_occu, tau_freq=settings.tau_freq,
                                       refs_per_path=settings.refs_per_path)
+        scene = Scene.from_parts(geometry, tree)
+        scene.check_view(view)
         tree_done = time.perf_counter()
         if engine.test_break():
             return
@@ -119,7 +121,7 @@ def render(engine, depsgraph):
         with Master(endpoints, secret=secret) as master:
             master.connect()
             engine.update_stats("", f"KD Trace | Sending scene to {len(master.slaves)} slave(s)")
-            master.load_scene(geometry, tree)
+            master.load_scene(scene)
             for problem in master.errors:
                 engine.report({"WARNING"}, f"KD Trace: {problem}")
             legend = state.start_legend(master.slaves)

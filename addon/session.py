@@ -6,9 +6,9 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
-from ..core.kdtree import build_kdtree
-from ..core.kdtree_compact import compact_tree
-from ..core.slave_colors import slave_color
+from ..core.accel.kdtree import build_kdtree
+from ..core.accel.compact import compact_tree
+from ..core.net.slave_colors import slave_color
 from .local_slaves import LocalSlaves
 
 
@@ -126,7 +126,7 @@ class Session:
         """The zeroconf browser on every interface, started on first use (it runs on zeroconf's
         own threads)."""
         if self._browser is None:
-            from ..core.discovery import SlaveBrowser, all_ipv4_addresses
+            from ..core.net.discovery import SlaveBrowser, all_ipv4_addresses
             self._browser = SlaveBrowser(interfaces=all_ipv4_addresses())
         return self._browser
 

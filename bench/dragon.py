@@ -24,6 +24,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests" / "bpy_scripts"))
 
 import numpy as np  # noqa: E402
+from core.scene.scene import Scene  # noqa: E402
 
 from bench.trace_vs_embree import best_cpu_time, best_time, cpu_model  # noqa: E402
 
@@ -85,14 +86,14 @@ def main():
     print(f"dragon: {geometry.triangle_count:,} triangles, {args.size}x{args.size}")
     print(f"export:        {export_s:8.3f} s")
 
-    from core.kdtree import build_kdtree
+    from core.accel.kdtree import build_kdtree
     build_s, tree = best_time(lambda: build_kdtree(geometry.vertices, geometry.triangles), 1)
     stats = tree.stats
     print(f"kd-tree build: {build_s:8.3f} s  {stats['nodes']:,} nodes, {stats['leaves']:,} leaves, "
           f"depth {stats['depth']}, {stats['refs_per_triangle']:.2f} refs/triangle, "
           f"{tree.nbytes / 2**20:.1f} MiB")
 
-    from core.kdtree_compact import compact_tree
+    from core.accel.compact import compact_tree
     modes = [args.mode] + [m for m in ("ours", "standard") if m != args.mode]
     compact = {}
     for mode in modes:
@@ -102,7 +103,7 @@ def main():
 
     from slave.tracer import Tracer
     tracer = Tracer("cpu")
-    tracer.load(geometry, compact[args.mode])
+    tracer.load(Scene.from_parts(geometry, compact[args.mode]))
     tracer.render_tile(view, 0, 0, 16, 16)  # build the kernels outside the timing
     render_s, passes = best_time(lambda: tracer.render_tile(view, 0, 0, view.width, view.height),
                                  args.repeat)
@@ -118,7 +119,7 @@ def main():
     kernels = {"packets": tracer.packet, "one ray": 0}
     ours = {}
     for mode in modes:
-        tracer.load(geometry, compact[mode])
+        tracer.load(Scene.from_parts(geometry, compact[mode]))
         for kernel, packet in kernels.items():
             tracer.packet = packet
             tracer.intersect(origins[:1024], directions[:1024])

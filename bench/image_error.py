@@ -25,10 +25,11 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from core.features import full_geometry, scene_features, strip_geometry  # noqa: E402
-from core.kdtree import build_kdtree  # noqa: E402
-from core.scene import (Camera, Geometry, Light, RenderSettings, Shading, View,  # noqa: E402
+from core.scene.features import full_geometry, scene_features, strip_geometry  # noqa: E402
+from core.accel.kdtree import build_kdtree  # noqa: E402
+from core.scene.model import (Camera, Geometry, Light, RenderSettings, Shading, View,  # noqa: E402
                         default_material_params)
+from core.scene.scene import Scene  # noqa: E402
 from slave.tracer import Tracer  # noqa: E402
 from tests.meshes import grid_plane, load_bunny, look_at, merge, uv_sphere  # noqa: E402
 
@@ -184,7 +185,7 @@ def main():
     for name, build in SCENES.items():
         geometry, camera, shading = build()
         tree = build_kdtree(geometry.vertices, geometry.triangles)
-        tracer.load(geometry, tree)
+        tracer.load(Scene.from_parts(geometry, tree))
 
         def view(**settings):
             return View(camera, width, height, shading, settings=RenderSettings(**settings))
@@ -231,7 +232,7 @@ def main():
                  "scene_bytes_specialised": stripped.nbytes, "scene_bytes_full": full.nbytes}
         for label, geo, special in (("specialised", stripped, True), ("full", full, False)):
             tracer.specialise = special
-            tracer.load(geo, tree)
+            tracer.load(Scene.from_parts(geo, tree))
             timed_render(tracer, view(samples_per_axis=4, light_samples_per_axis=1))
             _, seconds, _ = timed_render(tracer, view(samples_per_axis=4, light_samples_per_axis=1),
                                          repeat=3)

@@ -2,7 +2,7 @@
 
 Slaves are local `python -m slave` processes, each pinned to its own core (taskset) with one
 PoCL thread; the master runs in this process. Every master-slave connection goes through
-core.linkemu.LinkEmulator (per connection and direction: latency + bandwidth), e.g. 802.11ac-like
+tests.linkemu.LinkEmulator (per connection and direction: latency + bandwidth), e.g. 802.11ac-like
 3 ms / 300 Mbit/s, or "loopback" (no emulation). Results go to stdout as Markdown and to --json.
 
     .venv/bin/python bench/network_scaling.py [--size 1024] [--reps 3] [--json out.json]
@@ -26,11 +26,12 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from core.kdtree import build_kdtree  # noqa: E402
-from core.linkemu import LinkEmulator  # noqa: E402
-from core.master import Master  # noqa: E402
-from core.protocol import TILE_BYTES_PER_PIXEL  # noqa: E402
-from core.scene import Geometry  # noqa: E402
+from core.accel.kdtree import build_kdtree  # noqa: E402
+from tests.linkemu import LinkEmulator  # noqa: E402
+from core.net.master import Master  # noqa: E402
+from core.net.protocol import TILE_BYTES_PER_PIXEL  # noqa: E402
+from core.scene.model import Geometry  # noqa: E402
+from core.scene.scene import Scene  # noqa: E402
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere  # noqa: E402
 from tests.test_network import make_view  # noqa: E402
 
@@ -94,7 +95,7 @@ class Session:
         self.master = Master([l.endpoint for l in self.links], secret=None, name="bench")
         self.master.connect()
         start = time.perf_counter()
-        self.master.load_scene(*scene)
+        self.master.load_scene(Scene.from_parts(*scene))
         self.load_s = time.perf_counter() - start
 
     def close(self):
@@ -245,7 +246,7 @@ def main():
             job.cancel()
             job.wait(30)
             session.close()
-            nbytes = sum(a.nbytes for a in __import__("core.protocol", fromlist=["x"]).scene_arrays(*big).values())
+            nbytes = sum(a.nbytes for a in __import__("core.net.protocol", fromlist=["x"]).scene_arrays(*big).values())
             rows.append({"triangles": big[0].triangle_count, "bytes": nbytes, "upload_s": upload_s,
                          "cached_connect_to_first_tile_s": first})
             print(f"scene {big[0].triangle_count} tris {nbytes/2**20:.1f} MiB: upload+load {upload_s*1e3:.0f} ms; "

@@ -90,7 +90,7 @@ def main():
           f"{stats['bytes'] / 2**20:.1f} MiB)")
     print(f"  render  {report['render_seconds']:7.2f} s  (slave start-up included on the first render)")
     print(f"  total   {wall:7.2f} s")
-    from core.slave_colors import ansi_swatch, slave_color
+    from core.net.slave_colors import ansi_swatch, slave_color
     for name, count in sorted(report["tiles_per_slave"].items()):
         hex_color = "#" + "".join(f"{round(c * 255):02x}" for c in slave_color(name))
         print(f"  {ansi_swatch(name)} {hex_color} tiles from {name}: {count}")

@@ -21,6 +21,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
+from core.scene.scene import Scene  # noqa: E402
 
 
 def cpu_model() -> str:
@@ -75,8 +76,8 @@ def main():
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
 
-    from core.kdtree import build_kdtree
-    from core.scene import Geometry
+    from core.accel.kdtree import build_kdtree
+    from core.scene.model import Geometry
     from slave.tracer import Tracer
     from tests.meshes import load_dragon
     from embreex import rtcore_scene as rtcs
@@ -93,7 +94,7 @@ def main():
     tree = build_kdtree(vertices, triangles)
     print(f"kd-tree build: {time.perf_counter() - start:.2f} s, {len(tree.nodes):,} nodes")
     tracer = Tracer("cpu")
-    tracer.load(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)), tree)
+    tracer.load(Scene.from_parts(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)), tree))
     print("device:", tracer.device_info)
     tracer.intersect(origins[:1024], dirs[:1024])          # build the kernel first
     ours_s, hits = best_cpu_time(lambda: tracer.intersect(origins, dirs), args.repeat)

@@ -15,7 +15,7 @@ import socket
 import sys
 import threading
 
-from core import protocol
+from core.net import protocol
 
 PROG = "python -m slave"
 EXIT_USAGE = 2
@@ -155,7 +155,7 @@ def run(args) -> int:
         host, port = server.address
         addresses, interfaces = _advertise_addresses(args.bind, args.advertise_ip)
         if not args.no_zeroconf:
-            from core.discovery import advertise
+            from core.net.discovery import advertise
             info = server.device_info
             try:
                 advertisement = advertise(name, port, {

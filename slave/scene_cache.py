@@ -1,7 +1,7 @@
 """Scenes a slave holds, by content hash: a small LRU in memory and, optionally, a folder on
 disk with a size limit, so a restarted slave or a second master uploads nothing.
 
-The disk copy is read back through the same validation as an upload (`scene_from_arrays`) and
+The disk copy is read back through the same validation as an upload (`Scene.from_wire`) and
 its hash is recomputed: a damaged or tampered file is deleted, never trusted. Files are .npz
 written with numpy (no pickle: loaded with allow_pickle=False), via a temporary name + rename.
 """
@@ -15,7 +15,8 @@ import threading
 
 import numpy as np
 
-from core import protocol
+from core.net import protocol
+from core.scene.scene import Scene
 
 log = logging.getLogger("kdtrace.slave")
 
@@ -45,13 +46,13 @@ class SceneCache:
             self._remember(scene_hash, scene)
         return scene
 
-    def put(self, scene_hash: str, scene) -> None:
-        self._remember(scene_hash, scene)
+    def put(self, scene: Scene) -> None:
+        self._remember(scene.hash, scene)
         if self.disk_dir is not None:
             try:
-                self._save_to_disk(scene_hash, scene)
+                self._save_to_disk(scene)
             except OSError as exc:  # a full disk costs a future upload, nothing else
-                log.warning("cannot write scene %s to the disk cache: %s", scene_hash, exc)
+                log.warning("cannot write scene %s to the disk cache: %s", scene.hash, exc)
 
     def _remember(self, scene_hash: str, scene) -> None:
         with self._lock:
@@ -60,12 +61,11 @@ class SceneCache:
             while len(self._scenes) > self.size:
                 self._scenes.popitem(last=False)
 
-    def _save_to_disk(self, scene_hash: str, scene) -> None:
-        geometry, tree = scene
-        arrays = protocol.scene_arrays(geometry, tree)
+    def _save_to_disk(self, scene: Scene) -> None:
+        arrays = scene.wire_arrays()
         if sum(a.nbytes for a in arrays.values()) > self.disk_limit_bytes:
             return
-        path = self._path(scene_hash)
+        path = self._path(scene.hash)
         if path.exists():
             os.utime(path)
             return
@@ -94,9 +94,9 @@ class SceneCache:
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {name: np.ascontiguousarray(data[name]) for name in data.files}
-            scene = protocol.scene_from_arrays(arrays)
-            if protocol.scene_hash(*scene) != scene_hash:
-                raise protocol.ProtocolError("content does not match its hash")
+            scene = Scene.from_wire(arrays)
+            if scene.hash != scene_hash:
+                raise ValueError("content does not match its hash")
         except Exception as exc:  # damaged, truncated or foreign file: drop it
             log.warning("disk cache: discarding %s: %s", path.name, exc)
             path.unlink(missing_ok=True)

@@ -21,10 +21,11 @@ import time
 import uuid
 from dataclasses import dataclass, field
 
-from core import protocol
-from core.protocol import MsgType, ProtocolError
-from core.scene import SCENE_FORMAT_VERSION, SceneError, View
-from core.tiles import tile_grid
+from core.net import protocol
+from core.net.protocol import MsgType, ProtocolError
+from core.net.tiles import tile_grid
+from core.scene.model import SCENE_FORMAT_VERSION, SceneError, View
+from core.scene.scene import Scene
 
 from .scene_cache import SceneCache
 
@@ -37,8 +38,7 @@ MAX_CONNECTIONS = 16
 @dataclass
 class Frame:
     frame_id: int
-    scene_hash: str
-    scene: tuple            # (Geometry, SceneTree)
+    scene: Scene
     view: View
     tiles: list
     model: str = "3b"         # "3a": the render thread sends each tile itself (Fig. 3a)
@@ -133,7 +133,7 @@ class MasterConnection:
         return True
 
     def _authenticate(self, master_nonce) -> bool:
-        """The HMAC challenge-response (see core.protocol); nothing else is accepted before it."""
+        """The HMAC challenge-response (see core.net.protocol); nothing else is accepted before it."""
         if master_nonce is None:
             return self._refuse("this slave requires authentication: the master sent no nonce")
         master_nonce = protocol.check_hex(master_nonce, protocol.NONCE_HEX, "master nonce")
@@ -255,14 +255,16 @@ class MasterConnection:
             self.outbox.put((MsgType.SCENE_READY, {"scene_hash": scene_hash, "present": present}, None))
         elif msg.type == MsgType.SCENE_UPLOAD:
             scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
-            geometry, tree = protocol.scene_from_arrays(msg.arrays)
-            actual = protocol.scene_hash(geometry, tree)
-            if actual != scene_hash:
+            try:
+                scene = Scene.from_wire(msg.arrays)
+            except SceneError as exc:
+                raise ProtocolError(f"invalid scene upload: {exc}") from None
+            if scene.hash != scene_hash:
                 raise ProtocolError(f"scene upload hash mismatch: announced {scene_hash}, "
-                                    f"content hashes to {actual}")
-            self.server.scenes.put(scene_hash, (geometry, tree))
+                                    f"content hashes to {scene.hash}")
+            self.server.scenes.put(scene)
             log.info("master %s uploaded scene %s (%d triangles)", self.peer, scene_hash,
-                     geometry.triangle_count)
+                     scene.geometry.triangle_count)
             self.outbox.put((MsgType.SCENE_READY, {"scene_hash": scene_hash, "present": True}, None))
         elif msg.type == MsgType.FRAME_START:
             self._start_frame(h)
@@ -293,9 +295,7 @@ class MasterConnection:
             if scene is None:
                 raise SceneError(f"scene {scene_hash} is not loaded on this slave")
             view = View.from_dict(h.get("view"))
-            material_ids = scene[0].material_ids
-            if len(material_ids) and int(material_ids.max()) >= len(view.shading.materials):
-                raise SceneError("a triangle refers to a material that does not exist")
+            scene.check_view(view)
             tile_w = protocol.get_int(h, "tile_size", 1, protocol.MAX_TILE_SIZE)
             tile_h = protocol.get_int(h, "tile_height", 1, protocol.MAX_TILE_SIZE) \
                 if "tile_height" in h else tile_w
@@ -309,7 +309,7 @@ class MasterConnection:
             log.warning("master %s: frame %d refused: %s", self.peer, frame_id, exc)
             self.outbox.put((MsgType.ERROR, {"frame_id": frame_id, "message": str(exc)}, None))
             return
-        self.frame = Frame(frame_id, scene_hash, scene, view, tile_grid(view.region, (tile_w, tile_h)),
+        self.frame = Frame(frame_id, scene, view, tile_grid(view.region, (tile_w, tile_h)),
                            model, payload, compress)
 
 
@@ -369,10 +369,10 @@ class SlaveServer:
     def render_tile(self, frame: Frame, x: int, y: int, w: int, h: int) -> dict:
         # One device for all masters: loading and rendering are serialised.
         with self._device_lock:
-            if self._loaded_hash != frame.scene_hash:
+            if self._loaded_hash != frame.scene.hash:
                 self._loaded_hash = None
-                self.tracer.load(*frame.scene)
-                self._loaded_hash = frame.scene_hash
+                self.tracer.load(frame.scene)
+                self._loaded_hash = frame.scene.hash
             return self.tracer.render_tile(frame.view, x, y, w, h)
 
     def close(self) -> None:

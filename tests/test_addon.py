@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import pytest
 
-from core.tiles import tile_grid
+from core.net.tiles import tile_grid
 from tests.blender import build_extension, run_bpy_script
 from tests.processes import SlaveProcess
 
@@ -79,7 +79,7 @@ def test_problems_reach_the_user_as_reports(tmp_path, slave_of_another_version, 
 
 
 def test_slave_pass_shows_who_rendered_each_tile_and_combined_is_clean(tmp_path):
-    from core.slave_colors import slave_color
+    from core.net.slave_colors import slave_color
     zip_path = build_extension(tmp_path / "dist")
     width, height, tile_size = 160, 120, 32
     result = run_bpy_script("render_passes", tmp_path, zip=str(zip_path), out=str(tmp_path),

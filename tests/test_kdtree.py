@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from core.kdtree import KDTree, KDTreeParams, LEAF_TAG, build_kdtree
+from core.accel.kdtree import KDTree, KDTreeParams, LEAF_TAG, build_kdtree
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere
 
 
@@ -224,9 +224,9 @@ def test_coarse_bins_still_correct():
 
 @pytest.mark.parametrize("name", ["bunny", "cube_of_quads", "slivers"])
 def test_carried_decisions_and_chunks_give_the_same_tree(name, monkeypatch):
-    # Decisions carried down chains of empty-space cuts (core.kdtree._exact_chain) and exact
+    # Decisions carried down chains of empty-space cuts (core.accel.kdtree._exact_chain) and exact
     # SAH in chunks must reproduce, bit for bit, the tree built by ranking every node afresh.
-    import core.kdtree as kd
+    import core.accel.kdtree as kd
     vertices, triangles = SCENES[name]()
     reference = build_kdtree(vertices, triangles)
     monkeypatch.setattr(kd, "CHAIN", 0)
@@ -299,7 +299,7 @@ def test_bad_input_is_rejected():
 @pytest.mark.parametrize("name", ["bunny", "cube_of_quads"])
 def test_binned_sah_in_chunks_gives_the_same_tree(name, monkeypatch):
     # Binned SAH runs in chunks of BINNED_CHUNK nodes; the chunking must not change the tree.
-    import core.kdtree as kd
+    import core.accel.kdtree as kd
     vertices, triangles = SCENES[name]()
     reference = build_kdtree(vertices, triangles)
     monkeypatch.setattr(kd, "BINNED_CHUNK", 3)
@@ -360,7 +360,7 @@ def _reference_halves(tri, cell_lo, cell_hi, axis, plane):
 def test_batched_straddler_clipping_matches_one_polygon_at_a_time():
     # _clip_straddlers clips only crossing faces, groups polygons by vertex count and
     # interpolates only crossing edges; the boxes must equal a plain per-polygon clip exactly.
-    import core.kdtree as kd
+    import core.accel.kdtree as kd
     rng = np.random.default_rng(5)
     count = 600
     tri = rng.uniform(-1, 1, (count, 3, 3)).astype(np.float32).astype(np.float64)
@@ -387,7 +387,7 @@ def test_reference_rows_keep_boxes_and_triangle_ids_bit_exact():
     # References live in one (N, 7) float32 array (box lo, box hi, triangle id as int32 bits)
     # moved by whole-row gathers; ids whose bits read as float32 NaN or denormals (very large
     # or small ids) and the boxes must come through unchanged.
-    import core.kdtree as kd
+    import core.accel.kdtree as kd
     rng = np.random.default_rng(3)
     ids = np.array([0, 1, 5, 2**23 + 1, 0x7F800001, 0x7FC00000, 2**31 - 1], np.int32)
     refs = np.empty((len(ids), kd.REF_WORDS), np.float32)
@@ -404,9 +404,9 @@ def test_reference_rows_keep_boxes_and_triangle_ids_bit_exact():
 
 @pytest.mark.parametrize("name", ["bunny", "cube_of_quads", "slivers"])
 def test_parallel_parts_give_the_same_tree(name, monkeypatch):
-    # Subtrees grown in threads (core.kdtree._grow_in_parallel) are joined level by level;
+    # Subtrees grown in threads (core.accel.kdtree._grow_in_parallel) are joined level by level;
     # the layout must be exactly the single-thread one whatever the thread and part counts.
-    import core.kdtree as kd
+    import core.accel.kdtree as kd
     vertices, triangles = SCENES[name]()
     reference = build_kdtree(vertices, triangles, KDTreeParams(threads=1))
     assert reference.stats["threads"] == 1

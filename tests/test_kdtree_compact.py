@@ -1,4 +1,4 @@
-"""Compressed kd-tree layouts (core/kdtree_compact.py): a reference traversal checked against
+"""Compressed kd-tree layouts (core/accel/compact.py): a reference traversal checked against
 brute force, and the invariants of the lifting (every triangle still reachable from every leaf
 cell it overlaps, per-node and per-path limits).
 
@@ -13,8 +13,8 @@ import functools
 import numpy as np
 import pytest
 
-from core.kdtree import KDTree, build_kdtree
-from core.kdtree_compact import (LEAF_TAG, MODES, NO_TRIANGLE, _lift_candidates,
+from core.accel.kdtree import KDTree, build_kdtree
+from core.accel.compact import (LEAF_TAG, MODES, NO_TRIANGLE, _lift_candidates,
                                  _neighbour_lcas, _Topology, compact_params, compact_tree,
                                  geometry_nbytes)
 from tests.meshes import load_bunny, uv_sphere
@@ -606,7 +606,7 @@ def test_lift_candidates_match_definition(thresholds, stretched):
 
 
 def _general_standard(tree, triangle_count, monkeypatch):
-    import core.kdtree_compact as kc
+    import core.accel.compact as kc
     with monkeypatch.context() as m:
         m.setattr(kc, "_standard_reencoded", lambda *args: None)
         return compact_tree(tree, triangle_count, "standard")
@@ -625,7 +625,7 @@ def _same_compact(a, b):
 def test_standard_reencoding_equals_the_general_layout(name, monkeypatch):
     # Mode standard re-encodes a builder-ordered tree's words directly (_standard_reencoded);
     # it must give exactly what the general decode-and-lay-out path gives.
-    import core.kdtree_compact as kc
+    import core.accel.compact as kc
     _, triangles, _, tree = scene(name)
     assert kc._standard_reencoded(tree, len(triangles), compact_params("standard")) is not None
     _same_compact(compact_tree(tree, len(triangles), "standard"),
@@ -633,7 +633,7 @@ def test_standard_reencoding_equals_the_general_layout(name, monkeypatch):
 
 
 def test_standard_reencoding_falls_back_for_other_orders(monkeypatch):
-    import core.kdtree_compact as kc
+    import core.accel.compact as kc
     # Root with two leaves: an empty one first, then one whose list is not ascending.
     tree = KDTree(np.array([[0 | (1 << 2), np.float32(0.5).view(np.uint32)],
                             [LEAF_TAG, 7], [LEAF_TAG | (2 << 2), 0]], np.uint32),

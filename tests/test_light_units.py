@@ -15,7 +15,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from core.scene import Camera, Geometry, Light, Shading, View
+from core.accel.kdtree import KDTree
+from core.scene.model import Camera, Geometry, Light, Shading, View
+from core.scene.scene import Scene
 from slave.tracer import Tracer
 from tests.meshes import grid_plane
 
@@ -139,14 +141,12 @@ def render_ours(tracer, name, placed, supersample=8):
 
 @pytest.fixture(scope="module")
 def plane_tracer():
-    pytest.importorskip("bpy")          # only its presence; Cycles runs in a subprocess
     vertices, triangles = grid_plane(PLANE, 1, 0.0)
     tracer = Tracer()
     # Two triangles: a single leaf is the whole tree.
-    tree = type("Tree", (), {"nodes": np.array([[(2 << 2) | 3, 0]], np.uint32),
-                             "leaf_indices": np.arange(2, dtype=np.uint32),
-                             "bounds": np.array([vertices.min(0), vertices.max(0)], np.float32)})
-    tracer.load(Geometry(vertices, triangles, np.zeros(2, np.uint16)), tree)
+    tree = KDTree(np.array([[(2 << 2) | 3, 0]], np.uint32), np.arange(2, dtype=np.uint32),
+                  np.array([vertices.min(0), vertices.max(0)], np.float32))
+    tracer.load(Scene.from_parts(Geometry(vertices, triangles, np.zeros(2, np.uint16)), tree))
     return tracer
 
 

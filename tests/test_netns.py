@@ -16,11 +16,12 @@ import uuid
 import numpy as np
 import pytest
 
-from core import protocol
-from core.discovery import SlaveBrowser
-from core.master import Master, MasterError
-from core.protocol import HEADER, MAGIC, MsgType
-from core.scene import SCENE_FORMAT_VERSION
+from core.net import protocol
+from core.net.discovery import SlaveBrowser
+from core.net.master import Master, MasterError
+from core.net.protocol import HEADER, MAGIC, MsgType
+from core.scene.model import SCENE_FORMAT_VERSION
+from core.scene.scene import Scene
 from tests.processes import ChildProcess
 from tests.test_network import (assert_images_equal, make_scene, make_view, raw_exchange,
                                 render_all)
@@ -88,9 +89,9 @@ def start_slave(lan: Lan, host: int, name: str, *extra, port=PORT) -> HostProces
 # A stand-in slave that handshakes correctly and then misbehaves. Run with `python -c`.
 FAKE_SLAVE = r"""
 import os, socket, sys, threading, time
-from core import protocol
-from core.protocol import MsgType, HEADER, MAGIC
-from core.scene import SCENE_FORMAT_VERSION
+from core.net import protocol
+from core.net.protocol import MsgType, HEADER, MAGIC
+from core.scene.model import SCENE_FORMAT_VERSION
 mode, host, port = sys.argv[1], sys.argv[2], int(sys.argv[3])
 
 def serve(sock):
@@ -172,7 +173,7 @@ def one_slave_image(slaves, scene):
     """The reference: the whole frame rendered by one slave over the LAN."""
     with Master([slaves[0].endpoint], secret=None) as master:
         master.connect()
-        master.load_scene(*scene)
+        master.load_scene(Scene.from_parts(*scene))
         images, _ = render_all(master.render(make_view(), tile_size=16))
     return images
 
@@ -199,7 +200,7 @@ def test_discovery_of_several_slaves_across_hosts(lan, slaves):
 def test_render_across_hosts_equals_one_slave(slaves, scene, one_slave_image):
     with Master([s.endpoint for s in slaves], secret=None) as master:
         master.connect()
-        master.load_scene(*scene)
+        master.load_scene(Scene.from_parts(*scene))
         for model in ("3b", "3a"):
             job = master.render(make_view(), partition=4, model=model)
             images, results = render_all(job)
@@ -220,7 +221,7 @@ def test_slave_killed_at_random_moments(lan, slaves, scene, one_slave_image):
         try:
             with Master([slaves[0].endpoint, slaves[1].endpoint, victim.endpoint], secret=None) as master:
                 master.connect()
-                master.load_scene(*scene)
+                master.load_scene(Scene.from_parts(*scene))
                 job = master.render(make_view(), tile_size=4)   # 192 tiles
                 kill_at = time.monotonic() + rng.uniform(0.0, 0.6)
                 images = {k: np.full_like(v, np.nan) for k, v in one_slave_image.items()}
@@ -247,7 +248,7 @@ def test_slave_that_hangs_without_closing(lan, slaves, scene, one_slave_image, d
     try:
         with Master([slaves[0].endpoint, fake.endpoint], secret=None, slave_timeout=2.0) as master:
             master.connect()
-            master.load_scene(*scene)
+            master.load_scene(Scene.from_parts(*scene))
             start = time.monotonic()
             job = master.render(make_view(), tile_size=16, duplicates=duplicates)
             images, _ = render_all(job, timeout=30)
@@ -268,7 +269,7 @@ def test_slave_that_returns_garbage(lan, slaves, scene, one_slave_image, mode, r
     try:
         with Master([fake.endpoint, slaves[1].endpoint], secret=None) as master:
             master.connect()
-            master.load_scene(*scene)
+            master.load_scene(Scene.from_parts(*scene))
             job = master.render(make_view(), tile_size=16)
             images, _ = render_all(job, timeout=30)
             assert job.error is None and job.progress == (12, 12)
@@ -294,7 +295,7 @@ def test_bad_frames_to_a_slave_then_a_real_master(slaves, scene, one_slave_image
                                               1 << 30, 1 << 40))
     with Master([slaves[2].endpoint], secret=None) as master:
         master.connect()
-        master.load_scene(*scene)
+        master.load_scene(Scene.from_parts(*scene))
         images, _ = render_all(master.render(make_view(), tile_size=16))
     assert_images_equal(images, one_slave_image)
 
@@ -307,7 +308,7 @@ def test_shared_secret(lan, scene, one_slave_image, tmp_path):
     try:
         with Master([slave.endpoint], secret="correct horse battery staple") as master:
             master.connect()
-            master.load_scene(*scene)
+            master.load_scene(Scene.from_parts(*scene))
             images, _ = render_all(master.render(make_view(), tile_size=16))
         assert_images_equal(images, one_slave_image)
         with pytest.raises(MasterError, match="failed authentication"):

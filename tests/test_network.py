@@ -13,12 +13,13 @@ import time
 import numpy as np
 import pytest
 
-from core import protocol
-from core.discovery import SlaveBrowser, browse_slaves
-from core.kdtree import build_kdtree
-from core.master import Master, MasterError
-from core.protocol import HEADER, MAGIC, MsgType
-from core.scene import Camera, Geometry, Light, Shading, View
+from core.net import protocol
+from core.net.discovery import SlaveBrowser, browse_slaves
+from core.accel.kdtree import build_kdtree
+from core.net.master import Master, MasterError
+from core.net.protocol import HEADER, MAGIC, MsgType
+from core.scene.model import Camera, Geometry, Light, Shading, View
+from core.scene.scene import Scene
 from tests.conftest import ROOT
 from tests.meshes import grid_plane, merge, uv_sphere
 from tests.processes import SlaveProcess
@@ -84,7 +85,7 @@ def reference():
     from slave.tracer import Tracer
     geometry, tree = make_scene()
     tracer = Tracer()
-    tracer.load(geometry, tree)
+    tracer.load(Scene.from_parts(geometry, tree))
     view = make_view()
     return tracer.render_tile(view, 0, 0, view.width, view.height)
 
@@ -139,7 +140,7 @@ def test_two_slaves_render_the_same_pixels_as_one_and_as_the_tracer(slaves, refe
         master.connect()
         assert sorted(c.name for c in master.slaves) == sorted(s.name for s in slaves)
         assert all(c.device and c.compute_units >= 1 and c.memory > 0 for c in master.slaves)
-        master.load_scene(geometry, tree)
+        master.load_scene(Scene.from_parts(geometry, tree))
         job = master.render(view, tile_size=16)
         two, results = render_all(job)
         assert job.error is None and job.errors == []
@@ -150,7 +151,7 @@ def test_two_slaves_render_the_same_pixels_as_one_and_as_the_tracer(slaves, refe
         assert sum(job.tiles_by_slave.values()) == len(job.tiles), job.tiles_by_slave
     with Master([slaves[0].endpoint]) as master:
         master.connect()
-        master.load_scene(geometry, tree)
+        master.load_scene(Scene.from_parts(geometry, tree))
         one, _ = render_all(master.render(view, tile_size=16))
     assert_images_equal(two, one)
     assert_images_equal(two, reference)
@@ -159,15 +160,15 @@ def test_two_slaves_render_the_same_pixels_as_one_and_as_the_tracer(slaves, refe
 def test_compressed_kdtree_renders_the_same_pixels_over_the_network(slaves, reference):
     """Mode "ours" (triangle references in inner nodes, 2-byte leaves) travels to real slaves,
     gets its own scene hash (another upload), and renders what the standard tree renders."""
-    from core.kdtree_compact import compact_tree
+    from core.accel.compact import compact_tree
     geometry, tree = make_scene()
     ours = compact_tree(tree, geometry.triangle_count, "ours")
     assert ours.stats["inner_references"] > 0 and ours.stats["leaves_16bit"] > 0
     view = make_view()
     with Master([s.endpoint for s in slaves]) as master:
         master.connect()
-        standard_hash = protocol.scene_hash(geometry, tree)
-        ours_hash = master.load_scene(geometry, ours)
+        standard_hash = Scene.from_parts(geometry, tree).hash
+        ours_hash = master.load_scene(Scene.from_parts(geometry, ours))
         assert ours_hash != standard_hash
         images, _ = render_all(master.render(view, tile_size=16))
     assert_images_equal(images, reference)
@@ -178,7 +179,7 @@ def test_render_border_region_and_odd_tile_size(slaves, reference):
     view = make_view(region=(5, 7, 50, 40))
     with Master([s.endpoint for s in slaves]) as master:
         master.connect()
-        master.load_scene(geometry, tree)
+        master.load_scene(Scene.from_parts(geometry, tree))
         images, results = render_all(master.render(view, tile_size=13, tiles_in_flight=1))
     assert {(r.x, r.y) for r in results} >= {(5, 7), (44, 33)}
     for name in images:
@@ -190,14 +191,14 @@ def test_scene_is_uploaded_once_per_hash(slaves):
     geometry, tree = make_scene(sphere_center=(0.5, 0.25, 1.0))  # a scene no slave has seen
     with Master([s.endpoint for s in slaves]) as master:
         master.connect()
-        master.load_scene(geometry, tree)
+        master.load_scene(Scene.from_parts(geometry, tree))
         assert len(master.uploaded_to) == 2
         first, _ = render_all(master.render(make_view(), tile_size=32))
-        master.load_scene(geometry, tree)  # same master again: nothing to send
+        master.load_scene(Scene.from_parts(geometry, tree))  # same master again: nothing to send
         assert master.uploaded_to == []
     with Master([s.endpoint for s in slaves]) as master:  # a new session
         master.connect()
-        master.load_scene(geometry, tree)
+        master.load_scene(Scene.from_parts(geometry, tree))
         assert master.uploaded_to == []
         second, _ = render_all(master.render(make_view(), tile_size=32))
     assert_images_equal(first, second)
@@ -208,7 +209,7 @@ def test_cancel_mid_frame_reaches_every_slave(slaves, reference):
     view = make_view(128, 96)
     with Master([s.endpoint for s in slaves]) as master:
         master.connect()
-        master.load_scene(geometry, tree)
+        master.load_scene(Scene.from_parts(geometry, tree))
         job = master.render(view, tile_size=4)   # 768 tiny tiles
         assert job.next_result(30) is not None
         job.cancel()
@@ -231,7 +232,7 @@ def test_frame_completes_when_a_slave_is_killed(slaves, reference):
         view = make_view()
         with Master([slaves[0].endpoint, victim.endpoint]) as master:
             master.connect()
-            master.load_scene(geometry, tree)
+            master.load_scene(Scene.from_parts(geometry, tree))
             job = master.render(view, tile_size=4)    # 192 tiles
             images = {"combined": np.zeros((48, 64, 4), np.float32),
                       "depth": np.zeros((48, 64), np.float32),
@@ -261,7 +262,7 @@ def test_job_fails_clearly_when_every_slave_is_lost(slaves):
         geometry, tree = make_scene()
         with Master([victim.endpoint]) as master:
             master.connect()
-            master.load_scene(geometry, tree)
+            master.load_scene(Scene.from_parts(geometry, tree))
             job = master.render(make_view(128, 96), tile_size=4)
             assert job.next_result(30) is not None
             victim.kill()
@@ -317,7 +318,7 @@ def test_garbage_never_crashes_a_slave(slaves, reference):
     # A valid scene announced under another hash: the slave checks what it received.
     geometry, tree = make_scene()
     upload = b"".join(bytes(b) for b in protocol.encode_message(
-        MsgType.SCENE_UPLOAD, {"scene_hash": "0" * 32}, protocol.scene_arrays(geometry, tree)))
+        MsgType.SCENE_UPLOAD, {"scene_hash": "0" * 32}, Scene.from_parts(geometry, tree).wire_arrays()))
     assert b"scene upload hash mismatch" in raw_exchange(port, hello + upload)
     # A frame before any scene, a tile for no frame: an ERROR for the frame, no crash.
     frame = protocol.encode_message(MsgType.FRAME_START, {
@@ -330,7 +331,7 @@ def test_garbage_never_crashes_a_slave(slaves, reference):
     geometry, tree = make_scene()
     with Master([slaves[0].endpoint]) as master:
         master.connect()
-        master.load_scene(geometry, tree)
+        master.load_scene(Scene.from_parts(geometry, tree))
         images, _ = render_all(master.render(make_view(), tile_size=32))
     assert_images_equal(images, reference)
 

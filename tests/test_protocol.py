@@ -5,15 +5,16 @@ import json
 import socket
 import struct
 import threading
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from core import protocol
-from core.protocol import HEADER, MAGIC, PROTOCOL_VERSION, Limits, MsgType, ProtocolError
-from core.scene import Geometry
-from core.tiles import TilePool, tile_grid
+from core.net import protocol
+from core.net.protocol import HEADER, MAGIC, PROTOCOL_VERSION, Limits, MsgType, ProtocolError
+from core.accel.kdtree import KDTree
+from core.scene.model import Geometry, SceneError
+from core.net.tiles import TilePool, tile_grid
+from core.scene.scene import Scene
 
 
 @pytest.fixture
@@ -171,46 +172,44 @@ def small_scene():
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
     triangles = np.array([[0, 1, 2], [1, 3, 2]], np.uint32)
     geometry = Geometry(vertices, triangles, np.zeros(2, np.uint16))
-    tree = SimpleNamespace(nodes=np.array([[(2 << 2) | 3, 0]], np.uint32),
-                           leaf_indices=np.array([0, 1], np.uint32),
-                           bounds=np.array([[0, 0, 0], [1, 1, 0]], np.float32))
+    tree = KDTree(np.array([[(2 << 2) | 3, 0]], np.uint32), np.array([0, 1], np.uint32),
+                  np.array([[0, 0, 0], [1, 1, 0]], np.float32))
     return geometry, tree
 
 
 def test_scene_round_trip_and_hash(pair):
     a, b = pair
     geometry, tree = small_scene()
-    scene_hash = protocol.scene_hash(geometry, tree)
+    scene_hash = Scene.from_parts(geometry, tree).hash
     protocol.send_message(a, MsgType.SCENE_UPLOAD, {"scene_hash": scene_hash},
-                          protocol.scene_arrays(geometry, tree))
+                          Scene.from_parts(geometry, tree).wire_arrays())
     msg = protocol.recv_message(b)
-    geometry2, tree2 = protocol.scene_from_arrays(msg.arrays)
-    assert protocol.scene_hash(geometry2, tree2) == scene_hash
+    assert Scene.from_wire(msg.arrays).hash == scene_hash
     assert protocol.check_scene_hash(scene_hash) == scene_hash
     # The hash covers the tree as well as the geometry.
     tree.bounds = tree.bounds + np.float32(1)
-    assert protocol.scene_hash(geometry, tree) != scene_hash
+    assert Scene.from_parts(geometry, tree).hash != scene_hash
 
 
 def test_scene_hash_depends_on_the_kdtree_mode():
     """The mode and thresholds are part of what the master builds: other arrays, another hash;
     the compact arrays round-trip through the upload unchanged."""
-    from core.kdtree import build_kdtree
-    from core.kdtree_compact import compact_tree
+    from core.accel.kdtree import build_kdtree
+    from core.accel.compact import compact_tree
     from tests.meshes import uv_sphere
     vertices, triangles = uv_sphere(32, 16)
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
     tree = build_kdtree(vertices, triangles)
     trees = {mode: compact_tree(tree, len(triangles), mode) for mode in ("standard", "choi", "ours")}
-    hashes = {mode: protocol.scene_hash(geometry, ct) for mode, ct in trees.items()}
+    hashes = {mode: Scene.from_parts(geometry, ct).hash for mode, ct in trees.items()}
     assert len(set(hashes.values())) == 3
-    assert protocol.scene_hash(geometry, tree) == hashes["standard"]   # plain = standard
+    assert Scene.from_parts(geometry, tree).hash == hashes["standard"]   # plain = standard
     loose = compact_tree(tree, len(triangles), "ours", tau_occu=0.05, tau_freq=0.05)
-    assert protocol.scene_hash(geometry, loose) != hashes["ours"]
-    geometry2, tree2 = protocol.scene_from_arrays(protocol.scene_arrays(geometry, trees["ours"]))
-    assert protocol.scene_hash(geometry2, tree2) == hashes["ours"]
-    assert np.array_equal(tree2.leaf_index16, trees["ours"].leaf_index16)
-    assert tree2.leaf_shift == trees["ours"].leaf_shift
+    assert Scene.from_parts(geometry, loose).hash != hashes["ours"]
+    received = Scene.from_wire(Scene.from_parts(geometry, trees["ours"]).wire_arrays())
+    assert received.hash == hashes["ours"]
+    assert np.array_equal(received.tree.leaf_index16, trees["ours"].leaf_index16)
+    assert received.tree.leaf_shift == trees["ours"].leaf_shift
 
 
 @pytest.mark.parametrize("change, match", [
@@ -238,20 +237,24 @@ def test_scene_hash_depends_on_the_kdtree_mode():
 ])
 def test_bad_scenes_are_rejected(change, match):
     geometry, tree = small_scene()
-    arrays = protocol.scene_arrays(geometry, tree)
+    arrays = Scene.from_parts(geometry, tree).wire_arrays()
     change(arrays)
-    with pytest.raises(ProtocolError, match=match):
-        protocol.scene_from_arrays(arrays)
+    with pytest.raises(SceneError, match=match):
+        Scene.from_wire(arrays)
 
 
 def test_tile_pass_validation():
+    """The master's check of a received tile (decode_tile): names, shapes, finite values."""
     good = {"combined": np.zeros((3, 4, 4), np.float32), "depth": np.zeros((3, 4), np.float32),
             "normal": np.zeros((3, 4, 3), np.float32)}
-    assert protocol.tile_passes_ok(good, 4, 3) is None
-    assert "must be float32 (4, 3, 4)" in protocol.tile_passes_ok(good, 3, 4)
+    assert set(protocol.decode_tile({}, good, 4, 3, "f32")) == set(good)
+    with pytest.raises(ProtocolError, match=r"must be <f4 \(4, 3, 4\)"):
+        protocol.decode_tile({}, good, 3, 4, "f32")
     bad = dict(good, depth=np.full((3, 4), np.inf, np.float32))
-    assert "NaN or infinity" in protocol.tile_passes_ok(bad, 4, 3)
-    assert "tile passes must be" in protocol.tile_passes_ok({"combined": good["combined"]}, 4, 3)
+    with pytest.raises(ProtocolError, match="NaN or infinity"):
+        protocol.decode_tile({}, bad, 4, 3, "f32")
+    with pytest.raises(ProtocolError, match="tile passes must be"):
+        protocol.decode_tile({}, {"combined": good["combined"]}, 4, 3, "f32")
 
 
 def test_field_helpers():

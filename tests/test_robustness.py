@@ -9,10 +9,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from core.kdtree import build_kdtree
-from core.scene import (Camera, Geometry, Light, RenderSettings, Shading, View,
-                        default_material_params)
-from slave.tracer import Tracer, TracerError
+from core.accel.kdtree import build_kdtree
+from core.scene.model import (Camera, Geometry, Light, RenderSettings, SceneError, Shading,
+                              View, default_material_params)
+from core.scene.scene import Scene
+from slave.tracer import Tracer
 from tests.meshes import grid_plane, look_at, merge, uv_sphere
 from tests.test_tracer import single_leaf_tree, two_level_tree
 
@@ -35,7 +36,7 @@ def shading(lights, params=None, colours=((0.8, 0.3, 0.2, 1), (0.7, 0.7, 0.7, 1)
 
 def render(tracer, vertices, triangles, ids, camera, shade, size=(64, 48), tree=None, **settings):
     geometry = Geometry(vertices, triangles, ids)
-    tracer.load(geometry, tree if tree is not None else build_kdtree(geometry.vertices, geometry.triangles))
+    tracer.load(Scene.from_parts(geometry, tree if tree is not None else build_kdtree(geometry.vertices, geometry.triangles)))
     view = View(camera, *size, shade, settings=RenderSettings(**settings))
     passes = tracer.render_tile(view, 0, 0, *size)
     for name, image in passes.items():
@@ -131,7 +132,7 @@ def test_closed_mesh_from_inside_no_ray_escapes(tracer, name):
     targets = np.concatenate([vertices, vertices[edges].mean(1),
                               np.einsum("eij,i->ej", vertices[edges], np.float32([0.3, 0.7]))])
     for tree in (build_kdtree(geometry.vertices, geometry.triangles), single_leaf_tree(vertices, triangles)):
-        tracer.load(geometry, tree)
+        tracer.load(Scene.from_parts(geometry, tree))
         for origin in (centre, centre + np.float32([0.01, 0.02, -0.03]), np.float32([0, 0, 0])):
             directions = targets - origin
             hits = tracer.intersect(np.tile(origin, (len(targets), 1)), directions)
@@ -174,7 +175,7 @@ def test_flat_scene_and_flat_cells(tracer):
     vertices, triangles = grid_plane(4.0, 8, 0.0)
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
     tree = build_kdtree(geometry.vertices, geometry.triangles)
-    tracer.load(geometry, tree)
+    tracer.load(Scene.from_parts(geometry, tree))
     rng = np.random.default_rng(3)
     origins = np.c_[rng.uniform(-1.9, 1.9, (500, 2)), np.full(500, 1.0)].astype(np.float32)
     hits = tracer.intersect(origins, np.tile(np.float32([0, 0, -1]), (500, 1)))
@@ -188,9 +189,9 @@ def test_flat_scene_and_flat_cells(tracer):
     assert image.max() > 0.1
 
 
-def test_bad_geometry_is_rejected_with_a_message(tracer):
+def test_bad_geometry_is_rejected_with_a_message():
     vertices, triangles = grid_plane(2.0, 1, 0.0)
     vertices[0, 1] = np.nan
-    with pytest.raises(TracerError, match="NaN"):
-        tracer.load(Geometry(vertices, triangles, np.zeros(2, np.uint16)),
-                    single_leaf_tree(np.nan_to_num(vertices), triangles))
+    with pytest.raises(SceneError, match="NaN"):
+        Scene.from_parts(Geometry(vertices, triangles, np.zeros(2, np.uint16)),
+                         single_leaf_tree(np.nan_to_num(vertices), triangles))

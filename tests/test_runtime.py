@@ -10,10 +10,11 @@ import zlib
 import numpy as np
 import pytest
 
-from core import protocol
-from core.linkemu import LinkEmulator
-from core.protocol import ProtocolError
-from core.tiles import TilePool, partition_tile_size, tile_grid
+from core.net import protocol
+from tests.linkemu import LinkEmulator
+from core.net.protocol import ProtocolError
+from core.net.tiles import TilePool, partition_tile_size, tile_grid
+from core.scene.scene import Scene
 from slave.scene_cache import SceneCache
 from tests.test_network import make_scene
 
@@ -109,16 +110,17 @@ def test_hmac_proofs_and_secrets(tmp_path, monkeypatch):
 
 def test_disk_scene_cache_survives_a_restart_and_drops_damaged_files(tmp_path):
     geometry, tree = make_scene()
-    scene_hash = protocol.scene_hash(geometry, tree)
-    SceneCache(2, tmp_path).put(scene_hash, (geometry, tree))
+    scene = Scene.from_parts(geometry, tree)
+    scene_hash = scene.hash
+    SceneCache(2, tmp_path).put(scene)
     fresh = SceneCache(2, tmp_path)                       # a restarted slave
     loaded = fresh.get(scene_hash)
-    assert loaded is not None and protocol.scene_hash(*loaded) == scene_hash
+    assert loaded is not None and loaded.hash == scene_hash
     path = tmp_path / f"{scene_hash}.npz"
     path.write_bytes(path.read_bytes()[:200])             # damaged on disk
     assert SceneCache(2, tmp_path).get(scene_hash) is None and not path.exists()
     small = SceneCache(1, tmp_path, disk_limit_bytes=1)   # too big for the disk limit: memory only
-    small.put(scene_hash, (geometry, tree))
+    small.put(scene)
     assert not path.exists() and small.get(scene_hash) is not None
 
 

@@ -9,8 +9,9 @@ import json
 import numpy as np
 import pytest
 
-from core.features import scene_features
-from core.scene import Geometry, RenderSettings, View
+from core.scene.features import scene_features
+from core.scene.model import Geometry, RenderSettings, View
+from core.scene.scene import Scene
 from tests.blender import build_extension, run_bpy_script
 
 WIDTH, HEIGHT = 96, 72
@@ -30,17 +31,16 @@ def load_exported(work):
 
 
 def render(geometry, view, **settings):
-    from core.kdtree import build_kdtree
+    from core.accel.kdtree import build_kdtree
     from slave.tracer import Tracer
     tracer = Tracer()
-    tracer.load(geometry, build_kdtree(geometry.vertices, geometry.triangles))
+    tracer.load(Scene.from_parts(geometry, build_kdtree(geometry.vertices, geometry.triangles)))
     view.settings = RenderSettings(**settings)
     return tracer.render_tile(view, 0, 0, view.width, view.height), tracer
 
 
 @pytest.fixture(scope="module")
 def extension(tmp_path_factory):
-    pytest.importorskip("bpy")
     return build_extension(tmp_path_factory.mktemp("dist"))
 
 
@@ -114,14 +114,14 @@ def test_bad_input_is_named_and_cleaned(extension, tmp_path):
 def test_tiles_match_the_full_image_with_supersampling():
     """Seeds come from the global pixel index: a tile equals the same pixels of the full image
     (uniform supersampling with soft lights), and renders repeat exactly."""
-    from core.kdtree import build_kdtree
-    from core.scene import Camera, Light, Shading
+    from core.accel.kdtree import build_kdtree
+    from core.scene.model import Camera, Light, Shading
     from slave.tracer import Tracer
     from tests.meshes import grid_plane, merge, uv_sphere
     vertices, triangles = merge(uv_sphere(16, 8, 1.0, (0, 0, 1)), grid_plane(6.0, 2, 0.0))
     tracer = Tracer()
-    tracer.load(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)),
-                build_kdtree(vertices, triangles))
+    tracer.load(Scene.from_parts(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)),
+                build_kdtree(vertices, triangles)))
     m = np.eye(4)
     m[:3, 3] = (0, 0, 8)
     lights = [Light("AREA", (1, 1, 1), 300.0, (1, -1, 4), shape="ELLIPSE", size_u=1.5, size_v=0.7),

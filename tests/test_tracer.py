@@ -2,28 +2,23 @@
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from core.scene import Camera, Geometry, Light, Shading, View
+from core.accel.kdtree import KDTree, build_kdtree
+from core.scene.model import Camera, Geometry, Light, Shading, View
+from core.scene.scene import Scene
 from slave.tracer import Tracer, TracerError, kernel_options
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere
-
-try:
-    from core.kdtree import build_kdtree
-except ImportError:         # being written in parallel; fall back to the hand-built trees
-    build_kdtree = None
 
 
 # -- trees ----------------------------------------------------------------------------------
 def single_leaf_tree(vertices, triangles):
     """One leaf holding every triangle: traversal reduces to brute force."""
     count = len(triangles)
-    return SimpleNamespace(nodes=np.array([[(count << 2) | 3, 0]], np.uint32),
-                           leaf_indices=np.arange(count, dtype=np.uint32),
-                           bounds=np.array([vertices.min(0), vertices.max(0)], np.float32))
+    return KDTree(np.array([[(count << 2) | 3, 0]], np.uint32), np.arange(count, dtype=np.uint32),
+                  np.array([vertices.min(0), vertices.max(0)], np.float32))
 
 
 def two_level_tree(vertices, triangles, axis=0, split=None):
@@ -37,14 +32,11 @@ def two_level_tree(vertices, triangles, axis=0, split=None):
     nodes = np.array([[(1 << 2) | axis, split.view(np.uint32)],
                       [(len(below) << 2) | 3, 0],
                       [(len(above) << 2) | 3, len(below)]], np.uint32)
-    return SimpleNamespace(nodes=nodes, leaf_indices=np.concatenate([below, above]),
-                           bounds=np.array([lo, hi], np.float32))
+    return KDTree(nodes, np.concatenate([below, above]), np.array([lo, hi], np.float32))
 
 
 def make_tree(vertices, triangles):
-    if build_kdtree is not None:
-        return build_kdtree(vertices, triangles)
-    return two_level_tree(vertices, triangles)
+    return build_kdtree(vertices, triangles)
 
 
 # -- brute force reference --------------------------------------------------------------------
@@ -112,8 +104,8 @@ def tracer():
 def load(tracer, vertices, triangles, tree=None, material_ids=None):
     if material_ids is None:
         material_ids = np.zeros(len(triangles), np.uint16)
-    tracer.load(Geometry(vertices, triangles, material_ids),
-                tree if tree is not None else make_tree(vertices, triangles))
+    tracer.load(Scene.from_parts(Geometry(vertices, triangles, material_ids),
+                tree if tree is not None else make_tree(vertices, triangles)))
 
 
 MESHES = {

@@ -9,14 +9,14 @@ the layout is tests/test_kdtree_compact.py `trace_compact`.
 from __future__ import annotations
 
 import functools
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from core.kdtree import build_kdtree
-from core.kdtree_compact import MODES, compact_tree
-from core.scene import Camera, Geometry, Light, RenderSettings, Shading, View
+from core.accel.kdtree import build_kdtree
+from core.accel.compact import MODES, CompactTree, compact_tree
+from core.scene.model import Camera, Geometry, Light, RenderSettings, SceneError, Shading, View
+from core.scene.scene import Scene
 from slave.tracer import RayHits, Tracer, TracerError
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere
 from tests.scenes_architecture import architecture_scene
@@ -37,10 +37,9 @@ def tracer():
 
 def one_leaf(triangle_count, vertices):
     """Every triangle in one 32-bit leaf of the compact layout: the kernel's brute force."""
-    return SimpleNamespace(nodes=np.array([[3 | (triangle_count << 3), 0]], np.uint32),
-                           leaf_index32=np.arange(triangle_count, dtype=np.uint32),
-                           leaf_index16=np.zeros(0, np.uint16), leaf_shift=0,
-                           bounds=np.array([vertices.min(0), vertices.max(0)], np.float32))
+    return CompactTree(np.array([[3 | (triangle_count << 3), 0]], np.uint32),
+                       np.arange(triangle_count, dtype=np.uint32), np.zeros(0, np.uint16),
+                       np.array([vertices.min(0), vertices.max(0)], np.float32), 0)
 
 
 @functools.lru_cache(maxsize=None)
@@ -57,7 +56,7 @@ def scene(name):
 def brute(name):
     geometry, _, origins, directions = scene(name)
     t = Tracer()
-    t.load(geometry, one_leaf(geometry.triangle_count, geometry.vertices))
+    t.load(Scene.from_parts(geometry, one_leaf(geometry.triangle_count, geometry.vertices)))
     return t.intersect(origins, directions)
 
 
@@ -66,7 +65,7 @@ def brute(name):
 def test_modes_match_brute_force(tracer, name, mode):
     geometry, tree, origins, directions = scene(name)
     ct = compact_tree(tree, geometry.triangle_count, mode)
-    tracer.load(geometry, ct)
+    tracer.load(Scene.from_parts(geometry, ct))
     hits = tracer.intersect(origins, directions)
     ref = brute(name)
     assert np.isfinite(ref.t).mean() > 0.3, "the rays should hit often"
@@ -109,7 +108,7 @@ def test_packets_match_the_one_ray_kernel(name, mode):
     geometry, tree, origins, directions = scene(name)
     tracer = Tracer("cpu")
     assert tracer.packet == 8
-    tracer.load(geometry, compact_tree(tree, geometry.triangle_count, mode))
+    tracer.load(Scene.from_parts(geometry, compact_tree(tree, geometry.triangle_count, mode)))
     cam_o, cam_d = camera_fan(geometry, 4099, seed=len(name))
     size = float(np.abs(geometry.vertices.max(0) - geometry.vertices.min(0)).max())
     inside_o = np.repeat(((geometry.vertices.min(0) + geometry.vertices.max(0)) / 2)[None], 500, 0)
@@ -133,11 +132,11 @@ def test_packets_match_the_one_ray_kernel(name, mode):
 
 
 def test_plain_tree_is_loaded_as_standard(tracer):
-    """tracer.load(geometry, KDTree) keeps working (README's ray-query API)."""
+    """A scene of a plain KDTree is laid out in mode standard (README's ray-query API)."""
     geometry, tree, origins, directions = scene("sphere")
-    tracer.load(geometry, tree)
+    tracer.load(Scene.from_parts(geometry, tree))
     plain = tracer.intersect(origins, directions)
-    tracer.load(geometry, compact_tree(tree, geometry.triangle_count, "standard"))
+    tracer.load(Scene.from_parts(geometry, compact_tree(tree, geometry.triangle_count, "standard")))
     standard = tracer.intersect(origins, directions)
     assert np.array_equal(plain.triangle, standard.triangle)
     assert np.array_equal(plain.t, standard.t)
@@ -157,10 +156,10 @@ def test_16bit_leaves_with_a_shift(tracer):
     assert ct.leaf_shift == 1 and ct.stats["leaves_16bit"] > 0
     origins = rng.uniform(-1.5, 1.5, (4000, 3)).astype(np.float32)
     directions = (rng.uniform(-1, 1, (4000, 3)) - origins).astype(np.float32)
-    tracer.load(geometry, ct)
+    tracer.load(Scene.from_parts(geometry, ct))
     hits = tracer.intersect(origins, directions)
     t = Tracer()
-    t.load(geometry, one_leaf(count, vertices))
+    t.load(Scene.from_parts(geometry, one_leaf(count, vertices)))
     ref = t.intersect(origins, directions)
     assert np.isfinite(ref.t).mean() > 0.3
     assert np.array_equal(hits.triangle, ref.triangle) and np.array_equal(hits.t, ref.t)
@@ -192,7 +191,7 @@ def test_render_tile_identical_across_modes(tracer):
                 Shading(materials, lights, (0.1, 0.2, 0.3)), settings=settings)
     images = {}
     for mode in MODES:
-        tracer.load(geometry, compact_tree(tree, geometry.triangle_count, mode))
+        tracer.load(Scene.from_parts(geometry, compact_tree(tree, geometry.triangle_count, mode)))
         images[mode] = tracer.render_tile(view, 0, 0, 64, 64)
     assert (images["standard"]["depth"] < 1e10).mean() > 0.5
     for mode in ("choi", "ours"):
@@ -209,7 +208,7 @@ def test_bad_compact_trees_are_rejected(tracer):
         base = dict(nodes=ct.nodes.copy(), leaf_index32=ct.leaf_index32.copy(),
                     leaf_index16=ct.leaf_index16.copy(), bounds=ct.bounds, leaf_shift=ct.leaf_shift)
         base.update(changes)
-        return SimpleNamespace(**base)
+        return CompactTree(**base)
 
     slot_owner = next(i for i in range(len(ct.nodes))
                       if (ct.nodes[i, 0] & 3) != 3 and ct.nodes[i, 0] & 4)
@@ -225,5 +224,5 @@ def test_bad_compact_trees_are_rejected(tracer):
              (broken(leaf_index16=leaf16), "triangle that does not exist"),
              (broken(leaf_shift=17), "leaf_shift")]
     for bad, message in cases:
-        with pytest.raises(TracerError, match=message):
-            tracer.load(geometry, bad)
+        with pytest.raises(SceneError, match=message):
+            Scene.from_parts(geometry, bad)

@@ -7,7 +7,7 @@ and puts them on the job's results queue. The caller's thread (Blender's render 
 polls that queue with a timeout, so it can check for cancel in between:
 
     master = Master([("127.0.0.1", 47600)]); master.connect()
-    master.load_scene(geometry, tree)
+    master.load_scene(scene)               # a core.scene.scene.Scene
     job = master.render(view, tile_size=64)
     while not job.finished:
         result = job.next_result(0.1)      # TileResult or None
@@ -27,9 +27,9 @@ import uuid
 from dataclasses import dataclass
 
 from . import protocol
-from .kdtree_compact import as_compact
 from .protocol import MsgType, ProtocolError
-from .scene import SCENE_FORMAT_VERSION, Geometry, View
+from ..scene.model import SCENE_FORMAT_VERSION, View
+from ..scene.scene import Scene
 from .tiles import TilePool, partition_tile_size, tile_dims, tile_grid
 
 POLL_S = 0.2             # how often worker threads look at the job's state
@@ -225,18 +225,13 @@ class Master:
             raise MasterError("no slave reachable: " + "; ".join(self.errors or ["no endpoints given"]))
         return self.slaves
 
-    def load_scene(self, geometry: Geometry, tree) -> str:
+    def load_scene(self, scene: Scene) -> str:
         """Make the scene present on every slave, uploading only where its hash is unknown.
-        Slaves that fail are dropped (see .errors). Returns the scene hash.
-
-        `tree`: the compact kd-tree the caller built (core.kdtree_compact.compact_tree, any mode;
-        its mode and thresholds shape the arrays and therefore the hash), or a plain KDTree,
-        converted here with mode "standard"."""
+        Slaves that fail are dropped (see .errors). Returns the scene hash."""
         if self._job is not None:
             self._job.wait()  # its threads may still read the sockets (copies being cancelled)
-        tree = as_compact(tree, geometry.triangle_count)
-        scene_hash = protocol.scene_hash(geometry, tree)
-        arrays = protocol.scene_arrays(geometry, tree)
+        scene_hash = scene.hash
+        arrays = scene.wire_arrays()
         upload_bytes = sum(a.nbytes for a in arrays.values())
         # Generous: the slave validates and hashes the scene before it answers.
         timeout = 60.0 + upload_bytes / (10 * 2 ** 20)

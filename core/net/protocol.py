@@ -24,8 +24,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .kdtree_compact import as_compact, validate_compact
-from .scene import INDEX_DTYPE, MATERIAL_ID_DTYPE, VERTEX_DTYPE, Geometry, SceneError
 
 PROTOCOL_VERSION = 3   # 2: HMAC handshake, float16/zlib tiles, N x M tiles; 3: compact kd-tree arrays
 MAGIC = b"KDTR"
@@ -65,23 +63,6 @@ SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_
 # Tile passes: name -> (channels, dtype); (h, w) or (h, w, channels).
 TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3}
 TILE_BYTES_PER_PIXEL = 4 * sum(TILE_PASSES.values())
-
-# Geometry and kd-tree arrays of a scene upload: name -> (dtype, shape pattern; -1 = any length).
-SCENE_ARRAYS = {
-    "vertices": (VERTEX_DTYPE, (-1, 3)),
-    "triangles": (INDEX_DTYPE, (-1, 3)),
-    "material_ids": (MATERIAL_ID_DTYPE, (-1,)),
-    # The compact kd-tree (core/kdtree_compact.py, any mode; docs/kdtree_compression.md).
-    "nodes": (np.dtype("<u4"), (-1, 2)),
-    "leaf_index32": (np.dtype("<u4"), (-1,)),
-    "leaf_index16": (np.dtype("<u2"), (-1,)),
-    "bounds": (np.dtype("<f4"), (2, 3)),
-    "leaf_shift": (np.dtype("<u4"), (1,)),
-}
-TREE_ARRAYS = ("nodes", "leaf_index32", "leaf_index16", "bounds", "leaf_shift")
-# Geometry arrays that travel only when the scene needs them (smooth normals, textures).
-OPTIONAL_SCENE_ARRAYS = {name: (dtype, (-1, width)) for name, (dtype, width) in Geometry.OPTIONAL.items()}
-
 
 class ProtocolError(Exception):
     """The peer sent something that is not a valid message; the connection cannot go on."""
@@ -274,101 +255,6 @@ def check_scene_hash(value) -> str:
     if not isinstance(value, str) or len(value) != 32 or any(c not in "0123456789abcdef" for c in value):
         raise ProtocolError(f"bad scene hash {value!r}")
     return value
-
-
-# ----------------------------------------------------------------------------- scenes
-
-@dataclass
-class SceneTree:
-    """The compact kd-tree arrays as they travel (the tracer needs only these)."""
-
-    nodes: np.ndarray          # (N, 2) uint32
-    leaf_index32: np.ndarray   # (R32,) uint32
-    leaf_index16: np.ndarray   # (R16,) uint16
-    bounds: np.ndarray         # (2, 3) float32
-    leaf_shift: int
-
-
-def _tree_arrays(geometry: Geometry, tree) -> dict:
-    """The kd-tree's wire arrays; a plain core.kdtree.KDTree is converted to the compact layout
-    with mode "standard" first (callers that build a compact tree pass it as is)."""
-    tree = as_compact(tree, geometry.triangle_count)
-    return {"nodes": tree.nodes, "leaf_index32": tree.leaf_index32,
-            "leaf_index16": tree.leaf_index16, "bounds": tree.bounds,
-            "leaf_shift": np.array([int(np.asarray(tree.leaf_shift).reshape(-1)[0])])}
-
-
-def scene_hash(geometry: Geometry, tree) -> str:
-    """The one content hash of a scene: the geometry's hash plus the compact kd-tree arrays
-    (so another kd-tree mode or other thresholds, which give other arrays, give another hash)."""
-    digest = hashlib.blake2b(digest_size=16)
-    digest.update(geometry.content_hash().encode())
-    arrays = _tree_arrays(geometry, tree)
-    for name in TREE_ARRAYS:
-        array = np.ascontiguousarray(arrays[name], dtype=SCENE_ARRAYS[name][0])
-        digest.update(f"{name}{array.shape}".encode())
-        digest.update(array.tobytes())
-    return digest.hexdigest()
-
-
-def scene_arrays(geometry: Geometry, tree) -> dict:
-    """The arrays of a SCENE_UPLOAD, in wire dtypes (optional geometry arrays when present)."""
-    arrays = dict(geometry.arrays(), **_tree_arrays(geometry, tree))
-    specs = {**SCENE_ARRAYS, **OPTIONAL_SCENE_ARRAYS}
-    return {name: np.ascontiguousarray(array, dtype=specs[name][0]) for name, array in arrays.items()}
-
-
-def scene_from_arrays(arrays: dict) -> tuple[Geometry, SceneTree]:
-    """Rebuild and validate a scene from uploaded arrays; ProtocolError names the problem.
-
-    The tree is checked so that the kernel never indexes outside its buffers
-    (core.kdtree_compact.validate_compact): children and reference slots inside the node array
-    and after their parent, every node reached at most once, every leaf's range inside its
-    index list, every triangle index (slots, 32- and 16-bit lists) naming an existing triangle,
-    depth bounded.
-    """
-    if not set(SCENE_ARRAYS) <= set(arrays) <= set(SCENE_ARRAYS) | set(OPTIONAL_SCENE_ARRAYS):
-        raise ProtocolError(f"scene upload must carry the arrays {sorted(SCENE_ARRAYS)} and "
-                            f"optionally {sorted(OPTIONAL_SCENE_ARRAYS)}, got {sorted(arrays)}")
-    specs = {**SCENE_ARRAYS, **OPTIONAL_SCENE_ARRAYS}
-    for name, array in arrays.items():
-        dtype, pattern = specs[name]
-        if array.dtype != dtype or array.ndim != len(pattern) or any(
-                p != -1 and p != n for p, n in zip(pattern, array.shape)):
-            raise ProtocolError(f"scene array {name!r} must be {dtype.str} of shape {pattern}, "
-                                f"got {array.dtype.str} {array.shape}")
-    geometry = Geometry(arrays["vertices"], arrays["triangles"], arrays["material_ids"],
-                        **{name: arrays.get(name) for name in OPTIONAL_SCENE_ARRAYS})
-    try:
-        geometry.validate()
-    except SceneError as exc:
-        raise ProtocolError(f"invalid scene geometry: {exc}") from None
-    if len(arrays["nodes"]) == 0:
-        raise ProtocolError("kd-tree has no nodes")
-    if not np.isfinite(arrays["bounds"]).all():
-        raise ProtocolError("kd-tree bounds are not finite")
-    tree = SceneTree(arrays["nodes"], arrays["leaf_index32"], arrays["leaf_index16"],
-                     arrays["bounds"], int(arrays["leaf_shift"][0]))
-    try:
-        validate_compact(tree.nodes, tree.leaf_index32, tree.leaf_index16, tree.bounds,
-                         tree.leaf_shift, len(geometry.triangles))
-    except ValueError as exc:
-        raise ProtocolError(f"invalid kd-tree: {exc}") from None
-    return geometry, tree
-
-
-def tile_passes_ok(arrays: dict, w: int, h: int) -> str | None:
-    """None if `arrays` are the passes of a w x h tile, else what is wrong."""
-    if set(arrays) != set(TILE_PASSES):
-        return f"tile passes must be {sorted(TILE_PASSES)}, got {sorted(arrays)}"
-    for name, channels in TILE_PASSES.items():
-        shape = (h, w) if channels == 1 else (h, w, channels)
-        array = arrays[name]
-        if array.dtype != np.dtype("<f4") or array.shape != shape:
-            return f"pass {name!r} must be float32 {shape}, got {array.dtype} {array.shape}"
-        if not np.isfinite(array).all():
-            return f"pass {name!r} contains NaN or infinity"
-    return None
 
 
 # ----------------------------------------------------------------------------- tile payloads

@@ -65,7 +65,7 @@ def _int(value, what: str, low: int, high: int) -> int:
 class Geometry:
     """Triangles in world space: the part of the scene that the kd-tree is built over.
 
-    The optional arrays are None when the scene does not need them (core/features.py decides):
+    The optional arrays are None when the scene does not need them (core/scene/features.py decides):
     - normals (3T, 3) float32: unit world-space shading normal of each triangle corner (corner
       k of triangle t is row 3t + k); present when some face is smooth-shaded.
     - uvs (3T, 2) float32: the active UV map at each triangle corner; present with textures.
@@ -81,6 +81,7 @@ class Geometry:
     uvs: np.ndarray | None = None
     texels: np.ndarray | None = None
     texture_sizes: np.ndarray | None = None
+    _content_hash: str | None = field(default=None, init=False, repr=False, compare=False)
 
     OPTIONAL = {"normals": (NORMAL_DTYPE, 3), "uvs": (UV_DTYPE, 2), "texels": (TEXEL_DTYPE, 4),
                 "texture_sizes": (TEXTURE_SIZE_DTYPE, 3)}
@@ -146,13 +147,17 @@ class Geometry:
         return sum(a.nbytes for a in self.arrays().values())
 
     def content_hash(self) -> str:
-        digest = hashlib.blake2b(digest_size=16)
-        for name, array in self.arrays().items():
-            if name not in ("vertices", "triangles", "material_ids"):
-                digest.update(name.encode())    # the three base arrays hash as before
-            digest.update(str(array.shape).encode())
-            digest.update(array.tobytes())
-        return digest.hexdigest()
+        """32 hex digits over every array present; computed once (a Geometry's arrays are not
+        changed after it is made)."""
+        if self._content_hash is None:
+            digest = hashlib.blake2b(digest_size=16)
+            for name, array in self.arrays().items():
+                if name not in ("vertices", "triangles", "material_ids"):
+                    digest.update(name.encode())    # the three base arrays hash as before
+                digest.update(str(array.shape).encode())
+                digest.update(array.tobytes())
+            self._content_hash = digest.hexdigest()
+        return self._content_hash
 
 
 @dataclass

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scene import MATERIAL_PARAMS, Geometry, View
+from .model import MATERIAL_PARAMS, Geometry, View
 
 # Roughness below which a surface is a perfect mirror (reflection rays, no light highlight);
 # at or above it, a GGX highlight from the lights and no reflection rays. Shared with the kernel.
@@ -31,17 +31,19 @@ FEATURES = {
 ALL_FEATURES = frozenset(FEATURES)
 
 
-def scene_features(geometry: Geometry, view: View) -> frozenset:
+def scene_features(geometry: Geometry, view: View, used_materials=None) -> frozenset:
     """The features the scene (geometry + the frame's view) needs. Only materials that some
-    triangle uses count, so an unused glass material does not switch refraction on."""
+    triangle uses count, so an unused glass material does not switch refraction on.
+    `used_materials`: those material ids, when known (core.scene.scene.Scene keeps them)."""
     shading = view.shading
     features = {light.kind for light in shading.lights}
     if any((light.kind in ("POINT", "SPOT", "SUN") and light.radius > 0) for light in shading.lights):
         features.add("SOFT_LIGHTS")
     used = np.zeros(len(shading.materials), bool)
-    if geometry.triangle_count:
-        ids = np.unique(geometry.material_ids)
-        used[ids[ids < len(used)]] = True
+    if used_materials is None:
+        used_materials = np.unique(geometry.material_ids)
+    ids = np.asarray(used_materials)
+    used[ids[ids < len(used)]] = True
     params = shading.material_params[used]
     colours = shading.materials[used]
 

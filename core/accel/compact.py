@@ -1,6 +1,6 @@
 """Compressed kd-tree layouts: triangle references in inner nodes and the 2-byte leaf mode.
 
-A post-pass over the standard SAH tree of core/kdtree.py (it only reads `KDTree.nodes`,
+A post-pass over the standard SAH tree of core/accel/kdtree.py (it only reads `KDTree.nodes`,
 `leaf_indices` and `bounds`), in vectorised numpy with loops per tree level only:
 
 1. **Lifting** (modes `choi` and `ours`): a triangle that is duplicated into many leaves of a
@@ -99,12 +99,12 @@ class CompactTree:
     leaf_index16: np.ndarray   # uint16
     bounds: np.ndarray         # float32 (2, 3)
     leaf_shift: int
-    params: CompactParams
+    params: CompactParams | None = None      # None for a tree received from elsewhere
     stats: dict = field(default_factory=dict)
 
     @property
-    def mode(self) -> str:
-        return self.params.mode
+    def mode(self) -> str | None:
+        return None if self.params is None else self.params.mode
 
     def nbytes_by_part(self) -> dict:
         """Bytes of each array a tracer needs for the tree (nodes split by kind)."""
@@ -321,7 +321,7 @@ def _lift_candidates(topo, s_leaf, s_tri, gap_node, gap_depth, params):
     first = gap_depth[left] < gap_depth[same]
     run_lo, run_hi = left[first], right[first]   # references run_lo .. run_hi - 1
     run_node, run_depth = gap_node[same[first]], gap_depth[same[first]]
-    # Copies of a triangle within one leaf (never made by core/kdtree.py): the leaf is no
+    # Copies of a triangle within one leaf (never made by core/accel/kdtree.py): the leaf is no
     # candidate, the run starts at its parent.
     in_leaf = np.flatnonzero(topo.is_leaf[run_node])
     run_node[in_leaf], run_depth[in_leaf] = topo.parent[run_node[in_leaf]], run_depth[in_leaf] - 1
@@ -465,7 +465,7 @@ def _collapse(topo, leaf_count, refs_at, distinct, params):
 def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float | None = None,
                  tau_freq: float | None = None, refs_per_node: int | None = None,
                  refs_per_path: int | None = -1, progress=None, **options) -> CompactTree:
-    """Rewrite a standard kd-tree (core.kdtree.KDTree) in the compact layout of `mode`.
+    """Rewrite a standard kd-tree (core.accel.kdtree.KDTree) in the compact layout of `mode`.
 
     `refs_per_path=-1` keeps the mode's default (8 for `ours`, unlimited for `choi`); None means
     unlimited. Other CompactParams fields (min_refs, collapse, elide_empty, leaf16) may be
@@ -741,106 +741,3 @@ def _layout(topo, params, is_final_leaf, dead, final_count, item_leaf, item_tri,
         "leaf_shift": shift,
     }
     return nodes, idx32, idx16, shift, kinds, leaf_stats
-
-
-# ---------------------------------------------------------------------------------------------
-# Consumers: plain trees converted, and arrays from the network checked before a kernel sees them
-
-MAX_DEPTH = 1024
-
-
-def as_compact(tree, triangle_count: int) -> "CompactTree":
-    """`tree` if it already is in the compact layout (has leaf_index32), else the plain KDTree
-    converted with mode "standard" (the same tree, re-encoded)."""
-    if hasattr(tree, "leaf_index32"):
-        return tree
-    return compact_tree(tree, triangle_count, mode="standard")
-
-
-def validate_compact(nodes, leaf_index32, leaf_index16, bounds, leaf_shift,
-                     triangle_count: int) -> int:
-    """Check compact-layout arrays so that a traversal never reads outside them or loops.
-
-    Raises ValueError naming the problem; returns the tree depth (root = 1). Checks: shapes and
-    dtypes; children and reference slots after their parent and inside the node array, every
-    node reached at most once (so no cycles, no sharing); leaf ranges inside their index list
-    and not overlapping; every triangle index (slots, 32- and 16-bit lists) below
-    triangle_count; depth at most MAX_DEPTH.
-    """
-    nodes = np.asarray(nodes)
-    leaf_index32 = np.asarray(leaf_index32).reshape(-1)
-    leaf_index16 = np.asarray(leaf_index16).reshape(-1)
-    bounds = np.asarray(bounds)
-    if nodes.ndim != 2 or nodes.shape[1] != 2 or len(nodes) == 0 or nodes.dtype != np.uint32:
-        raise ValueError(f"kd-tree nodes must be a non-empty (N, 2) uint32 array, "
-                         f"got {nodes.dtype} {nodes.shape}")
-    if leaf_index32.dtype != np.uint32 or leaf_index16.dtype != np.uint16:
-        raise ValueError("leaf_index32 must be uint32 and leaf_index16 uint16")
-    if bounds.shape != (2, 3) or not np.isfinite(bounds).all():
-        raise ValueError(f"kd-tree bounds must be a finite (2, 3) array, got {bounds.shape}")
-    leaf_shift = int(leaf_shift)
-    if not 0 <= leaf_shift <= 16:
-        raise ValueError(f"leaf_shift must be in 0..16, got {leaf_shift}")
-    n = len(nodes)
-    T = int(triangle_count)
-    reached = np.zeros(n, bool)
-    reached[0] = True
-    leaves = []
-    level = np.zeros(1, np.int64)
-    depth = 0
-    while len(level):
-        depth += 1
-        if depth > MAX_DEPTH:
-            raise ValueError(f"kd-tree deeper than {MAX_DEPTH} levels")
-        w0 = nodes[level, 0].astype(np.int64)
-        is_leaf = (w0 & 3) == LEAF_TAG
-        leaves.append(level[is_leaf])
-        inner, w = level[~is_leaf], w0[~is_leaf]
-        if not len(inner):
-            break
-        has_ref, eb, ea, group = (w >> 2) & 1, (w >> 3) & 1, (w >> 4) & 1, w >> 5
-        if (eb & ea).any():
-            raise ValueError("a kd-tree node has both children elided")
-        below = group + has_ref
-        above = below + 1 - eb
-        slot = group[has_ref == 1]
-        children = np.concatenate([below[eb == 0], above[ea == 0]])
-        parents = np.concatenate([inner[eb == 0], inner[ea == 0]])
-        if (group <= inner).any() or (children >= n).any() or (slot >= n).any():
-            raise ValueError("kd-tree nodes point outside the tree or backwards")
-        if len(slot):
-            refs = nodes[slot].astype(np.int64)
-            if (refs[:, 0] >= T).any() or ((refs[:, 1] >= T) & (refs[:, 1] != NO_TRIANGLE)).any():
-                raise ValueError("a kd-tree reference slot names a triangle that does not exist")
-        touched = np.concatenate([slot, children])
-        if reached[touched].any() or len(np.unique(touched)) != len(touched):
-            raise ValueError("a kd-tree node is reached more than once")
-        reached[touched] = True
-        del parents
-        level = children
-    leaves = np.concatenate(leaves)
-    w0 = nodes[leaves, 0].astype(np.int64)
-    offset = nodes[leaves, 1].astype(np.int64)
-    wide = ((w0 >> 2) & 1) == 1
-    for is16, index, name in ((True, leaf_index16, "leaf_index16"),
-                              (False, leaf_index32, "leaf_index32")):
-        pick = wide == is16
-        w, off = w0[pick], offset[pick]
-        count = ((w >> 3) & MAX_LEAF16_COUNT) if is16 else (w >> 3)
-        base = ((w >> 16) << leaf_shift) if is16 else np.zeros(len(w), np.int64)
-        keep = count > 0
-        w, off, count, base = w[keep], off[keep], count[keep], base[keep]
-        if not len(count):
-            continue
-        if (off + count > len(index)).any():
-            raise ValueError(f"a kd-tree leaf reaches past the end of {name}")
-        order = np.argsort(off, kind="stable")
-        off, count, base = off[order], count[order], base[order]
-        if (off[1:] < off[:-1] + count[:-1]).any():
-            raise ValueError(f"kd-tree leaves overlap in {name}")
-        # Ranges are disjoint, so expanding them reads each entry at most once.
-        values = index[_ranges(off, count)].astype(np.int64)
-        top = np.maximum.reduceat(values, _exclusive_cumsum(count)[:-1]) + base
-        if (top >= T).any():
-            raise ValueError("a kd-tree leaf refers to a triangle that does not exist")
-    return depth

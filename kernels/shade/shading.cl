@@ -1,5 +1,5 @@
 // Materials (a Principled BSDF subset), textures, lights and shadow rays (docs/shading.md).
-// Every optional part sits behind a HAS_<FEATURE> flag that core/features.py derives from the
+// Every optional part sits behind a HAS_<FEATURE> flag that core/scene/features.py derives from the
 // scene, so a scene compiles only what it uses.
 //
 // Material buffer: 4 float4 per material, filled by slave/tracer.py _pack_materials:

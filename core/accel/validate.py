@@ -1,0 +1,100 @@
+"""The check of a compact kd-tree that comes from elsewhere (the network, a disk cache) before
+a kernel traverses it: no index outside its array, no cycle, bounded depth."""
+from __future__ import annotations
+
+import numpy as np
+
+from .compact import LEAF_TAG, MAX_LEAF16_COUNT, NO_TRIANGLE, _exclusive_cumsum, _ranges
+
+MAX_DEPTH = 1024
+
+
+def validate_compact(nodes, leaf_index32, leaf_index16, bounds, leaf_shift,
+                     triangle_count: int) -> int:
+    """Check compact-layout arrays so that a traversal never reads outside them or loops.
+
+    Raises ValueError naming the problem; returns the tree depth (root = 1). Checks: shapes and
+    dtypes; children and reference slots after their parent and inside the node array, every
+    node reached at most once (so no cycles, no sharing); leaf ranges inside their index list
+    and not overlapping; every triangle index (slots, 32- and 16-bit lists) below
+    triangle_count; depth at most MAX_DEPTH.
+    """
+    nodes = np.asarray(nodes)
+    leaf_index32 = np.asarray(leaf_index32).reshape(-1)
+    leaf_index16 = np.asarray(leaf_index16).reshape(-1)
+    bounds = np.asarray(bounds)
+    if nodes.ndim == 2 and len(nodes) == 0:
+        raise ValueError("kd-tree has no nodes")
+    if nodes.ndim != 2 or nodes.shape[1] != 2 or nodes.dtype != np.uint32:
+        raise ValueError(f"kd-tree nodes must be an (N, 2) uint32 array, "
+                         f"got {nodes.dtype} {nodes.shape}")
+    if leaf_index32.dtype != np.uint32 or leaf_index16.dtype != np.uint16:
+        raise ValueError("leaf_index32 must be uint32 and leaf_index16 uint16")
+    if bounds.shape != (2, 3) or not np.isfinite(bounds).all():
+        raise ValueError(f"kd-tree bounds must be a finite (2, 3) array, got {bounds.shape}")
+    leaf_shift = int(leaf_shift)
+    if not 0 <= leaf_shift <= 16:
+        raise ValueError(f"leaf_shift must be in 0..16, got {leaf_shift}")
+    n = len(nodes)
+    T = int(triangle_count)
+    reached = np.zeros(n, bool)
+    reached[0] = True
+    leaves = []
+    level = np.zeros(1, np.int64)
+    depth = 0
+    while len(level):
+        depth += 1
+        if depth > MAX_DEPTH:
+            raise ValueError(f"kd-tree deeper than {MAX_DEPTH} levels")
+        w0 = nodes[level, 0].astype(np.int64)
+        is_leaf = (w0 & 3) == LEAF_TAG
+        leaves.append(level[is_leaf])
+        inner, w = level[~is_leaf], w0[~is_leaf]
+        if not len(inner):
+            break
+        has_ref, eb, ea, group = (w >> 2) & 1, (w >> 3) & 1, (w >> 4) & 1, w >> 5
+        if (eb & ea).any():
+            raise ValueError("a kd-tree node has both children elided")
+        below = group + has_ref
+        above = below + 1 - eb
+        slot = group[has_ref == 1]
+        children = np.concatenate([below[eb == 0], above[ea == 0]])
+        parents = np.concatenate([inner[eb == 0], inner[ea == 0]])
+        if (group <= inner).any() or (children >= n).any() or (slot >= n).any():
+            raise ValueError("kd-tree nodes point outside the tree or backwards")
+        if len(slot):
+            refs = nodes[slot].astype(np.int64)
+            if (refs[:, 0] >= T).any() or ((refs[:, 1] >= T) & (refs[:, 1] != NO_TRIANGLE)).any():
+                raise ValueError("a kd-tree reference slot names a triangle that does not exist")
+        touched = np.concatenate([slot, children])
+        if reached[touched].any() or len(np.unique(touched)) != len(touched):
+            raise ValueError("a kd-tree node is reached more than once")
+        reached[touched] = True
+        del parents
+        level = children
+    leaves = np.concatenate(leaves)
+    w0 = nodes[leaves, 0].astype(np.int64)
+    offset = nodes[leaves, 1].astype(np.int64)
+    wide = ((w0 >> 2) & 1) == 1
+    for is16, index, name in ((True, leaf_index16, "leaf_index16"),
+                              (False, leaf_index32, "leaf_index32")):
+        pick = wide == is16
+        w, off = w0[pick], offset[pick]
+        count = ((w >> 3) & MAX_LEAF16_COUNT) if is16 else (w >> 3)
+        base = ((w >> 16) << leaf_shift) if is16 else np.zeros(len(w), np.int64)
+        keep = count > 0
+        w, off, count, base = w[keep], off[keep], count[keep], base[keep]
+        if not len(count):
+            continue
+        if (off + count > len(index)).any():
+            raise ValueError(f"a kd-tree leaf reaches past the end of {name}")
+        order = np.argsort(off, kind="stable")
+        off, count, base = off[order], count[order], base[order]
+        if (off[1:] < off[:-1] + count[:-1]).any():
+            raise ValueError(f"kd-tree leaves overlap in {name}")
+        # Ranges are disjoint, so expanding them reads each entry at most once.
+        values = index[_ranges(off, count)].astype(np.int64)
+        top = np.maximum.reduceat(values, _exclusive_cumsum(count)[:-1]) + base
+        if (top >= T).any():
+            raise ValueError("a kd-tree leaf refers to a triangle that does not exist")
+    return depth

@@ -1,0 +1,104 @@
+"""How the samples of a tile are spent (docs/shading.md): N x N everywhere, or adaptively,
+with undersampling of smooth regions and doubling where pixels are still noisy.
+
+The policy runs against a `tile` that traces and holds the tile's accumulators on the device:
+    tile.run(pixels, first_sample, sample_count, aux)   trace (aux: also depth and normal)
+    tile.read() -> (accum (n, 4), stats (n, 2))          the accumulators, copied to the host
+    tile.write_accum(accum)                              write the accumulated colours back
+Seeds depend only on the global pixel and the sample number, so the pixels are the same
+whichever slave renders the tile.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def sample_tile(tile, settings, x: int, y: int, w: int, h: int, every: np.ndarray) -> None:
+    """Trace the tile's samples as `settings` (core.scene.model.RenderSettings) say; `every`:
+    all tile-local pixel indices in the order the kernel should take them."""
+    total = settings.samples_per_axis ** 2
+    if not settings.adaptive or total <= settings.adaptive_min_samples:
+        tile.run(every, 0, total, 1)
+        return
+    count = max(1, settings.adaptive_min_samples)
+    tile.run(every, 0, 0, 1)                     # depth and normal of every pixel
+    active = _undersample(tile, x, y, w, h, count, settings.adaptive_threshold)
+    while count < total:
+        _, stats = tile.read()
+        error = pixel_error(stats, count, w, h)
+        active = active[error[active] > settings.adaptive_threshold]
+        if len(active) == 0:
+            break
+        batch = min(count, total - count)        # doubling
+        tile.run(active, count, batch, 0)
+        count += batch
+
+
+def _undersample(tile, x, y, w, h, count, threshold):
+    """Adaptive undersampling (after Kim et al. 2016): trace the pixels with even global
+    coordinates (and the tile's last row and column, so every other pixel has traced
+    neighbours inside the tile); a pixel between them whose traced neighbours agree (their
+    luminance within 4 x threshold) and are converged is their average and traces nothing;
+    the others are traced. Global parity, so the same pixels are traced in every tiling of
+    the rows and columns. Returns the traced pixels (tile-local indices)."""
+    gy, gx = np.meshgrid(np.arange(y, y + h), np.arange(x, x + w), indexing="ij")
+    coarse = ((gx % 2 == 0) & (gy % 2 == 0)) | (gx == x + w - 1) & (gy % 2 == 0) \
+        | (gy == y + h - 1) & (gx % 2 == 0) | ((gx == x + w - 1) & (gy == y + h - 1))
+    traced = np.flatnonzero(coarse.ravel()).astype(np.int32)
+    tile.run(traced, 0, count, 0)
+    accum, stats = tile.read()
+    colour = (accum[:, :3] / np.maximum(accum[:, 3:4], 1.0)).reshape(h, w, 3)
+    lum = (stats[:, 0] / count).reshape(h, w)
+    error = pixel_error(stats, count, w, h).reshape(h, w)
+    sum_c = np.zeros((h, w, 3), np.float32)
+    n_c = np.zeros((h, w), np.int32)
+    lo = np.full((h, w), np.inf, np.float32)
+    hi = np.full((h, w), -np.inf, np.float32)
+    worst = np.zeros((h, w), np.float32)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dx == dy == 0:
+                continue
+            # neighbour (r + dy, c + dx) of pixel (r, c), when traced
+            src = (slice(max(dy, 0), h + min(dy, 0)), slice(max(dx, 0), w + min(dx, 0)))
+            dst = (slice(max(-dy, 0), h + min(-dy, 0)), slice(max(-dx, 0), w + min(-dx, 0)))
+            # Of the 8 neighbours, the traced ones are the nearest ring: left/right or
+            # up/down for pixels on a traced row or column, the diagonals for the others.
+            ok = coarse[src]
+            sum_c[dst] += np.where(ok[..., None], colour[src], 0)
+            n_c[dst] += ok
+            lo[dst] = np.where(ok, np.minimum(lo[dst], lum[src]), lo[dst])
+            hi[dst] = np.where(ok, np.maximum(hi[dst], lum[src]), hi[dst])
+            worst[dst] = np.where(ok, np.maximum(worst[dst], error[src]), worst[dst])
+    smooth = ~coarse & (n_c >= 2) & (hi - lo <= 4 * threshold) & (worst <= threshold)
+    fill = np.flatnonzero(smooth.ravel())
+    if len(fill):
+        interpolated = (sum_c / np.maximum(n_c, 1)[..., None]).reshape(-1, 3)[fill]
+        accum[fill, :3] = interpolated
+        accum[fill, 3] = 1.0
+        stats[fill] = 0.0                   # converged: never refined
+        tile.write_accum(accum)
+    rest = np.flatnonzero((~coarse & ~smooth).ravel()).astype(np.int32)
+    if len(rest):
+        tile.run(rest, 0, count, 0)
+    done = ~smooth.ravel()
+    return np.flatnonzero(done).astype(np.int32)
+
+
+
+def pixel_error(stats: np.ndarray, count: int, w: int, h: int) -> np.ndarray:
+    """Per pixel, sigma / n: the spread of its samples (of min(luminance, 1)) over their count.
+    Sampling until sigma / n <= threshold gives each pixel n proportional to sigma, which is
+    the allocation that minimises the image's mean squared error for a given number of samples
+    (minimise sum sigma_i^2 / n_i with sum n_i fixed). Widened to half its 4-neighbours' value
+    (in the spirit of Kim et al. 2016: what a coarse pass finds noisy or at an edge, and its
+    neighbourhood, is refined; smooth regions keep the minimum)."""
+    mean = stats[:, 0] / count
+    variance = np.maximum(stats[:, 1] / count - mean * mean, 0.0) * (count / max(count - 1, 1))
+    error = (np.sqrt(variance) / count).reshape(h, w)
+    widened = error.copy()
+    widened[1:] = np.maximum(widened[1:], 0.5 * error[:-1])
+    widened[:-1] = np.maximum(widened[:-1], 0.5 * error[1:])
+    widened[:, 1:] = np.maximum(widened[:, 1:], 0.5 * error[:, :-1])
+    widened[:, :-1] = np.maximum(widened[:, :-1], 0.5 * error[:, 1:])
+    return widened.reshape(-1)
