@@ -40,14 +40,10 @@ def export_view(depsgraph) -> tuple[Geometry, View, dict]:
 
 
 def render_settings(scene) -> RenderSettings:
-    """Sampling and bounces from the KD Trace panel (scene.kdtrace), defaults where it has none."""
-    props = getattr(scene, "kdtrace", None)
-    settings = RenderSettings()
-    for name in settings.to_dict():
-        value = getattr(props, name, None) if props is not None else None
-        if value is not None and type(value) is type(getattr(settings, name)):
-            setattr(settings, name, value)
-    return settings
+    """Sampling and bounces from the KD Trace panel (scene.kdtrace): every RenderSettings field
+    is a property of the same name there (tests/bpy_scripts/draw_panels.py checks it)."""
+    props = scene.kdtrace
+    return RenderSettings(**{name: getattr(props, name) for name in RenderSettings().to_dict()})
 
 
 def render_size(scene) -> tuple[int, int]:

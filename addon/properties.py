@@ -3,7 +3,14 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
 
-from ..core.net.protocol import DEFAULT_PORT, MAX_TILE_SIZE
+from ..core.accel.compact import USER_SETTING_LIMITS as TREE_LIMITS, compact_params
+from ..core.net.master import DEFAULT_TILE_SIZE, DEFAULT_TILES_IN_FLIGHT, MAX_TILES_IN_FLIGHT
+from ..core.net.protocol import DEFAULT_MODEL, DEFAULT_PORT, MAX_TILE_SIZE
+from ..core.scene.model import RENDER_SETTING_LIMITS as LIMITS, RenderSettings
+
+# Defaults and limits live with what they configure (core/); the panel only shows them.
+RENDER = RenderSettings()
+TREE = compact_params()             # the default mode, "ours", and its thresholds
 
 
 class KDTraceHost(bpy.types.PropertyGroup):
@@ -17,7 +24,7 @@ class KDTraceHost(bpy.types.PropertyGroup):
 class KDTraceRenderSettings(bpy.types.PropertyGroup):
     tile_size: IntProperty(
         name="Tile Size", description="Width and height of the image tiles handed to slaves, in pixels",
-        default=64, min=8, max=MAX_TILE_SIZE)
+        default=DEFAULT_TILE_SIZE, min=8, max=MAX_TILE_SIZE)
     use_zeroconf: BoolProperty(
         name="Find Slaves on the LAN", description="Discover slaves with zeroconf (mDNS) before rendering",
         default=True)
@@ -34,7 +41,7 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         default="SIZE")
     tiles_in_flight: IntProperty(
         name="Tiles in Flight", description="Tiles handed to each slave ahead of time, to hide "
-        "network latency", default=2, min=1, max=16)
+        "network latency", default=DEFAULT_TILES_IN_FLIGHT, min=1, max=MAX_TILES_IN_FLIGHT)
     payload: EnumProperty(
         name="Tile Format", description="How finished tiles travel back",
         items=[("F32", "Float 32", "Exact", 0),
@@ -46,29 +53,36 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         items=[("3b", "Overlapped", "Separate threads send tile indices and receive tiles, "
                 "so slaves render while tiles travel", 0),
                ("3a", "Simple", "One thread per slave sends a tile index, then waits for the tile", 1)],
-        default="3b")
+        default=DEFAULT_MODEL)
 
     samples_per_axis: IntProperty(
-        name="Samples", description="N x N stratified samples per pixel", default=1, min=1, max=16)
+        name="Samples", description="N x N stratified samples per pixel",
+        default=RENDER.samples_per_axis, min=LIMITS["samples_per_axis"][0],
+        max=LIMITS["samples_per_axis"][1])
     adaptive: BoolProperty(
         name="Adaptive Sampling", description="Spend samples only where pixels need them",
-        default=False)
+        default=RENDER.adaptive)
     adaptive_threshold: FloatProperty(
         name="Noise Threshold", description="Error below which a pixel gets no more samples",
-        default=0.01, min=0.0001, max=1.0, precision=4)
+        default=RENDER.adaptive_threshold, min=LIMITS["adaptive_threshold"][0],
+        max=LIMITS["adaptive_threshold"][1], precision=4)
     adaptive_min_samples: IntProperty(
         name="Min Samples", description="Samples every pixel gets before adaptive sampling decides",
-        default=4, min=1, max=256)
+        default=RENDER.adaptive_min_samples, min=LIMITS["adaptive_min_samples"][0],
+        max=LIMITS["adaptive_min_samples"][1])
     max_bounces: IntProperty(
         name="Max Bounces", description="Mirror, glass and diffuse bounces after the camera hit",
-        default=8, min=0, max=64)
+        default=RENDER.max_bounces, min=LIMITS["max_bounces"][0], max=LIMITS["max_bounces"][1])
     diffuse_bounces: IntProperty(
         name="Diffuse Bounces", description="How many of the bounces may be diffuse (0: direct light only)",
-        default=0, min=0, max=64)
+        default=RENDER.diffuse_bounces, min=LIMITS["diffuse_bounces"][0],
+        max=LIMITS["diffuse_bounces"][1])
     light_samples_per_axis: IntProperty(
-        name="Light Samples", description="L x L shadow samples per soft or area light", default=2,
-        min=1, max=16)
-    seed: IntProperty(name="Seed", description="Seed of the sampling pattern", default=0, min=0)
+        name="Light Samples", description="L x L shadow samples per soft or area light",
+        default=RENDER.light_samples_per_axis, min=LIMITS["light_samples_per_axis"][0],
+        max=LIMITS["light_samples_per_axis"][1])
+    seed: IntProperty(name="Seed", description="Seed of the sampling pattern",
+                      default=RENDER.seed, min=LIMITS["seed"][0], max=LIMITS["seed"][1])
 
     # The kd-tree layout (core/accel/compact.py, docs/kdtree_compression.md); part of the scene
     # the slaves receive, so a change gives another scene hash (and one upload).
@@ -80,18 +94,21 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
                 "2-byte leaves", 1),
                ("ours", "Compressed", "Up to two triangle references per inner node and 8 per "
                 "path, 2-byte leaves (the paper's kd-tree)", 2)],
-        default="ours")
+        default=TREE.mode)
     tau_occu: FloatProperty(
         name="Occupancy Threshold", description="Lift a triangle to an inner node only if rays "
         "entering the node met it at least this often in the leaves below (tau_occu)",
-        default=0.5, min=0.0, max=16.0, precision=3)
+        default=TREE.tau_occu, min=TREE_LIMITS["tau_occu"][0], max=TREE_LIMITS["tau_occu"][1],
+        precision=3)
     tau_freq: FloatProperty(
         name="Frequency Threshold", description="Lift a triangle only if it appears in at least "
-        "this share of the leaves below the node (tau_freq)", default=0.4, min=0.0, max=1.0,
-        precision=3, subtype="FACTOR")
+        "this share of the leaves below the node (tau_freq)", default=TREE.tau_freq,
+        min=TREE_LIMITS["tau_freq"][0], max=TREE_LIMITS["tau_freq"][1], precision=3,
+        subtype="FACTOR")
     refs_per_path: IntProperty(
         name="References per Path", description="Triangle references on any root-to-leaf path "
-        "(mode Compressed)", default=8, min=0, max=64)
+        "(mode Compressed)", default=TREE.refs_per_path, min=TREE_LIMITS["refs_per_path"][0],
+        max=TREE_LIMITS["refs_per_path"][1])
 
     hosts: CollectionProperty(type=KDTraceHost, name="Hosts",
                               description="Slaves to use in any case, by address")

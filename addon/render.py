@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from ..core.accel.compact import user_settings
 from ..core.net.master import Master, MasterError
 from ..core.net.protocol import AuthError, ProtocolError, load_secret
 from ..core.scene.model import SceneError
@@ -108,9 +109,10 @@ def render(engine, depsgraph):
             engine.update_stats("", f"KD Trace | Building kd-tree: {message}")
 
         engine.update_stats("", f"KD Trace | Building kd-tree over {geometry.triangle_count:,} triangles")
-        tree, built = state.trees.get(geometry, tree_progress, mode=settings.kdtree_mode,
-                                      tau_occu=settings.tau_occu, tau_freq=settings.tau_freq,
-                                      refs_per_path=settings.refs_per_path)
+        tree_settings = user_settings(settings.kdtree_mode, settings.tau_occu,
+                                      settings.tau_freq, settings.refs_per_path)
+        tree, built = state.trees.get(geometry, settings.kdtree_mode, tree_settings,
+                                      tree_progress)
         scene = Scene.from_parts(geometry, tree)
         scene.check_view(view)
         tree_done = time.perf_counter()

@@ -13,9 +13,10 @@ from .local_slaves import LocalSlaves
 
 
 class TreeCache:
-    """Built kd-trees in the compact layout, by (geometry hash, mode, thresholds), so a re-render
-    of unchanged geometry with unchanged kd-tree settings does not rebuild. The standard SAH tree
-    of a geometry is kept too, so another mode or threshold only redoes the compaction."""
+    """Built kd-trees in the compact layout, by (geometry hash, mode, the settings the mode uses),
+    so a re-render of unchanged geometry with unchanged kd-tree settings does not rebuild. The
+    standard SAH tree of a geometry is kept too, so another mode or threshold only redoes the
+    compaction."""
 
     def __init__(self, capacity: int = 2):
         self.capacity = capacity
@@ -25,21 +26,12 @@ class TreeCache:
         self._standard: OrderedDict = OrderedDict()   # geometry hash -> KDTree
         self._lock = threading.Lock()
 
-    @staticmethod
-    def key(geometry, mode="ours", tau_occu=0.5, tau_freq=0.4, refs_per_path=8):
-        """Only what changes the tree: choi ignores the path limit, standard every threshold."""
-        if mode == "standard":
-            return geometry.content_hash(), mode
-        if mode == "choi":
-            return geometry.content_hash(), mode, float(tau_occu), float(tau_freq)
-        return geometry.content_hash(), mode, float(tau_occu), float(tau_freq), int(refs_per_path)
-
-    def get(self, geometry, progress=None, mode="ours", tau_occu=0.5, tau_freq=0.4,
-            refs_per_path=8):
+    def get(self, geometry, mode: str, settings: dict, progress=None):
         """(compact tree, built): built is True when anything had to be built or compacted.
+        `settings`: compact_tree's keyword arguments (core.accel.compact.user_settings).
         progress(fraction, message) covers both steps: the SAH build 0-0.8, compaction 0.8-1."""
         report = progress or (lambda fraction, message: None)
-        key = self.key(geometry, mode, tau_occu, tau_freq, refs_per_path)
+        key = (geometry.content_hash(), mode, tuple(sorted(settings.items())))
         with self._lock:
             if key in self._trees:
                 self._trees.move_to_end(key)
@@ -51,9 +43,7 @@ class TreeCache:
             with self._lock:
                 self.builds += 1
                 self._remember(self._standard, key[0], standard)
-        compact = compact_tree(standard, geometry.triangle_count, mode, tau_occu=tau_occu,
-                               tau_freq=tau_freq,
-                               refs_per_path=refs_per_path if mode == "ours" else -1,
+        compact = compact_tree(standard, geometry.triangle_count, mode, **settings,
                                progress=lambda f, m: report(0.8 + 0.2 * f, m))
         with self._lock:
             self.compactions += 1

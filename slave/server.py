@@ -41,7 +41,7 @@ class Frame:
     scene: Scene
     view: View
     tiles: list
-    model: str = "3b"         # "3a": the render thread sends each tile itself (Fig. 3a)
+    model: str = protocol.DEFAULT_MODEL   # "3a": the render thread sends each tile itself
     payload: str = "f32"
     compress: bool = False
     cancelled: bool = False
@@ -299,10 +299,10 @@ class MasterConnection:
             tile_w = protocol.get_int(h, "tile_size", 1, protocol.MAX_TILE_SIZE)
             tile_h = protocol.get_int(h, "tile_height", 1, protocol.MAX_TILE_SIZE) \
                 if "tile_height" in h else tile_w
-            model = h.get("model", "3b")
+            model = h.get("model", protocol.DEFAULT_MODEL)
             payload = h.get("payload", "f32")
             compress = h.get("compress", False)
-            if model not in ("3a", "3b") or payload not in protocol.PAYLOADS \
+            if model not in protocol.MODELS or payload not in protocol.PAYLOADS \
                     or not isinstance(compress, bool):
                 raise ProtocolError("bad model, payload or compress field")
         except (SceneError, ProtocolError) as exc:

@@ -8,7 +8,9 @@ import threading
 import numpy as np
 import pytest
 
+from core.accel.compact import USER_SETTING_LIMITS, compact_params
 from core.net.tiles import tile_grid
+from core.scene.model import RENDER_SETTING_LIMITS, RenderSettings
 from tests.blender import build_extension, run_bpy_script
 from tests.processes import SlaveProcess
 
@@ -140,6 +142,20 @@ def test_every_panel_draws_the_settings_it_offers(tmp_path):
     assert {"kdtree_mode", "tau_occu", "tau_freq"} <= set(drawn["RENDER_PT_kdtrace_kdtree"])
     assert {"payload", "interaction", "secret_file"} <= set(drawn["RENDER_PT_kdtrace_network"])
     assert {"use_zeroconf", "local_slaves"} <= set(drawn["RENDER_PT_kdtrace_slaves"])
+    # The panel offers exactly core's defaults and ranges: every render setting is there (the
+    # exporter copies them all by name), and so are the kd-tree settings.
+    panel = result["settings"]
+    for name, default in RenderSettings().to_dict().items():
+        assert name in panel, f"the panel has no render setting {name!r}"
+        assert panel[name]["default"] == pytest.approx(default), name
+        if name in RENDER_SETTING_LIMITS:
+            assert [panel[name]["min"], panel[name]["max"]] == pytest.approx(
+                list(RENDER_SETTING_LIMITS[name])), name
+    tree = compact_params()
+    assert panel["kdtree_mode"]["default"] == tree.mode
+    for name, limits in USER_SETTING_LIMITS.items():
+        assert panel[name]["default"] == pytest.approx(getattr(tree, name)), name
+        assert [panel[name]["min"], panel[name]["max"]] == pytest.approx(list(limits)), name
     # The legend lists the local slave that rendered (named <host>-local-1).
     assert any(line.startswith("label:") and line.endswith("-local-1")
                for line in drawn["RENDER_PT_kdtrace_legend"])

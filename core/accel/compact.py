@@ -92,6 +92,23 @@ def compact_params(mode: str = "ours", **overrides) -> CompactParams:
     return params
 
 
+# What a user may set of a compact tree (the add-on's kd-Tree panel), with its range; the
+# defaults are those of compact_params(mode).
+USER_SETTING_LIMITS = {"tau_occu": (0.0, 16.0), "tau_freq": (0.0, 1.0), "refs_per_path": (0, 64)}
+
+
+def user_settings(mode: str, tau_occu: float, tau_freq: float, refs_per_path: int) -> dict:
+    """The compact_tree keyword arguments of a user's settings, only those that `mode` uses
+    (standard: none; choi: the thresholds, its path is unlimited; ours: all three), so that
+    settings which cannot change the tree do not make another tree (or another scene hash)."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    chosen = {"tau_occu": float(tau_occu), "tau_freq": float(tau_freq),
+              "refs_per_path": int(refs_per_path)}
+    used = {"standard": (), "choi": ("tau_occu", "tau_freq"), "ours": tuple(chosen)}[mode]
+    return {name: chosen[name] for name in used}
+
+
 @dataclass
 class CompactTree:
     nodes: np.ndarray          # uint32 (N, 2), format in the module docstring

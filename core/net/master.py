@@ -34,7 +34,9 @@ from .tiles import TilePool, partition_tile_size, tile_dims, tile_grid
 
 POLL_S = 0.2             # how often worker threads look at the job's state
 SLAVE_TIMEOUT_S = 30.0   # a slave that holds tiles and says nothing this long is dropped
-MODELS = ("3a", "3b")    # the paper's Fig. 3a (one thread per slave) and Fig. 3b (two)
+DEFAULT_TILE_SIZE = 64
+DEFAULT_TILES_IN_FLIGHT = 2
+MAX_TILES_IN_FLIGHT = 16
 
 
 class MasterError(Exception):
@@ -271,8 +273,9 @@ class Master:
             raise ProtocolError(f"expected SCENE_READY for {scene_hash}, got {reply.type.name}")
         return reply.header.get("present") is True
 
-    def render(self, view: View, tile_size=64, tiles_in_flight: int = 2, *,
-               partition: int | None = None, model: str = "3b", payload: str = "f32",
+    def render(self, view: View, tile_size=DEFAULT_TILE_SIZE,
+               tiles_in_flight: int = DEFAULT_TILES_IN_FLIGHT, *, partition: int | None = None,
+               model: str = protocol.DEFAULT_MODEL, payload: str = "f32",
                compress: bool = False, duplicates: bool = True) -> "RenderJob":
         """Start rendering `view` on every connected slave; returns at once with the job.
 
@@ -285,8 +288,11 @@ class Master:
         """
         if self.scene_hash is None:
             raise MasterError("no scene loaded: call load_scene first")
-        if model not in MODELS:
-            raise MasterError(f"model must be one of {MODELS}, got {model!r}")
+        if model not in protocol.MODELS:
+            raise MasterError(f"model must be one of {protocol.MODELS}, got {model!r}")
+        if not 1 <= tiles_in_flight <= MAX_TILES_IN_FLIGHT:
+            raise MasterError(f"tiles in flight must be 1 to {MAX_TILES_IN_FLIGHT}, "
+                              f"got {tiles_in_flight}")
         if payload not in protocol.PAYLOADS:
             raise MasterError(f"payload must be one of {protocol.PAYLOADS}, got {payload!r}")
         try:
@@ -299,7 +305,7 @@ class Master:
             self._job.wait()  # one receiver per socket: the previous job's threads must be gone
         if not self.slaves:
             raise MasterError("no slaves connected")
-        self._job = RenderJob(self.slaves, view, dims, max(1, int(tiles_in_flight)),
+        self._job = RenderJob(self.slaves, view, dims, int(tiles_in_flight),
                               self.scene_hash, model=model, payload=payload,
                               compress=bool(compress), duplicates=duplicates,
                               slave_timeout=self.slave_timeout)
@@ -522,11 +528,11 @@ class RenderJob:
     """One frame in progress. Thread-safe; the caller polls next_result()."""
 
     def __init__(self, connections: list, view: View, tile_dims: tuple, tiles_in_flight: int,
-                 scene_hash: str, model: str = "3b", payload: str = "f32", compress: bool = False,
-                 duplicates: bool = True, slave_timeout: float = SLAVE_TIMEOUT_S):
+                 scene_hash: str, model: str = protocol.DEFAULT_MODEL, payload: str = "f32",
+                 compress: bool = False, duplicates: bool = True,
+                 slave_timeout: float = SLAVE_TIMEOUT_S):
         self.view, self.tiles_in_flight = view, tiles_in_flight
         self.tile_w, self.tile_h = tile_dims
-        self.tile_size = self.tile_w if self.tile_w == self.tile_h else tile_dims
         self.model, self.payload, self.compress = model, payload, compress
         self.duplicates, self.slave_timeout = duplicates, slave_timeout
         self.scene_hash = scene_hash

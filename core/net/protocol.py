@@ -36,6 +36,10 @@ ALLOWED_DTYPES = {name: np.dtype("<" + name) for name in ("f4", "f2", "u4", "u2"
 MAX_ARRAYS = 16
 MAX_DIMS = 4
 MAX_TILE_SIZE = 1024
+# How master and slave exchange a frame's tiles (FRAME_START "model"): the paper's Fig. 3a (one
+# thread per slave asks for a tile and waits for it) and Fig. 3b (requests and results overlap).
+MODELS = ("3a", "3b")
+DEFAULT_MODEL = "3b"
 
 
 class MsgType(enum.IntEnum):

@@ -367,24 +367,31 @@ class RenderSettings:
             return cls()
         if not isinstance(d, dict):
             raise SceneError("render settings must be an object")
-        unknown = set(d) - set(cls().__dict__)
+        unknown = set(d) - set(RENDER_SETTING_LIMITS) - {"adaptive"}
         if unknown:
             raise SceneError(f"unknown render settings {sorted(unknown)}")
         out = cls()
-        ints = {"samples_per_axis": (1, 64), "adaptive_min_samples": (1, 4096),
-                "max_bounces": (0, 1024), "diffuse_bounces": (0, 1024),
-                "light_samples_per_axis": (1, 16), "seed": (0, 2 ** 31 - 1)}
-        for name, (low, high) in ints.items():
-            if name in d:
+        for name, (low, high) in RENDER_SETTING_LIMITS.items():
+            if name not in d:
+                continue
+            if isinstance(low, int):
                 setattr(out, name, _int(d[name], f"render setting {name}", low, high))
+            else:
+                setattr(out, name, _finite_float(d[name], f"render setting {name}", low, high))
         if "adaptive" in d:
             if not isinstance(d["adaptive"], bool):
                 raise SceneError("render setting adaptive must be true or false")
             out.adaptive = d["adaptive"]
-        if "adaptive_threshold" in d:
-            out.adaptive_threshold = _finite_float(d["adaptive_threshold"], "adaptive threshold",
-                                                   0.0, 1.0)
         return out
+
+
+# The range of every numeric render setting: what a view from the network may ask for, and what
+# the add-on's panel offers (addon/properties.py reads it).
+RENDER_SETTING_LIMITS = {
+    "samples_per_axis": (1, 64), "adaptive_threshold": (0.0, 1.0),
+    "adaptive_min_samples": (1, 4096), "max_bounces": (0, 1024), "diffuse_bounces": (0, 1024),
+    "light_samples_per_axis": (1, 16), "seed": (0, 2 ** 31 - 1),
+}
 
 
 MAX_IMAGE_SIDE = 65536

@@ -1,5 +1,6 @@
 """Run every KD Trace panel's draw() against a recording layout (there is no UI in background
-mode): each property a panel shows must exist, and drawing must not raise."""
+mode): each property a panel shows must exist, and drawing must not raise. Also reports every
+setting's default and range, which must be those of core/ (one home for each)."""
 from types import SimpleNamespace
 
 import bpy
@@ -42,4 +43,10 @@ for panel in addon.addon.ui.classes:
         shown = []
         panel.draw(SimpleNamespace(layout=RecordingLayout(shown)), context)
         drawn[panel.__name__] = shown
-write_result(result_path, {"drawn": drawn})
+# Every setting's default and range as the panel offers it (the test compares them with core/).
+settings = {}
+for name, prop in type(scene.kdtrace).bl_rna.properties.items():
+    if name != "rna_type" and prop.type in ("INT", "FLOAT", "BOOLEAN", "ENUM"):
+        settings[name] = {"default": prop.default, "min": getattr(prop, "hard_min", None),
+                          "max": getattr(prop, "hard_max", None)}
+write_result(result_path, {"drawn": drawn, "settings": settings})
