@@ -9,7 +9,7 @@ import pytest
 from core.accel.kdtree import KDTree, build_kdtree
 from core.scene.model import Camera, Geometry, Light, Shading, View
 from core.scene.scene import Scene
-from slave.tracer import Tracer, TracerError, kernel_options
+from slave.tracer import Tracer, TracerError, kernel_options, tile_pixel_order
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere
 
 
@@ -318,14 +318,14 @@ def test_tile_equals_cut_from_full_image_and_is_deterministic(tracer):
         tracer.render_tile(view, 60, 0, 8, 8)
 
 
-def test_pixel_order_is_a_coherent_permutation(tracer):
+def test_pixel_order_is_a_coherent_permutation():
     """render_tile hands pixels to the kernel in 16x16 Morton blocks (docs/tracer.md): every
     tile-local index exactly once, whatever the tile's size, and neighbours stay close."""
     for w, h in ((1, 1), (17, 5), (64, 48), (33, 70), (1024, 3)):
-        order = tracer._pixel_order(w, h)
+        order = tile_pixel_order(w, h)
         assert order.dtype == np.int32
         np.testing.assert_array_equal(np.sort(order), np.arange(w * h))
     # Each run of 256 work-items covers one 16x16 block (row order: 4 rows of 64).
-    y, x = np.divmod(tracer._pixel_order(64, 64).reshape(-1, 256), 64)
+    y, x = np.divmod(tile_pixel_order(64, 64).reshape(-1, 256), 64)
     np.testing.assert_array_equal(x.max(1) - x.min(1), 15)
     np.testing.assert_array_equal(y.max(1) - y.min(1), 15)
