@@ -11,6 +11,8 @@ import os
 import pathlib
 import tempfile
 
+from .layout import c_header
+
 KERNEL_DIR = pathlib.Path(__file__).resolve().parent.parent / "kernels"
 
 
@@ -19,9 +21,10 @@ class OpenCLError(RuntimeError):
 
 
 def kernel_source(files) -> str:
-    """The kernel files (paths relative to kernels/) concatenated in the given order: each file
-    uses only what the ones before it define."""
-    return "\n".join((KERNEL_DIR / name).read_text() for name in files)
+    """The layout header (core/layout.py c_header: node bits, buffer slots, codes), then the
+    kernel files (paths relative to kernels/) concatenated in the given order: each file uses
+    only what the ones before it define."""
+    return "\n".join([c_header()] + [(KERNEL_DIR / name).read_text() for name in files])
 
 
 def ensure_pocl_cache_dir() -> None:

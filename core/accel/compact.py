@@ -14,25 +14,11 @@ A post-pass over the standard SAH tree of core/accel/kdtree.py (it only reads `K
    per node; an inner node's children (and its triangle-reference slot) are stored side by side;
    empty leaves are not stored; leaf triangle lists are 16-bit where they fit, 32-bit otherwise.
 
-Node format (uint32 pairs; `nodes[i, 0]` is word 0, `nodes[i, 1]` word 1)::
-
-    inner node   word0 bits 0-1  split axis 0/1/2
-                 word0 bit 2     R: the node has a triangle-reference slot
-                 word0 bit 3     Eb: the below child is an empty leaf and is not stored
-                 word0 bit 4     Ea: the above child is an empty leaf and is not stored
-                 word0 bits 5-31 c: index of the node's group of slots
-                 word1           split position, float32 bits
-                 The group at c holds, in this order: the T-reference slot (if R), the below
-                 child (unless Eb), the above child (unless Ea). Eb and Ea are never both set.
-    T-ref slot   word0 first triangle index, word1 second triangle index or 0xFFFFFFFF (none;
-                 always none in `choi`: the otherwise unused half of the 8 bytes)
-    leaf         word0 bits 0-1 = 3
-                 word0 bit 2     W: 1 = 16-bit list in `leaf_index16`, 0 = 32-bit in `leaf_index32`
-                 W = 0: word0 bits 3-31 count; word1 offset into leaf_index32
-                 W = 1: word0 bits 3-15 count (1..8191), bits 16-31 base B; word1 offset into
-                        leaf_index16; triangle = (B << leaf_shift) + leaf_index16[offset + j]
-
-`leaf_shift` is per tree: max(0, bits(triangle_count - 1) - 16), so B spans every index.
+Node format: core/layout.py COMPACT_NODE (uint32 pairs, `nodes[i, 0]` is word 0), the table that
+also writes the kernels' header. An inner node's group holds its T-reference slot (if R), then
+the children that are stored; a leaf's list is 16-bit (base B, triangle = (B << leaf_shift) +
+entry) or 32-bit. `leaf_shift` is per tree: max(0, bits(triangle_count - 1) - 16), so B spans
+every index.
 """
 from __future__ import annotations
 
@@ -42,12 +28,14 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from ..layout import (INNER_EMPTY_ABOVE, INNER_EMPTY_BELOW, INNER_GROUP, INNER_REF, LEAF16_BASE,
+                      LEAF16_COUNT, LEAF16_INDEX_BITS, LEAF32_COUNT, LEAF_TAG, LEAF_WIDE,
+                      NO_TRIANGLE, PLAIN_FIELD, PLAIN_TAG, TAG)
+
 MODES = ("standard", "choi", "ours")
-LEAF_TAG = 3
-NO_TRIANGLE = 0xFFFFFFFF
-MAX_GROUP_INDEX = (1 << 27) - 1      # word0 bits 5-31 of an inner node
-MAX_LEAF16_COUNT = (1 << 13) - 1     # word0 bits 3-15 of a 16-bit leaf
-MAX_LEAF32_COUNT = (1 << 29) - 1
+MAX_GROUP_INDEX = INNER_GROUP.max
+MAX_LEAF16_COUNT = LEAF16_COUNT.max
+MAX_LEAF32_COUNT = LEAF32_COUNT.max
 
 
 @dataclass(frozen=True)
@@ -187,9 +175,9 @@ class _Topology:
         n = len(nodes)
         word0 = nodes[:, 0]
         self.n = n
-        self.is_leaf = (word0 & 3) == LEAF_TAG
-        self.axis = (word0 & 3).astype(np.int8)
-        self.field = (word0 >> 2).astype(np.int64)
+        self.is_leaf = PLAIN_TAG.get(word0) == LEAF_TAG
+        self.axis = PLAIN_TAG.get(word0).astype(np.int8)
+        self.field = PLAIN_FIELD.get(word0).astype(np.int64)
         self.split_bits = nodes[:, 1]
         self.parent = np.full(n, -1, np.int64)
         self.depth = np.zeros(n, np.int16)
@@ -611,7 +599,7 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
 
 def _leaf_shift(triangles_count: int) -> int:
     """Shift of a 16-bit leaf's base B, so that B << shift reaches every triangle index."""
-    return max(0, (max(triangles_count, 1) - 1).bit_length() - 16)
+    return max(0, (max(triangles_count, 1) - 1).bit_length() - LEAF16_INDEX_BITS)
 
 
 def _standard_reencoded(tree, triangles_count, params):
@@ -621,8 +609,8 @@ def _standard_reencoded(tree, triangles_count, params):
     the words are re-encoded (the same arrays and stats). None for any other tree."""
     nodes, lists = tree.nodes, tree.leaf_indices
     word0 = nodes[:, 0]
-    is_leaf = (word0 & 3) == LEAF_TAG
-    field = (word0 >> 2).astype(np.int64)
+    is_leaf = PLAIN_TAG.get(word0) == LEAF_TAG
+    field = PLAIN_FIELD.get(word0).astype(np.int64)
     inner = np.flatnonzero(~is_leaf)
     if len(nodes) != 1 + 2 * len(inner) or len(nodes) - 1 > MAX_GROUP_INDEX:
         return None
@@ -642,9 +630,10 @@ def _standard_reencoded(tree, triangles_count, params):
         if not ascending.all():
             return None
     out_nodes = np.empty_like(nodes)
-    out_nodes[inner, 0] = (word0[inner] & 3) | (field[inner] << 5).astype(np.uint32)
+    out_nodes[inner, 0] = (TAG.put(PLAIN_TAG.get(word0[inner]))
+                           | INNER_GROUP.put(field[inner]).astype(np.uint32))
     out_nodes[inner, 1] = nodes[inner, 1]
-    out_nodes[leaves, 0] = (LEAF_TAG | (count << 3)).astype(np.uint32)
+    out_nodes[leaves, 0] = (TAG.put(LEAF_TAG) | LEAF32_COUNT.put(count)).astype(np.uint32)
     out_nodes[leaves, 1] = np.where(nonempty, offset[:-1], 0)
     shift = _leaf_shift(triangles_count)
     out = CompactTree(out_nodes, lists.astype(np.uint32), np.zeros(0, np.uint16),
@@ -709,9 +698,10 @@ def _layout(topo, params, is_final_leaf, dead, final_count, item_leaf, item_tri,
     # Inner nodes.
     inner = np.flatnonzero(~dead & ~is_final_leaf)
     child = topo.field[inner]
-    word0 = (topo.axis[inner].astype(np.int64) | ((refs_at[inner] > 0) << 2)
-             | (elided[child].astype(np.int64) << 3) | (elided[child + 1].astype(np.int64) << 4)
-             | (group_of[inner] << 5))
+    word0 = (TAG.put(topo.axis[inner].astype(np.int64)) | INNER_REF.put(refs_at[inner] > 0)
+             | INNER_EMPTY_BELOW.put(elided[child].astype(np.int64))
+             | INNER_EMPTY_ABOVE.put(elided[child + 1].astype(np.int64))
+             | INNER_GROUP.put(group_of[inner]))
     nodes[new_index[inner], 0] = word0
     nodes[new_index[inner], 1] = topo.split_bits[inner]
     # T-reference slots: at the start of their node's group.
@@ -731,17 +721,17 @@ def _layout(topo, params, is_final_leaf, dead, final_count, item_leaf, item_tri,
     high[nonempty] = item_tri[starts[nonempty] + count[nonempty] - 1]
     base = low >> shift
     fits16 = (params.leaf16 & nonempty & (count <= MAX_LEAF16_COUNT)
-              & (high - (base << shift) <= 0xFFFF))
+              & (high - (base << shift) < 1 << LEAF16_INDEX_BITS))
     if (count > MAX_LEAF32_COUNT).any():
-        raise ValueError("a leaf holds too many triangles for the 29-bit count")
+        raise ValueError(f"a leaf holds too many triangles for the {LEAF32_COUNT.bits}-bit count")
     item_is16 = np.repeat(fits16, count)
     idx32 = item_tri[~item_is16].astype(np.uint32)
     idx16 = (item_tri[item_is16] - np.repeat((base << shift)[fits16], count[fits16])
              ).astype(np.uint16)
     off32 = _exclusive_cumsum(np.where(fits16, 0, count))[:-1]
     off16 = _exclusive_cumsum(np.where(fits16, count, 0))[:-1]
-    word0 = np.where(fits16, LEAF_TAG | (1 << 2) | (count << 3) | (base << 16),
-                     LEAF_TAG | (count << 3))
+    word0 = np.where(fits16, TAG.put(LEAF_TAG) | LEAF_WIDE.bit | LEAF16_COUNT.put(count)
+                     | LEAF16_BASE.put(base), TAG.put(LEAF_TAG) | LEAF32_COUNT.put(count))
     word1 = np.where(fits16, off16, np.where(nonempty, off32, 0))
     nodes[new_index[leaves], 0] = word0
     nodes[new_index[leaves], 1] = word1

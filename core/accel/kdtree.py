@@ -26,8 +26,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-LEAF_TAG = 3                 # word 0, bits 0-1, of a leaf
-MAX_NODE_FIELD = (1 << 30) - 1  # bits 2-31 of word 0: child index or leaf reference count
+from ..layout import LEAF_TAG, PLAIN_FIELD     # the node format: core/layout.py PLAIN_NODE
+
+MAX_NODE_FIELD = PLAIN_FIELD.max    # word 0 bits 2-31: child index or leaf reference count
 
 
 @dataclass(frozen=True)

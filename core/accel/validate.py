@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .compact import LEAF_TAG, MAX_LEAF16_COUNT, NO_TRIANGLE, _exclusive_cumsum, _ranges
+from ..layout import (INNER_EMPTY_ABOVE, INNER_EMPTY_BELOW, INNER_GROUP, INNER_REF, LEAF16_BASE,
+                      LEAF16_COUNT, LEAF32_COUNT, LEAF_TAG, LEAF_WIDE, MAX_LEAF_SHIFT,
+                      NO_TRIANGLE, TAG)
+from .compact import _exclusive_cumsum, _ranges
 
 MAX_DEPTH = 1024
 
@@ -33,8 +36,8 @@ def validate_compact(nodes, leaf_index32, leaf_index16, bounds, leaf_shift,
     if bounds.shape != (2, 3) or not np.isfinite(bounds).all():
         raise ValueError(f"kd-tree bounds must be a finite (2, 3) array, got {bounds.shape}")
     leaf_shift = int(leaf_shift)
-    if not 0 <= leaf_shift <= 16:
-        raise ValueError(f"leaf_shift must be in 0..16, got {leaf_shift}")
+    if not 0 <= leaf_shift <= MAX_LEAF_SHIFT:
+        raise ValueError(f"leaf_shift must be in 0..{MAX_LEAF_SHIFT}, got {leaf_shift}")
     n = len(nodes)
     T = int(triangle_count)
     reached = np.zeros(n, bool)
@@ -47,19 +50,19 @@ def validate_compact(nodes, leaf_index32, leaf_index16, bounds, leaf_shift,
         if depth > MAX_DEPTH:
             raise ValueError(f"kd-tree deeper than {MAX_DEPTH} levels")
         w0 = nodes[level, 0].astype(np.int64)
-        is_leaf = (w0 & 3) == LEAF_TAG
+        is_leaf = TAG.get(w0) == LEAF_TAG
         leaves.append(level[is_leaf])
         inner, w = level[~is_leaf], w0[~is_leaf]
         if not len(inner):
             break
-        has_ref, eb, ea, group = (w >> 2) & 1, (w >> 3) & 1, (w >> 4) & 1, w >> 5
+        has_ref, eb, ea = INNER_REF.get(w), INNER_EMPTY_BELOW.get(w), INNER_EMPTY_ABOVE.get(w)
+        group = INNER_GROUP.get(w)
         if (eb & ea).any():
             raise ValueError("a kd-tree node has both children elided")
         below = group + has_ref
         above = below + 1 - eb
         slot = group[has_ref == 1]
         children = np.concatenate([below[eb == 0], above[ea == 0]])
-        parents = np.concatenate([inner[eb == 0], inner[ea == 0]])
         if (group <= inner).any() or (children >= n).any() or (slot >= n).any():
             raise ValueError("kd-tree nodes point outside the tree or backwards")
         if len(slot):
@@ -70,18 +73,17 @@ def validate_compact(nodes, leaf_index32, leaf_index16, bounds, leaf_shift,
         if reached[touched].any() or len(np.unique(touched)) != len(touched):
             raise ValueError("a kd-tree node is reached more than once")
         reached[touched] = True
-        del parents
         level = children
     leaves = np.concatenate(leaves)
     w0 = nodes[leaves, 0].astype(np.int64)
     offset = nodes[leaves, 1].astype(np.int64)
-    wide = ((w0 >> 2) & 1) == 1
+    wide = LEAF_WIDE.get(w0) == 1
     for is16, index, name in ((True, leaf_index16, "leaf_index16"),
                               (False, leaf_index32, "leaf_index32")):
         pick = wide == is16
         w, off = w0[pick], offset[pick]
-        count = ((w >> 3) & MAX_LEAF16_COUNT) if is16 else (w >> 3)
-        base = ((w >> 16) << leaf_shift) if is16 else np.zeros(len(w), np.int64)
+        count = LEAF16_COUNT.get(w) if is16 else LEAF32_COUNT.get(w)
+        base = (LEAF16_BASE.get(w) << leaf_shift) if is16 else np.zeros(len(w), np.int64)
         keep = count > 0
         w, off, count, base = w[keep], off[keep], count[keep], base[keep]
         if not len(count):

@@ -5,7 +5,7 @@
 // Material buffer: 4 float4 per material, filled by slave/tracer.py _pack_materials:
 //   [0] (base colour, alpha)   [1] (metallic, roughness, transmission, ior)
 //   [2] (emission colour times strength, specular level)   [3] (texture index or -1, 0, 0, 0)
-// Light buffer: LIGHT_FLOAT4S (6) float4 per light, filled by slave/tracer.py _pack_lights:
+// Light buffer: LIGHT_SIZE (6) float4 per light, filled by slave/tracer.py _pack_lights:
 //   [0] (position, kind: 0 POINT, 1 SUN, 2 SPOT, 3 AREA)
 //   [1] (unit direction the light points, cos of the spot half angle)
 //   [2] (intensity: colour times the unit factor of docs/tracer.md, spot smoothing factor)
@@ -13,11 +13,6 @@
 //   [4] (area: axis_v * size_v, area shape: 0 rectangle, 1 ellipse)
 //   [5] (sun: cos of half the angular diameter (1 = sharp), 0, 0, 0)
 
-#define LIGHT_POINT 0
-#define LIGHT_SUN 1
-#define LIGHT_SPOT 2
-#define LIGHT_AREA 3
-#define LIGHT_FLOAT4S 6
 #define MAX_SHADOW_SURFACES 16
 // pbrt's gamma(7): relative error bound of a hit point from barycentrics (pbrt-v3 3.9.2), doubled.
 #define HIT_ERROR (2.0f * 7.0f * 0x1.0p-24f / (1.0f - 7.0f * 0x1.0p-24f))
@@ -253,7 +248,7 @@ inline float smoothstep01(float x)
 inline float3 sample_light(const Scene *sc, uint l, float3 p, float u1, float u2, float3 *wi,
                            float3 *target, float *dist)
 {
-    __global const float4 *L = sc->lights + LIGHT_FLOAT4S * l;
+    __global const float4 *L = sc->lights + LIGHT_SIZE * l;
     float4 l0 = L[0], l1 = L[1], l2 = L[2];
     int kind = (int)l0.w;
     if (kind == LIGHT_SUN) {
@@ -378,7 +373,7 @@ inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
 {
     float3 total = (float3)(0.0f, 0.0f, 0.0f);
     for (uint l = 0; l < sc->light_count; ++l) {
-        __global const float4 *L = sc->lights + LIGHT_FLOAT4S * l;
+        __global const float4 *L = sc->lights + LIGHT_SIZE * l;
         int kind = (int)L[0].w;
         bool extended = kind == LIGHT_AREA;
 #ifdef HAS_SOFT_LIGHTS

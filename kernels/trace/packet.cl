@@ -194,15 +194,15 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
         if (any_lane(m)) {
             uint2 n = nodes[node];
             uint w = n.x;
-            uint axis = w & 3u;
-            if (axis != KD_LEAF) {
-                uint group = w >> 5;
-                uint has_ref = (w >> 2) & 1u;
+            uint axis = KD_TAG(w);
+            if (axis != KD_LEAF_TAG) {
+                uint group = KD_GROUP(w);
+                uint has_ref = KD_REF(w);
                 if (has_ref) {
                     // Each lane tests refs.x, then refs.y, as trace_ray does.
                     uint2 refs = nodes[group];
                     consider_lanes(m, refs.x, &p, q, tri_verts, tmin, &b);
-                    if (refs.y != NO_HIT)
+                    if (refs.y != KD_NO_TRIANGLE)
                         consider_lanes(m, refs.y, &p, q, tri_verts, tmin, &b);
                 }
                 float split = as_float(n.y);
@@ -214,9 +214,9 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
                 float8 enter = tplane - err, leave = tplane + err;
                 int8 below_first = (o < split) | ((o == split) & (d <= 0.0f));
                 uint below = group + has_ref;
-                uint above = below + 1u - ((w >> 3) & 1u);
-                int8 below_ok = (w & KD_EMPTY_BELOW) == 0u ? (int8)(-1) : (int8)(0);
-                int8 above_ok = (w & KD_EMPTY_ABOVE) == 0u ? (int8)(-1) : (int8)(0);
+                uint above = below + 1u - KD_EMPTY_BELOW(w);
+                int8 below_ok = (w & KD_EMPTY_BELOW_BIT) == 0u ? (int8)(-1) : (int8)(0);
+                int8 above_ok = (w & KD_EMPTY_ABOVE_BIT) == 0u ? (int8)(-1) : (int8)(0);
                 int8 first_ok = pick_mask8(above_ok, below_ok, below_first);
                 int8 second_ok = pick_mask8(below_ok, above_ok, below_first);
                 // trace_ray's three cases: first child only, second only, both.
@@ -265,14 +265,14 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
                 // No lane goes on from here: pop.
             } else {
                 // A leaf: each triangle for every lane here, against the lane's [tmin, best].
-                if ((w & KD_LEAF16) != 0u) {
-                    uint count = (w >> 3) & 0x1FFFu;
-                    uint base = (w >> 16) << leaf_shift;
+                if ((w & KD_LEAF16_BIT) != 0u) {
+                    uint count = KD_LEAF16_COUNT(w);
+                    uint base = KD_LEAF16_BASE(w) << leaf_shift;
                     __global const ushort *list = kd->leaf16 + n.y;
                     for (uint i = 0; i < count; ++i)
                         consider_lanes(m, base + (uint)list[i], &p, q, tri_verts, tmin, &b);
                 } else {
-                    uint count = w >> 3;
+                    uint count = KD_LEAF32_COUNT(w);
                     __global const uint *list = kd->leaf32 + n.y;
                     for (uint i = 0; i < count; ++i)
                         consider_lanes(m, list[i], &p, q, tri_verts, tmin, &b);

@@ -13,7 +13,6 @@
 #error "KD_STACK_SIZE must be defined by the host"
 #endif
 
-#define KD_LEAF 3u
 #define NO_HIT 0xFFFFFFFFu
 // pbrt's gamma(3): bound on the error of the slab distances, used to widen the root interval.
 #define GAMMA3 (3.0f * 0x1.0p-24f / (1.0f - 3.0f * 0x1.0p-24f))
@@ -130,10 +129,6 @@ KD_INLINE bool intersect_triangle(const TriRay *q, __global const float *tv,
 
 // The compact kd-tree (docs/kdtree_compression.md; one layout for the modes standard, choi and
 // ours): nodes, the 32- and 16-bit leaf index lists, and the shift of 16-bit leaves' bases.
-#define KD_REF 4u           // inner word0 bit 2: a T-reference slot heads the node's group
-#define KD_EMPTY_BELOW 8u   // bit 3: the below child is an empty leaf, not stored
-#define KD_EMPTY_ABOVE 16u  // bit 4: likewise the above child
-#define KD_LEAF16 4u        // leaf word0 bit 2: 16-bit list
 // Tolerance of the stopping test, relative to t and to the scene's size along the ray: a
 // triangle coplanar with the best hit (a column on a floor) may sit in a cell whose computed
 // entry rounds just past that hit; visiting it lets the tie go to the lower index.
@@ -262,17 +257,17 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
             break;
         uint2 n = nodes[node];
         uint w = n.x;
-        uint axis = w & 3u;
-        if (axis != KD_LEAF) {
-            uint group = w >> 5;
-            uint has_ref = (w >> 2) & 1u;
+        uint axis = KD_TAG(w);
+        if (axis != KD_LEAF_TAG) {
+            uint group = KD_GROUP(w);
+            uint has_ref = KD_REF(w);
             if (has_ref) {
                 // T-reference slot: one or two triangles lifted from the leaves below.
                 uint2 refs = nodes[group];
                 if (consider(&q, refs.x, ignore_tri, tri_verts, tmin, &b) && any_hit)
                     break;
-                if (refs.y != NO_HIT && consider(&q, refs.y, ignore_tri, tri_verts, tmin, &b)
-                    && any_hit)
+                if (refs.y != KD_NO_TRIANGLE
+                    && consider(&q, refs.y, ignore_tri, tri_verts, tmin, &b) && any_hit)
                     break;
             }
             float split = as_float(n.y);
@@ -291,8 +286,9 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
             bool below_first = (o < split) || (o == split && dir[axis] <= 0.0f);
             // Elided (empty) children are not stored: below = c + R, above = below + 1 - Eb.
             uint below = group + has_ref;
-            uint above = below + 1u - ((w >> 3) & 1u);
-            bool below_ok = (w & KD_EMPTY_BELOW) == 0u, above_ok = (w & KD_EMPTY_ABOVE) == 0u;
+            uint above = below + 1u - KD_EMPTY_BELOW(w);
+            bool below_ok = (w & KD_EMPTY_BELOW_BIT) == 0u;
+            bool above_ok = (w & KD_EMPTY_ABOVE_BIT) == 0u;
             uint first = below_first ? below : above;
             uint second = below_first ? above : below;
             bool first_ok = below_first ? below_ok : above_ok;
@@ -333,10 +329,10 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
             // hit found here outside the cell is still a valid candidate, kept until a nearer
             // one appears).
             bool found = false;
-            if ((w & KD_LEAF16) != 0u) {
+            if ((w & KD_LEAF16_BIT) != 0u) {
                 // 16-bit list: triangle = (B << leaf_shift) + leaf16[offset + i].
-                uint count = (w >> 3) & 0x1FFFu;
-                uint base = (w >> 16) << leaf_shift;
+                uint count = KD_LEAF16_COUNT(w);
+                uint base = KD_LEAF16_BASE(w) << leaf_shift;
                 __global const ushort *list = kd->leaf16 + n.y;
                 for (uint i = 0; i < count; ++i) {
                     if (consider(&q, base + (uint)list[i], ignore_tri, tri_verts, tmin, &b)
@@ -346,7 +342,7 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
                     }
                 }
             } else {
-                uint count = w >> 3;
+                uint count = KD_LEAF32_COUNT(w);
                 __global const uint *list = kd->leaf32 + n.y;
                 for (uint i = 0; i < count; ++i) {
                     if (consider(&q, list[i], ignore_tri, tri_verts, tmin, &b) && any_hit) {

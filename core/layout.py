@@ -1,0 +1,334 @@
+"""Every layout that the host and the kernels share, as tables: the kd-tree node words (the
+builder's plain nodes and the tracer's compact nodes), the records of the tracer's buffers
+(lights, materials, camera, tree bounds, triangle corners, texture sizes, accumulators) and
+the codes stored in them.
+
+The builder and the compactor (core/accel/), the validator and the packers (slave/buffers.py)
+take their numbers from here, and `c_header()` writes the same tables as the C header that
+core/opencl.py puts in front of every kernel source: a kernel names a field (`KD_GROUP(w)`,
+`LIGHT_POSITION(L)`) and never spells its bits or slot itself. tests/test_layout.py checks
+the header against these tables on the device.
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+LANES = "xyzw"
+
+
+@dataclass(frozen=True)
+class BitField:
+    """`bits` bits of a 32-bit node word, from bit `shift` on.
+
+    C: NAME_SHIFT, NAME_BITS, NAME_MAX (the largest value), NAME(w) (the value in word w),
+    NAME_PUT(v) (v in place), and NAME_BIT (the bit itself) for a one-bit field."""
+
+    name: str
+    shift: int
+    bits: int
+    doc: str
+
+    @property
+    def max(self) -> int:
+        return (1 << self.bits) - 1
+
+    @property
+    def bit(self) -> int:
+        assert self.bits == 1, f"{self.name} is not a one-bit field"
+        return 1 << self.shift
+
+    def get(self, word):
+        """The field's value in `word` (an int or an integer numpy array)."""
+        return (word >> self.shift) & self.max
+
+    def put(self, value):
+        """`value` in the field's place (to be or-ed into a word)."""
+        return value << self.shift
+
+
+@dataclass(frozen=True)
+class Constant:
+    name: str
+    value: int
+    doc: str
+
+
+@dataclass(frozen=True)
+class NodeFormat:
+    """One kind of 8-byte node: two uint32 words. `fields` are bits of word 0; `words` says
+    what each word holds."""
+
+    title: str
+    words: tuple
+    fields: tuple
+    constants: tuple = ()
+
+
+@dataclass(frozen=True)
+class Slot:
+    """A value in a record of float4s (or float2s): `lanes` of element `index`, or `rows`
+    whole elements from `index` on."""
+
+    name: str
+    index: int
+    lanes: str
+    doc: str
+    rows: int = 1
+
+    def indices(self):
+        """numpy index of the value within one record (its last two axes)."""
+        if self.rows > 1:
+            return slice(self.index, self.index + self.rows), slice(None)
+        first, last = LANES.index(self.lanes[0]), LANES.index(self.lanes[-1])
+        assert self.lanes == LANES[first:last + 1], f"{self.name}: lanes must be contiguous"
+        return self.index, (first if first == last else slice(first, last + 1))
+
+
+@dataclass(frozen=True)
+class Record:
+    """One element of a buffer: `size` vectors of `width` floats (float4 or float2), holding
+    the named slots; unnamed lanes are 0.
+
+    C: PREFIX_SIZE, PREFIX_<SLOT>_SLOT (its first vector) and PREFIX_<SLOT>(r), the value in
+    the record at pointer r (a pointer to its rows for a slot of several rows)."""
+
+    prefix: str
+    title: str
+    size: int
+    slots: tuple
+    width: int = 4
+
+    def slot(self, name: str) -> Slot:
+        for slot in self.slots:
+            if slot.name == name:
+                return slot
+        raise KeyError(f"{self.prefix} has no slot {name!r}")
+
+    def put(self, records, name, value) -> None:
+        """Write slot `name` of the record(s) `records` (numpy, last axes (size, width))."""
+        records[(Ellipsis, *self.slot(name).indices())] = value
+
+    def get(self, records, name):
+        return records[(Ellipsis, *self.slot(name).indices())]
+
+
+@dataclass(frozen=True)
+class Columns:
+    """A row of `columns` integers per item (C: PREFIX_COLUMNS, PREFIX_<NAME> per column)."""
+
+    prefix: str
+    title: str
+    columns: tuple
+
+    def index(self, name: str) -> int:
+        return self.columns.index(name)
+
+
+@dataclass(frozen=True)
+class Codes:
+    """Integer codes stored in a float slot (C: PREFIX_<NAME> per code)."""
+
+    prefix: str
+    title: str
+    codes: dict
+
+
+# ---------------------------------------------------------------------------------------------
+# kd-tree nodes
+
+LEAF_TAG = 3                    # word 0 bits 0-1 of a leaf (0/1/2 is an inner node's axis)
+NO_TRIANGLE = 0xFFFFFFFF        # an empty second reference of a T-reference slot
+
+# The builder's plain tree (core/accel/kdtree.py, Wald's 8-byte layout): siblings side by side.
+PLAIN_TAG = BitField("KD_PLAIN_TAG", 0, 2, "split axis 0/1/2, or KD_LEAF_TAG for a leaf")
+PLAIN_FIELD = BitField("KD_PLAIN_FIELD", 2, 30,
+                       "inner: index of the below child (the above child follows it); "
+                       "leaf: count of its triangle references")
+PLAIN_NODE = NodeFormat(
+    "Plain kd-tree node (core/accel/kdtree.py)",
+    ("word 0: the fields below",
+     "word 1: inner: split position (float32 bits); leaf: offset of its list in leaf_indices"),
+    (PLAIN_TAG, PLAIN_FIELD),
+    (Constant("KD_LEAF_TAG", LEAF_TAG, "word 0 tag of a leaf"),))
+
+# The compact tree the tracer traverses (core/accel/compact.py, docs/kdtree_compression.md).
+TAG = BitField("KD_TAG", 0, 2, "split axis 0/1/2, or KD_LEAF_TAG for a leaf")
+INNER_REF = BitField("KD_REF", 2, 1, "R: a T-reference slot heads the node's group")
+INNER_EMPTY_BELOW = BitField("KD_EMPTY_BELOW", 3, 1,
+                             "Eb: the below child is an empty leaf and is not stored")
+INNER_EMPTY_ABOVE = BitField("KD_EMPTY_ABOVE", 4, 1,
+                             "Ea: the above child is an empty leaf and is not stored (never "
+                             "together with Eb)")
+INNER_GROUP = BitField("KD_GROUP", 5, 27,
+                       "index of the node's group: the T-reference slot (if R), the below "
+                       "child (unless Eb), the above child (unless Ea), in this order")
+LEAF_WIDE = BitField("KD_LEAF16", 2, 1,
+                     "W: 1 = 16-bit list in leaf_index16, 0 = 32-bit list in leaf_index32")
+LEAF32_COUNT = BitField("KD_LEAF32_COUNT", 3, 29, "W = 0: triangle count")
+LEAF16_COUNT = BitField("KD_LEAF16_COUNT", 3, 13, "W = 1: triangle count")
+LEAF16_BASE = BitField("KD_LEAF16_BASE", 16, 16,
+                       "W = 1: base B; triangle = (B << leaf_shift) + leaf_index16[offset + j]")
+LEAF16_INDEX_BITS = 16          # an entry of leaf_index16
+MAX_LEAF_SHIFT = 32 - LEAF16_BASE.bits     # B << leaf_shift spans every 32-bit index
+COMPACT_NODE = NodeFormat(
+    "Compact kd-tree node (core/accel/compact.py): inner node, T-reference slot or leaf",
+    ("inner word 0: KD_TAG (axis), KD_REF, KD_EMPTY_BELOW, KD_EMPTY_ABOVE, KD_GROUP",
+     "inner word 1: split position (float32 bits)",
+     "T-reference slot: word 0 first triangle, word 1 second triangle or KD_NO_TRIANGLE "
+     "(always in mode choi)",
+     "leaf word 0: KD_TAG = KD_LEAF_TAG, KD_LEAF16, then KD_LEAF32_COUNT or KD_LEAF16_COUNT "
+     "and KD_LEAF16_BASE",
+     "leaf word 1: offset of its list in leaf_index32 (W = 0) or leaf_index16 (W = 1)"),
+    (TAG, INNER_REF, INNER_EMPTY_BELOW, INNER_EMPTY_ABOVE, INNER_GROUP, LEAF_WIDE,
+     LEAF32_COUNT, LEAF16_COUNT, LEAF16_BASE),
+    (Constant("KD_NO_TRIANGLE", NO_TRIANGLE, "no second triangle in a T-reference slot"),
+     Constant("KD_MAX_LEAF_SHIFT", MAX_LEAF_SHIFT, "the largest leaf_shift")))
+
+NODE_FORMATS = (PLAIN_NODE, COMPACT_NODE)
+
+# ---------------------------------------------------------------------------------------------
+# The tracer's buffers (packed by slave/buffers.py)
+
+LIGHT_CODES = {"POINT": 0, "SUN": 1, "SPOT": 2, "AREA": 3}
+AREA_SHAPE_CODES = {"RECTANGLE": 0, "ELLIPSE": 1}     # Blender's SQUARE / DISK are the same shapes
+CAMERA_CODES = {"PERSP": 0, "ORTHO": 1}
+CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
+         Codes("LIGHT_SHAPE", "Area light shapes (LIGHT_AREA_SHAPE)", AREA_SHAPE_CODES),
+         Codes("CAMERA", "Camera kinds (CAMERA_KIND)", CAMERA_CODES))
+
+LIGHT = Record("LIGHT", "A light (lights buffer, light_count records)", 6, (
+    Slot("position", 0, "xyz", "position"),
+    Slot("kind", 0, "w", "a LIGHT_<KIND> code"),
+    Slot("direction", 1, "xyz", "unit direction the light points"),
+    Slot("spot_cos_half", 1, "w", "spot: cos of half the cone angle"),
+    Slot("intensity", 2, "xyz", "colour times power times the kind's unit factor"),
+    Slot("spot_smooth", 2, "w", "spot: 1 / ((1 - cos_half) blend), 0 = hard edge"),
+    Slot("area_u", 3, "xyz", "area: axis_u times size_u"),
+    Slot("radius", 3, "w", "point/spot: radius (0 = hard shadows)"),
+    Slot("area_v", 4, "xyz", "area: axis_v times size_v"),
+    Slot("area_shape", 4, "w", "area: a LIGHT_SHAPE_<SHAPE> code"),
+    Slot("sun_cos_half_angle", 5, "x", "sun: cos of half the angular diameter (1 = sharp)"),
+))
+
+MATERIAL = Record("MATERIAL", "A material (materials buffer, by triangle material id)", 4, (
+    Slot("base_color", 0, "xyz", "base colour"),
+    Slot("alpha", 0, "w", "alpha (< 1: cut-out)"),
+    Slot("metallic", 1, "x", "metallic"),
+    Slot("roughness", 1, "y", "roughness"),
+    Slot("transmission", 1, "z", "transmission"),
+    Slot("ior", 1, "w", "index of refraction"),
+    Slot("emission", 2, "xyz", "emission colour times strength"),
+    Slot("specular", 2, "w", "specular IOR level (0.5 = as the IOR says)"),
+    Slot("texture", 3, "x", "base colour texture index, -1 = none"),
+    Slot("texture_alpha", 3, "y", "1: the texture's alpha multiplies alpha, 0: it does not"),
+))
+
+CAMERA = Record("CAMERA", "The camera (one record)", 7, (
+    Slot("to_world", 0, "xyzw", "rows of camera.to_world (3x4: rotation/scale, translation)",
+         rows=3),
+    Slot("ndc_scale", 3, "xy", "camera-space point = ndc * ndc_scale + ndc_offset"),
+    Slot("ndc_offset", 3, "zw", "see ndc_scale"),
+    Slot("view_axis", 4, "xyz", "unit view axis in world space"),
+    Slot("kind", 4, "w", "a CAMERA_<KIND> code"),
+    Slot("clip_start", 5, "x", "clip start (distance along the view axis)"),
+    Slot("clip_end", 5, "y", "clip end"),
+    Slot("width", 5, "z", "image width in pixels"),
+    Slot("height", 5, "w", "image height in pixels"),
+    Slot("world_color", 6, "xyz", "world colour (what a miss sees)"),
+))
+
+BOUNDS = Record("BOUNDS", "The kd-tree's root box (bounds buffer, one record)", 2, (
+    Slot("min", 0, "xyz", "lower corner"),
+    Slot("extent", 0, "w", "max |coordinate| of the box: the scene's size for the tie tolerance"),
+    Slot("max", 1, "xyz", "upper corner"),
+))
+
+TRIANGLE = Record("TRIANGLE", "A triangle (tri_verts buffer, by triangle index)", 3, (
+    Slot("v0", 0, "xyz", "first corner"),
+    Slot("v1", 1, "xyz", "second corner (weight u)"),
+    Slot("v2", 2, "xyz", "third corner (weight v)"),
+))
+
+ACCUM = Record("ACCUM", "A pixel's colour accumulator (accum buffer, by tile pixel)", 1, (
+    Slot("color", 0, "xyz", "sum of the samples' RGB"),
+    Slot("samples", 0, "w", "number of samples"),
+))
+
+STATS = Record("STATS", "A pixel's error statistics (stats buffer, float2, by tile pixel)", 1, (
+    Slot("sum", 0, "x", "sum of min(luminance, 1) over the samples"),
+    Slot("sum_squares", 0, "y", "sum of its squares"),
+), width=2)
+
+RECORDS = (LIGHT, MATERIAL, CAMERA, BOUNDS, TRIANGLE, ACCUM, STATS)
+
+# Geometry.texture_sizes (core/scene/model.py): one row per texture.
+TEXTURE_SIZE = Columns("TEXTURE_SIZE", "A texture (texture_sizes, uint32 rows)",
+                       ("offset", "width", "height"))
+COLUMNS = (TEXTURE_SIZE,)
+
+
+# ---------------------------------------------------------------------------------------------
+# The C header
+
+def _c_int(value: int) -> str:
+    return f"0x{value:X}u" if value > 0xFF else f"{value}u"
+
+
+def _comment(text: str) -> str:
+    return f"// {text}"
+
+
+def _bit_field_lines(f: BitField) -> list:
+    bits = f"bit {f.shift}" if f.bits == 1 else f"bits {f.shift}-{f.shift + f.bits - 1}"
+    lines = [_comment(f"{f.name}: word 0 {bits}: {f.doc}"),
+             f"#define {f.name}_SHIFT {f.shift}",
+             f"#define {f.name}_BITS {f.bits}",
+             f"#define {f.name}_MAX {_c_int(f.max)}",
+             f"#define {f.name}(w) (((w) >> {f.name}_SHIFT) & {f.name}_MAX)",
+             f"#define {f.name}_PUT(v) ((uint)(v) << {f.name}_SHIFT)"]
+    if f.bits == 1:
+        lines.append(f"#define {f.name}_BIT {_c_int(f.bit)}")
+    return lines
+
+
+def _record_lines(r: Record) -> list:
+    vector = f"float{r.width}"
+    lines = [_comment(f"{r.title}: {r.size} {vector} each"),
+             f"#define {r.prefix}_SIZE {r.size}"]
+    for s in r.slots:
+        name = f"{r.prefix}_{s.name.upper()}"
+        if s.rows > 1:
+            where, value = f"[{s.index}..{s.index + s.rows - 1}]", f"((r) + {name}_SLOT)"
+        else:
+            where, value = f"[{s.index}].{s.lanes}", f"((r)[{name}_SLOT].{s.lanes})"
+        lines += [_comment(f"  {where} {s.doc}"),
+                  f"#define {name}_SLOT {s.index}",
+                  f"#define {name}(r) {value}"]
+    return lines
+
+
+@functools.lru_cache(maxsize=None)
+def c_header() -> str:
+    """The tables as C: #defines only, valid OpenCL C 1.2 (core/opencl.py kernel_source puts
+    it in front of every kernel source)."""
+    lines = ["// Generated by core/layout.py c_header(): the host/kernel layouts. Do not edit;",
+             "// change the tables there.", "#ifndef KDTRACE_LAYOUT", "#define KDTRACE_LAYOUT"]
+    for node in NODE_FORMATS:
+        lines += ["", _comment(node.title)] + [_comment(f"  {w}") for w in node.words]
+        for c in node.constants:
+            lines += [_comment(c.doc), f"#define {c.name} {_c_int(c.value)}"]
+        for f in node.fields:
+            lines += _bit_field_lines(f)
+    for codes in CODES:
+        lines += ["", _comment(codes.title)]
+        lines += [f"#define {codes.prefix}_{name} {value}" for name, value in codes.codes.items()]
+    for record in RECORDS:
+        lines += [""] + _record_lines(record)
+    for table in COLUMNS:
+        lines += ["", _comment(f"{table.title}: {len(table.columns)} columns"),
+                  f"#define {table.prefix}_COLUMNS {len(table.columns)}"]
+        lines += [f"#define {table.prefix}_{name.upper()} {i}"
+                  for i, name in enumerate(table.columns)]
+    lines += ["", "#endif", ""]
+    return "\n".join(lines)
