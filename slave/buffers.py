@@ -1,17 +1,15 @@
-"""The tracer's scene buffers: materials, lights and the camera packed into the float4 slots
-the render kernel reads (kernels/shade/shading.cl and render.cl document the slots)."""
+"""The tracer's scene buffers: materials, lights, the camera, the tree bounds and the triangle
+corners packed into the records of core/layout.py (MATERIAL, LIGHT, CAMERA, BOUNDS, TRIANGLE),
+which the kernels read through the names of the generated header."""
 from __future__ import annotations
 
 import math
 
 import numpy as np
 
+from core.layout import (AREA_SHAPE_CODES, BOUNDS, CAMERA, CAMERA_CODES, LIGHT, LIGHT_CODES,
+                         MATERIAL, TRIANGLE)
 from core.scene.model import MATERIAL_PARAMS, View
-
-LIGHT_CODES = {"POINT": 0, "SUN": 1, "SPOT": 2, "AREA": 3}
-LIGHT_FLOAT4S = 6           # float4 slots per light in the kernel's light buffer
-MATERIAL_FLOAT4S = 4
-CAMERA_FLOAT4S = 7
 
 
 class BufferError(ValueError):
@@ -19,36 +17,63 @@ class BufferError(ValueError):
 
 
 def pack_materials(shading) -> np.ndarray:
-    """The material buffer laid out as kernels/shading.cl documents it."""
+    """The material buffer: one MATERIAL record per material (at least one)."""
     params = shading.material_params
-    col = {name: params[:, i] for i, name in enumerate(MATERIAL_PARAMS)}
-    out = np.zeros((max(len(params), 1), MATERIAL_FLOAT4S, 4), np.float32)
-    out[:len(params), 0] = shading.materials
-    out[:len(params), 1] = np.stack([col["metallic"], col["roughness"], col["transmission"],
-                                     col["ior"]], -1)
-    out[:len(params), 2] = np.stack([col["emission_r"], col["emission_g"], col["emission_b"],
-                                     col["specular"]], -1)
-    out[:len(params), 3, 0] = col["texture"]
-    out[:len(params), 3, 1] = 1.0           # texture alpha drives alpha (1 = yes)
+    n = len(params)
+    out = np.zeros((max(n, 1), MATERIAL.size, 4), np.float32)
+    records = out[:n]
+    MATERIAL.put(records, "base_color", shading.materials[:, :3])
+    MATERIAL.put(records, "alpha", shading.materials[:, 3])
+    for name in ("metallic", "roughness", "transmission", "ior", "specular", "texture"):
+        MATERIAL.put(records, name, params[:, MATERIAL_PARAMS.index(name)])
+    emission = [MATERIAL_PARAMS.index(f"emission_{c}") for c in "rgb"]
+    MATERIAL.put(records, "emission", params[:, emission])
+    MATERIAL.put(records, "texture_alpha", 1.0)
     return out.reshape(-1, 4)
 
 
 def pack_camera(view: View) -> np.ndarray:
-    """The camera buffer laid out as kernels/render.cl documents it."""
+    """The camera buffer: one CAMERA record."""
     cam = view.camera
     m = cam.to_world
     forward = m[:3, :3] @ np.array([0.0, 0.0, -1.0])
     length = np.linalg.norm(forward)
     if not length > 0:
         raise BufferError("camera to_world maps the view axis to zero")
-    out = np.zeros((CAMERA_FLOAT4S, 4), np.float64)
-    out[0:3] = m[:3]
-    out[3] = (cam.ndc_scale[0], cam.ndc_scale[1], cam.ndc_offset[0], cam.ndc_offset[1])
-    out[4, :3] = forward / length
-    out[4, 3] = 0.0 if cam.kind == "PERSP" else 1.0
-    out[5] = (cam.clip_start, min(cam.clip_end, 3e38), view.width, view.height)
-    out[6, :3] = view.shading.world_color
+    out = np.zeros((CAMERA.size, 4), np.float64)
+    CAMERA.put(out, "to_world", m[:3])
+    CAMERA.put(out, "ndc_scale", cam.ndc_scale)
+    CAMERA.put(out, "ndc_offset", cam.ndc_offset)
+    CAMERA.put(out, "view_axis", forward / length)
+    CAMERA.put(out, "kind", CAMERA_CODES[cam.kind])
+    CAMERA.put(out, "clip_start", cam.clip_start)
+    CAMERA.put(out, "clip_end", min(cam.clip_end, 3e38))
+    CAMERA.put(out, "width", view.width)
+    CAMERA.put(out, "height", view.height)
+    CAMERA.put(out, "world_color", view.shading.world_color)
     return out.astype(np.float32)
+
+
+def pack_bounds(bounds) -> np.ndarray:
+    """The bounds buffer: one BOUNDS record, with the scene's extent (max |coordinate|) for the
+    traversal's tie tolerance."""
+    bounds = np.asarray(bounds, np.float32)
+    out = np.zeros((BOUNDS.size, 4), np.float32)
+    BOUNDS.put(out, "min", bounds[0])
+    BOUNDS.put(out, "max", bounds[1])
+    BOUNDS.put(out, "extent", np.abs(bounds).max())
+    return out
+
+
+def pack_triangles(geometry) -> np.ndarray:
+    """The triangle buffer: one TRIANGLE record (three float4 corners) per triangle, so the
+    kernel gathers a triangle in one place (at least one record)."""
+    n = geometry.triangle_count
+    out = np.zeros((max(n, 1), TRIANGLE.size, 4), np.float32)
+    corners = geometry.vertices[geometry.triangles]
+    for k, corner in enumerate(("v0", "v1", "v2")):
+        TRIANGLE.put(out[:n], corner, corners[:, k])
+    return out
 
 
 def light_intensity(light) -> tuple:
@@ -63,33 +88,34 @@ def light_intensity(light) -> tuple:
 
 
 def pack_lights(lights) -> np.ndarray:
-    """The light buffer laid out as kernels/shading.cl documents it."""
-    out = np.zeros((max(len(lights), 1) * LIGHT_FLOAT4S, 4), np.float64)
-    for i, light in enumerate(lights):
-        row = out[i * LIGHT_FLOAT4S:(i + 1) * LIGHT_FLOAT4S]
+    """The light buffer: one LIGHT record per light (at least one)."""
+    out = np.zeros((max(len(lights), 1), LIGHT.size, 4), np.float64)
+    for light, record in zip(lights, out):
         direction = np.asarray(light.direction, np.float64)
         norm = np.linalg.norm(direction)
         direction = direction / norm if norm > 0 else np.array([0.0, 0.0, -1.0])
-        row[0] = (*light.position, LIGHT_CODES[light.kind])
-        row[1, :3] = direction
-        row[2, :3] = light_intensity(light)
-        row[5, 0] = 1.0
+        LIGHT.put(record, "position", light.position)
+        LIGHT.put(record, "kind", LIGHT_CODES[light.kind])
+        LIGHT.put(record, "direction", direction)
+        LIGHT.put(record, "intensity", light_intensity(light))
+        LIGHT.put(record, "sun_cos_half_angle", 1.0)
         if light.kind == "SPOT":
             cos_half = math.cos(light.spot_size / 2)
-            row[1, 3] = cos_half
+            LIGHT.put(record, "spot_cos_half", cos_half)
             # Cycles: smoothstep((cos - cos_half) / ((1 - cos_half) * blend)); 0 = hard edge.
             span = (1.0 - cos_half) * light.spot_blend
-            row[2, 3] = 1.0 / span if span > 0 else 0.0
+            LIGHT.put(record, "spot_smooth", 1.0 / span if span > 0 else 0.0)
         if light.kind in ("POINT", "SPOT"):
-            row[3, 3] = light.radius
+            LIGHT.put(record, "radius", light.radius)
         if light.kind == "SUN":
-            row[5, 0] = math.cos(min(light.radius, math.pi) / 2)
+            LIGHT.put(record, "sun_cos_half_angle", math.cos(min(light.radius, math.pi) / 2))
         if light.kind == "AREA":
             u, v = _unit(light.axis_u, (1, 0, 0)), _unit(light.axis_v, (0, 1, 0))
-            row[3, :3] = u * light.size_u
-            row[4, :3] = v * light.size_v
-            row[4, 3] = 1.0 if light.shape in ("DISK", "ELLIPSE") else 0.0
-    return out.astype(np.float32)
+            LIGHT.put(record, "area_u", u * light.size_u)
+            LIGHT.put(record, "area_v", v * light.size_v)
+            shape = "ELLIPSE" if light.shape in ("DISK", "ELLIPSE") else "RECTANGLE"
+            LIGHT.put(record, "area_shape", AREA_SHAPE_CODES[shape])
+    return out.reshape(-1, 4).astype(np.float32)
 
 
 def _unit(vector, fallback) -> np.ndarray:

@@ -2,13 +2,19 @@
 the OpenCL device, and no kernel file with layout numbers of its own."""
 from __future__ import annotations
 
+import math
 import re
 
 import numpy as np
 import pytest
 
 from core import layout
-from core.opencl import KERNEL_DIR, Programs, ensure_pocl_cache_dir, select_device
+from core.opencl import KERNEL_DIR, Programs, ensure_pocl_cache_dir, kernel_source, select_device
+from core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
+                              Shading, View)
+from slave.buffers import (light_intensity, pack_bounds, pack_camera, pack_lights, pack_materials,
+                           pack_triangles)
+from slave.tracer import KERNEL_FILES
 
 FIELDS = [f for node in layout.NODE_FORMATS for f in node.fields]
 
@@ -125,3 +131,228 @@ def test_no_kernel_defines_layout_numbers():
         defined = set(re.findall(r"^\s*#\s*define\s+(\w+)", text, re.M))
         assert not defined & header, f"{path.name} defines {sorted(defined & header)} again"
         assert not own_number.findall(text), f"{path.name} defines {own_number.findall(text)}"
+
+
+def slot_reads(record, pointer: str, out: str) -> list:
+    """C lines writing every slot of the record at `pointer`, read through the header's names,
+    to out[o++] (the slots in table order, lanes in order)."""
+    lines = []
+    for s in record.slots:
+        name = f"{record.prefix}_{s.name.upper()}"
+        if s.rows > 1:
+            lines += [f"    for (int j = 0; j < {s.rows}; ++j) {{",
+                      f"        float4 row = {name}({pointer})[j];",
+                      f"        {out}[o++] = row.x; {out}[o++] = row.y; {out}[o++] = row.z;"
+                      f" {out}[o++] = row.w;", "    }"]
+        elif len(s.lanes) == 1:
+            lines.append(f"    {out}[o++] = {name}({pointer});")
+        else:
+            vector = f"float{len(s.lanes)}"
+            lanes = " ".join(f"{out}[o++] = v.s{k};" for k in range(len(s.lanes)))
+            lines.append(f"    {{ {vector} v = {name}({pointer}); {lanes} }}")
+    return lines
+
+
+def slot_values(record, packed) -> np.ndarray:
+    """What slot_reads writes for each record of `packed` (records, size, width)."""
+    return np.concatenate([np.ravel(record.get(packed, s.name)) for s in record.slots])
+
+
+def read_records(device, record, packed):
+    """Every record of `packed` read by a kernel through the header's names, as slot_reads."""
+    count = len(packed)
+    per_record = len(slot_values(record, packed[0]))
+    vector = f"float{record.width}"
+    lines = "\n".join(slot_reads(record, "r", "out"))
+    source = (f"__kernel void read(__global float *out, __global const {vector} *records)\n{{\n"
+              f"    int o = 0;\n    for (int i = 0; i < {count}; ++i) {{\n"
+              f"    __global const {vector} *r = records + {record.prefix}_SIZE * i;\n{lines}\n"
+              f"    }}\n}}\n")
+    got = run_kernel(device, source, "read", count * per_record, packed.astype(np.float32),
+                     dtype=np.float32)
+    return got.reshape(count, per_record)
+
+
+LIGHTS = [Light("POINT", (1.0, 0.5, 0.25), 100.0, (1, 2, 3), radius=0.25),
+          Light("SUN", (0.9, 1.0, 0.8), 3.0, direction=(0.2, 0.3, -2), radius=0.1),
+          Light("SPOT", (1.0, 1.0, 1.0), 500.0, (-1, 0, 4), (0, 0.6, -0.8), spot_size=1.0,
+                spot_blend=0.25, radius=0.5),
+          Light("AREA", (0.5, 0.5, 1.0), 300.0, (0, 0, 5), (0, 0, -1), (2, 0, 0), (0, 0.5, 0),
+                shape="RECTANGLE", size_u=1.5, size_v=0.75),
+          Light("AREA", (1.0, 1.0, 1.0), 200.0, (2, 2, 2), (0, -1, 0), shape="DISK",
+                size_u=0.5, size_v=0.5)]
+
+
+def expected_light(light) -> dict:
+    """Each LIGHT slot of a light, from its definition (docs/shading.md, docs/tracer.md)."""
+    e = {"position": light.position, "direction": np.divide(light.direction,
+                                                            np.linalg.norm(light.direction)),
+         "intensity": light_intensity(light), "spot_cos_half": 0.0, "spot_smooth": 0.0,
+         "radius": 0.0, "area_u": (0, 0, 0), "area_v": (0, 0, 0), "area_shape": 0.0,
+         "sun_cos_half_angle": 1.0}
+    if light.kind == "SPOT":
+        e["spot_cos_half"] = math.cos(light.spot_size / 2)
+        e["spot_smooth"] = 1.0 / ((1.0 - e["spot_cos_half"]) * light.spot_blend)
+    if light.kind in ("POINT", "SPOT"):
+        e["radius"] = light.radius
+    if light.kind == "SUN":
+        e["sun_cos_half_angle"] = math.cos(light.radius / 2)
+    if light.kind == "AREA":
+        e["area_u"] = np.multiply(light.axis_u, light.size_u / np.linalg.norm(light.axis_u))
+        e["area_v"] = np.multiply(light.axis_v, light.size_v / np.linalg.norm(light.axis_v))
+        e["area_shape"] = 1.0 if light.shape in ("DISK", "ELLIPSE") else 0.0
+    return e
+
+
+def test_lights_as_the_kernels_read_them(device):
+    packed = pack_lights(LIGHTS).reshape(len(LIGHTS), layout.LIGHT.size, 4)
+    got = read_records(device, layout.LIGHT, packed)
+    np.testing.assert_array_equal(got, [slot_values(layout.LIGHT, p) for p in packed])
+    for light, record in zip(LIGHTS, packed):
+        for name, value in expected_light(light).items():
+            np.testing.assert_allclose(layout.LIGHT.get(record, name), value, rtol=1e-6,
+                                       atol=1e-7, err_msg=f"{light.kind} {name}")
+    # The codes as the kernel compares them.
+    tests = [f"LIGHT_KIND(r) == LIGHT_{kind}" for kind in layout.LIGHT_CODES]
+    tests += [f"LIGHT_AREA_SHAPE(r) == LIGHT_SHAPE_{shape}" for shape in layout.AREA_SHAPE_CODES]
+    body = "\n".join(f"        out[{len(tests)} * i + {k}] = {test};" for k, test in enumerate(tests))
+    source = (f"__kernel void codes(__global uint *out, __global const float4 *lights)\n{{\n"
+              f"    for (int i = 0; i < {len(LIGHTS)}; ++i) {{\n"
+              f"        __global const float4 *r = lights + LIGHT_SIZE * i;\n{body}\n    }}\n}}\n")
+    codes = run_kernel(device, source, "codes", len(tests) * len(LIGHTS), packed.astype(np.float32))
+    codes = codes.reshape(len(LIGHTS), len(tests))
+    for light, row in zip(LIGHTS, codes):
+        shape = "ELLIPSE" if light.kind == "AREA" and light.shape == "DISK" else "RECTANGLE"
+        want = [kind == light.kind for kind in layout.LIGHT_CODES]
+        want += [s == shape for s in layout.AREA_SHAPE_CODES]
+        assert row.tolist() == want, light
+
+
+def tracer_source(extra: str) -> str:
+    return kernel_source(KERNEL_FILES) + "\n" + extra
+
+
+def test_materials_as_material_at_reads_them(device):
+    """shading.cl's material_at (with textures) on packed materials: each parameter where the
+    exporter put it, the texture index and the texture-alpha flag (slot 3) as it reads them."""
+    params = np.tile(np.array(DEFAULT_MATERIAL_PARAMS, np.float32), (3, 1))
+    column = {name: i for i, name in enumerate(MATERIAL_PARAMS)}
+    params[0, [column[n] for n in ("metallic", "roughness", "transmission", "ior")]] = (
+        0.25, 0.125, 0.5, 1.25)
+    params[0, [column["emission_r"], column["emission_g"], column["emission_b"]]] = (2, 3, 4)
+    params[0, column["specular"]] = 0.75
+    params[1, column["texture"]] = 0
+    params[2, column["texture"]] = 1
+    colours = np.array([[0.5, 0.25, 0.125, 1.0], [0.8, 0.6, 0.4, 0.5], [1.0, 1.0, 1.0, 1.0]],
+                       np.float32)
+    shading = Shading(colours, [], (0, 0, 0), params)
+    texels = np.array([[0.5, 0.5, 0.5, 0.25], [0.25, 1.0, 0.5, 0.5]], np.float16)
+    sizes = np.array([[0, 1, 1], [1, 1, 1]], np.uint32)   # two 1x1 textures
+    packed = pack_materials(shading)
+    fields = ("base.x", "base.y", "base.z", "alpha", "metallic", "roughness", "transmission",
+              "ior", "emission.x", "emission.y", "emission.z", "specular")
+    body = "\n".join(f"        out[{len(fields)} * i + {k}] = m.{f};" for k, f in enumerate(fields))
+    source = tracer_source(
+        "__kernel void materials(__global float *out, __global const float4 *materials,\n"
+        "                        __global const ushort *ids, __global const float *uvs,\n"
+        "                        __global const half *texels, __global const uint *sizes)\n{\n"
+        "    Scene sc;\n    sc.materials = materials;\n    sc.material_ids = ids;\n"
+        "    sc.uvs = uvs;\n    sc.texels = texels;\n    sc.tex_sizes = sizes;\n"
+        "    for (uint i = 0; i < 3u; ++i) {\n        Material m = material_at(&sc, i, 0.25f, 0.25f);\n"
+        f"{body}\n    }}\n}}\n")
+    cl, context, queue, programs = device
+    kernel = programs.kernels(source, ["-DKD_STACK_SIZE=32", "-DHAS_TEXTURES"])["materials"]
+    inputs = [packed, np.arange(3, dtype=np.uint16), np.zeros((9, 2), np.float32), texels, sizes]
+    mf = cl.mem_flags
+    out = np.zeros((3, len(fields)), np.float32)
+    out_buf = cl.Buffer(context, mf.WRITE_ONLY, out.nbytes)
+    kernel(queue, (1,), None, out_buf,
+           *[cl.Buffer(context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a) for a in inputs])
+    cl.enqueue_copy(queue, out, out_buf)
+    texel = texels.astype(np.float32)
+    base = colours[:, :3] * np.stack([np.ones(3), texel[0, :3], texel[1, :3]])
+    alpha = colours[:, 3] * np.array([1.0, texel[0, 3], texel[1, 3]])   # texture alpha drives alpha
+    want = np.column_stack([base, alpha] + [params[:, column[n]] for n in (
+        "metallic", "roughness", "transmission", "ior", "emission_r", "emission_g", "emission_b",
+        "specular")])
+    np.testing.assert_array_equal(out, want.astype(np.float32))
+
+
+CAMERAS = [Camera("PERSP", [[0, 0, 1, 4], [1, 0, 0, -2], [0, 1, 0, 1], [0, 0, 0, 1]],
+                  (0.6, 0.45), (0.05, -0.1), 0.25, 80.0),
+           Camera("ORTHO", [[2, 0, 0, 1], [0, 0, -2, 3], [0, 2, 0, 0.5], [0, 0, 0, 1]],
+                  (3.0, 2.0), (0.5, 0.0), 0.0, 1e30)]
+
+
+@pytest.mark.parametrize("camera", CAMERAS, ids=lambda c: c.kind)
+def test_camera_as_camera_ray_reads_it(device, camera):
+    """render.cl's camera_ray and the camera slots it reads, on a packed camera, against the
+    camera model (core/scene/model.py Camera) evaluated here."""
+    view = View(camera, 64, 48, Shading(world_color=(0.25, 0.5, 0.75)))
+    packed = pack_camera(view)
+    got = read_records(device, layout.CAMERA, packed[None])[0]
+    np.testing.assert_array_equal(got, slot_values(layout.CAMERA, packed))
+    m = camera.to_world
+    forward = m[:3, :3] @ (0, 0, -1)
+    for name, value in {"to_world": m[:3], "ndc_scale": camera.ndc_scale,
+                        "ndc_offset": camera.ndc_offset, "view_axis": forward / np.linalg.norm(forward),
+                        "clip_start": camera.clip_start, "clip_end": min(camera.clip_end, 3e38),
+                        "width": 64, "height": 48, "world_color": (0.25, 0.5, 0.75)}.items():
+        np.testing.assert_allclose(layout.CAMERA.get(packed, name), value, rtol=1e-6,
+                                   err_msg=name)
+    pixels = np.array([[0.5, 0.5], [63.5, 47.5], [10.25, 30.75], [32, 24]], np.float32)
+    source = tracer_source(
+        "__kernel void rays(__global float *out, __global const float4 *cam,\n"
+        "                   __global const float *pixels)\n{\n"
+        f"    for (int i = 0; i < {len(pixels)}; ++i) {{\n        float3 o, d;\n"
+        "        camera_ray(cam, pixels[2 * i], pixels[2 * i + 1], &o, &d);\n"
+        "        vstore3(o, 2 * i, out);\n        vstore3(d, 2 * i + 1, out);\n    }\n}\n")
+    cl, context, queue, programs = device
+    kernel = programs.kernels(source, ["-DKD_STACK_SIZE=32"])["rays"]
+    mf = cl.mem_flags
+    out = np.zeros((len(pixels), 2, 3), np.float32)
+    out_buf = cl.Buffer(context, mf.WRITE_ONLY, out.nbytes)
+    kernel(queue, (1,), None, out_buf,
+           *[cl.Buffer(context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a) for a in (packed, pixels)])
+    cl.enqueue_copy(queue, out, out_buf)
+    ndc = np.column_stack([pixels[:, 0] / 64 * 2 - 1, 1 - pixels[:, 1] / 48 * 2])
+    p = ndc * camera.ndc_scale + camera.ndc_offset
+    if camera.kind == "PERSP":
+        origins = np.repeat(m[None, :3, 3], len(p), 0)
+        directions = np.column_stack([p, -np.ones(len(p))]) @ m[:3, :3].T
+    else:
+        origins = np.column_stack([p, np.zeros(len(p)), np.ones(len(p))]) @ m[:3].T
+        directions = np.repeat((m[:3, :3] @ (0, 0, -1))[None], len(p), 0)
+    np.testing.assert_allclose(out[:, 0], origins, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(out[:, 1], directions, rtol=1e-5, atol=1e-5)
+
+
+def test_bounds_and_triangles_as_the_traversal_reads_them(device):
+    """make_kdtree's box and extent, and the corners triangle_corners gives the triangle test."""
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, -3]], np.float32)
+    triangles = np.array([[0, 1, 2], [3, 2, 1]], np.uint32)
+    geometry = Geometry(vertices, triangles, np.zeros(2, np.uint16))
+    bounds = np.array([[-1.5, 0, -3], [1, 2, 0.5]], np.float32)
+    source = tracer_source(
+        "__kernel void tree(__global float *out, __global const float4 *bounds,\n"
+        "                   __global const float4 *tri_verts)\n{\n"
+        "    KdTree kd = make_kdtree(0, 0, 0, 0u, bounds);\n"
+        "    vstore3(kd.bmin, 0, out);\n    vstore3(kd.bmax, 1, out);\n    out[6] = kd.extent;\n"
+        "    for (uint t = 0; t < 2u; ++t) {\n"
+        "        Corners c = triangle_corners(tri_verts, t);\n"
+        "        for (int k = 0; k < 3; ++k) {\n"
+        "            out[7 + 9 * t + k] = c.v0[k];\n            out[10 + 9 * t + k] = c.v1[k];\n"
+        "            out[13 + 9 * t + k] = c.v2[k];\n        }\n    }\n}\n")
+    cl, context, queue, programs = device
+    kernel = programs.kernels(source, ["-DKD_STACK_SIZE=32"])["tree"]
+    mf = cl.mem_flags
+    out = np.zeros(7 + 18, np.float32)
+    out_buf = cl.Buffer(context, mf.WRITE_ONLY, out.nbytes)
+    kernel(queue, (1,), None, out_buf,
+           *[cl.Buffer(context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+             for a in (pack_bounds(bounds), pack_triangles(geometry))])
+    cl.enqueue_copy(queue, out, out_buf)
+    np.testing.assert_array_equal(out[:3], bounds[0])
+    np.testing.assert_array_equal(out[3:6], bounds[1])
+    assert out[6] == 3.0
+    np.testing.assert_array_equal(out[7:].reshape(2, 3, 3), vertices[triangles])

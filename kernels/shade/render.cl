@@ -2,13 +2,8 @@
 // follows one path (camera ray, direct light at every surface, then mirror / glass / diffuse
 // bounces up to the bounce limits), and the results are summed into the tile's accumulators.
 // slave/tracer.py decides which pixels get how many samples (uniform or adaptive).
-//
-// Camera buffer (float4 each), filled by slave/tracer.py _pack_camera:
-//   cam[0..2]  rows of camera.to_world (3x4: rotation/scale and translation)
-//   cam[3]     (ndc_scale.x, ndc_scale.y, ndc_offset.x, ndc_offset.y)
-//   cam[4]     (unit view axis in world space, kind: 0 = PERSP, 1 = ORTHO)
-//   cam[5]     (clip_start, clip_end, image width, image height)
-//   cam[6]     (world colour, 0)
+// The camera buffer is one CAMERA record of the layout header (core/layout.py; packed by
+// slave/buffers.py); the accumulators are ACCUM and STATS records, one per tile pixel.
 
 inline float3 transform_point(__global const float4 *m, float3 p)
 {
@@ -27,16 +22,18 @@ inline float3 transform_vector(__global const float4 *m, float3 v)
 // the distance along the view axis, which both clipping and the depth pass measure.
 inline void camera_ray(__global const float4 *cam, float fx, float fy, float3 *o, float3 *d)
 {
-    float width = cam[5].z, height = cam[5].w;
+    float width = CAMERA_WIDTH(cam), height = CAMERA_HEIGHT(cam);
     float ndc_x = fx / width * 2.0f - 1.0f;
     float ndc_y = 1.0f - fy / height * 2.0f;
-    float2 p = (float2)(ndc_x * cam[3].x + cam[3].z, ndc_y * cam[3].y + cam[3].w);
-    if (cam[4].w == 0.0f) {
-        *o = transform_point(cam, (float3)(0.0f, 0.0f, 0.0f));
-        *d = transform_vector(cam, (float3)(p, -1.0f));
+    float2 scale = CAMERA_NDC_SCALE(cam), offset = CAMERA_NDC_OFFSET(cam);
+    float2 p = (float2)(ndc_x * scale.x + offset.x, ndc_y * scale.y + offset.y);
+    __global const float4 *to_world = CAMERA_TO_WORLD(cam);
+    if (CAMERA_KIND(cam) == CAMERA_PERSP) {
+        *o = transform_point(to_world, (float3)(0.0f, 0.0f, 0.0f));
+        *d = transform_vector(to_world, (float3)(p, -1.0f));
     } else {
-        *o = transform_point(cam, (float3)(p, 0.0f));
-        *d = transform_vector(cam, (float3)(0.0f, 0.0f, -1.0f));
+        *o = transform_point(to_world, (float3)(p, 0.0f));
+        *d = transform_vector(to_world, (float3)(0.0f, 0.0f, -1.0f));
     }
 }
 
@@ -62,8 +59,9 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
                          float3 *normal)
 {
     float3 radiance = (float3)(0.0f, 0.0f, 0.0f), beta = (float3)(1.0f, 1.0f, 1.0f);
-    float along = dot(d, cam[4].xyz);     // view-axis distance per unit of t
-    float tmin = cam[5].x / along, tmax = cam[5].y / along, t_before = 0.0f;
+    float along = dot(d, CAMERA_VIEW_AXIS(cam));     // view-axis distance per unit of t
+    float tmin = CAMERA_CLIP_START(cam) / along, tmax = CAMERA_CLIP_END(cam) / along;
+    float t_before = 0.0f;
     uint ignore = NO_HIT;
     bool primary = true;
     int bounces = 0, diffuse = 0, passes = 0;
@@ -72,7 +70,7 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
     while (true) {
         Hit h;
         if (!trace(sc, o, d, tmin, tmax, false, ignore, &h)) {
-            radiance += beta * cam[6].xyz;
+            radiance += beta * CAMERA_WORLD_COLOR(cam);
             break;
         }
         Surface s = surface_at(sc, &h, d);
@@ -194,7 +192,7 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
         return;
     int here = pixels[i];
     int px = x0 + here % tile_w, py = y0 + here / tile_w;
-    uint pixel_index = (uint)py * (uint)cam[5].z + (uint)px;     // global: same on every slave
+    uint pixel_index = (uint)py * (uint)CAMERA_WIDTH(cam) + (uint)px;   // global: same on every slave
 
     Scene sc;
     sc.kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
@@ -209,7 +207,7 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     sc.light_count = light_count;
     sc.light_n = light_n;
 
-    float4 sum = accum[here];
+    float4 sum = accum[here];       // this pixel's ACCUM and STATS records, kept in registers
     float2 st = stats[here];
     float depth;
     float3 normal;
@@ -232,8 +230,10 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
             vstore3(normal, here, out_normal);
         }
         float lum = fmin(0.2126f * c.x + 0.7152f * c.y + 0.0722f * c.z, 1.0f);
-        sum += (float4)(c, 1.0f);
-        st += (float2)(lum, lum * lum);
+        ACCUM_COLOR(&sum) += c;
+        ACCUM_SAMPLES(&sum) += 1.0f;
+        STATS_SUM(&st) += lum;
+        STATS_SUM_SQUARES(&st) += lum * lum;
     }
     accum[here] = sum;
     stats[here] = st;
@@ -241,11 +241,12 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
         // Depth and normal from the pixel centre, as with one sample.
         float3 o, d;
         camera_ray(cam, (float)px + 0.5f, (float)py + 0.5f, &o, &d);
-        float along = dot(d, cam[4].xyz);
+        float along = dot(d, CAMERA_VIEW_AXIS(cam));
         Hit h;
         depth = 1e10f;
         normal = (float3)(0.0f, 0.0f, 0.0f);
-        if (trace(&sc, o, d, cam[5].x / along, cam[5].y / along, false, NO_HIT, &h)) {
+        if (trace(&sc, o, d, CAMERA_CLIP_START(cam) / along, CAMERA_CLIP_END(cam) / along, false,
+                  NO_HIT, &h)) {
             Surface s = surface_at(&sc, &h, d);
             depth = h.t * along;
             normal = s.ns;

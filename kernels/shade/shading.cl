@@ -2,16 +2,8 @@
 // Every optional part sits behind a HAS_<FEATURE> flag that core/scene/features.py derives from the
 // scene, so a scene compiles only what it uses.
 //
-// Material buffer: 4 float4 per material, filled by slave/tracer.py _pack_materials:
-//   [0] (base colour, alpha)   [1] (metallic, roughness, transmission, ior)
-//   [2] (emission colour times strength, specular level)   [3] (texture index or -1, 0, 0, 0)
-// Light buffer: LIGHT_SIZE (6) float4 per light, filled by slave/tracer.py _pack_lights:
-//   [0] (position, kind: 0 POINT, 1 SUN, 2 SPOT, 3 AREA)
-//   [1] (unit direction the light points, cos of the spot half angle)
-//   [2] (intensity: colour times the unit factor of docs/tracer.md, spot smoothing factor)
-//   [3] (area: axis_u * size_u, point/spot: radius)
-//   [4] (area: axis_v * size_v, area shape: 0 rectangle, 1 ellipse)
-//   [5] (sun: cos of half the angular diameter (1 = sharp), 0, 0, 0)
+// The material and light buffers hold the MATERIAL and LIGHT records of the layout header
+// (core/layout.py; packed by slave/buffers.py), read here through its names.
 
 #define MAX_SHADOW_SURFACES 16
 // pbrt's gamma(7): relative error bound of a hit point from barycentrics (pbrt-v3 3.9.2), doubled.
@@ -63,8 +55,8 @@ inline Surface surface_at(const Scene *sc, const Hit *h, float3 d)
 {
     Surface s;
     uint tri = h->tri;
-    float3 v0 = sc->tri_verts[3 * tri].xyz, v1 = sc->tri_verts[3 * tri + 1].xyz;
-    float3 v2 = sc->tri_verts[3 * tri + 2].xyz;
+    __global const float4 *corners = sc->tri_verts + TRIANGLE_SIZE * tri;
+    float3 v0 = TRIANGLE_V0(corners), v1 = TRIANGLE_V1(corners), v2 = TRIANGLE_V2(corners);
     float b0 = 1.0f - h->u - h->v;
     // The barycentric point is more accurate than o + t d far from the origin; its error is
     // bounded relative to the coordinates' magnitude (pbrt), which scales the origin offset.
@@ -130,8 +122,9 @@ inline float4 texel(const Scene *sc, uint offset, int w, int x, int y)
 // Bilinear lookup, repeat wrap; uv (0, 0) is the first texel (Blender's bottom-left).
 inline float4 texture_lookup(const Scene *sc, int tex, float2 uv)
 {
-    uint offset = sc->tex_sizes[3 * tex];
-    int w = (int)sc->tex_sizes[3 * tex + 1], h = (int)sc->tex_sizes[3 * tex + 2];
+    __global const uint *size = sc->tex_sizes + TEXTURE_SIZE_COLUMNS * tex;
+    uint offset = size[TEXTURE_SIZE_OFFSET];
+    int w = (int)size[TEXTURE_SIZE_WIDTH], h = (int)size[TEXTURE_SIZE_HEIGHT];
     uv = uv - floor(uv);                               // [0, 1), also for huge uv
     float x = uv.x * (float)w - 0.5f, y = uv.y * (float)h - 0.5f;
     float fx = floor(x), fy = floor(y);
@@ -151,26 +144,24 @@ inline float4 texture_lookup(const Scene *sc, int tex, float2 uv)
 inline Material material_at(const Scene *sc, uint tri, float u, float v)
 {
     uint id = sc->material_ids[tri];
-    float4 m0 = sc->materials[4 * id], m1 = sc->materials[4 * id + 1];
-    float4 m2 = sc->materials[4 * id + 2];
+    __global const float4 *M = sc->materials + MATERIAL_SIZE * id;
     Material m;
-    m.base = m0.xyz;
-    m.alpha = m0.w;
-    m.metallic = m1.x;
-    m.roughness = m1.y;
-    m.transmission = m1.z;
-    m.ior = m1.w;
-    m.emission = m2.xyz;
-    m.specular = m2.w;
+    m.base = MATERIAL_BASE_COLOR(M);
+    m.alpha = MATERIAL_ALPHA(M);
+    m.metallic = MATERIAL_METALLIC(M);
+    m.roughness = MATERIAL_ROUGHNESS(M);
+    m.transmission = MATERIAL_TRANSMISSION(M);
+    m.ior = MATERIAL_IOR(M);
+    m.emission = MATERIAL_EMISSION(M);
+    m.specular = MATERIAL_SPECULAR(M);
 #ifdef HAS_TEXTURES
-    float4 m3 = sc->materials[4 * id + 3];
-    int tex = (int)m3.x;
+    int tex = (int)MATERIAL_TEXTURE(M);
     if (tex >= 0) {
         float2 uv = (1.0f - u - v) * vload2(3 * tri, sc->uvs) + u * vload2(3 * tri + 1, sc->uvs)
                     + v * vload2(3 * tri + 2, sc->uvs);
         float4 c = texture_lookup(sc, tex, uv);
         m.base *= c.xyz;
-        if (m3.y > 0.0f)
+        if (MATERIAL_TEXTURE_ALPHA(M) > 0.0f)
             m.alpha *= c.w;
     }
 #endif
@@ -249,47 +240,46 @@ inline float3 sample_light(const Scene *sc, uint l, float3 p, float u1, float u2
                            float3 *target, float *dist)
 {
     __global const float4 *L = sc->lights + LIGHT_SIZE * l;
-    float4 l0 = L[0], l1 = L[1], l2 = L[2];
-    int kind = (int)l0.w;
+    int kind = (int)LIGHT_KIND(L);
     if (kind == LIGHT_SUN) {
 #ifdef HAS_SUN
-        float3 w = -l1.xyz;
+        float3 w = -LIGHT_DIRECTION(L);
 #ifdef HAS_SOFT_LIGHTS
-        if (L[5].x < 1.0f)
-            w = normalize(uniform_cone(w, L[5].x, u1, u2));
+        if (LIGHT_SUN_COS_HALF_ANGLE(L) < 1.0f)
+            w = normalize(uniform_cone(w, LIGHT_SUN_COS_HALF_ANGLE(L), u1, u2));
 #endif
         *wi = w;
         *dist = INFINITY;
         *target = p;
-        return l2.xyz;
+        return LIGHT_INTENSITY(L);
 #else
         return (float3)(0.0f, 0.0f, 0.0f);
 #endif
     }
-    float3 pos = l0.xyz;
+    float3 pos = LIGHT_POSITION(L);
     float emit = 1.0f;
     if (kind == LIGHT_AREA) {
 #ifdef HAS_AREA
-        float4 l3 = L[3], l4 = L[4];
-        if (l4.w > 0.0f) {
+        float3 area_u = LIGHT_AREA_U(L), area_v = LIGHT_AREA_V(L);
+        if (LIGHT_AREA_SHAPE(L) == LIGHT_SHAPE_ELLIPSE) {
             float2 d = concentric_disk(u1, u2);
-            pos += 0.5f * d.x * l3.xyz + 0.5f * d.y * l4.xyz;
+            pos += 0.5f * d.x * area_u + 0.5f * d.y * area_v;
         } else {
-            pos += (u1 - 0.5f) * l3.xyz + (u2 - 0.5f) * l4.xyz;
+            pos += (u1 - 0.5f) * area_u + (u2 - 0.5f) * area_v;
         }
 #else
         return (float3)(0.0f, 0.0f, 0.0f);
 #endif
     }
 #ifdef HAS_SOFT_LIGHTS
-    else if (L[3].w > 0.0f) {
+    else if (LIGHT_RADIUS(L) > 0.0f) {
         // A sphere light seen from p: a disk facing p (uniform radiance: same irradiance as
         // the point while unoccluded), which gives soft shadows.
-        float3 axis = normalize(p - l0.xyz);
+        float3 axis = normalize(p - LIGHT_POSITION(L));
         float3 t, b;
         basis(axis, &t, &b);
         float2 d = concentric_disk(u1, u2);
-        pos += L[3].w * (d.x * t + d.y * b);
+        pos += LIGHT_RADIUS(L) * (d.x * t + d.y * b);
     }
 #endif
     float3 to = pos - p;
@@ -300,20 +290,21 @@ inline float3 sample_light(const Scene *sc, uint l, float3 p, float u1, float u2
     *wi = to / dl;
     *dist = dl;
     *target = pos;
-    float cos_out = -dot(*wi, l1.xyz);
+    float cos_out = -dot(*wi, LIGHT_DIRECTION(L));
 #ifdef HAS_SPOT
     if (kind == LIGHT_SPOT) {
         // The cone is measured from the light's centre (Cycles: smoothstep over the blend).
-        float3 from_centre = normalize(p - l0.xyz);
-        float c = dot(from_centre, l1.xyz);
-        emit = l2.w > 0.0f ? smoothstep01((c - l1.w) * l2.w) : (c > l1.w ? 1.0f : 0.0f);
+        float3 from_centre = normalize(p - LIGHT_POSITION(L));
+        float c = dot(from_centre, LIGHT_DIRECTION(L));
+        float cos_half = LIGHT_SPOT_COS_HALF(L), smooth = LIGHT_SPOT_SMOOTH(L);
+        emit = smooth > 0.0f ? smoothstep01((c - cos_half) * smooth) : (c > cos_half ? 1.0f : 0.0f);
     }
 #endif
 #ifdef HAS_AREA
     if (kind == LIGHT_AREA)
         emit = fmax(cos_out, 0.0f);     // one-sided Lambertian emitter
 #endif
-    return l2.xyz * (emit / dist2);
+    return LIGHT_INTENSITY(L) * (emit / dist2);
 }
 
 // How much light a surface lets through to a shadow ray: cut-out alpha and (for transmissive
@@ -325,8 +316,8 @@ inline float3 surface_transmittance(const Scene *sc, const Hit *h, float3 w)
     float3 through = (float3)(0.0f, 0.0f, 0.0f);
 #ifdef HAS_TRANSMISSION
     if (m.transmission > 0.0f) {
-        float3 v0 = sc->tri_verts[3 * h->tri].xyz, v1 = sc->tri_verts[3 * h->tri + 1].xyz;
-        float3 v2 = sc->tri_verts[3 * h->tri + 2].xyz;
+        __global const float4 *corners = sc->tri_verts + TRIANGLE_SIZE * h->tri;
+        float3 v0 = TRIANGLE_V0(corners), v1 = TRIANGLE_V1(corners), v2 = TRIANGLE_V2(corners);
         float3 n = normalize(cross(v1 - v0, v2 - v0));
         float c = dot(n, w);
         bool front = c < 0.0f;
@@ -374,10 +365,11 @@ inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
     float3 total = (float3)(0.0f, 0.0f, 0.0f);
     for (uint l = 0; l < sc->light_count; ++l) {
         __global const float4 *L = sc->lights + LIGHT_SIZE * l;
-        int kind = (int)L[0].w;
+        int kind = (int)LIGHT_KIND(L);
         bool extended = kind == LIGHT_AREA;
 #ifdef HAS_SOFT_LIGHTS
-        extended = extended || (kind == LIGHT_SUN ? L[5].x < 1.0f : L[3].w > 0.0f);
+        extended = extended || (kind == LIGHT_SUN ? LIGHT_SUN_COS_HALF_ANGLE(L) < 1.0f
+                                                  : LIGHT_RADIUS(L) > 0.0f);
 #endif
         int n = extended ? sc->light_n : 1;
         float3 sum = (float3)(0.0f, 0.0f, 0.0f);

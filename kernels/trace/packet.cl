@@ -64,8 +64,7 @@ KD_INLINE void consider_lane(uint k, uint tri, const TriRay *q, __global const f
                              float tmin, PacketBest *b)
 {
     float t, u, v;
-    if (intersect_triangle(&q[k], (__global const float *)(tri_verts + 3 * tri), tmin, b->best.s[k],
-                           &t, &u, &v)
+    if (intersect_triangle(&q[k], triangle_corners(tri_verts, tri), tmin, b->best.s[k], &t, &u, &v)
         && (t < b->best.s[k] || tri < b->tri.s[k])) {
         b->best.s[k] = t;
         b->limit.s[k] = t + (KD_TIE_EPS * t + b->tie_abs.s[k]);
@@ -84,13 +83,13 @@ KD_INLINE void consider_lanes(int8 m, uint tri, const PacketRay *p, const TriRay
 {
     LaneMask one;
     if (p->same_axes) {
-        __global const float *tv = (__global const float *)(tri_verts + 3 * tri);
+        Corners c = triangle_corners(tri_verts, tri);
         uint kx = p->kx, ky = p->ky, kz = p->kz;
         float8 okx = p->okx.v, oky = p->oky.v, okz = p->okz.v, sx = p->sx.v, sy = p->sy.v;
-        float8 az = tv[kz] - okz, bz = tv[4 + kz] - okz, cz = tv[8 + kz] - okz;
-        float8 ax = (tv[kx] - okx) - sx * az, ay = (tv[ky] - oky) - sy * az;
-        float8 bx = (tv[4 + kx] - okx) - sx * bz, by = (tv[4 + ky] - oky) - sy * bz;
-        float8 cx = (tv[8 + kx] - okx) - sx * cz, cy = (tv[8 + ky] - oky) - sy * cz;
+        float8 az = c.v0[kz] - okz, bz = c.v1[kz] - okz, cz = c.v2[kz] - okz;
+        float8 ax = (c.v0[kx] - okx) - sx * az, ay = (c.v0[ky] - oky) - sy * az;
+        float8 bx = (c.v1[kx] - okx) - sx * bz, by = (c.v1[ky] - oky) - sy * bz;
+        float8 cx = (c.v2[kx] - okx) - sx * cz, cy = (c.v2[ky] - oky) - sy * cz;
         float8 e0 = cx * by - cy * bx;
         float8 e1 = ax * cy - ay * cx;
         float8 e2 = bx * ay - by * ax;

@@ -92,18 +92,33 @@ typedef struct {
     float sx, sy, sz;       // shear constants
 } TriRay;
 
-// Watertight ray/triangle test (Woop, Benthin, Wald 2013) on the triangle whose three float4
-// corners start at `tv`. On a hit with t in [tmin, tmax] returns true and sets t, u (weight of
-// v1), v (weight of v2). The permutation is applied by indexed loads: `tv[k] - o[k]` is
-// lane(v - o, k) exactly, without a select per component.
-KD_INLINE bool intersect_triangle(const TriRay *q, __global const float *tv,
+// The corners of a TRIANGLE record as float arrays, for component loads by axis.
+typedef struct {
+    __global const float *v0, *v1, *v2;
+} Corners;
+
+KD_INLINE Corners triangle_corners(__global const float4 *tri_verts, uint tri)
+{
+    __global const float4 *record = tri_verts + TRIANGLE_SIZE * tri;
+    Corners c;
+    c.v0 = (__global const float *)(record + TRIANGLE_V0_SLOT);
+    c.v1 = (__global const float *)(record + TRIANGLE_V1_SLOT);
+    c.v2 = (__global const float *)(record + TRIANGLE_V2_SLOT);
+    return c;
+}
+
+// Watertight ray/triangle test (Woop, Benthin, Wald 2013) on the triangle with corners `c`. On
+// a hit with t in [tmin, tmax] returns true and sets t, u (weight of v1), v (weight of v2). The
+// permutation is applied by indexed loads: `v0[k] - o[k]` is lane(v0 - o, k) exactly, without
+// a select per component.
+KD_INLINE bool intersect_triangle(const TriRay *q, Corners c,
                                   float tmin, float tmax, float *t_out, float *u_out, float *v_out)
 {
     uint kx = q->kx, ky = q->ky, kz = q->kz;
-    float az = tv[kz] - q->okz, bz = tv[4 + kz] - q->okz, cz = tv[8 + kz] - q->okz;
-    float ax = (tv[kx] - q->okx) - q->sx * az, ay = (tv[ky] - q->oky) - q->sy * az;
-    float bx = (tv[4 + kx] - q->okx) - q->sx * bz, by = (tv[4 + ky] - q->oky) - q->sy * bz;
-    float cx = (tv[8 + kx] - q->okx) - q->sx * cz, cy = (tv[8 + ky] - q->oky) - q->sy * cz;
+    float az = c.v0[kz] - q->okz, bz = c.v1[kz] - q->okz, cz = c.v2[kz] - q->okz;
+    float ax = (c.v0[kx] - q->okx) - q->sx * az, ay = (c.v0[ky] - q->oky) - q->sy * az;
+    float bx = (c.v1[kx] - q->okx) - q->sx * bz, by = (c.v1[ky] - q->oky) - q->sy * bz;
+    float cx = (c.v2[kx] - q->okx) - q->sx * cz, cy = (c.v2[ky] - q->oky) - q->sy * cz;
     float e0 = cx * by - cy * bx;   // weight of v0
     float e1 = ax * cy - ay * cx;   // weight of v1
     float e2 = bx * ay - by * ax;   // weight of v2
@@ -140,10 +155,10 @@ typedef struct {
     __global const ushort *leaf16;
     uint leaf_shift;
     float3 bmin, bmax;
-    float extent;           // max |bmin|, |bmax| over the axes (the host puts it in bounds[0].w)
+    float extent;           // max |bmin|, |bmax| over the axes (BOUNDS_EXTENT, from the host)
 } KdTree;
 
-// The kernels' tree arguments as a KdTree (the scene's extent comes in bounds[0].w).
+// The kernels' tree arguments as a KdTree (`bounds`: a BOUNDS record).
 KD_INLINE KdTree make_kdtree(__global const uint2 *nodes, __global const uint *leaf32,
                              __global const ushort *leaf16, uint leaf_shift,
                              __global const float4 *bounds)
@@ -153,9 +168,9 @@ KD_INLINE KdTree make_kdtree(__global const uint2 *nodes, __global const uint *l
     kd.leaf32 = leaf32;
     kd.leaf16 = leaf16;
     kd.leaf_shift = leaf_shift;
-    kd.bmin = bounds[0].xyz;
-    kd.bmax = bounds[1].xyz;
-    kd.extent = bounds[0].w;
+    kd.bmin = BOUNDS_MIN(bounds);
+    kd.bmax = BOUNDS_MAX(bounds);
+    kd.extent = BOUNDS_EXTENT(bounds);
     return kd;
 }
 
@@ -175,8 +190,7 @@ KD_INLINE bool consider(const TriRay *q, uint tri, uint ignore_tri, __global con
 {
     float t, u, v;
     if (tri != ignore_tri
-        && intersect_triangle(q, (__global const float *)(tri_verts + 3 * tri), tmin, b->best,
-                              &t, &u, &v)
+        && intersect_triangle(q, triangle_corners(tri_verts, tri), tmin, b->best, &t, &u, &v)
         && (t < b->best || tri < b->tri)) {
         b->best = t;
         b->limit = t + (KD_TIE_EPS * t + b->tie_abs);
