@@ -1,0 +1,620 @@
+"""SAH kd-tree build in OpenCL kernels (kernels/build/, docs/kdtree_native.md).
+
+The same tree definition as core/accel/kdtree.py (KDTreeParams cost model, automatic
+termination with bad refines, depth cap, perfect splits in double precision, planar triangles on
+the cheaper side, zero-area triangles dropped), built in two stages:
+
+- **Big nodes** (more than `subtree_refs` references), one level at a time, data-parallel over
+  the level's references in chunks: binned SAH with exact counts at the bin planes, exact counts
+  at the chosen plane, leaf or split, clipping of straddlers, every reference moved to its child
+  by prefix sums computed here.
+- **Subtrees**: a child small enough (or a big node that became a leaf) is a subtree root; one
+  work-item builds each subtree depth first, exact SAH for nodes of up to 16 references.
+
+Every decision is made by the same kernel functions from order-independent counts, so the tree
+does not depend on `subtree_refs`, the chunk size, work-group sizes, thread counts or devices
+(fp64 natively where the device has it, a bit-exact software double elsewhere). The nodes are
+then placed breadth-first, exactly the layout of the numpy builder: a subtree's nodes of one
+level are contiguous there, ordered among the others by the path from the root.
+
+pyopencl is imported only when a builder is made.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from .kdtree import KDTree, KDTreeParams, LEAF_TAG, MAX_NODE_FIELD, _root_bounds
+
+KERNEL_FILES = ("build/format.cl", "build/fp64.cl", "build/split.cl", "build/big.cl",
+                "build/subtree.cl", "build/layout.cl")
+EXACT_MAX = 16          # nodes with up to this many references get exact SAH (as kdtree.py)
+ROOT_WORDS = 18         # subtree.cl's root record
+MAX_STACK = 64          # subtree.cl's KD_STACK: a subtree spans fewer levels than this
+FLT_MIN = np.float32(np.finfo(np.float32).tiny)
+HIST_PAD = 6            # histogram words per chunk: 6 * max_bins + 6
+
+
+def _float_literal(x: float) -> str:
+    """A float32 constant for a -D option, exact (hex notation)."""
+    return float(np.float32(x)).hex() + "f"
+
+
+def _power_of_two_scale(bounds: np.ndarray) -> np.float32:
+    """2^-e with 2^e around the scene's largest extent: cell sizes scaled by it stay near 1."""
+    extent = float(np.max(bounds[1].astype(np.float64) - bounds[0]))
+    exponent = math.frexp(extent)[1] if extent > 0 else 0
+    return np.float32(math.ldexp(1.0, -exponent))
+
+
+def _half_area_f32(lo: np.ndarray, hi: np.ndarray, pow2: np.float32) -> np.float32:
+    """split.cl's cell_dims().half_area, in the same float32 operations."""
+    d = [np.float32(hi[a]) * pow2 - np.float32(lo[a]) * pow2 for a in range(3)]
+    return np.float32(d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
+
+
+def _exclusive(counts: np.ndarray) -> np.ndarray:
+    out = np.zeros(len(counts) + 1, np.int64)
+    np.cumsum(counts, out=out[1:])
+    return out
+
+
+def _ranges(starts, lengths) -> np.ndarray:
+    """Concatenation of arange(s, s + n) for every (s, n)."""
+    lengths = np.asarray(lengths, np.int64)
+    shift = np.asarray(starts, np.int64) - _exclusive(lengths)[:-1]
+    return np.arange(int(lengths.sum()), dtype=np.int64) + np.repeat(shift, lengths)
+
+
+class KDTreeBuilderCL:
+    """Builds kd-trees on one OpenCL device; programs are built once per KDTreeParams.
+
+    subtree_refs: nodes with at most this many references are built by one work-item each
+    (None: a size that suits the device kind); chunk_refs: references per work-item in the
+    big-node passes. Neither changes the tree, only the speed.
+    """
+
+    def __init__(self, device=None, subtree_refs: int | None = None,
+                 chunk_refs: int | None = None, soft_fp64: bool | None = None,
+                 local_size: int | None = None):
+        from ..opencl import Programs, ensure_pocl_cache_dir, select_device
+        ensure_pocl_cache_dir()
+        import pyopencl as cl
+        self._cl = cl
+        self.device = select_device(cl, device)
+        self.context = cl.Context([self.device])
+        self.queue = cl.CommandQueue(self.context)
+        self._programs = Programs(cl, self.context, self.device)
+        self.is_cpu = bool(self.device.type & cl.device_type.CPU)
+        has_fp64 = "cl_khr_fp64" in self.device.extensions.split()
+        self.soft_fp64 = (not has_fp64) if soft_fp64 is None else bool(soft_fp64)
+        self.subtree_refs = subtree_refs or (2048 if self.is_cpu else 64)
+        self.chunk_refs = chunk_refs or (4096 if self.is_cpu else 256)
+        self.local_size = local_size if local_size is not None else (1 if self.is_cpu else 32)
+        self.batch_seconds = 0.15      # target time of one subtree launch (Esc stays prompt)
+        self.last_profile: dict = {}
+
+    @property
+    def device_name(self) -> str:
+        return f"{self.device.platform.name.strip()}: {self.device.name.strip()}"
+
+    def _kernels(self, params: KDTreeParams) -> dict:
+        from ..opencl import kernel_source
+        options = [f"-DKD_KT={_float_literal(params.traversal_cost)}",
+                   f"-DKD_KI={_float_literal(params.intersection_cost)}",
+                   f"-DKD_LAMBDA={_float_literal(params.empty_bonus)}",
+                   f"-DKD_BPR={_float_literal(params.bins_per_reference)}",
+                   f"-DKD_MIN_BINS={int(params.min_bins)}", f"-DKD_MAX_BINS={int(params.max_bins)}",
+                   f"-DKD_MAX_BAD={int(params.max_bad_refines)}u",
+                   f"-DKD_SMALL_NODE={int(params.small_node)}u", f"-DKD_EXACT_MAX={EXACT_MAX}u"]
+        if self.soft_fp64:
+            options.append("-DKDTRACE_SOFT_FP64")
+        return self._programs.kernels(kernel_source(KERNEL_FILES), options)
+
+    # -- launching -------------------------------------------------------------------------
+    def _buffer(self, array=None, nbytes=None):
+        cl = self._cl
+        if array is not None:
+            array = np.ascontiguousarray(array)
+            if array.nbytes == 0:
+                array = np.zeros(4, np.uint8)
+            return cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR,
+                             hostbuf=array)
+        return cl.Buffer(self.context, cl.mem_flags.READ_WRITE, max(int(nbytes), 4))
+
+    def _run(self, kernel, count, *args):
+        if count == 0:
+            return
+        ls = self.local_size
+        size = -(-int(count) // ls) * ls
+        kernel(self.queue, (size,), (ls,), *args)
+
+    def _read(self, buffer, dtype, shape):
+        out = np.empty(shape, dtype)
+        if out.nbytes:
+            self._cl.enqueue_copy(self.queue, out, buffer)
+        return out
+
+    # -- the build -------------------------------------------------------------------------
+    def build(self, vertices, triangles, params: KDTreeParams | None = None,
+              progress=None) -> KDTree:
+        """Build the kd-tree (see module docstring). `progress(fraction, message)` is called
+        between kernel launches, on this thread; an exception it raises stops the build."""
+        params = params or KDTreeParams()
+        report = progress or (lambda fraction, message: None)
+        started = time.perf_counter()
+        profile = {}
+        clock = [time.perf_counter()]
+
+        def lap(name):
+            now = time.perf_counter()
+            profile[name] = profile.get(name, 0.0) + now - clock[0]
+            clock[0] = now
+
+        vertices = np.ascontiguousarray(vertices, np.float32).reshape(-1, 3)
+        triangles = np.asarray(triangles).reshape(-1, 3)
+        if len(triangles) and (triangles.min() < 0 or triangles.max() >= len(vertices)):
+            raise ValueError("a triangle refers to a vertex that does not exist")
+        if not np.isfinite(vertices).all():
+            raise ValueError("vertex coordinates contain NaN or infinity")
+        if len(triangles) > MAX_NODE_FIELD:
+            raise ValueError("too many triangles for the 30-bit leaf reference count")
+        # Coordinates below FLT_MIN are treated as 0: devices that flush float32 denormals
+        # then see the same numbers.
+        tiny = (np.abs(vertices) < FLT_MIN) & (vertices != 0)
+        if tiny.any():
+            vertices = np.where(tiny, np.float32(0), vertices)
+        triangles = np.ascontiguousarray(triangles, np.uint32)
+        triangle_count = len(triangles)
+        depth_cap = params.depth_cap(triangle_count)
+        if not 0 <= depth_cap < MAX_STACK - 1:
+            raise ValueError(f"depth cap {depth_cap} outside 0..{MAX_STACK - 2}")
+
+        kernels = self._kernels(params)
+        lap("programs")
+        corners = vertices[triangles.astype(np.int64)]
+        c64 = corners.astype(np.float64)
+        normal = np.cross(c64[:, 1] - c64[:, 0], c64[:, 2] - c64[:, 0])
+        kept = np.flatnonzero((normal != 0).any(1))
+        del normal, c64
+        refs = np.zeros((len(kept), 8), np.float32)
+        refs[:, 0:3] = corners[kept].min(1) + np.float32(0)         # + 0: no negative zeros
+        refs[:, 4:7] = corners[kept].max(1) + np.float32(0)
+        refs[:, 3].view(np.uint32)[:] = kept
+        del corners
+        bounds = _root_bounds(refs[:, 0:3], refs[:, 4:7], vertices) + np.float32(0)
+        pow2 = _power_of_two_scale(bounds)
+        inv_root = np.float32(1) / _half_area_f32(bounds[0], bounds[1], pow2)
+        inv_bins = np.zeros(int(params.max_bins) + 1, np.float32)
+        inv_bins[1:] = np.float32(1) / np.arange(1, params.max_bins + 1, dtype=np.float32)
+        lap("setup")
+
+        state = _BuildState(self, kernels, params, vertices, triangles, inv_bins, pow2,
+                            inv_root, depth_cap, report)
+        state.big_stage(refs, bounds)
+        del refs
+        lap("big nodes")
+        state.subtree_stage()
+        lap("subtrees")
+        nodes, leaf_indices = state.layout()
+        lap("layout")
+
+        leaf = (nodes[:, 0] & 3) == LEAF_TAG
+        tree = KDTree(nodes, leaf_indices, bounds)
+        tree.stats = {
+            "nodes": len(nodes),
+            "leaves": int(leaf.sum()),
+            "empty_leaves": int((nodes[:, 0] == LEAF_TAG).sum()),
+            "depth": state.depth,
+            "depth_cap": depth_cap,
+            "references": len(leaf_indices),
+            "refs_per_triangle": len(leaf_indices) / max(len(kept), 1),
+            "dropped_degenerate": triangle_count - len(kept),
+            "bytes": tree.nbytes,
+            "sah_cost": state.sah_fixed / 2.0**32,
+            "build_seconds": time.perf_counter() - started,
+            "threads": int(self.device.max_compute_units),
+            "builder": "opencl",
+            "device": self.device_name,
+        }
+        profile["subtree_launches"] = state.launches
+        profile["subtree_count"] = state.subtree_count
+        self.last_profile = profile
+        report(1.0, f"kd-tree done: {len(nodes)} nodes, {len(leaf_indices)} references")
+        return tree
+
+
+class _BuildState:
+    """One build's buffers and bookkeeping (kdtree_cl.KDTreeBuilderCL.build)."""
+
+    def __init__(self, builder, kernels, params, vertices, triangles, inv_bins, pow2, inv_root,
+                 depth_cap, report):
+        self.b, self.k, self.params = builder, kernels, params
+        self.pow2, self.inv_root, self.depth_cap = pow2, inv_root, depth_cap
+        self.report = report
+        self.vertices = builder._buffer(vertices)
+        self.triangles = builder._buffer(triangles)
+        self.inv_bins = builder._buffer(inv_bins)
+        self.max_bins = int(params.max_bins)
+        self.queue_refs = None                 # device Ref array of subtree roots' references
+        self.queue_used = 0
+        self.queue_capacity = 0
+        # Subtree roots, one list entry per level of the big stage.
+        self.roots = []      # dicts of arrays: lo, hi, level, bad, key, start, count
+        # Big inner nodes: level, key, axis, plane bits, and their below child's key.
+        self.inner = []
+        self.sah_fixed = 0
+        self.launches = 0
+        self.subtree_count = 0
+        self.depth = 0
+
+    # -- queue of subtree references ------------------------------------------------------------
+    def _reserve_queue(self, extra):
+        need = self.queue_used + int(extra)
+        if need <= self.queue_capacity:
+            return
+        capacity = max(need, int(1.25 * self.queue_capacity), 1024)
+        grown = self.b._buffer(nbytes=32 * capacity)
+        if self.queue_used:
+            self.b._cl.enqueue_copy(self.b.queue, grown, self.queue_refs,
+                                    byte_count=32 * self.queue_used)
+        self.queue_refs, self.queue_capacity = grown, capacity
+
+    def _add_roots(self, lo, hi, level, bad, key, count):
+        """New subtree roots whose references are about to be written to the queue, in this
+        order; returns their first places in the queue."""
+        start = self.queue_used + _exclusive(count)[:-1]
+        self._reserve_queue(int(count.sum()))
+        self.queue_used += int(count.sum())
+        self.roots.append(dict(lo=lo, hi=hi, level=np.broadcast_to(level, len(count)).astype(np.int64),
+                               bad=bad.astype(np.int64), key=key.astype(np.uint64),
+                               start=start, count=count.astype(np.int64)))
+        return start
+
+    # -- big nodes ------------------------------------------------------------------------------
+    def big_stage(self, refs, bounds):
+        b, k = self.b, self.k
+        cl = b._cl
+        u4 = np.uint32
+        n0 = len(refs)
+        lo, hi = bounds[:1].copy(), bounds[1:].copy()
+        count = np.array([n0], np.int64)
+        bad = np.zeros(1, np.int64)
+        key = np.zeros(1, np.uint64)
+        if n0 <= b.subtree_refs:
+            start = self._add_roots(lo, hi, 0, bad, key, count)
+            self._write_queue(refs, int(start[0]))
+            return
+        level_refs = b._buffer(refs)
+        level = 0
+        S, CH = b.subtree_refs, b.chunk_refs
+        while len(count):
+            self.report(0.15 * level / (self.depth_cap + 1),
+                        f"kd-tree level {level}: {len(count)} big nodes, {int(count.sum())} references")
+            m = len(count)
+            per_node = -(-count // CH)
+            chunk_first = _exclusive(per_node)
+            C = int(chunk_first[-1])
+            chunk_node = np.repeat(np.arange(m), per_node)
+            ref_first = _exclusive(count)
+            within = np.arange(C) - np.repeat(chunk_first[:-1], per_node)
+            chunk_start = ref_first[:-1][chunk_node] + within * CH
+            chunk_count = np.minimum(CH, count[chunk_node] - within * CH)
+            chunks = np.zeros((C, 4), u4)
+            chunks[:, 0], chunks[:, 1], chunks[:, 2] = chunk_node, chunk_start, chunk_count
+            node_chunks = np.stack([chunk_first[:-1], per_node], 1).astype(u4)
+            cells = np.zeros((m, 8), np.float32)
+            cells[:, 0:3], cells[:, 4:7] = lo, hi
+            d_chunks, d_node_chunks = b._buffer(chunks), b._buffer(node_chunks)
+            d_cells, d_n, d_bad = b._buffer(cells), b._buffer(count.astype(u4)), b._buffer(bad.astype(u4))
+            d_hist = b._buffer(nbytes=4 * C * (6 * self.max_bins + HIST_PAD))
+            d_choice = b._buffer(nbytes=16 * m)
+            d_counts = b._buffer(nbytes=16 * C)
+            d_decision = b._buffer(nbytes=16 * m)
+            d_sah = b._buffer(nbytes=8 * m)
+            d_out = b._buffer(nbytes=8 * C)
+            b._run(k["big_bin"], C, level_refs, d_chunks, d_cells, d_n, self.inv_bins, d_hist, u4(C))
+            b._run(k["big_choose"], m, d_node_chunks, d_hist, d_cells, d_n, self.inv_bins,
+                   d_choice, u4(m), self.pow2)
+            b._run(k["big_recount"], C, level_refs, d_chunks, d_choice, d_counts, u4(C))
+            b._run(k["big_decide"], m, d_node_chunks, d_counts, d_choice, d_cells, d_n, d_bad,
+                   d_decision, d_sah, u4(m), u4(level), u4(self.depth_cap), self.pow2, self.inv_root)
+            b._run(k["big_classify"], C, level_refs, d_chunks, d_decision, d_cells, self.vertices,
+                   self.triangles, d_out, u4(C))
+            decision = b._read(d_decision, u4, (m, 4))
+            out = b._read(d_out, u4, (C, 2)).astype(np.int64)
+            sah = b._read(d_sah, np.int64, m)
+            del d_hist, d_choice, d_counts
+            self.sah_fixed += int(sah.sum())
+
+            is_leaf = (decision[:, 0] & 1) == 1
+            new_bad = decision[:, 1].astype(np.int64)
+            axis = decision[:, 2].astype(np.int64)
+            plane_bits = decision[:, 3]
+            n_below = np.add.reduceat(out[:, 0], chunk_first[:-1])
+            n_above = np.add.reduceat(out[:, 1], chunk_first[:-1])
+            n_above[is_leaf] = 0
+            split = ~is_leaf
+            # Streams per node: "below" is the below child (or the leaf itself), "above" the
+            # above child. Each child is big (next level) or a subtree root (queue).
+            rows = np.arange(m)
+            child_n = np.stack([n_below, n_above], 1)                     # (m, 2)
+            big_child = (child_n > S) & split[:, None]
+            small_child = ~big_child & split[:, None]
+            # Next level: big children in node order, below before above.
+            big_flat = big_child.reshape(-1)
+            big_start = np.zeros(2 * m, np.int64)
+            big_start[big_flat] = _exclusive(child_n.reshape(-1)[big_flat])[:-1]
+            next_total = int(child_n.reshape(-1)[big_flat].sum())
+            # Queue: per node the leaf itself, or its small children, in node order.
+            to_queue = np.zeros((m, 2), bool)
+            to_queue[:, 0] = is_leaf | small_child[:, 0]
+            to_queue[:, 1] = small_child[:, 1]
+            q_flat = to_queue.reshape(-1)
+            q_counts = child_n.reshape(-1)[q_flat]
+            q_node, q_side = np.divmod(np.flatnonzero(q_flat), 2)
+            q_lo, q_hi = lo[q_node].copy(), hi[q_node].copy()
+            q_split = split[q_node]
+            sr = np.flatnonzero(q_split)
+            qa, qp = axis[q_node[sr]], plane_bits[q_node[sr]].view(np.float32)
+            above_side = q_side[sr] == 1
+            q_hi[sr[~above_side], qa[~above_side]] = qp[~above_side]
+            q_lo[sr[above_side], qa[above_side]] = qp[above_side]
+            q_key = key[q_node].copy()
+            bit = np.uint64(1) << np.uint64(63 - level) if level < 63 else np.uint64(0)
+            q_key[sr[above_side]] |= bit
+            q_level = np.where(q_split, level + 1, level)
+            q_bad = np.where(q_split, new_bad[q_node], bad[q_node])
+            q_start = np.zeros(2 * m, np.int64)
+            q_start[q_flat] = self._add_roots(q_lo, q_hi, q_level, q_bad, q_key, q_counts)
+            # Per chunk: destination kind and first place of both streams.
+            dest = np.zeros((C, 4), u4)
+            for side in (0, 1):
+                flat = 2 * chunk_node + side
+                base = np.where(q_flat[flat], q_start[flat], big_start[flat])
+                offset = _exclusive(out[:, side])
+                node_offset = offset[chunk_first[:-1]]
+                dest[:, 2 * side] = q_flat[flat]
+                dest[:, 2 * side + 1] = base + offset[:-1] - node_offset[chunk_node]
+            next_refs = b._buffer(nbytes=32 * max(next_total, 1))
+            d_dest = b._buffer(dest)
+            b._run(k["big_scatter"], C, level_refs, d_chunks, d_decision, d_cells, self.vertices,
+                   self.triangles, d_dest, next_refs, self.queue_refs, u4(C))
+            b.queue.finish()
+
+            # Inner nodes of this level (placed later), and the next level's big nodes.
+            s_nodes = np.flatnonzero(split)
+            below_key = key[s_nodes]
+            self.inner.append(dict(level=level, key=key[s_nodes], axis=axis[s_nodes],
+                                   plane=plane_bits[s_nodes], below_key=below_key))
+            nxt = np.flatnonzero(big_flat)
+            p_node, p_side = np.divmod(nxt, 2)
+            n_lo, n_hi = lo[p_node].copy(), hi[p_node].copy()
+            pa, pp = axis[p_node], plane_bits[p_node].view(np.float32)
+            r = np.arange(len(nxt))
+            up = p_side == 1
+            n_hi[r[~up], pa[~up]] = pp[~up]
+            n_lo[r[up], pa[up]] = pp[up]
+            n_key = key[p_node].copy()
+            n_key[up] |= bit
+            lo, hi, count = n_lo, n_hi, child_n.reshape(-1)[nxt]
+            bad, key = new_bad[p_node], n_key
+            level_refs = next_refs
+            level += 1
+        self.depth = max(self.depth, level)
+
+    def _write_queue(self, refs, start):
+        if len(refs):
+            self.b._cl.enqueue_copy(self.b.queue, self.queue_refs, np.ascontiguousarray(refs),
+                                    device_offset=32 * start)
+
+    # -- subtrees -------------------------------------------------------------------------------
+    def subtree_stage(self):
+        b, k, cl = self.b, self.k, self.b._cl
+        u4 = np.uint32
+        roots = {name: np.concatenate([r[name] for r in self.roots])
+                 for name in ("level", "bad", "key", "start", "count")}
+        roots["lo"] = np.concatenate([r["lo"] for r in self.roots]).reshape(-1, 3)
+        roots["hi"] = np.concatenate([r["hi"] for r in self.roots]).reshape(-1, 3)
+        self.roots = roots
+        n_sub = len(roots["count"])
+        self.subtree_count = n_sub
+        span = self.depth_cap + 1 - roots["level"]
+        # Results per subtree, filled batch by batch.
+        self.rec_start = np.zeros(n_sub, np.int64)
+        self.rec_count = np.zeros(n_sub, np.int64)
+        self.leaf_start = np.zeros(n_sub, np.int64)
+        self.levels = np.zeros(n_sub, np.int64)
+        level_pieces = []                       # (subtrees, their per-level counts) per batch
+        store = _Store(b, k["store_subtrees"])
+        self.store = store
+        total_refs = max(int(roots["count"].sum()), 1)
+        done_refs = 0
+        factor = np.ones(n_sub, np.int64)             # capacity multiplier, grows on overflow
+        pending = np.argsort(-roots["count"], kind="stable")   # big subtrees first
+        batch_refs = 4 * b.subtree_refs * max(1, int(b.device.max_compute_units))
+        scratch = records = leafbuf = None
+        sizes = (0, 0, 0)
+        while len(pending):
+            take = max(1, int(np.searchsorted(np.cumsum(roots["count"][pending] * factor[pending]),
+                                              batch_refs, side="right")))
+            batch, pending = pending[:take], pending[take:]
+            n = roots["count"][batch]
+            f = factor[batch]
+            rec_cap = f * (12 * n + 64)
+            leaf_cap = f * (8 * n + 64)
+            scr_cap = f * (4 * n + 64)
+            rec_off, leaf_off, scr_off = _exclusive(rec_cap), _exclusive(leaf_cap), _exclusive(scr_cap)
+            lvl_off = _exclusive(span[batch])
+            need = (int(rec_off[-1]), int(leaf_off[-1]), int(scr_off[-1]))
+            if any(x > y for x, y in zip(need, sizes)):
+                sizes = tuple(max(x, y) for x, y in zip(need, sizes))
+                scratch = b._buffer(nbytes=32 * sizes[2])
+                records = (b._buffer(nbytes=8 * sizes[0]), b._buffer(nbytes=4 * sizes[0]))
+                leafbuf = b._buffer(nbytes=4 * sizes[1])
+            words = np.zeros((len(batch), ROOT_WORDS), u4)
+            words[:, 0:3] = roots["lo"][batch].view(u4)
+            words[:, 3:6] = roots["hi"][batch].view(u4)
+            words[:, 6], words[:, 7] = roots["level"][batch], roots["bad"][batch]
+            words[:, 8], words[:, 9] = roots["start"][batch], n
+            words[:, 10], words[:, 11] = rec_off[:-1], rec_cap
+            words[:, 12], words[:, 13] = leaf_off[:-1], leaf_cap
+            words[:, 14], words[:, 15] = scr_off[:-1], scr_cap
+            words[:, 16], words[:, 17] = lvl_off[:-1], span[batch]
+            d_roots = b._buffer(words)
+            d_levels = b._buffer(nbytes=8 * int(lvl_off[-1]))
+            d_result = b._buffer(nbytes=16 * len(batch))
+            d_sah = b._buffer(nbytes=8 * len(batch))
+            t0 = time.perf_counter()
+            b._run(k["build_subtrees"], len(batch), self.queue_refs, self.vertices,
+                   self.triangles, d_roots, self.inv_bins, scratch, records[0], records[1],
+                   leafbuf, d_levels, d_result, d_sah, u4(len(batch)), self.pow2, self.inv_root,
+                   u4(self.depth_cap))
+            result = b._read(d_result, u4, (len(batch), 4)).astype(np.int64)
+            seconds = time.perf_counter() - t0
+            self.launches += 1
+            status = result[:, 0]
+            if (status == 4).any():
+                raise ValueError("a kd-tree subtree has more than 2^26 nodes on one level")
+            ok = status == 0
+            failed = batch[~ok]
+            if len(failed):
+                factor[failed] *= 4
+                pending = np.concatenate([failed, pending])
+            good = batch[ok]
+            if len(good):
+                sah = b._read(d_sah, np.int64, len(batch))
+                self.sah_fixed += int(sah[ok].sum())
+                levels_table = b._read(d_levels, u4, (int(lvl_off[-1]), 2))
+                n_rec, n_leaf = result[ok, 1], result[ok, 2]
+                self.levels[good] = result[ok, 3]
+                level_pieces.append((good, levels_table[_ranges(lvl_off[:-1][ok], result[ok, 3])]))
+                starts = store.append(records, leafbuf, rec_off[:-1][ok], n_rec,
+                                      leaf_off[:-1][ok], n_leaf)
+                self.rec_start[good], self.leaf_start[good] = starts
+                self.rec_count[good] = n_rec
+                done_refs += int(n[ok].sum())
+            # Aim each launch at batch_seconds, so that Esc is seen promptly.
+            if seconds > 0:
+                scale = min(4.0, max(0.25, b.batch_seconds / seconds))
+                batch_refs = max(b.subtree_refs, int(batch_refs * scale))
+            self.report(0.15 + 0.8 * done_refs / total_refs,
+                        f"kd-tree subtrees: {done_refs:,} of {total_refs:,} references")
+        # Per-level counts in subtree order.
+        self.level_counts = np.zeros((int(self.levels.sum()), 2), np.int64)
+        first = _exclusive(self.levels)[:-1]
+        for ids, rows in level_pieces:
+            self.level_counts[_ranges(first[ids], self.levels[ids])] = rows
+
+    # -- final layout -----------------------------------------------------------------------------
+    def layout(self):
+        b, k = self.b, self.k
+        u4 = np.uint32
+        roots = self.roots
+        n_sub = self.subtree_count
+        levels = self.levels
+        # Entries: every (subtree, relative level) and every big inner node.
+        sub_of = np.repeat(np.arange(n_sub), levels)
+        rel = np.arange(int(levels.sum())) - np.repeat(_exclusive(levels)[:-1], levels)
+        counts = self.level_counts
+        inner_level = np.concatenate([np.full(len(x["key"]), x["level"]) for x in self.inner]) \
+            if self.inner else np.zeros(0, np.int64)
+        inner_key = np.concatenate([x["key"] for x in self.inner]) if self.inner else np.zeros(0, np.uint64)
+        e_level = np.concatenate([roots["level"][sub_of] + rel, inner_level])
+        e_key = np.concatenate([roots["key"][sub_of], inner_key])
+        e_nodes = np.concatenate([counts[:, 0], np.ones(len(inner_key), np.int64)])
+        e_leaf = np.concatenate([counts[:, 1], np.zeros(len(inner_key), np.int64)])
+        order = np.lexsort((e_key, e_level))
+        node_base = np.empty(len(order), np.int64)
+        leaf_base = np.empty(len(order), np.int64)
+        node_base[order] = _exclusive(e_nodes[order])[:-1]
+        leaf_base[order] = _exclusive(e_leaf[order])[:-1]
+        total_nodes = int(e_nodes.sum())
+        total_refs = int(e_leaf.sum())
+        if total_nodes - 1 > MAX_NODE_FIELD:
+            raise ValueError("kd-tree too large for the 30-bit child index")
+        self.depth = int(e_level.max()) if len(e_level) else 0
+        nsub_entries = len(sub_of)
+        bases = np.stack([node_base[:nsub_entries], leaf_base[:nsub_entries]], 1).astype(u4)
+        places = np.stack([self.rec_start, self.rec_count, self.leaf_start,
+                           _exclusive(levels)[:-1]], 1).astype(u4)
+        d_nodes = b._buffer(nbytes=8 * total_nodes)
+        d_leaves = b._buffer(nbytes=4 * total_refs)
+        store = self.store
+        b._run(k["place_subtrees"], n_sub, store.words, store.meta, store.leaf_refs,
+               b._buffer(places), b._buffer(bases), d_nodes, d_leaves, u4(n_sub))
+        nodes = b._read(d_nodes, u4, (total_nodes, 2))
+        leaf_indices = b._read(d_leaves, u4, total_refs)
+        self.store = None
+        # Big inner nodes: their own place, and their children's (the entry at the next level
+        # with the below child's key).
+        if len(inner_key):
+            inner_at = node_base[nsub_entries:]
+            sorted_level, sorted_key = e_level[order], e_key[order]
+            below_key = np.concatenate([x["below_key"] for x in self.inner])
+            child = np.empty(len(inner_key), np.int64)
+            for lvl in np.unique(inner_level):
+                rows = np.flatnonzero(inner_level == lvl)
+                lo_i, hi_i = np.searchsorted(sorted_level, [lvl + 1, lvl + 2])
+                pos = lo_i + np.searchsorted(sorted_key[lo_i:hi_i], below_key[rows])
+                child[rows] = node_base[order[pos]]
+            axis = np.concatenate([x["axis"] for x in self.inner])
+            plane = np.concatenate([x["plane"] for x in self.inner])
+            nodes[inner_at, 0] = (axis | (child << 2)).astype(u4)
+            nodes[inner_at, 1] = plane
+        return nodes, leaf_indices
+
+
+class _Store:
+    """Subtree records and leaf references of the finished subtrees, on the device."""
+
+    def __init__(self, builder, kernel):
+        self.b, self.kernel = builder, kernel
+        self.records = self.refs = 0
+        self.rec_capacity = self.ref_capacity = 0
+        self.words = self.meta = self.leaf_refs = None
+
+    def _grow(self, records, refs):
+        b, cl = self.b, self.b._cl
+        if records > self.rec_capacity:
+            cap = max(records, int(1.5 * self.rec_capacity), 1 << 16)
+            words, meta = b._buffer(nbytes=8 * cap), b._buffer(nbytes=4 * cap)
+            if self.records:
+                cl.enqueue_copy(b.queue, words, self.words, byte_count=8 * self.records)
+                cl.enqueue_copy(b.queue, meta, self.meta, byte_count=4 * self.records)
+            self.words, self.meta, self.rec_capacity = words, meta, cap
+        if refs > self.ref_capacity:
+            cap = max(refs, int(1.5 * self.ref_capacity), 1 << 16)
+            leaf_refs = b._buffer(nbytes=4 * cap)
+            if self.refs:
+                cl.enqueue_copy(b.queue, leaf_refs, self.leaf_refs, byte_count=4 * self.refs)
+            self.leaf_refs, self.ref_capacity = leaf_refs, cap
+
+    def append(self, records, leafbuf, rec_src, rec_n, leaf_src, leaf_n):
+        """Copy finished subtrees' outputs in; returns their first record and reference."""
+        rec_dst = self.records + _exclusive(rec_n)[:-1]
+        leaf_dst = self.refs + _exclusive(leaf_n)[:-1]
+        self._grow(self.records + int(rec_n.sum()), self.refs + int(leaf_n.sum()))
+        moves = np.stack([rec_src, rec_dst, rec_n, leaf_src, leaf_dst, leaf_n], 1).astype(np.uint32)
+        self.b._run(self.kernel, len(moves), records[0], records[1],
+                    leafbuf, self.b._buffer(moves), self.words, self.meta, self.leaf_refs,
+                    np.uint32(len(moves)))
+        self.records += int(rec_n.sum())
+        self.refs += int(leaf_n.sum())
+        return rec_dst, leaf_dst
+
+
+_BUILDERS: dict = {}
+
+
+def build_kdtree_cl(vertices, triangles, params: KDTreeParams | None = None, progress=None,
+                    device=None) -> KDTree:
+    """build_kdtree() on an OpenCL device (None: a GPU if any, else the CPU; as
+    core.opencl.select_device). The builder (context, programs) is kept per device name."""
+    key = str(device)
+    builder = _BUILDERS.get(key)
+    if builder is None:
+        builder = _BUILDERS[key] = KDTreeBuilderCL(device)
+    return builder.build(vertices, triangles, params, progress)

@@ -1,0 +1,197 @@
+/* The big nodes of one level, data-parallel over their references: one work-item per chunk
+   (consecutive references of one node, sequential in the chunk) or per node. Chunk words:
+   node, first reference, reference count. Node cells: 8 floats (lo xyz, pad, hi xyz, pad).
+
+   big_bin -> big_choose: binned SAH (histograms summed over a node's chunks);
+   big_recount -> big_decide: exact counts at the chosen plane, leaf or split;
+   big_classify: references per child (straddlers clipped to know which halves survive);
+   big_scatter: every reference written to its child's place (next level, or the queue of
+   subtrees when the child is small) or, for a node that became a leaf, to the queue as it is
+   (the subtree builder turns it into the same leaf). Places come from the host's prefix sums,
+   so nothing depends on scheduling. */
+
+inline Cell load_cell(__global const float* cells, uint node)
+{
+    Cell c;
+    for (int a = 0; a < 3; a++) {
+        c.lo[a] = cells[8 * node + a];
+        c.hi[a] = cells[8 * node + 4 + a];
+    }
+    return c;
+}
+
+__kernel void big_bin(__global const Ref* restrict refs, __global const uint4* restrict chunks,
+                      __global const float* restrict cells, __global const uint* restrict node_n,
+                      __global const float* restrict inv_bins, __global uint* restrict hist,
+                      uint chunk_count)
+{
+    uint c = get_global_id(0);
+    if (c >= chunk_count)
+        return;
+    uint4 ch = chunks[c];
+    Cell cell = load_cell(cells, ch.x);
+    BinPlanes bp;
+    bin_planes(&cell, node_n[ch.x], inv_bins, &bp);
+    uint h[HIST_WORDS];
+    hist_clear(h);
+    for (uint i = ch.y; i < ch.y + ch.z; i++)
+        hist_add(h, &bp, refs[i]);
+    for (int k = 0; k < HIST_WORDS; k++)
+        hist[(size_t)HIST_WORDS * c + k] = h[k];
+}
+
+/* Per node: its chunks' histograms summed (node_chunks: first chunk, chunk count), the best
+   binned split as (cost bits, axis, plane bits, 0). */
+__kernel void big_choose(__global const uint2* restrict node_chunks,
+                         __global const uint* restrict hist, __global const float* restrict cells,
+                         __global const uint* restrict node_n,
+                         __global const float* restrict inv_bins, __global uint4* restrict choice,
+                         uint node_count, float pow2)
+{
+    uint j = get_global_id(0);
+    if (j >= node_count)
+        return;
+    uint2 nc = node_chunks[j];
+    uint h[HIST_WORDS];
+    hist_clear(h);
+    for (uint c = nc.x; c < nc.x + nc.y; c++) {
+        __global const uint* src = hist + (size_t)HIST_WORDS * c;
+        for (int k = 0; k < HIST_BOUNDS; k++)
+            h[k] += src[k];
+        for (int a = 0; a < 3; a++) {
+            h[HIST_BOUNDS + a] = as_uint(kd_min(as_float(h[HIST_BOUNDS + a]),
+                                                as_float(src[HIST_BOUNDS + a])));
+            h[HIST_BOUNDS + 3 + a] = as_uint(kd_max(as_float(h[HIST_BOUNDS + 3 + a]),
+                                                    as_float(src[HIST_BOUNDS + 3 + a])));
+        }
+    }
+    Cell cell = load_cell(cells, j);
+    BinPlanes bp;
+    bin_planes(&cell, node_n[j], inv_bins, &bp);
+    Choice best = choose_binned(h, &bp, &cell, node_n[j], pow2);
+    choice[j] = (uint4)(as_uint(best.cost), (uint)best.axis, as_uint(best.plane), 0u);
+}
+
+/* Per chunk: references below, above and planar at its node's chosen plane. */
+__kernel void big_recount(__global const Ref* restrict refs, __global const uint4* restrict chunks,
+                          __global const uint4* restrict choice, __global uint4* restrict counts,
+                          uint chunk_count)
+{
+    uint c = get_global_id(0);
+    if (c >= chunk_count)
+        return;
+    uint4 ch = chunks[c];
+    uint4 k = choice[ch.x];
+    int axis = (int)k.y;
+    float plane = as_float(k.z);
+    uint nb = 0u, na = 0u, np = 0u;
+    for (uint i = ch.y; i < ch.y + ch.z; i++) {
+        Ref r = refs[i];
+        float lo = axis_of(r.lo, axis), hi = axis_of(r.hi, axis);
+        nb += lo < plane;
+        na += hi > plane;
+        np += (lo == plane) & (hi == plane);
+    }
+    counts[c] = (uint4)(nb, na, np, 0u);
+}
+
+/* Per node: leaf or split. decision = (bit 0 leaf, bit 1 planar below; bad refines; axis;
+   plane bits); sah: the node's SAH share if it splits (a leaf's is taken by its subtree). */
+__kernel void big_decide(__global const uint2* restrict node_chunks,
+                         __global const uint4* restrict counts,
+                         __global const uint4* restrict choice,
+                         __global const float* restrict cells, __global const uint* restrict node_n,
+                         __global const uint* restrict node_bad, __global uint4* restrict decision,
+                         __global long* restrict sah, uint node_count, uint level, uint depth_cap,
+                         float pow2, float inv_root_half_area)
+{
+    uint j = get_global_id(0);
+    if (j >= node_count)
+        return;
+    uint2 nc = node_chunks[j];
+    uint nb = 0u, na = 0u, np = 0u;
+    for (uint c = nc.x; c < nc.x + nc.y; c++) {
+        nb += counts[c].x;
+        na += counts[c].y;
+        np += counts[c].z;
+    }
+    uint4 k = choice[j];
+    Choice ch = {as_float(k.x), (int)k.y, as_float(k.z)};
+    Cell cell = load_cell(cells, j);
+    Decision d = decide(node_n[j], level, depth_cap, node_bad[j], ch, nb, na, np, &cell, pow2);
+    decision[j] = (uint4)((uint)d.leaf | ((uint)d.planar_below << 1), d.bad, k.y, k.z);
+    sah[j] = d.leaf ? 0 : sah_fixed(&cell, pow2, inv_root_half_area, KD_KT);
+}
+
+/* Per chunk: how many of its references each child receives (a leaf's: all, "below"). */
+__kernel void big_classify(__global const Ref* restrict refs, __global const uint4* restrict chunks,
+                           __global const uint4* restrict decision,
+                           __global const float* restrict cells,
+                           __global const float* restrict vertices,
+                           __global const uint* restrict triangles, __global uint2* restrict out,
+                           uint chunk_count)
+{
+    uint c = get_global_id(0);
+    if (c >= chunk_count)
+        return;
+    uint4 ch = chunks[c];
+    uint4 d = decision[ch.x];
+    if (d.x & 1u) {
+        out[c] = (uint2)(ch.z, 0u);
+        return;
+    }
+    Cell cell = load_cell(cells, ch.x);
+    int axis = (int)d.z;
+    float plane = as_float(d.w);
+    uint nb = 0u, na = 0u;
+    for (uint i = ch.y; i < ch.y + ch.z; i++) {
+        Ref r = refs[i], below, above;
+        int sides = ref_sides(r, axis, plane, (d.x >> 1) & 1u);
+        if (sides == 3)
+            sides = clip_straddler(vertices, triangles, ref_triangle(r), &cell, axis, plane,
+                                   &below, &above);
+        nb += sides & 1;
+        na += (sides >> 1) & 1;
+    }
+    out[c] = (uint2)(nb, na);
+}
+
+/* dest per chunk: (below goes to the queue?, first below place, above to the queue?, first
+   above place). */
+__kernel void big_scatter(__global const Ref* restrict refs, __global const uint4* restrict chunks,
+                          __global const uint4* restrict decision,
+                          __global const float* restrict cells,
+                          __global const float* restrict vertices,
+                          __global const uint* restrict triangles,
+                          __global const uint4* restrict dest, __global Ref* restrict next,
+                          __global Ref* restrict queue, uint chunk_count)
+{
+    uint c = get_global_id(0);
+    if (c >= chunk_count)
+        return;
+    uint4 ch = chunks[c];
+    uint4 d = decision[ch.x];
+    uint4 to = dest[c];
+    __global Ref* below_to = to.x ? queue : next;
+    __global Ref* above_to = to.z ? queue : next;
+    if (d.x & 1u) {
+        for (uint i = 0; i < ch.z; i++)
+            below_to[to.y + i] = refs[ch.y + i];
+        return;
+    }
+    Cell cell = load_cell(cells, ch.x);
+    int axis = (int)d.z;
+    float plane = as_float(d.w);
+    uint nb = 0u, na = 0u;
+    for (uint i = ch.y; i < ch.y + ch.z; i++) {
+        Ref r = refs[i], below = r, above = r;
+        int sides = ref_sides(r, axis, plane, (d.x >> 1) & 1u);
+        if (sides == 3)
+            sides = clip_straddler(vertices, triangles, ref_triangle(r), &cell, axis, plane,
+                                   &below, &above);
+        if (sides & 1)
+            below_to[to.y + nb++] = below;
+        if (sides & 2)
+            above_to[to.w + na++] = above;
+    }
+}

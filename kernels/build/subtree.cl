@@ -1,0 +1,207 @@
+/* One work-item builds one whole subtree (a node small enough, or a big node that became a
+   leaf), depth first with an explicit stack, every node decided by split.cl.
+
+   Output, in depth-first order, one record per node: its words with the fields that depend
+   on the rest of the tree left local (an inner node's child pair as its rank among this
+   subtree's nodes of the next level, a leaf's offset as the number of leaf references before
+   it at its level in this subtree), and meta = relative level | rank in that level << 6.
+   Depth-first order visits each level's nodes in the order of their paths from the root, which
+   is their breadth-first order, so ranks are simply counted per level. kdtree_cl.py places
+   every subtree's levels among the rest of the tree; layout.cl writes the final words.
+
+   A node's references live in the work-item's scratch as a stack: the node on top, its above
+   child written in place of it, its below child after that. Overflowing any of its buffers
+   stops the work-item with a status; the host runs it again with larger buffers (the result
+   does not depend on their sizes). */
+
+#define KD_STACK 64            /* the host keeps every subtree's depth span below this */
+#define ROOT_WORDS 18
+#define RANK_LIMIT (1u << 26)
+
+enum { SUBTREE_OK = 0, SUBTREE_SCRATCH = 1, SUBTREE_RECORDS = 2, SUBTREE_LEAF_REFS = 3,
+       SUBTREE_RANKS = 4 };
+
+typedef struct {
+    Cell cell;
+    uint start, count, level, bad, rank;
+} Entry;
+
+/* Root words: cell lo (3 floats), cell hi (3), absolute level, bad refines, first reference in
+   the queue, reference count, then offset and capacity of its records, leaf references and
+   scratch, and of its per-level counts. */
+__kernel void build_subtrees(__global const Ref* restrict queue,
+                             __global const float* restrict vertices,
+                             __global const uint* restrict triangles,
+                             __global const uint* restrict roots,
+                             __global const float* restrict inv_bins,
+                             __global Ref* restrict scratch,
+                             __global uint2* restrict rec_words,
+                             __global uint* restrict rec_meta,
+                             __global uint* restrict leaf_refs,
+                             __global uint2* restrict level_counts,
+                             __global uint4* restrict result,
+                             __global long* restrict sah,
+                             uint subtree_count, float pow2, float inv_root_half_area,
+                             uint depth_cap)
+{
+    uint s = get_global_id(0);
+    if (s >= subtree_count)
+        return;
+    __global const uint* root = roots + ROOT_WORDS * s;
+    uint root_level = root[6], ref_start = root[8], n = root[9];
+    uint rec_off = root[10], rec_cap = root[11], leaf_off = root[12], leaf_cap = root[13];
+    uint scr_cap = root[15], lvl_off = root[16], span = root[17];
+    __global Ref* scr = scratch + root[14];
+
+    uint node_count[KD_STACK], leaf_prefix[KD_STACK];
+    for (uint l = 0; l < span; l++) {
+        node_count[l] = 0u;
+        leaf_prefix[l] = 0u;
+    }
+    node_count[0] = 1u;
+    uint recs = 0u, lrefs = 0u, levels = 1u;
+    long sah_sum = 0;
+    int status = SUBTREE_OK;
+
+    Entry stack[KD_STACK];
+    uint sp = 0u;
+    Entry first;
+    for (int a = 0; a < 3; a++) {
+        first.cell.lo[a] = as_float(root[a]);
+        first.cell.hi[a] = as_float(root[3 + a]);
+    }
+    first.start = 0u;
+    first.count = n;
+    first.level = 0u;
+    first.bad = root[7];
+    first.rank = 0u;
+    if (n > scr_cap)
+        status = SUBTREE_SCRATCH;
+    else
+        for (uint i = 0; i < n; i++)
+            scr[i] = queue[ref_start + i];
+    stack[sp++] = first;
+
+    while (sp > 0u && status == SUBTREE_OK) {
+        Entry e = stack[--sp];
+        uint level = root_level + e.level;
+        uint top = e.start + e.count;
+        Choice ch = {INFINITY, 0, 0.0f};
+        Decision d = {1, 1, e.bad};
+        if (e.count > 0u && level < depth_cap) {
+            uint counts[3] = {0u, 0u, 0u};
+            if (e.count <= KD_EXACT_MAX) {
+                ExactBoxes x;
+                for (uint i = 0; i < KD_EXACT_MAX; i++) {
+                    Ref r = scr[e.start + min(i, e.count - 1u)];
+                    int used = i < e.count;
+                    x.lo[0][i] = used ? r.lo.x : INFINITY;
+                    x.lo[1][i] = used ? r.lo.y : INFINITY;
+                    x.lo[2][i] = used ? r.lo.z : INFINITY;
+                    x.hi[0][i] = used ? r.hi.x : -INFINITY;
+                    x.hi[1][i] = used ? r.hi.y : -INFINITY;
+                    x.hi[2][i] = used ? r.hi.z : -INFINITY;
+                }
+                ch = choose_exact(&x, e.count, &e.cell, pow2, counts);
+            } else {
+                BinPlanes bp;
+                bin_planes(&e.cell, e.count, inv_bins, &bp);
+                uint h[HIST_WORDS];
+                hist_clear(h);
+                for (uint i = 0; i < e.count; i++)
+                    hist_add(h, &bp, scr[e.start + i]);
+                ch = choose_binned(h, &bp, &e.cell, e.count, pow2);
+                if (ch.cost < INFINITY)
+                    for (uint i = 0; i < e.count; i++) {
+                        Ref r = scr[e.start + i];
+                        float lo = axis_of(r.lo, ch.axis), hi = axis_of(r.hi, ch.axis);
+                        counts[0] += lo < ch.plane;
+                        counts[1] += hi > ch.plane;
+                        counts[2] += (lo == ch.plane) & (hi == ch.plane);
+                    }
+            }
+            if (ch.cost < INFINITY)
+                d = decide(e.count, level, depth_cap, e.bad, ch, counts[0], counts[1], counts[2],
+                           &e.cell, pow2);
+        }
+        if (recs >= rec_cap) {
+            status = SUBTREE_RECORDS;
+            break;
+        }
+        uint meta = e.level | (e.rank << 6);
+        if (d.leaf) {
+            if (lrefs + e.count > leaf_cap) {
+                status = SUBTREE_LEAF_REFS;
+                break;
+            }
+            rec_words[rec_off + recs] = (uint2)(KD_LEAF_TAG | (e.count << KD_FIELD_SHIFT),
+                                                leaf_prefix[e.level]);
+            rec_meta[rec_off + recs] = meta;
+            recs++;
+            for (uint i = 0; i < e.count; i++)
+                leaf_refs[leaf_off + lrefs + i] = ref_triangle(scr[e.start + i]);
+            lrefs += e.count;
+            leaf_prefix[e.level] += e.count;
+            sah_sum += sah_fixed(&e.cell, pow2, inv_root_half_area, KD_KI * (float)e.count);
+            continue;
+        }
+        uint child_rank = node_count[e.level + 1];
+        if (child_rank + 2u > RANK_LIMIT) {
+            status = SUBTREE_RANKS;
+            break;
+        }
+        node_count[e.level + 1] = child_rank + 2u;
+        levels = max(levels, e.level + 2u);
+        rec_words[rec_off + recs] = (uint2)((uint)ch.axis | (child_rank << KD_FIELD_SHIFT),
+                                            as_uint(ch.plane));
+        rec_meta[rec_off + recs] = meta;
+        recs++;
+        sah_sum += sah_fixed(&e.cell, pow2, inv_root_half_area, KD_KT);
+
+        /* Above child in place (it never overtakes the reading position), below child after
+           the top, then moved down next to it. Order within each child is kept. */
+        uint ka = 0u, kb = 0u;
+        for (uint i = 0; i < e.count; i++) {
+            Ref r = scr[e.start + i];
+            Ref below = r, above = r;
+            int sides = ref_sides(r, ch.axis, ch.plane, d.planar_below);
+            if (sides == 3)
+                sides = clip_straddler(vertices, triangles, ref_triangle(r), &e.cell, ch.axis,
+                                       ch.plane, &below, &above);
+            if (sides & 1) {
+                if (top + kb >= scr_cap) {
+                    status = SUBTREE_SCRATCH;
+                    break;
+                }
+                scr[top + kb] = below;
+                kb++;
+            }
+            if (sides & 2) {
+                scr[e.start + ka] = above;
+                ka++;
+            }
+        }
+        if (status != SUBTREE_OK)
+            break;
+        for (uint j = 0; j < kb; j++)
+            scr[e.start + ka + j] = scr[top + j];
+        Entry child;
+        child.level = e.level + 1u;
+        child.bad = d.bad;
+        child_cell(&e.cell, ch.axis, ch.plane, 1, &child.cell);
+        child.start = e.start;
+        child.count = ka;
+        child.rank = child_rank + 1u;
+        stack[sp++] = child;
+        child_cell(&e.cell, ch.axis, ch.plane, 0, &child.cell);
+        child.start = e.start + ka;
+        child.count = kb;
+        child.rank = child_rank;
+        stack[sp++] = child;
+    }
+
+    for (uint l = 0; l < levels; l++)
+        level_counts[lvl_off + l] = (uint2)(node_count[l], leaf_prefix[l]);
+    result[s] = (uint4)((uint)status, recs, lrefs, levels);
+    sah[s] = sah_sum;
+}
