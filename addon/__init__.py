@@ -3,7 +3,7 @@ import atexit
 
 import bpy
 
-from . import engine, operators, properties, session, ui
+from . import browsing, engine, local_slaves, operators, properties, session, ui
 
 _modules = (properties, operators, engine, ui)
 
@@ -13,11 +13,15 @@ def register():
         for cls in module.classes:
             bpy.utils.register_class(cls)
     ui.register()
+    browsing.register()
+    local_slaves.register_command()
     atexit.register(session.close)
 
 
 def unregister():
     atexit.unregister(session.close)
+    local_slaves.unregister_command()
+    browsing.unregister()
     session.close()
     ui.unregister()
     for module in reversed(_modules):

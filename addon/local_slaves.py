@@ -1,15 +1,22 @@
-"""Slave processes on this machine, started when no slave on the LAN answers.
+"""Slaves on this machine: local slave processes, started when no other slave is known, and
+the `kdtrace_slave` command of Blender's command line.
 
-Each is `python -m slave` run from the extension's root folder, bound to loopback and not
-advertised (only this Blender uses it). They are kept between renders and stopped when the
-add-on is disabled or Blender exits.
+Each local slave is `python -m slave` run from the extension's root folder, bound to loopback
+and not advertised (only this Blender uses it). They are kept between renders and stopped when
+the add-on is disabled or Blender exits.
+
+`blender --background --command kdtrace_slave [slave options]` runs the standalone slave
+(slave/__main__.py) on Blender's own Python and the extension's wheels, on a machine where the
+extension is installed and enabled: the same slave as `kdtrace-slave` (pyproject.toml).
 """
 from __future__ import annotations
 
 import os
 import pathlib
+import platform
 import queue
 import re
+import socket
 import subprocess
 import sys
 import threading
@@ -19,10 +26,29 @@ from ..core.net.protocol import SECRET_ENV
 
 EXTENSION_ROOT = pathlib.Path(__file__).resolve().parent.parent
 READY_LINE = re.compile(r"listening on (?P<host>[^\s:]+):(?P<port>\d+)")
+COMMAND = "kdtrace_slave"   # Blender's command ids must be Python identifiers: no "-"
+_command_handle = None
 
 
 class LocalSlaveError(RuntimeError):
     pass
+
+
+def has_bundled_cpu_device() -> bool:
+    """PoCL, the CPU OpenCL device the zips bundle, has wheels for Linux x86-64 only."""
+    return sys.platform.startswith("linux") and platform.machine().lower() in ("x86_64", "amd64")
+
+
+# Shown in the Slaves panel and added to a local slave's start error where PoCL is not bundled.
+NO_CPU_DEVICE = ("local slaves need an OpenCL device on this system (PoCL, the CPU device, is "
+                 "bundled for Linux x64 only): a GPU driver with OpenCL, or on Windows Intel's "
+                 "CPU runtime (README: \"Local slaves on Windows and macOS\")")
+
+
+def host_label() -> str:
+    """This machine's short host name, for local slave names (os.uname() is POSIX-only)."""
+    name = re.sub(r"[^A-Za-z0-9_-]", "-", socket.gethostname().split(".")[0])[:40]
+    return name or "localhost"
 
 
 class LocalSlave:
@@ -62,7 +88,9 @@ class LocalSlave:
             except queue.Empty:
                 continue
             if line is None:
-                raise LocalSlaveError(f"local slave {self.name} exited: " + " | ".join(output[-5:]))
+                hint = "" if has_bundled_cpu_device() else f" ({NO_CPU_DEVICE})"
+                raise LocalSlaveError(f"local slave {self.name} exited: "
+                                      + " | ".join(output[-5:]) + hint)
             output.append(line)
             match = READY_LINE.search(line)
             if match:
@@ -106,7 +134,7 @@ class LocalSlaves:
                 slave.stop()
             del self._slaves[count:]
             threads = max(1, (os.cpu_count() or 1) // max(1, count))
-            started = [LocalSlave(f"{os.uname().nodename}-local-{len(self._slaves) + i + 1}",
+            started = [LocalSlave(f"{host_label()}-local-{len(self._slaves) + i + 1}",
                                   python or sys.executable, device, threads, secret)
                        for i in range(count - len(self._slaves))]
             deadline = time.monotonic() + timeout
@@ -131,3 +159,26 @@ class LocalSlaves:
         for slave in self._slaves:
             slave.stop()
         self._slaves.clear()
+
+
+def run_command(argv: list) -> int:
+    """The `kdtrace_slave` command: the standalone slave, with the extension's root on sys.path
+    (slave/ imports core/ as a top-level package, as in a checkout)."""
+    if str(EXTENSION_ROOT) not in sys.path:
+        sys.path.insert(0, str(EXTENSION_ROOT))
+    from slave.__main__ import main
+    return main(list(argv), prog=f"blender --background --command {COMMAND}")
+
+
+def register_command():
+    global _command_handle
+    import bpy
+    _command_handle = bpy.utils.register_cli_command(COMMAND, run_command)
+
+
+def unregister_command():
+    global _command_handle
+    if _command_handle is not None:
+        import bpy
+        bpy.utils.unregister_cli_command(_command_handle)
+        _command_handle = None

@@ -29,8 +29,9 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         name="Find Slaves on the LAN", description="Discover slaves with zeroconf (mDNS) before rendering",
         default=True)
     discovery_seconds: FloatProperty(
-        name="Discovery Time", description="How long to wait for slaves to answer before rendering",
-        default=1.0, min=0.1, max=30.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
+        name="Discovery Time", description="How long F12 waits for a first slave to answer when "
+        "the LAN browser has only just started (it browses while KD Trace is the render engine)",
+        default=3.0, min=0.1, max=30.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
     tile_partition: EnumProperty(
         name="Tiles", description="How the image is cut into tiles",
         items=[("SIZE", "By Size", "Square tiles of Tile Size pixels", 0),

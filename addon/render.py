@@ -18,6 +18,7 @@ from .export import export_view
 from .properties import preferences
 
 POLL_SECONDS = 0.05  # how often the render thread checks for Esc while waiting for tiles
+SETTLE_SECONDS = 0.3  # after the first slave answers a young browser, for the others to answer
 FRAME_PIXELS = 2     # width of the slave-coloured frame drawn around tiles while rendering
 
 
@@ -56,21 +57,28 @@ def bpy_path(path: str) -> str:
 
 
 def find_slaves(engine, settings, prefs, secret) -> list[tuple[str, int]]:
-    """Manual hosts, then slaves found on the LAN; local slaves if none (or if asked to)."""
+    """Listed hosts and every slave the LAN browser knows; local slaves only when no other slave
+    is known (or when asked to always use them). The browser runs in the background while KD
+    Trace is the engine (browsing.py), so slaves seen before F12 are used at once: only a
+    browser younger than the discovery time is waited for, until a slave answers."""
     state = session.current()
     endpoints = listed_hosts(settings)
     if settings.use_zeroconf:
-        engine.update_stats("", "KD Trace | Looking for slaves on the LAN")
-        browser = state.browser()
-        deadline = time.monotonic() + settings.discovery_seconds
-        while time.monotonic() < deadline and not engine.test_break():
-            if browser.slaves() and not endpoints:
+        state.browser()
+        settle_until = None
+        while state.browsing_seconds() < settings.discovery_seconds and not engine.test_break():
+            if endpoints or state.lan_endpoints():
                 # Give the others that answer a moment too, then go.
-                deadline = min(deadline, time.monotonic() + 0.3)
+                settle_until = settle_until or time.monotonic() + SETTLE_SECONDS
+                if time.monotonic() >= settle_until:
+                    break
+            engine.update_stats("", "KD Trace | Looking for slaves on the LAN")
             time.sleep(POLL_SECONDS)
-        endpoints += [s.endpoint for s in browser.slaves() if s.endpoint not in endpoints]
-    if (not endpoints or settings.use_local_slaves_always) and settings.local_slaves:
-        engine.update_stats("", f"KD Trace | Starting {settings.local_slaves} local slave(s)")
+        endpoints += [e for e in state.lan_endpoints() if e not in endpoints]
+    state.local_reason = local_slaves_reason(settings, endpoints, state.browsing_seconds())
+    if state.local_reason:
+        engine.update_stats("", f"KD Trace | Starting {settings.local_slaves} local slave(s): "
+                                f"{state.local_reason}")
         endpoints += state.local_slaves.ensure(settings.local_slaves, prefs.slave_python,
                                                prefs.slave_device, secret,
                                                cancelled=engine.test_break)
@@ -78,6 +86,19 @@ def find_slaves(engine, settings, prefs, secret) -> list[tuple[str, int]]:
         raise RenderFailed("no slave is reachable: none answered on the LAN, no host is listed "
                            "and local slaves are off")
     return endpoints
+
+
+def local_slaves_reason(settings, known: list, browsed_seconds: float) -> str:
+    """Why this render starts local slaves, for the panel and the report ("": it does not)."""
+    if not settings.local_slaves:
+        return ""
+    if settings.use_local_slaves_always:
+        return "Always Use Local Slaves is on"
+    if known:
+        return ""
+    if settings.use_zeroconf:
+        return f"no slave answered on the LAN in {browsed_seconds:.1f} s and no host is listed"
+    return "LAN discovery is off and no host is listed"
 
 
 def job_options(settings) -> dict:
@@ -96,6 +117,8 @@ def render(engine, depsgraph):
     state = session.current()
     started = time.perf_counter()
     try:
+        if settings.use_zeroconf:
+            state.browser()   # if not running yet: it looks while the scene exports and builds
         engine.update_stats("", "KD Trace | Exporting scene")
         geometry, view, info = export_view(depsgraph)
         for warning in info["warnings"]:
@@ -152,12 +175,14 @@ def render(engine, depsgraph):
         "tree_built": built, "tree_stats": dict(tree.stats), "render_seconds": finished - tree_done,
         "triangles": geometry.triangle_count, "tiles_per_slave": per_slave,
         "slave_colors": {name: slave_color(name) for name in per_slave},
-        "uploaded_to": uploaded_to, "cancelled": job.cancelled}
+        "uploaded_to": uploaded_to, "cancelled": job.cancelled,
+        "local_reason": state.local_reason}
     summary = (f"export {exported - started:.2f} s, kd-tree {'built' if built else 'reused'} "
                f"{tree_done - exported:.2f} s ({tree.stats['mode']}: {tree.stats['nodes']:,} nodes, "
                f"{tree.nbytes / 1e6:.1f} MB), render "
                f"{finished - tree_done:.2f} s; tiles: "
-               + ", ".join(f"{name} {count}" for name, count in sorted(per_slave.items())))
+               + ", ".join(f"{name} {count}" for name, count in sorted(per_slave.items()))
+               + (f"; local slaves started: {state.local_reason}" if state.local_reason else ""))
     engine.update_stats("", f"KD Trace | Done: {summary}")
     engine.report({"INFO"}, f"KD Trace: {summary}")
 

@@ -3,6 +3,7 @@ LAN browser. Created in register(), closed in unregister() (and at Blender's exi
 from __future__ import annotations
 
 import threading
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -105,34 +106,51 @@ class Session:
         self.local_slaves = LocalSlaves()
         self.trees = TreeCache()
         self._browser = None
+        self._browser_started = 0.0   # time.monotonic() when the browser started
         self.last_render: dict = {}  # timings and tiles per slave of the last render, for reports
         self.legend: Legend | None = None
+        self.local_reason = ""       # why the last render started local slaves ("": it did not)
 
     def start_legend(self, connections) -> Legend:
         self.legend = Legend(connections)
         return self.legend
 
     def browser(self):
-        """The zeroconf browser on every interface, started on first use (it runs on zeroconf's
-        own threads)."""
+        """The zeroconf browser on every interface, started on first use: while KD Trace is the
+        render engine (addon/browsing.py), at F12 at the latest. It runs on zeroconf's own
+        threads and keeps what it has seen, so F12 uses it at once."""
         if self._browser is None:
             from ..core.net.discovery import SlaveBrowser, all_ipv4_addresses
             self._browser = SlaveBrowser(interfaces=all_ipv4_addresses())
+            self._browser_started = time.monotonic()
         return self._browser
 
-    def restart_browser(self):
+    @property
+    def browsing(self) -> bool:
+        return self._browser is not None
+
+    def browsing_seconds(self) -> float:
+        """How long the browser has been looking (0 when it is not running)."""
+        return time.monotonic() - self._browser_started if self._browser is not None else 0.0
+
+    def stop_browser(self):
         if self._browser is not None:
             self._browser.close()
             self._browser = None
+
+    def restart_browser(self):
+        self.stop_browser()
         self.browser()
 
     def discovered_slaves(self) -> list:
         return self._browser.slaves() if self._browser is not None else []
 
+    def lan_endpoints(self) -> list:
+        """(host, port) of every slave the browser knows now."""
+        return [slave.endpoint for slave in self.discovered_slaves()]
+
     def close(self):
-        if self._browser is not None:
-            self._browser.close()
-            self._browser = None
+        self.stop_browser()
         self.local_slaves.stop_all()
 
 

@@ -101,10 +101,11 @@ class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
     bl_parent_id = "RENDER_PT_kdtrace"
 
     def draw(self, context):
-        from . import session
+        from . import browsing, local_slaves, session
         layout = self.layout
         settings = context.scene.kdtrace
         state = session.current()
+        browsing.browse_soon(context.scene)   # the panel shows what the LAN browser sees
 
         col = layout.column()
         col.use_property_split = True
@@ -114,6 +115,9 @@ class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
         sub.prop(settings, "discovery_seconds")
         col.prop(settings, "local_slaves")
         col.prop(settings, "use_local_slaves_always")
+        if settings.local_slaves and not local_slaves.has_bundled_cpu_device():
+            layout.label(text="No CPU OpenCL device is bundled here: local slaves need an "
+                              "OpenCL driver (README)", icon="ERROR")
 
         layout.label(text="Found on the LAN:")
         row = layout.row()
@@ -144,7 +148,8 @@ class RENDER_PT_kdtrace_legend(KDTracePanel, bpy.types.Panel):
 
     def draw(self, context):
         from . import session
-        legend = session.current().legend
+        state = session.current()
+        legend = state.legend
         if legend is None:
             self.layout.label(text="Nothing rendered yet")
             return
@@ -157,6 +162,8 @@ class RENDER_PT_kdtrace_legend(KDTracePanel, bpy.types.Panel):
             grid.label(text=str(status.tiles))
             grid.label(text=f"{status.ms_per_tile:.0f}")
             grid.label(text=status.state)
+        if state.local_reason:
+            self.layout.label(text=f"Local slaves started: {state.local_reason}", icon="CONSOLE")
 
 
 def color_icon(color) -> str:

@@ -4,7 +4,9 @@ Builds the extension zip, installs it into a private Blender user folder, builds
 (the Stanford dragon on a ground plane with a sphere and a cube), renders it with KD Trace on
 local slaves (PoCL CPU device unless a GPU is found), writes the PNG and prints timings.
 
-    .venv/bin/python bench/render_demo.py [--out demo.png] [--width 960 --height 540] [--slaves 2]
+    .venv/bin/python bench/render_demo.py [--out bench/out/demo.png] [--width 960 --height 540] [--slaves 2]
+
+Outputs go under bench/out/ by default, which git ignores and the extension zips leave out.
 """
 import argparse
 import os
@@ -14,13 +16,14 @@ import tempfile
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
+DEFAULT_OUT = ROOT / "bench" / "out" / "demo.png"
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests" / "bpy_scripts"))
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="demo.png", help="PNG to write")
+    parser.add_argument("--out", default=str(DEFAULT_OUT), help="PNG to write (default: %(default)s)")
     parser.add_argument("--width", type=int, default=960)
     parser.add_argument("--height", type=int, default=540)
     parser.add_argument("--slaves", type=int, default=2, help="local slaves to start")
@@ -72,7 +75,9 @@ def main():
     scene.kdtrace.local_slaves = args.slaves
     scene.kdtrace.tile_size = args.tile_size
     scene.render.image_settings.file_format = "PNG"
-    scene.render.filepath = str(pathlib.Path(args.out).resolve())
+    out = pathlib.Path(args.out).resolve()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    scene.render.filepath = str(out)
 
     started = time.perf_counter()
     bpy.ops.render.render(write_still=True)

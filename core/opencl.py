@@ -10,6 +10,7 @@ import hashlib
 import os
 import pathlib
 import tempfile
+import time
 
 from .layout import c_header
 
@@ -84,6 +85,7 @@ class Programs:
     def __init__(self, cl, context, device, error=OpenCLError):
         self._cl, self.context, self.device, self._error = cl, context, device, error
         self._built = {}            # (source, options) -> {kernel name: kernel}
+        self.build_seconds = 0.0    # wall time of every build so far (the slave logs it)
 
     def kernels(self, source: str, options) -> dict:
         """The kernels of `source` built with `options`, built on first use. (A str caches its
@@ -91,7 +93,9 @@ class Programs:
         key = (source, tuple(options))
         kernels = self._built.get(key)
         if kernels is None:
+            started = time.perf_counter()
             kernels = self._built[key] = self._build(source, list(options))
+            self.build_seconds += time.perf_counter() - started
         return kernels
 
     def _build(self, source: str, options: list) -> dict:

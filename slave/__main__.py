@@ -1,7 +1,11 @@
-"""`python -m slave`: the KD Trace render slave (run from the extension's root folder).
+"""The KD Trace render slave: `kdtrace-slave` once installed (pyproject.toml), `python -m slave`
+from a checkout or the extension's folder, `blender --background --command kdtrace_slave` with
+the extension installed (addon/local_slaves.py registers the command).
 
-On start it prints one line, flushed, that a launcher can parse:
+On start it prints one line to stdout, flushed, that a launcher can parse:
     KD Trace slave <name> listening on <host>:<port> device <device name>
+Then it logs to stderr (and --log-file), with timestamps: connections and one line per frame.
+`--status` asks a running slave on this machine what it is doing (slave/status.py).
 Bad arguments or an unusable device print one line and exit with status 2 (no traceback).
 """
 from __future__ import annotations
@@ -9,6 +13,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import logging
+import os
 import re
 import signal
 import socket
@@ -17,8 +22,16 @@ import threading
 
 from core.net import protocol
 
-PROG = "python -m slave"
 EXIT_USAGE = 2
+EXIT_NO_ANSWER = 1          # --status: no slave answered
+LOG_FORMAT = "%(asctime)s kdtrace-slave %(levelname)s: %(message)s"
+log = logging.getLogger("kdtrace.slave")
+
+
+def default_prog() -> str:
+    """How the user started us, for usage and error lines."""
+    name = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
+    return "python -m slave" if name in ("", "-c", "__main__.py") else name
 
 
 class UsageError(Exception):
@@ -56,8 +69,12 @@ def _name(text: str) -> str:
     return text
 
 
-def parse_args(argv):
-    parser = _Parser(prog=PROG, description="KD Trace render slave")
+def _status_port(text: str):
+    return text if text in ("auto", "off") else _port(text)
+
+
+def parse_args(argv, prog: str = "python -m slave"):
+    parser = _Parser(prog=prog, description="KD Trace render slave")
     parser.add_argument("--port", type=_port, default=protocol.DEFAULT_PORT,
                         help=f"TCP port (default {protocol.DEFAULT_PORT}; 0 = any free port)")
     parser.add_argument("--bind", type=_ipv4, default="0.0.0.0",
@@ -83,7 +100,15 @@ def parse_args(argv):
     parser.add_argument("--cache-scenes", type=int, default=2,
                         help="scenes kept in memory (default 2)")
     parser.add_argument("--list-devices", action="store_true", help="list OpenCL devices and exit")
-    parser.add_argument("--verbose", action="store_true", help="log every connection event")
+    parser.add_argument("--log-file", default=None,
+                        help="also append the log to this file")
+    parser.add_argument("--status-port", type=_status_port, default="auto",
+                        help="loopback port of the status query (default 'auto': the slave's "
+                             "port + 1, or any free port if that is taken; 'off': none)")
+    parser.add_argument("--status", action="store_true",
+                        help="ask the slave running on this machine with this --port (or "
+                             "--status-port) what it is doing, print it and exit")
+    parser.add_argument("--verbose", action="store_true", help="also log every tile")
     args = parser.parse_args(argv)
     if args.max_scene_mib < 1:
         raise UsageError("--max-scene-mib must be at least 1")
@@ -123,9 +148,66 @@ def _advertise_addresses(bind: str, chosen: list) -> tuple:
     return (found or ["127.0.0.1"]), None
 
 
+def setup_logging(verbose: bool, log_file: str | None) -> None:
+    handlers = [logging.StreamHandler(sys.stderr)]
+    if log_file:
+        try:
+            handlers.append(logging.FileHandler(log_file, encoding="utf-8"))
+        except OSError as exc:
+            raise UsageError(f"cannot write the log file {log_file}: {exc.strerror or exc}") from None
+    formatter = logging.Formatter(LOG_FORMAT, datefmt="%Y-%m-%d %H:%M:%S")
+    for handler in handlers:
+        handler.setFormatter(formatter)
+    log.handlers[:] = handlers
+    log.setLevel(logging.DEBUG if verbose else logging.INFO)
+    log.propagate = False
+
+
+def print_status(args) -> int:
+    from .status import format_status, query_status
+    if args.status_port == "off" or (args.status_port == "auto" and not 0 < args.port < 65535):
+        raise UsageError("--status needs the slave's --port, or its --status-port")
+    port = args.port + 1 if args.status_port == "auto" else args.status_port
+    try:
+        print(format_status(query_status(port)), flush=True)
+    except OSError as exc:
+        print(f"{args.prog}: {exc}", file=sys.stderr, flush=True)
+        return EXIT_NO_ANSWER
+    return 0
+
+
+def _start_status(server, choice, name: str, shown_address: str):
+    """The status server at `choice` (a port, or "auto": the slave's port + 1, any free port
+    if that is taken); None when it cannot listen: the slave works without it."""
+    from .status import StatusServer
+
+    def status() -> dict:
+        return {"name": name, "listening": shown_address, "device": server.device_info["name"],
+                **server.activity.status()}
+
+    ports = [choice] if choice != "auto" else [server.address[1] + 1, 0]
+    for port in ports:
+        try:
+            return StatusServer(port % 65536, status)
+        except OSError as exc:
+            reason = exc.strerror or exc
+    log.warning("no status query: cannot listen on 127.0.0.1:%d (%s)", ports[0], reason)
+    return None
+
+
+def _stop_on_signals(stop: threading.Event) -> None:
+    for name in ("SIGTERM", "SIGINT"):
+        try:
+            signal.signal(getattr(signal, name), lambda *_: stop.set())
+        except ValueError:  # not the main thread: the caller stops us another way
+            pass
+
+
 def run(args) -> int:
     if args.list_devices:
         return list_devices()
+    if args.status:
+        return print_status(args)
     from .server import SlaveServer
     from .tracer import Tracer
 
@@ -148,8 +230,8 @@ def run(args) -> int:
         raise UsageError(f"cannot listen on {args.bind}:{args.port}: {exc.strerror or exc}") from None
 
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    advertisement = None
+    _stop_on_signals(stop)
+    advertisement = status_server = None
     try:
         server.start()
         host, port = server.address
@@ -164,29 +246,40 @@ def run(args) -> int:
                     "memory": info["memory"], "auth": "hmac" if secret else "none"},
                     addresses, interfaces)
             except Exception as exc:  # no multicast here: masters can still connect by address
-                logging.getLogger("kdtrace.slave").warning("zeroconf advertising failed: %s", exc)
+                log.warning("zeroconf advertising failed: %s", exc)
         shown_host = addresses[0] if host == "0.0.0.0" else host
         print(f"KD Trace slave {name} listening on {shown_host}:{port} device {server.device_info['name']}",
               flush=True)
+        if args.status_port != "off":
+            status_server = _start_status(server, args.status_port, name, f"{shown_host}:{port}")
+        log.info("slave %s ready on %s:%d (%s), device %s%s", name, shown_host, port,
+                 "advertised on the LAN" if advertisement else "not advertised",
+                 server.device_info["name"],
+                 f"; status: {args.prog} --status --status-port {status_server.port}"
+                 if status_server else "")
         while not stop.wait(0.5):
             pass
     except KeyboardInterrupt:
         pass
     finally:
+        if status_server is not None:
+            status_server.close()
         if advertisement is not None:
             advertisement.close()
         server.close()
+        log.info("slave %s stopped", name)
     return 0
 
 
-def main(argv=None) -> int:
+def main(argv=None, prog: str | None = None) -> int:
+    prog = prog or default_prog()
     try:
-        args = parse_args(sys.argv[1:] if argv is None else argv)
-        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                            format="kdtrace-slave: %(levelname)s: %(message)s")
+        args = parse_args(sys.argv[1:] if argv is None else argv, prog)
+        args.prog = prog
+        setup_logging(args.verbose, args.log_file)
         return run(args)
     except UsageError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr, flush=True)
+        print(f"{prog}: error: {exc}", file=sys.stderr, flush=True)
         return EXIT_USAGE
 
 

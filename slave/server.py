@@ -27,6 +27,7 @@ from core.net.tiles import tile_grid
 from core.scene.model import SCENE_FORMAT_VERSION, SceneError, View
 from core.scene.scene import Scene
 
+from .activity import Activity
 from .scene_cache import SceneCache
 
 log = logging.getLogger("kdtrace.slave")
@@ -102,6 +103,7 @@ class MasterConnection:
             if sender.is_alive():
                 sender.join(timeout=10)
             self._close_socket()
+            self.server.activity.master_left(self.peer)
             self.server._connection_closed(self)
 
     def _handshake(self) -> bool:
@@ -130,6 +132,7 @@ class MasterConnection:
             "memory": info["memory"], "platform": info.get("platform", ""),
             "authenticated": self.server.secret is not None})
         log.info("master %s connected", self.peer)
+        self.server.activity.master_connected(self.peer)
         return True
 
     def _authenticate(self, master_nonce) -> bool:
@@ -195,7 +198,7 @@ class MasterConnection:
             if frame.cancelled:
                 continue
             x, y, w, h = frame.tiles[index]
-            start = time.perf_counter()
+            start, built_before = time.perf_counter(), self.server.tracer.build_seconds
             try:
                 passes = self.server.render_tile(frame, x, y, w, h)
             except Exception as exc:  # a tracer failure ends this frame, not the slave
@@ -205,6 +208,8 @@ class MasterConnection:
                                                  "message": f"rendering failed: {exc}"}, None))
                 continue
             ms = (time.perf_counter() - start) * 1000.0
+            self.server.activity.tile_rendered(self.peer, frame.frame_id, ms,
+                                               self.server.tracer.build_seconds - built_before)
             tile = ("tile", frame, {"frame_id": frame.frame_id, "tile": index, "x": x, "y": y,
                                     "w": w, "h": h, "render_ms": round(ms, 3)}, passes)
             if frame.model == "3a":
@@ -223,6 +228,8 @@ class MasterConnection:
             _, frame, header, passes = item
             fields, arrays = protocol.encode_tile(passes, frame.payload, frame.compress)
             item = (MsgType.TILE_RESULT, {**header, **fields}, arrays)
+            self.server.activity.sent(self.peer, frame.frame_id,
+                                      sum(a.nbytes for a in arrays.values()))
         with self._send_lock:
             protocol.send_message(self.sock, *item)
 
@@ -281,6 +288,7 @@ class MasterConnection:
             frame_id = protocol.get_int(h, "frame_id")
             frame = self.frame if self.frame and self.frame.frame_id == frame_id else None
             self.work.cancel(frame, frame_id)
+            self.server.activity.frame_over(self.peer)
         else:
             raise ProtocolError(f"unexpected {msg.type.name} after the handshake")
 
@@ -311,6 +319,7 @@ class MasterConnection:
             return
         self.frame = Frame(frame_id, scene, view, tile_grid(view.region, (tile_w, tile_h)),
                            model, payload, compress)
+        self.server.activity.frame_started(self.peer, frame_id, scene_hash, len(self.frame.tiles))
 
 
 class SlaveServer:
@@ -328,6 +337,7 @@ class SlaveServer:
         self.limits = limits
         self.secret = secret
         self.scenes = SceneCache(cache_size, cache_dir, cache_disk_bytes)
+        self.activity = Activity()
         self._device_lock = threading.Lock()
         self._loaded_hash = None
         self._connections = set()

@@ -92,6 +92,10 @@ class Tracer:
         return {"name": d.name.strip(), "compute_units": int(d.max_compute_units),
                 "memory": int(d.global_mem_size), "platform": d.platform.name.strip()}
 
+    @property
+    def build_seconds(self) -> float:
+        return self._programs.build_seconds
+
     # -- programs ------------------------------------------------------------------------
     def _features(self, flags=(), packet=0) -> dict:
         fp = getattr(self.device, "single_fp_config", 0)
