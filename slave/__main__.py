@@ -20,8 +20,6 @@ import socket
 import sys
 import threading
 
-from core.net import protocol
-
 EXIT_USAGE = 2
 EXIT_NO_ANSWER = 1          # --status: no slave answered
 LOG_FORMAT = "%(asctime)s kdtrace-slave %(levelname)s: %(message)s"
@@ -32,6 +30,13 @@ def default_prog() -> str:
     """How the user started us, for usage and error lines."""
     name = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
     return "python -m slave" if name in ("", "-c", "__main__.py") else name
+
+
+try:
+    from core.net import protocol
+except ModuleNotFoundError as missing:  # a Python without the slave's packages
+    sys.exit(f"{default_prog()}: error: the slave needs {missing.name}, which this Python lacks: "
+             "install the slave with pip (README: \"A slave on every other machine\")")
 
 
 class UsageError(Exception):
