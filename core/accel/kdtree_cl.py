@@ -146,12 +146,13 @@ class KDTreeBuilderCL:
         report = progress or (lambda fraction, message: None)
         started = time.perf_counter()
         profile = {}
-        clock = [time.perf_counter()]
+        clock = [time.perf_counter(), time.process_time()]
 
         def lap(name):
-            now = time.perf_counter()
-            profile[name] = profile.get(name, 0.0) + now - clock[0]
-            clock[0] = now
+            now = time.perf_counter(), time.process_time()
+            wall, cpu = profile.get(name, (0.0, 0.0))
+            profile[name] = (wall + now[0] - clock[0], cpu + now[1] - clock[1])
+            clock[:] = now
 
         vertices = np.ascontiguousarray(vertices, np.float32).reshape(-1, 3)
         triangles = np.asarray(triangles).reshape(-1, 3)
@@ -174,27 +175,16 @@ class KDTreeBuilderCL:
 
         kernels = self._kernels(params)
         lap("programs")
-        corners = vertices[triangles.astype(np.int64)]
-        c64 = corners.astype(np.float64)
-        normal = np.cross(c64[:, 1] - c64[:, 0], c64[:, 2] - c64[:, 0])
-        kept = np.flatnonzero((normal != 0).any(1))
-        del normal, c64
-        refs = np.zeros((len(kept), 8), np.float32)
-        refs[:, 0:3] = corners[kept].min(1) + np.float32(0)         # + 0: no negative zeros
-        refs[:, 4:7] = corners[kept].max(1) + np.float32(0)
-        refs[:, 3].view(np.uint32)[:] = kept
-        del corners
-        bounds = _root_bounds(refs[:, 0:3], refs[:, 4:7], vertices) + np.float32(0)
+        state = _BuildState(self, kernels, params, vertices, triangles, depth_cap, report)
+        kept_count, bounds = state.first_refs()
         pow2 = _power_of_two_scale(bounds)
         inv_root = np.float32(1) / _half_area_f32(bounds[0], bounds[1], pow2)
         inv_bins = np.zeros(int(params.max_bins) + 1, np.float32)
         inv_bins[1:] = np.float32(1) / np.arange(1, params.max_bins + 1, dtype=np.float32)
+        state.set_scene(inv_bins, pow2, inv_root)
         lap("setup")
 
-        state = _BuildState(self, kernels, params, vertices, triangles, inv_bins, pow2,
-                            inv_root, depth_cap, report)
-        state.big_stage(refs, bounds)
-        del refs
+        state.big_stage(bounds)
         lap("big nodes")
         state.subtree_stage()
         lap("subtrees")
@@ -210,8 +200,8 @@ class KDTreeBuilderCL:
             "depth": state.depth,
             "depth_cap": depth_cap,
             "references": len(leaf_indices),
-            "refs_per_triangle": len(leaf_indices) / max(len(kept), 1),
-            "dropped_degenerate": triangle_count - len(kept),
+            "refs_per_triangle": len(leaf_indices) / max(kept_count, 1),
+            "dropped_degenerate": triangle_count - kept_count,
             "bytes": tree.nbytes,
             "sah_cost": state.sah_fixed / 2.0**32,
             "build_seconds": time.perf_counter() - started,
@@ -229,14 +219,14 @@ class KDTreeBuilderCL:
 class _BuildState:
     """One build's buffers and bookkeeping (kdtree_cl.KDTreeBuilderCL.build)."""
 
-    def __init__(self, builder, kernels, params, vertices, triangles, inv_bins, pow2, inv_root,
-                 depth_cap, report):
+    def __init__(self, builder, kernels, params, vertices, triangles, depth_cap, report):
         self.b, self.k, self.params = builder, kernels, params
-        self.pow2, self.inv_root, self.depth_cap = pow2, inv_root, depth_cap
+        self.depth_cap = depth_cap
         self.report = report
+        self.vertex_array = vertices
+        self.triangle_count = len(triangles)
         self.vertices = builder._buffer(vertices)
         self.triangles = builder._buffer(triangles)
-        self.inv_bins = builder._buffer(inv_bins)
         self.max_bins = int(params.max_bins)
         self.queue_refs = None                 # device Ref array of subtree roots' references
         self.queue_used = 0
@@ -249,6 +239,39 @@ class _BuildState:
         self.launches = 0
         self.subtree_count = 0
         self.depth = 0
+
+    def first_refs(self):
+        """The kept triangles' references on the device (self.refs) and the root box; returns
+        (kept count, bounds)."""
+        b, k = self.b, self.k
+        T = self.triangle_count
+        u4 = np.uint32
+        refs = b._buffer(nbytes=32 * T)
+        keep = b._buffer(nbytes=T)
+        b._run(k["init_refs"], T, self.vertices, self.triangles, refs, keep, u4(T))
+        flags = b._read(keep, np.uint8, T)
+        kept = int(flags.sum())
+        if kept < T:
+            place = (np.cumsum(flags, dtype=np.int64) - flags).astype(u4)
+            out = b._buffer(nbytes=32 * kept)
+            b._run(k["compact_refs"], T, refs, keep, b._buffer(place), out, u4(T))
+            refs = out
+        del keep
+        chunk = 1 << 16
+        n_chunks = -(-kept // chunk)
+        if n_chunks:
+            d_box = b._buffer(nbytes=32 * n_chunks)
+            b._run(k["chunk_bounds"], n_chunks, refs, d_box, u4(kept), u4(chunk))
+            box = b._read(d_box, np.float32, (n_chunks, 8))
+            lo, hi = box[:, 0:3].min(0), box[:, 4:7].max(0)
+        else:
+            lo = hi = np.zeros(0, np.float32)
+        self.refs, self.kept = refs, kept
+        return kept, _root_bounds(lo.reshape(-1, 3), hi.reshape(-1, 3), self.vertex_array) + np.float32(0)
+
+    def set_scene(self, inv_bins, pow2, inv_root):
+        self.inv_bins = self.b._buffer(inv_bins)
+        self.pow2, self.inv_root = pow2, inv_root
 
     # -- queue of subtree references ------------------------------------------------------------
     def _reserve_queue(self, extra):
@@ -274,20 +297,20 @@ class _BuildState:
         return start
 
     # -- big nodes ------------------------------------------------------------------------------
-    def big_stage(self, refs, bounds):
+    def big_stage(self, bounds):
         b, k = self.b, self.k
-        cl = b._cl
         u4 = np.uint32
-        n0 = len(refs)
+        n0 = self.kept
         lo, hi = bounds[:1].copy(), bounds[1:].copy()
         count = np.array([n0], np.int64)
         bad = np.zeros(1, np.int64)
         key = np.zeros(1, np.uint64)
+        level_refs, self.refs = self.refs, None
         if n0 <= b.subtree_refs:
-            start = self._add_roots(lo, hi, 0, bad, key, count)
-            self._write_queue(refs, int(start[0]))
+            self._add_roots(lo, hi, 0, bad, key, count)
+            if n0:
+                b._cl.enqueue_copy(b.queue, self.queue_refs, level_refs, byte_count=32 * n0)
             return
-        level_refs = b._buffer(refs)
         level = 0
         S, CH = b.subtree_refs, b.chunk_refs
         while len(count):
@@ -404,11 +427,6 @@ class _BuildState:
             level_refs = next_refs
             level += 1
         self.depth = max(self.depth, level)
-
-    def _write_queue(self, refs, start):
-        if len(refs):
-            self.b._cl.enqueue_copy(self.b.queue, self.queue_refs, np.ascontiguousarray(refs),
-                                    device_offset=32 * start)
 
     # -- subtrees -------------------------------------------------------------------------------
     def subtree_stage(self):

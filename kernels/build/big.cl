@@ -195,3 +195,71 @@ __kernel void big_scatter(__global const Ref* restrict refs, __global const uint
             above_to[to.w + na++] = above;
     }
 }
+
+/* The first references: box of every triangle and whether it is kept (its cross product in
+   double is not exactly zero, the same operations as numpy's np.cross in kdtree.py). */
+__kernel void init_refs(__global const float* restrict vertices,
+                        __global const uint* restrict triangles, __global Ref* restrict refs,
+                        __global uchar* restrict keep, uint triangle_count)
+{
+    uint t = get_global_id(0);
+    if (t >= triangle_count)
+        return;
+    float p[3][3];
+    for (int k = 0; k < 3; k++) {
+        uint v = triangles[3 * t + k];
+        for (int a = 0; a < 3; a++)
+            p[k][a] = vertices[3 * v + a];
+    }
+    dbl e1[3], e2[3];
+    for (int a = 0; a < 3; a++) {
+        e1[a] = D_SUB(D_FROM_F(p[1][a]), D_FROM_F(p[0][a]));
+        e2[a] = D_SUB(D_FROM_F(p[2][a]), D_FROM_F(p[0][a]));
+    }
+    int nonzero = 0;
+    for (int a = 0; a < 3; a++) {
+        int b = a == 2 ? 0 : a + 1, c = a == 0 ? 2 : a - 1;
+        nonzero |= !D_EQ(D_SUB(D_MUL(e1[b], e2[c]), D_MUL(e1[c], e2[b])), D_ZERO);
+    }
+    keep[t] = (uchar)nonzero;
+    float lo[3], hi[3];
+    for (int a = 0; a < 3; a++) {
+        lo[a] = kd_min(kd_min(p[0][a], p[1][a]), p[2][a]) + 0.0f;    /* + 0: no -0 */
+        hi[a] = kd_max(kd_max(p[0][a], p[1][a]), p[2][a]) + 0.0f;
+    }
+    Ref r;
+    r.lo = (float4)(lo[0], lo[1], lo[2], as_float(t));
+    r.hi = (float4)(hi[0], hi[1], hi[2], 0.0f);
+    refs[t] = r;
+}
+
+/* Kept references moved to their places (an exclusive prefix sum of keep, from the host). */
+__kernel void compact_refs(__global const Ref* restrict refs, __global const uchar* restrict keep,
+                           __global const uint* restrict place, __global Ref* restrict out,
+                           uint triangle_count)
+{
+    uint t = get_global_id(0);
+    if (t < triangle_count && keep[t])
+        out[place[t]] = refs[t];
+}
+
+/* Per chunk of references: the box around them (lo xyz, pad, hi xyz, pad). */
+__kernel void chunk_bounds(__global const Ref* restrict refs, __global float* restrict out,
+                           uint ref_count, uint chunk)
+{
+    uint c = get_global_id(0);
+    uint first = c * chunk;
+    if (first >= ref_count)
+        return;
+    uint last = first + chunk < ref_count ? first + chunk : ref_count;
+    float4 lo = (float4)(INFINITY), hi = (float4)(-INFINITY);
+    for (uint i = first; i < last; i++) {
+        Ref r = refs[i];
+        lo = r.lo < lo ? r.lo : lo;
+        hi = r.hi > hi ? r.hi : hi;
+    }
+    for (int a = 0; a < 3; a++) {
+        out[8 * c + a] = axis_of(lo, a);
+        out[8 * c + 4 + a] = axis_of(hi, a);
+    }
+}

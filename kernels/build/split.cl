@@ -101,7 +101,8 @@ inline float split_cost(const AxisTerms* t, float plane, float pow2, float nb, f
 
 inline int node_bins(uint n)
 {
-    return clamp((int)rint(KD_BPR * (float)n), KD_MIN_BINS, KD_MAX_BINS);
+    int bins = (int)(KD_BPR * (float)n + 0.5f);
+    return bins < KD_MIN_BINS ? KD_MIN_BINS : (bins > KD_MAX_BINS ? KD_MAX_BINS : bins);
 }
 
 /* ----------------------------------------------------------------------------------------
@@ -114,7 +115,7 @@ inline int node_bins(uint n)
    below(k) = #(lo < plane k) and above(k) = #(hi > plane k) exactly. */
 
 typedef struct {
-    float plane[3][KD_MAX_BINS];
+    float plane[3][KD_MAX_BINS + 1];   /* plane k at k + 1; -inf at 0 and +inf after the last */
     float seed_scale[3];
     float lo[3];
     int bins;
@@ -128,37 +129,47 @@ inline void bin_planes(const Cell* c, uint n, __global const float* inv_bins, Bi
     for (int a = 0; a < 3; a++) {
         float width = c->hi[a] - c->lo[a];
         float step = width * inv;
+        bp->plane[a][0] = -INFINITY;
         for (int k = 0; k < bins - 1; k++)
-            bp->plane[a][k] = c->lo[a] + (float)(k + 1) * step;
+            bp->plane[a][k + 1] = c->lo[a] + (float)(k + 1) * step;
+        bp->plane[a][bins] = INFINITY;
         bp->seed_scale[a] = (float)bins / width;
         bp->lo[a] = c->lo[a];
     }
 }
 
-/* Bin of a low end (number of planes <= x) and of a high end (number of planes < x). A
-   reference lies inside its cell, so the seed is >= 0 and at most about `bins`. */
+inline float bin_plane(const BinPlanes* bp, int axis, int k)
+{
+    return bp->plane[axis][k + 1];
+}
+
+/* Bin of a low end (number of planes <= x) and of a high end (number of planes < x): the
+   seed, then one step each way without branches (a seed is off by at most one bin unless
+   the cell is tiny in float32 terms; the loops cover that). A reference lies inside its
+   cell, so the seed is >= 0. */
 inline int bin_of_low(const BinPlanes* bp, int axis, float x)
 {
-    int last = bp->bins - 1;
-    float s = kd_min((x - bp->lo[axis]) * bp->seed_scale[axis], (float)last);
-    int b = (int)s;
-    while (b > 0 && bp->plane[axis][b - 1] > x)
-        b--;
-    while (b < last && bp->plane[axis][b] <= x)
+    const float* pl = bp->plane[axis];
+    int b = (int)kd_min((x - bp->lo[axis]) * bp->seed_scale[axis], (float)(bp->bins - 1));
+    b += pl[b + 1] <= x;
+    b -= pl[b] > x;
+    while (pl[b + 1] <= x)
         b++;
+    while (pl[b] > x)
+        b--;
     return b;
 }
 
 inline int bin_of_high(const BinPlanes* bp, int axis, float x)
 {
-    int last = bp->bins - 1;
-    float s = kd_min((x - bp->lo[axis]) * bp->seed_scale[axis], (float)last);
-    int b = (int)s;
-    b -= b > 0 && (float)b == s;             /* ceil(s) - 1 */
-    while (b > 0 && bp->plane[axis][b - 1] >= x)
-        b--;
-    while (b < last && bp->plane[axis][b] < x)
+    const float* pl = bp->plane[axis];
+    int b = (int)kd_min((x - bp->lo[axis]) * bp->seed_scale[axis], (float)(bp->bins - 1));
+    b += pl[b + 1] < x;
+    b -= pl[b] >= x;
+    while (pl[b + 1] < x)
         b++;
+    while (pl[b] >= x)
+        b--;
     return b;
 }
 
@@ -211,7 +222,7 @@ inline Choice choose_binned(const uint* h, const BinPlanes* bp, const Cell* c, u
         for (int k = 0; k < bp->bins - 1; k++) {
             below += h[(2 * a) * KD_MAX_BINS + k];
             not_above += h[(2 * a + 1) * KD_MAX_BINS + k];
-            float p = bp->plane[a][k];
+            float p = bin_plane(bp, a, k);
             if (p > c->lo[a] && p < c->hi[a])
                 consider(&best, split_cost(&t, p, pow2, (float)below, (float)(n - not_above)),
                          a, p);
@@ -229,44 +240,94 @@ inline Choice choose_binned(const uint* h, const BinPlanes* bp, const Cell* c, u
 /* ----------------------------------------------------------------------------------------
    Exact SAH for nodes of at most KD_EXACT_MAX references: every box bound is a candidate
    (per axis all low ends, then all high ends, in reference order); planar references at the
-   plane go to the cheaper side. The boxes come per axis in KD_EXACT_MAX slots, unused slots
-   lo = +inf and hi = -inf (they count on no side), so the counting loops have a fixed length.
-   Also returns the counts at the chosen plane (what the exact recount would give). */
+   plane go to the cheaper side.
+
+   The boxes sit per axis in 2 `width` slots (width 4, 8 or KD_EXACT_MAX): low ends in slots
+   0..width-1, high ends after them, unused slots +inf / -inf (they count on no side and are
+   never inside a cell), so candidate e is simply slot e and both passes run 8 candidates at
+   a time. Counting and ranking are separate: a child that an empty-space cut leaves with
+   exactly its parent's references has the parent's counts at every candidate, so it is only
+   ranked again for its own cell. */
+
+/* 2 KD_EXACT_MAX floats, also as float8 blocks (no vload/vstore: PoCL calls builtins out of
+   line). */
+typedef union {
+    float8 v[2 * KD_EXACT_MAX / 8];
+    float s[2 * KD_EXACT_MAX];
+} Slots;
 
 typedef struct {
-    float lo[3][KD_EXACT_MAX];
-    float hi[3][KD_EXACT_MAX];
+    Slots cand[3];
+    Slots below[3];       /* per candidate: #(lo < p), #(hi > p), #flat at p */
+    Slots above[3];
+    Slots planar[3];
+    int width;
 } ExactBoxes;
 
-inline Choice choose_exact(const ExactBoxes* x, uint n, const Cell* c, float pow2, uint* counts)
+inline int exact_width(uint n)
+{
+    return n <= 4u ? 4 : (n <= 8u ? 8 : KD_EXACT_MAX);
+}
+
+inline void count_exact(ExactBoxes* x)
+{
+    int w = x->width;
+    for (int a = 0; a < 3; a++) {
+        const float* lo = x->cand[a].s;
+        const float* hi = x->cand[a].s + w;
+        for (int k = 0; k < w / 4; k++) {
+            float8 p = x->cand[a].v[k];
+            float8 nb = (float8)(0.0f), na = (float8)(0.0f), np = (float8)(0.0f);
+            for (int j = 0; j < w; j++) {
+                float8 l = (float8)(lo[j]), h = (float8)(hi[j]);
+                nb += l < p ? (float8)(1.0f) : (float8)(0.0f);
+                na += h > p ? (float8)(1.0f) : (float8)(0.0f);
+                np += (l == p) & (h == p) ? (float8)(1.0f) : (float8)(0.0f);
+            }
+            x->below[a].v[k] = nb;
+            x->above[a].v[k] = na;
+            x->planar[a].v[k] = np;
+        }
+    }
+}
+
+/* split_cost() of 8 candidates, in the same float32 operations. */
+inline float8 split_cost8(const AxisTerms* t, float8 p, float pow2, float8 nb, float8 na)
+{
+    float8 wb = p * pow2 - t->lo_scaled;
+    float8 area_below = wb * t->perimeter + t->cap;
+    float8 area_above = (t->width - wb) * t->perimeter + t->cap;
+    float8 cost = t->kt_area + KD_KI * (area_below * nb + area_above * na);
+    return (nb == 0.0f) | (na == 0.0f) ? cost * KD_LAMBDA : cost;
+}
+
+/* The cheapest candidate inside the cell (the first of equal costs), and its counts (what
+   the exact recount gives). */
+inline Choice rank_exact(const ExactBoxes* x, const Cell* c, float pow2, uint* counts)
 {
     Dims m = cell_dims(c, pow2);
     Choice best = {INFINITY, 0, 0.0f};
+    int w = x->width;
     for (int a = 0; a < 3; a++) {
         AxisTerms t = axis_terms(&m, c, a, pow2);
-        for (uint e = 0; e < 2 * n; e++) {
-            float p = e < n ? x->lo[a][e] : x->hi[a][e - n];
-            if (!(p > c->lo[a] && p < c->hi[a]))
-                continue;
-            uint nb = 0u, na = 0u, np = 0u;
-            for (int j = 0; j < KD_EXACT_MAX; j++) {
-                float l = x->lo[a][j], h = x->hi[a][j];
-                nb += l < p;
-                na += h > p;
-                np += (l == p) & (h == p);
-            }
-            float cost = split_cost(&t, p, pow2, (float)(nb + np), (float)na);
-            if (np)
-                cost = kd_min(cost, split_cost(&t, p, pow2, (float)nb, (float)(na + np)));
-            if (cost < best.cost) {
-                best.cost = cost;
-                best.axis = a;
-                best.plane = p;
-                counts[0] = nb;
-                counts[1] = na;
-                counts[2] = np;
-            }
+        Slots cost;
+        for (int k = 0; k < w / 4; k++) {
+            float8 p = x->cand[a].v[k];
+            float8 nb = x->below[a].v[k], na = x->above[a].v[k], np = x->planar[a].v[k];
+            float8 c1 = split_cost8(&t, p, pow2, nb + np, na);
+            float8 c2 = split_cost8(&t, p, pow2, nb, na + np);
+            float8 ck = (np > 0.0f) & (c2 < c1) ? c2 : c1;
+            cost.v[k] = (p > c->lo[a]) & (p < c->hi[a]) ? ck : (float8)(INFINITY);
         }
+        for (int e = 0; e < 2 * w; e++)
+            if (cost.s[e] < best.cost) {
+                best.cost = cost.s[e];
+                best.axis = a;
+                best.plane = x->cand[a].s[e];
+                counts[0] = (uint)x->below[a].s[e];
+                counts[1] = (uint)x->above[a].s[e];
+                counts[2] = (uint)x->planar[a].s[e];
+            }
     }
     return best;
 }

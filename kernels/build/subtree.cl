@@ -24,6 +24,7 @@ enum { SUBTREE_OK = 0, SUBTREE_SCRATCH = 1, SUBTREE_RECORDS = 2, SUBTREE_LEAF_RE
 typedef struct {
     Cell cell;
     uint start, count, level, bad, rank;
+    int chained;           /* same references as the exact node decided last: reuse its counts */
 } Entry;
 
 /* Root words: cell lo (3 floats), cell hi (3), absolute level, bad refines, first reference in
@@ -64,6 +65,7 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
     int status = SUBTREE_OK;
 
     Entry stack[KD_STACK];
+    ExactBoxes x;              /* the last exact node's boxes and counts */
     uint sp = 0u;
     Entry first;
     for (int a = 0; a < 3; a++) {
@@ -75,6 +77,7 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
     first.level = 0u;
     first.bad = root[7];
     first.rank = 0u;
+    first.chained = 0;
     if (n > scr_cap)
         status = SUBTREE_SCRATCH;
     else
@@ -88,21 +91,29 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
         uint top = e.start + e.count;
         Choice ch = {INFINITY, 0, 0.0f};
         Decision d = {1, 1, e.bad};
+        uint counts[3] = {0u, 0u, 0u};       /* below, above, planar at the chosen plane */
         if (e.count > 0u && level < depth_cap) {
-            uint counts[3] = {0u, 0u, 0u};
             if (e.count <= KD_EXACT_MAX) {
-                ExactBoxes x;
-                for (uint i = 0; i < KD_EXACT_MAX; i++) {
-                    Ref r = scr[e.start + min(i, e.count - 1u)];
-                    int used = i < e.count;
-                    x.lo[0][i] = used ? r.lo.x : INFINITY;
-                    x.lo[1][i] = used ? r.lo.y : INFINITY;
-                    x.lo[2][i] = used ? r.lo.z : INFINITY;
-                    x.hi[0][i] = used ? r.hi.x : -INFINITY;
-                    x.hi[1][i] = used ? r.hi.y : -INFINITY;
-                    x.hi[2][i] = used ? r.hi.z : -INFINITY;
+                if (!e.chained) {
+                    int w = exact_width(e.count);
+                    x.width = w;
+                    for (uint i = 0; i < e.count; i++) {
+                        Ref r = scr[e.start + i];
+                        x.cand[0].s[i] = r.lo.x;
+                        x.cand[1].s[i] = r.lo.y;
+                        x.cand[2].s[i] = r.lo.z;
+                        x.cand[0].s[w + i] = r.hi.x;
+                        x.cand[1].s[w + i] = r.hi.y;
+                        x.cand[2].s[w + i] = r.hi.z;
+                    }
+                    for (int i = (int)e.count; i < w; i++)
+                        for (int a = 0; a < 3; a++) {
+                            x.cand[a].s[i] = INFINITY;
+                            x.cand[a].s[w + i] = -INFINITY;
+                        }
+                    count_exact(&x);
                 }
-                ch = choose_exact(&x, e.count, &e.cell, pow2, counts);
+                ch = rank_exact(&x, &e.cell, pow2, counts);
             } else {
                 BinPlanes bp;
                 bin_planes(&e.cell, e.count, inv_bins, &bp);
@@ -151,15 +162,38 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
             break;
         }
         node_count[e.level + 1] = child_rank + 2u;
-        levels = max(levels, e.level + 2u);
+        levels = levels > e.level + 2u ? levels : e.level + 2u;
         rec_words[rec_off + recs] = (uint2)((uint)ch.axis | (child_rank << KD_FIELD_SHIFT),
                                             as_uint(ch.plane));
         rec_meta[rec_off + recs] = meta;
         recs++;
         sah_sum += sah_fixed(&e.cell, pow2, inv_root_half_area, KD_KT);
 
-        /* Above child in place (it never overtakes the reading position), below child after
-           the top, then moved down next to it. Order within each child is kept. */
+        /* An empty-space cut (everything strictly on one side, planar references too) moves
+           nothing: the non-empty child has the node's references where they are, and, for an
+           exact node, its counts. Otherwise the above child goes in place (it never overtakes
+           the reading position), the below child after the top, then down next to it. Order
+           within each child is kept. */
+        int all_below = counts[1] == 0u && (counts[2] == 0u || d.planar_below);
+        int all_above = counts[0] == 0u && (counts[2] == 0u || !d.planar_below);
+        Entry child;
+        child.level = e.level + 1u;
+        child.bad = d.bad;
+        if (all_below || all_above) {
+            child.chained = 0;
+            child_cell(&e.cell, ch.axis, ch.plane, 1, &child.cell);
+            child.start = e.start;
+            child.count = all_above ? e.count : 0u;
+            child.chained = all_above && e.count <= KD_EXACT_MAX;
+            child.rank = child_rank + 1u;
+            stack[sp++] = child;
+            child_cell(&e.cell, ch.axis, ch.plane, 0, &child.cell);
+            child.count = all_below ? e.count : 0u;
+            child.chained = all_below && e.count <= KD_EXACT_MAX;
+            child.rank = child_rank;
+            stack[sp++] = child;
+            continue;
+        }
         uint ka = 0u, kb = 0u;
         for (uint i = 0; i < e.count; i++) {
             Ref r = scr[e.start + i];
@@ -185,9 +219,7 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
             break;
         for (uint j = 0; j < kb; j++)
             scr[e.start + ka + j] = scr[top + j];
-        Entry child;
-        child.level = e.level + 1u;
-        child.bad = d.bad;
+        child.chained = 0;
         child_cell(&e.cell, ch.axis, ch.plane, 1, &child.cell);
         child.start = e.start;
         child.count = ka;
