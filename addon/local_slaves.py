@@ -5,9 +5,10 @@ Each local slave is `python -m slave` run from the extension's root folder, boun
 and not advertised (only this Blender uses it). They are kept between renders and stopped when
 the add-on is disabled or Blender exits.
 
-`blender --background --command kdtrace_slave [slave options]` runs the standalone slave
-(slave/__main__.py) on Blender's own Python and the extension's wheels, on a machine where the
-extension is installed and enabled: the same slave as `kdtrace-slave` (pyproject.toml).
+`blender --background --command kdtrace_slave [slave options]` runs the standalone slave the
+same way, in the foreground, on a machine where the extension is installed and enabled: the
+same slave as `kdtrace-slave` (pyproject.toml), on Blender's own Python and the extension's
+wheels. (Blender's command ids must be Python identifiers: no "-".)
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import pathlib
 import platform
 import queue
 import re
+import signal
 import socket
 import subprocess
 import sys
@@ -26,7 +28,7 @@ from ..core.net.protocol import SECRET_ENV
 
 EXTENSION_ROOT = pathlib.Path(__file__).resolve().parent.parent
 READY_LINE = re.compile(r"listening on (?P<host>[^\s:]+):(?P<port>\d+)")
-COMMAND = "kdtrace_slave"   # Blender's command ids must be Python identifiers: no "-"
+COMMAND = "kdtrace_slave"
 _command_handle = None
 
 
@@ -45,6 +47,15 @@ NO_CPU_DEVICE = ("local slaves need an OpenCL device on this system (PoCL, the C
                  "CPU runtime (README: \"Local slaves on Windows and macOS\")")
 
 
+def slave_environment(**variables) -> dict:
+    """The environment of a slave run by Blender's Python: Blender's sys.path holds the folder
+    where it installed the extension's wheels (zeroconf, pyopencl, PoCL), and the slave needs
+    them too. The slave runs from the extension's root folder (`python -m slave`)."""
+    return dict(os.environ, PYTHONUNBUFFERED="1",
+                PYTHONPATH=os.pathsep.join(p for p in sys.path if p and os.path.isdir(p)),
+                **variables)
+
+
 def host_label() -> str:
     """This machine's short host name, for local slave names (os.uname() is POSIX-only)."""
     name = re.sub(r"[^A-Za-z0-9_-]", "-", socket.gethostname().split(".")[0])[:40]
@@ -53,10 +64,7 @@ def host_label() -> str:
 
 class LocalSlave:
     def __init__(self, name: str, python: str, device: str, threads: int, secret: bytes | None):
-        # Blender's sys.path holds the folder where it installed the extension's wheels
-        # (zeroconf, pyopencl, PoCL): the slave, run by Blender's own Python, needs them too.
-        env = dict(os.environ, POCL_MAX_PTHREAD_COUNT=str(threads), PYTHONUNBUFFERED="1",
-                   PYTHONPATH=os.pathsep.join(p for p in sys.path if p and os.path.isdir(p)))
+        env = slave_environment(POCL_MAX_PTHREAD_COUNT=str(threads))
         # The master's secret reaches the slave through its environment, never its command line.
         env.pop(SECRET_ENV, None)
         if secret:
@@ -162,12 +170,25 @@ class LocalSlaves:
 
 
 def run_command(argv: list) -> int:
-    """The `kdtrace_slave` command: the standalone slave, with the extension's root on sys.path
-    (slave/ imports core/ as a top-level package, as in a checkout)."""
-    if str(EXTENSION_ROOT) not in sys.path:
-        sys.path.insert(0, str(EXTENSION_ROOT))
-    from slave.__main__ import main
-    return main(list(argv), prog=f"blender --background --command {COMMAND}")
+    """The `kdtrace_slave` command: the standalone slave with these arguments, as a child process
+    (the add-on never imports the slave), until it ends; SIGTERM and Ctrl-C stop it."""
+    env = slave_environment(KDTRACE_SLAVE_PROG=f"blender --background --command {COMMAND}")
+    process = subprocess.Popen([sys.executable, "-m", "slave", *argv], cwd=EXTENSION_ROOT, env=env)
+    previous = {}
+    for name in ("SIGTERM", "SIGINT"):
+        number = getattr(signal, name)
+        try:
+            previous[number] = signal.signal(number, lambda *_: process.terminate())
+        except ValueError:   # not Blender's main thread: nothing to pass on
+            pass
+    try:
+        return process.wait()
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+        if process.poll() is None:
+            process.terminate()
+            process.wait()
 
 
 def register_command():

@@ -27,7 +27,10 @@ log = logging.getLogger("kdtrace.slave")
 
 
 def default_prog() -> str:
-    """How the user started us, for usage and error lines."""
+    """How the user started us, for usage and error lines (Blender's kdtrace_slave command says
+    so in KDTRACE_SLAVE_PROG)."""
+    if os.environ.get("KDTRACE_SLAVE_PROG"):
+        return os.environ["KDTRACE_SLAVE_PROG"]
     name = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
     return "python -m slave" if name in ("", "-c", "__main__.py") else name
 
@@ -276,8 +279,8 @@ def run(args) -> int:
     return 0
 
 
-def main(argv=None, prog: str | None = None) -> int:
-    prog = prog or default_prog()
+def main(argv=None) -> int:
+    prog = default_prog()
     try:
         args = parse_args(sys.argv[1:] if argv is None else argv, prog)
         args.prog = prog
