@@ -42,6 +42,11 @@ def _float_literal(x: float) -> str:
     return float(np.float32(x)).hex() + "f"
 
 
+def _double_bits(x: float) -> str:
+    """The IEEE double bit pattern of x, as a ulong literal for a -D option."""
+    return f"0x{np.float64(x).view(np.uint64):016X}UL"
+
+
 def _power_of_two_scale(bounds: np.ndarray) -> np.float32:
     """2^-e with 2^e around the scene's largest extent: cell sizes scaled by it stay near 1."""
     extent = float(np.max(bounds[1].astype(np.float64) - bounds[0]))
@@ -100,18 +105,31 @@ class KDTreeBuilderCL:
     def device_name(self) -> str:
         return f"{self.device.platform.name.strip()}: {self.device.name.strip()}"
 
-    def _kernels(self, params: KDTreeParams) -> dict:
-        from ..opencl import kernel_source
-        options = [f"-DKD_KT={_float_literal(params.traversal_cost)}",
+    def build_options(self, params: KDTreeParams) -> list:
+        """The -D options of the build kernels: KDTreeParams and the double arithmetic."""
+        options = [f"-DKD_KT_BITS={_double_bits(params.traversal_cost)}",
+                   f"-DKD_KI_BITS={_double_bits(params.intersection_cost)}",
+                   f"-DKD_2KI_BITS={_double_bits(2 * params.intersection_cost)}",
+                   f"-DKD_LAMBDA_BITS={_double_bits(params.empty_bonus)}",
+                   f"-DKD_BPR_BITS={_double_bits(params.bins_per_reference)}",
+                   f"-DKD_KT={_float_literal(params.traversal_cost)}",
                    f"-DKD_KI={_float_literal(params.intersection_cost)}",
                    f"-DKD_LAMBDA={_float_literal(params.empty_bonus)}",
-                   f"-DKD_BPR={_float_literal(params.bins_per_reference)}",
                    f"-DKD_MIN_BINS={int(params.min_bins)}", f"-DKD_MAX_BINS={int(params.max_bins)}",
                    f"-DKD_MAX_BAD={int(params.max_bad_refines)}u",
                    f"-DKD_SMALL_NODE={int(params.small_node)}u", f"-DKD_EXACT_MAX={EXACT_MAX}u"]
         if self.soft_fp64:
             options.append("-DKDTRACE_SOFT_FP64")
-        return self._programs.kernels(kernel_source(KERNEL_FILES), options)
+        return options
+
+    def program(self, source: str, params: KDTreeParams | None = None) -> dict:
+        """Kernels of `source` (which includes kernels/build/ files) built with this builder's
+        options: the build's own, or test kernels."""
+        return self._programs.kernels(source, self.build_options(params or KDTreeParams()))
+
+    def _kernels(self, params: KDTreeParams) -> dict:
+        from ..opencl import kernel_source
+        return self.program(kernel_source(KERNEL_FILES), params)
 
     # -- launching -------------------------------------------------------------------------
     def _buffer(self, array=None, nbytes=None):
@@ -179,9 +197,7 @@ class KDTreeBuilderCL:
         kept_count, bounds = state.first_refs()
         pow2 = _power_of_two_scale(bounds)
         inv_root = np.float32(1) / _half_area_f32(bounds[0], bounds[1], pow2)
-        inv_bins = np.zeros(int(params.max_bins) + 1, np.float32)
-        inv_bins[1:] = np.float32(1) / np.arange(1, params.max_bins + 1, dtype=np.float32)
-        state.set_scene(inv_bins, pow2, inv_root)
+        state.pow2, state.inv_root = pow2, inv_root
         lap("setup")
 
         state.big_stage(bounds)
@@ -269,10 +285,6 @@ class _BuildState:
         self.refs, self.kept = refs, kept
         return kept, _root_bounds(lo.reshape(-1, 3), hi.reshape(-1, 3), self.vertex_array) + np.float32(0)
 
-    def set_scene(self, inv_bins, pow2, inv_root):
-        self.inv_bins = self.b._buffer(inv_bins)
-        self.pow2, self.inv_root = pow2, inv_root
-
     # -- queue of subtree references ------------------------------------------------------------
     def _reserve_queue(self, extra):
         need = self.queue_used + int(extra)
@@ -338,9 +350,8 @@ class _BuildState:
             d_decision = b._buffer(nbytes=16 * m)
             d_sah = b._buffer(nbytes=8 * m)
             d_out = b._buffer(nbytes=8 * C)
-            b._run(k["big_bin"], C, level_refs, d_chunks, d_cells, d_n, self.inv_bins, d_hist, u4(C))
-            b._run(k["big_choose"], m, d_node_chunks, d_hist, d_cells, d_n, self.inv_bins,
-                   d_choice, u4(m), self.pow2)
+            b._run(k["big_bin"], C, level_refs, d_chunks, d_cells, d_n, d_hist, u4(C))
+            b._run(k["big_choose"], m, d_node_chunks, d_hist, d_cells, d_n, d_choice, u4(m))
             b._run(k["big_recount"], C, level_refs, d_chunks, d_choice, d_counts, u4(C))
             b._run(k["big_decide"], m, d_node_chunks, d_counts, d_choice, d_cells, d_n, d_bad,
                    d_decision, d_sah, u4(m), u4(level), u4(self.depth_cap), self.pow2, self.inv_root)
@@ -487,7 +498,7 @@ class _BuildState:
             d_sah = b._buffer(nbytes=8 * len(batch))
             t0 = time.perf_counter()
             b._run(k["build_subtrees"], len(batch), self.queue_refs, self.vertices,
-                   self.triangles, d_roots, self.inv_bins, scratch, records[0], records[1],
+                   self.triangles, d_roots, scratch, records[0], records[1],
                    leafbuf, d_levels, d_result, d_sah, u4(len(batch)), self.pow2, self.inv_root,
                    u4(self.depth_cap))
             result = b._read(d_result, u4, (len(batch), 4)).astype(np.int64)

@@ -22,7 +22,7 @@ inline Cell load_cell(__global const float* cells, uint node)
 
 __kernel void big_bin(__global const Ref* restrict refs, __global const uint4* restrict chunks,
                       __global const float* restrict cells, __global const uint* restrict node_n,
-                      __global const float* restrict inv_bins, __global uint* restrict hist,
+                      __global uint* restrict hist,
                       uint chunk_count)
 {
     uint c = get_global_id(0);
@@ -31,7 +31,7 @@ __kernel void big_bin(__global const Ref* restrict refs, __global const uint4* r
     uint4 ch = chunks[c];
     Cell cell = load_cell(cells, ch.x);
     BinPlanes bp;
-    bin_planes(&cell, node_n[ch.x], inv_bins, &bp);
+    bin_planes(&cell, node_n[ch.x], &bp);
     uint h[HIST_WORDS];
     hist_clear(h);
     for (uint i = ch.y; i < ch.y + ch.z; i++)
@@ -41,12 +41,11 @@ __kernel void big_bin(__global const Ref* restrict refs, __global const uint4* r
 }
 
 /* Per node: its chunks' histograms summed (node_chunks: first chunk, chunk count), the best
-   binned split as (cost bits, axis, plane bits, 0). */
+   binned split as (found, axis, plane bits, 0). */
 __kernel void big_choose(__global const uint2* restrict node_chunks,
                          __global const uint* restrict hist, __global const float* restrict cells,
-                         __global const uint* restrict node_n,
-                         __global const float* restrict inv_bins, __global uint4* restrict choice,
-                         uint node_count, float pow2)
+                         __global const uint* restrict node_n, __global uint4* restrict choice,
+                         uint node_count)
 {
     uint j = get_global_id(0);
     if (j >= node_count)
@@ -67,9 +66,9 @@ __kernel void big_choose(__global const uint2* restrict node_chunks,
     }
     Cell cell = load_cell(cells, j);
     BinPlanes bp;
-    bin_planes(&cell, node_n[j], inv_bins, &bp);
-    Choice best = choose_binned(h, &bp, &cell, node_n[j], pow2);
-    choice[j] = (uint4)(as_uint(best.cost), (uint)best.axis, as_uint(best.plane), 0u);
+    bin_planes(&cell, node_n[j], &bp);
+    Choice best = choose_binned(h, &bp, &cell, node_n[j]);
+    choice[j] = (uint4)((uint)best.valid, (uint)best.axis, as_uint(best.plane), 0u);
 }
 
 /* Per chunk: references below, above and planar at its node's chosen plane. */
@@ -116,9 +115,9 @@ __kernel void big_decide(__global const uint2* restrict node_chunks,
         np += counts[c].z;
     }
     uint4 k = choice[j];
-    Choice ch = {as_float(k.x), (int)k.y, as_float(k.z)};
+    Choice ch = {(int)k.x, (int)k.y, as_float(k.z)};
     Cell cell = load_cell(cells, j);
-    Decision d = decide(node_n[j], level, depth_cap, node_bad[j], ch, nb, na, np, &cell, pow2);
+    Decision d = decide(node_n[j], level, depth_cap, node_bad[j], ch, nb, na, np, &cell);
     decision[j] = (uint4)((uint)d.leaf | ((uint)d.planar_below << 1), d.bad, k.y, k.z);
     sah[j] = d.leaf ? 0 : sah_fixed(&cell, pow2, inv_root_half_area, KD_KT);
 }

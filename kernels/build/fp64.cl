@@ -11,13 +11,16 @@
 
    Conversions to float32 round outward (down or up) into the float32 values without denormals:
    a magnitude below FLT_MIN goes to 0 or to +-FLT_MIN, whichever lies on the outward side, so a
-   device that flushes float32 denormals sees the same boxes. */
+   device that flushes float32 denormals sees the same boxes; or to the nearest float32 (bin
+   planes), magnitudes below FLT_MIN to 0. */
 
 #ifndef KDTRACE_SOFT_FP64
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 
 typedef double dbl;
 #define D_FROM_F(f)   ((double)(f))
+#define D_FROM_U(n)   ((double)(n))
+#define D_BITS(u)     as_double((ulong)(u))
 #define D_ADD(a, b)   ((a) + (b))
 #define D_SUB(a, b)   ((a) - (b))
 #define D_MUL(a, b)   ((a) * (b))
@@ -36,6 +39,18 @@ inline float d_to_float_outward(double x, int up)
         return up ? (x > 0.0 ? FLT_MIN : 0.0f) : (x > 0.0 ? 0.0f : -FLT_MIN);
     }
     return (up ? convert_float_rtp(x) : convert_float_rtn(x)) + 0.0f;
+}
+
+/* Nearest float32 (ties to even); magnitudes below FLT_MIN give 0. */
+inline float d_to_float_nearest(double x)
+{
+    return (x < 0.0 ? -x : x) < (double)FLT_MIN ? 0.0f : (float)x + 0.0f;
+}
+
+/* Nearest integer, ties to even (numpy's round), of 0 <= x < 2^31. */
+inline int d_round_to_int(double x)
+{
+    return (int)rint(x);
 }
 
 #else  /* software IEEE double */
@@ -188,7 +203,49 @@ inline float d_to_float_outward(ulong x, int up)
     return as_float(((uint)negative << 31) | ((uint)(e + 127) << 23) | (m24 & 0x7FFFFFu)) + 0.0f;
 }
 
+inline float d_to_float_nearest(ulong x)
+{
+    int e = (int)((x >> 52) & 0x7FF) - 1023;
+    if (sd_is_zero(x) || e < -126)
+        return 0.0f;
+    uint sign = (uint)(x >> 63);
+    ulong m = (x & SD_FRAC) | SD_HIDDEN;
+    uint m24 = (uint)(m >> 29);
+    ulong rest = m & ((1UL << 29) - 1UL);
+    if (rest > (1UL << 28) || (rest == (1UL << 28) && (m24 & 1u))) {
+        m24 += 1u;
+        if (m24 >> 24) {
+            m24 >>= 1;
+            e += 1;
+        }
+    }
+    return as_float((sign << 31) | ((uint)(e + 127) << 23) | (m24 & 0x7FFFFFu)) + 0.0f;
+}
+
+inline ulong sd_from_uint(uint n)
+{
+    if (n == 0u)
+        return 0UL;
+    int p = 31 - (int)clz(n);
+    return ((ulong)(p + 1023) << 52) | (((ulong)n << (52 - p)) & SD_FRAC);
+}
+
+inline int d_round_to_int(ulong x)
+{
+    int e = (int)((x >> 52) & 0x7FF) - 1023;
+    if (sd_is_zero(x) || e < -1)
+        return 0;
+    ulong m = (x & SD_FRAC) | SD_HIDDEN;              /* value m 2^(e - 52), e <= 30 */
+    int drop = 52 - e;                                /* fraction bits, 22..53 */
+    ulong whole = m >> drop, rest = m & ((1UL << drop) - 1UL), midway = 1UL << (drop - 1);
+    if (rest > midway || (rest == midway && (whole & 1UL)))
+        whole += 1UL;
+    return (int)whole;
+}
+
 #define D_FROM_F(f)   sd_from_float(f)
+#define D_FROM_U(n)   sd_from_uint(n)
+#define D_BITS(u)     ((ulong)(u))
 #define D_ADD(a, b)   sd_add((a), (b))
 #define D_SUB(a, b)   sd_add((a), (b) ^ SD_SIGN)
 #define D_MUL(a, b)   sd_mul((a), (b))

@@ -1,17 +1,30 @@
 /* What every kd-tree build kernel shares: references, cells, the split choice, the leaf
    decision and the perfect split of straddling triangles (docs/kdtree_native.md).
 
-   The big-node passes (big.cl) and the per-subtree builder (subtree.cl) make their decisions
-   only through these functions, from integer counts and min/max values that do not depend on
-   the order in which they were gathered, so the tree does not depend on where the build
-   switches from one to the other, on work-group sizes or on thread counts.
+   Every number that decides the tree is computed with the operations of the numpy builder
+   (core/accel/kdtree.py: _binned_best_splits, _rank_exact, _step, _clip_straddlers) in the
+   same precision and order: binned SAH and the leaf decision in IEEE double (fp64.cl),
+   exact SAH ranking in float32. So the kernels build the numpy builder's tree, bit for bit.
+   The big-node passes (big.cl) and the per-subtree builder (subtree.cl) decide only through
+   these functions, from integer counts and min/max values that do not depend on the order
+   in which they were gathered, so the tree does not depend on where the build switches from
+   one to the other, on work-group sizes or on thread counts.
 
-   Build constants (from KDTreeParams, as -D options): KD_KT, KD_KI (traversal, intersection
-   cost), KD_LAMBDA (empty bonus), KD_BPR (bins per reference), KD_MIN_BINS, KD_MAX_BINS,
-   KD_MAX_BAD (bad refines), KD_SMALL_NODE, KD_EXACT_MAX (nodes up to this size: exact SAH).
-   Node format constants: format.cl. Needs fp64.cl. */
+   Build constants (from KDTreeParams, as -D options): KD_KT_BITS, KD_KI_BITS, KD_2KI_BITS,
+   KD_LAMBDA_BITS, KD_BPR_BITS (traversal and intersection cost, twice the latter, empty bonus,
+   bins per reference: IEEE double bit patterns), KD_KT, KD_LAMBDA (the same as float32),
+   KD_MIN_BINS, KD_MAX_BINS, KD_MAX_BAD (bad refines), KD_SMALL_NODE, KD_EXACT_MAX (nodes up to
+   this size: exact SAH). Node format constants: format.cl. Needs fp64.cl. */
 
 #pragma OPENCL FP_CONTRACT OFF
+
+#define D_KT D_BITS(KD_KT_BITS)
+#define D_KI D_BITS(KD_KI_BITS)
+#define D_2KI D_BITS(KD_2KI_BITS)
+#define D_LAMBDA D_BITS(KD_LAMBDA_BITS)
+#define D_BPR D_BITS(KD_BPR_BITS)
+#define D_TWO D_BITS(0x4000000000000000UL)
+#define D_ONE D_BITS(0x3FF0000000000000UL)
 
 /* A reference: box lo in lo.xyz, triangle id (uint bits) in lo.w; box hi in hi.xyz. */
 typedef struct {
@@ -24,16 +37,9 @@ typedef struct {
     float hi[3];
 } Cell;
 
-/* A cell's dimensions and half surface area, scaled by a power of two of the scene (exact:
-   keeps areas of tiny or huge scenes away from float32 denormals and overflow). */
+/* The chosen split of a node (none: no candidate lies strictly inside the cell). */
 typedef struct {
-    float d[3];
-    float half_area;
-} Dims;
-
-/* The best split found for a node: cost INFINITY when no plane lies strictly inside. */
-typedef struct {
-    float cost;
+    int valid;
     int axis;
     float plane;
 } Choice;
@@ -61,116 +67,99 @@ inline float kd_max(float a, float b)
     return a < b ? b : a;
 }
 
-inline Dims cell_dims(const Cell* c, float pow2)
+/* ----------------------------------------------------------------------------------------
+   The SAH cost in double (kdtree.py _split_cost): a cell's dimensions and surface area, and
+   the cost of a split at `width_below` from its low side with the given counts. */
+
+typedef struct {
+    dbl d[3];
+    dbl area;
+} CellD;
+
+inline CellD cell_d(const Cell* c)
 {
-    Dims m;
+    CellD m;
     for (int a = 0; a < 3; a++)
-        m.d[a] = c->hi[a] * pow2 - c->lo[a] * pow2;
-    m.half_area = m.d[0] * m.d[1] + m.d[1] * m.d[2] + m.d[2] * m.d[0];
+        m.d[a] = D_SUB(D_FROM_F(c->hi[a]), D_FROM_F(c->lo[a]));
+    dbl sum = D_ADD(D_ADD(D_MUL(m.d[0], m.d[1]), D_MUL(m.d[1], m.d[2])), D_MUL(m.d[2], m.d[0]));
+    m.area = D_MUL(D_TWO, sum);
     return m;
 }
 
-/* What the SAH cost of a split on one axis needs of the cell. */
-typedef struct {
-    float width, perimeter, cap, kt_area, lo_scaled;
-} AxisTerms;
-
-inline AxisTerms axis_terms(const Dims* m, const Cell* c, int axis, float pow2)
+inline dbl split_cost_d(const CellD* m, int axis, dbl width_below, uint nb, uint na)
 {
-    AxisTerms t;
-    float s1 = m->d[axis == 0 ? 1 : 0], s2 = m->d[axis == 2 ? 1 : 2];
-    t.width = m->d[axis];
-    t.perimeter = s1 + s2;
-    t.cap = s1 * s2;
-    t.kt_area = KD_KT * m->half_area;
-    t.lo_scaled = c->lo[axis] * pow2;
-    return t;
+    dbl side_a = m->d[axis == 2 ? 0 : axis + 1], side_b = m->d[axis == 0 ? 2 : axis - 1];
+    dbl perimeter = D_ADD(side_a, side_b), cap = D_MUL(side_a, side_b);
+    dbl width_above = D_SUB(m->d[axis], width_below);
+    dbl area_below = D_MUL(D_TWO, D_ADD(D_MUL(width_below, perimeter), cap));
+    dbl area_above = D_MUL(D_TWO, D_ADD(D_MUL(width_above, perimeter), cap));
+    dbl sum = D_ADD(D_MUL(area_below, D_FROM_U(nb)), D_MUL(area_above, D_FROM_U(na)));
+    dbl cost = D_ADD(D_KT, D_DIV(D_MUL(D_KI, sum), m->area));
+    return (nb == 0u || na == 0u) ? D_MUL(cost, D_LAMBDA) : cost;
 }
 
-/* SAH cost of a split at `plane` times the cell's half area (no division, so no rounding
-   differences between devices): lambda (K_T A + K_I (A_below N_below + A_above N_above)),
-   lambda = 1 unless a side is empty. */
-inline float split_cost(const AxisTerms* t, float plane, float pow2, float nb, float na)
+inline dbl width_below_d(const Cell* c, int axis, float plane)
 {
-    float wb = plane * pow2 - t->lo_scaled;
-    float area_below = wb * t->perimeter + t->cap;
-    float area_above = (t->width - wb) * t->perimeter + t->cap;
-    float cost = t->kt_area + KD_KI * (area_below * nb + area_above * na);
-    return (nb == 0.0f || na == 0.0f) ? cost * KD_LAMBDA : cost;
-}
-
-inline int node_bins(uint n)
-{
-    int bins = (int)(KD_BPR * (float)n + 0.5f);
-    return bins < KD_MIN_BINS ? KD_MIN_BINS : (bins > KD_MAX_BINS ? KD_MAX_BINS : bins);
+    return D_SUB(D_FROM_F(plane), D_FROM_F(c->lo[axis]));
 }
 
 /* ----------------------------------------------------------------------------------------
-   Binned SAH with exact counts at the bin planes.
-
-   Plane k (k < bins - 1) of an axis is lo + (k + 1) (width / bins) in float32 (width / bins as
-   width * inv_bins[bins], a table from the host). A reference's low end goes into the bin
-   "number of planes <= lo", its high end into "number of planes < hi", found from a seed
-   (multiplying by an approximate bins / width) corrected against the planes themselves, so
-   below(k) = #(lo < plane k) and above(k) = #(hi > plane k) exactly. */
+   Binned SAH (kdtree.py _binned_best_splits): clip(round(bpr N), min, max) bins per axis;
+   a low end goes into bin floor((lo - cell lo) scale), a high end into ceil(...) - 1, in
+   float32, scale = float32(bins / width); plane k (k < bins - 1) is float32(cell lo +
+   (k + 1) (width / bins)) from double; costs in double. */
 
 typedef struct {
-    float plane[3][KD_MAX_BINS + 1];   /* plane k at k + 1; -inf at 0 and +inf after the last */
-    float seed_scale[3];
+    float plane[3][KD_MAX_BINS];
+    float scale[3];
     float lo[3];
     int bins;
 } BinPlanes;
 
-inline void bin_planes(const Cell* c, uint n, __global const float* inv_bins, BinPlanes* bp)
+inline int node_bins(uint n)
+{
+    int bins = d_round_to_int(D_MUL(D_BPR, D_FROM_U(n)));
+    return bins < KD_MIN_BINS ? KD_MIN_BINS : (bins > KD_MAX_BINS ? KD_MAX_BINS : bins);
+}
+
+inline void bin_planes(const Cell* c, uint n, BinPlanes* bp)
 {
     int bins = node_bins(n);
     bp->bins = bins;
-    float inv = inv_bins[bins];
+    dbl count = D_FROM_U((uint)bins);
     for (int a = 0; a < 3; a++) {
-        float width = c->hi[a] - c->lo[a];
-        float step = width * inv;
-        bp->plane[a][0] = -INFINITY;
+        dbl lo = D_FROM_F(c->lo[a]);
+        dbl width = D_SUB(D_FROM_F(c->hi[a]), lo);
+        dbl step = D_DIV(width, count);
         for (int k = 0; k < bins - 1; k++)
-            bp->plane[a][k + 1] = c->lo[a] + (float)(k + 1) * step;
-        bp->plane[a][bins] = INFINITY;
-        bp->seed_scale[a] = (float)bins / width;
+            bp->plane[a][k] = d_to_float_nearest(D_ADD(lo, D_MUL(D_FROM_U((uint)(k + 1)), step)));
+        bp->scale[a] = d_to_float_nearest(D_DIV(count, width));
         bp->lo[a] = c->lo[a];
     }
 }
 
-inline float bin_plane(const BinPlanes* bp, int axis, int k)
+/* floor / ceil of x >= 0 below 2^31 (PoCL calls floor and ceil out of line). */
+inline float floor_pos(float x)
 {
-    return bp->plane[axis][k + 1];
+    return (float)(int)x;
 }
 
-/* Bin of a low end (number of planes <= x) and of a high end (number of planes < x): the
-   seed, then one step each way without branches (a seed is off by at most one bin unless
-   the cell is tiny in float32 terms; the loops cover that). A reference lies inside its
-   cell, so the seed is >= 0. */
+inline float ceil_pos(float x)
+{
+    float f = (float)(int)x;
+    return f < x ? f + 1.0f : f;
+}
+
 inline int bin_of_low(const BinPlanes* bp, int axis, float x)
 {
-    const float* pl = bp->plane[axis];
-    int b = (int)kd_min((x - bp->lo[axis]) * bp->seed_scale[axis], (float)(bp->bins - 1));
-    b += pl[b + 1] <= x;
-    b -= pl[b] > x;
-    while (pl[b + 1] <= x)
-        b++;
-    while (pl[b] > x)
-        b--;
-    return b;
+    float b = floor_pos((x - bp->lo[axis]) * bp->scale[axis]);
+    return (int)kd_min(b, (float)(bp->bins - 1));
 }
 
 inline int bin_of_high(const BinPlanes* bp, int axis, float x)
 {
-    const float* pl = bp->plane[axis];
-    int b = (int)kd_min((x - bp->lo[axis]) * bp->seed_scale[axis], (float)(bp->bins - 1));
-    b += pl[b + 1] < x;
-    b -= pl[b] >= x;
-    while (pl[b + 1] < x)
-        b++;
-    while (pl[b] >= x)
-        b--;
-    return b;
+    float b = ceil_pos((x - bp->lo[axis]) * bp->scale[axis]) - 1.0f;
+    return (int)kd_min(kd_max(b, 0.0f), (float)(bp->bins - 1));
 }
 
 /* Histogram words of one node or chunk: [axis][low ends, high ends][bin], then the tight
@@ -199,10 +188,11 @@ inline void hist_add(uint* h, const BinPlanes* bp, Ref r)
     }
 }
 
-inline void consider(Choice* best, float cost, int axis, float plane)
+inline void consider_d(Choice* best, dbl* best_cost, dbl cost, int axis, float plane)
 {
-    if (cost < best->cost) {
-        best->cost = cost;
+    if (!best->valid || D_LT(cost, *best_cost)) {
+        best->valid = 1;
+        *best_cost = cost;
         best->axis = axis;
         best->plane = plane;
     }
@@ -210,37 +200,39 @@ inline void consider(Choice* best, float cost, int axis, float plane)
 
 /* Order of candidates: per axis the bin planes, then the cut at the tight low bound, then the
    one at the tight high bound; the first of equal costs wins. */
-inline Choice choose_binned(const uint* h, const BinPlanes* bp, const Cell* c, uint n,
-                            float pow2)
+inline Choice choose_binned(const uint* h, const BinPlanes* bp, const Cell* c, uint n)
 {
-    Dims m = cell_dims(c, pow2);
-    Choice best = {INFINITY, 0, 0.0f};
-    float count = (float)n;
+    CellD m = cell_d(c);
+    Choice best = {0, 0, 0.0f};
+    dbl best_cost = D_ZERO;
     for (int a = 0; a < 3; a++) {
-        AxisTerms t = axis_terms(&m, c, a, pow2);
         uint below = 0u, not_above = 0u;
         for (int k = 0; k < bp->bins - 1; k++) {
             below += h[(2 * a) * KD_MAX_BINS + k];
             not_above += h[(2 * a + 1) * KD_MAX_BINS + k];
-            float p = bin_plane(bp, a, k);
+            float p = bp->plane[a][k];
             if (p > c->lo[a] && p < c->hi[a])
-                consider(&best, split_cost(&t, p, pow2, (float)below, (float)(n - not_above)),
-                         a, p);
+                consider_d(&best, &best_cost,
+                           split_cost_d(&m, a, width_below_d(c, a, p), below, n - not_above), a, p);
         }
         float tight_lo = as_float(h[HIST_BOUNDS + a]);
         float tight_hi = as_float(h[HIST_BOUNDS + 3 + a]);
         if (tight_lo > c->lo[a] && tight_lo < c->hi[a])
-            consider(&best, split_cost(&t, tight_lo, pow2, 0.0f, count), a, tight_lo);
+            consider_d(&best, &best_cost, split_cost_d(&m, a, width_below_d(c, a, tight_lo), 0u, n),
+                       a, tight_lo);
         if (tight_hi > c->lo[a] && tight_hi < c->hi[a])
-            consider(&best, split_cost(&t, tight_hi, pow2, count, 0.0f), a, tight_hi);
+            consider_d(&best, &best_cost, split_cost_d(&m, a, width_below_d(c, a, tight_hi), n, 0u),
+                       a, tight_hi);
     }
     return best;
 }
 
 /* ----------------------------------------------------------------------------------------
-   Exact SAH for nodes of at most KD_EXACT_MAX references: every box bound is a candidate
-   (per axis all low ends, then all high ends, in reference order); planar references at the
-   plane go to the cheaper side.
+   Exact SAH for nodes of at most KD_EXACT_MAX references (kdtree.py _exact_best_splits,
+   _rank_exact): every box bound is a candidate (per axis all low ends, then all high ends,
+   in reference order); planar references at the plane go to the cheaper side; costs ranked
+   in float32 as ((wP + Q) N_below + (R - wP) N_above + K_T) (lambda if a side is empty), with
+   P, Q, R from the cell (scaled by 2 K_I / area).
 
    The boxes sit per axis in 2 `width` slots (width 4, 8 or KD_EXACT_MAX): low ends in slots
    0..width-1, high ends after them, unused slots +inf / -inf (they count on no side and are
@@ -280,9 +272,9 @@ inline void count_exact(ExactBoxes* x)
             float8 nb = (float8)(0.0f), na = (float8)(0.0f), np = (float8)(0.0f);
             for (int j = 0; j < w; j++) {
                 float8 l = (float8)(lo[j]), h = (float8)(hi[j]);
-                nb += l < p ? (float8)(1.0f) : (float8)(0.0f);
-                na += h > p ? (float8)(1.0f) : (float8)(0.0f);
-                np += (l == p) & (h == p) ? (float8)(1.0f) : (float8)(0.0f);
+                nb += (l < p) ? (float8)(1.0f) : (float8)(0.0f);
+                na += (h > p) ? (float8)(1.0f) : (float8)(0.0f);
+                np += ((l == p) & (h == p)) ? (float8)(1.0f) : (float8)(0.0f);
             }
             x->below[a].v[k] = nb;
             x->above[a].v[k] = na;
@@ -291,37 +283,49 @@ inline void count_exact(ExactBoxes* x)
     }
 }
 
-/* split_cost() of 8 candidates, in the same float32 operations. */
-inline float8 split_cost8(const AxisTerms* t, float8 p, float pow2, float8 nb, float8 na)
+/* kdtree.py _rank_exact's variant(): the same float32 operations in the same order. */
+inline float8 exact_cost8(float8 wp, float q, float r, float8 nb, float8 na)
 {
-    float8 wb = p * pow2 - t->lo_scaled;
-    float8 area_below = wb * t->perimeter + t->cap;
-    float8 area_above = (t->width - wb) * t->perimeter + t->cap;
-    float8 cost = t->kt_area + KD_KI * (area_below * nb + area_above * na);
-    return (nb == 0.0f) | (na == 0.0f) ? cost * KD_LAMBDA : cost;
+    float8 cost = wp + q;
+    cost *= nb;
+    cost += (r - wp) * na;
+    cost += KD_KT;
+    return ((nb == 0.0f) | (na == 0.0f)) ? cost * KD_LAMBDA : cost;
 }
 
 /* The cheapest candidate inside the cell (the first of equal costs), and its counts (what
    the exact recount gives). */
-inline Choice rank_exact(const ExactBoxes* x, const Cell* c, float pow2, uint* counts)
+inline Choice rank_exact(const ExactBoxes* x, const Cell* c, uint* counts)
 {
-    Dims m = cell_dims(c, pow2);
-    Choice best = {INFINITY, 0, 0.0f};
+    CellD m = cell_d(c);
+    float scale = d_to_float_nearest(D_MUL(D_2KI, D_DIV(D_ONE, m.area)));
+    float dims[3];
+    for (int a = 0; a < 3; a++)
+        dims[a] = d_to_float_nearest(m.d[a]);
+    Choice best = {0, 0, 0.0f};
+    float best_cost = INFINITY;
     int w = x->width;
     for (int a = 0; a < 3; a++) {
-        AxisTerms t = axis_terms(&m, c, a, pow2);
+        float side_a = dims[a == 2 ? 0 : a + 1], side_b = dims[a == 0 ? 2 : a - 1];
+        float p_ = (side_a + side_b) * scale;
+        float q = side_a * side_b * scale;
+        float r = dims[a] * p_ + q;
         Slots cost;
         for (int k = 0; k < w / 4; k++) {
             float8 p = x->cand[a].v[k];
+            int8 inside = (p > c->lo[a]) & (p < c->hi[a]);
+            float8 wp = inside ? (p - c->lo[a]) : (float8)(0.0f);
+            wp *= p_;
             float8 nb = x->below[a].v[k], na = x->above[a].v[k], np = x->planar[a].v[k];
-            float8 c1 = split_cost8(&t, p, pow2, nb + np, na);
-            float8 c2 = split_cost8(&t, p, pow2, nb, na + np);
-            float8 ck = (np > 0.0f) & (c2 < c1) ? c2 : c1;
-            cost.v[k] = (p > c->lo[a]) & (p < c->hi[a]) ? ck : (float8)(INFINITY);
+            float8 c0 = exact_cost8(wp, q, r, nb + np, na);
+            float8 c1 = exact_cost8(wp, q, r, nb, na + np);
+            float8 ck = ((np > 0.0f) & (c1 < c0)) ? c1 : c0;
+            cost.v[k] = inside ? ck : (float8)(INFINITY);
         }
         for (int e = 0; e < 2 * w; e++)
-            if (cost.s[e] < best.cost) {
-                best.cost = cost.s[e];
+            if (cost.s[e] < best_cost) {
+                best_cost = cost.s[e];
+                best.valid = 1;
                 best.axis = a;
                 best.plane = x->cand[a].s[e];
                 counts[0] = (uint)x->below[a].s[e];
@@ -333,9 +337,10 @@ inline Choice rank_exact(const ExactBoxes* x, const Cell* c, float pow2, uint* c
 }
 
 /* ----------------------------------------------------------------------------------------
-   Leaf or split, from the exact counts at the chosen plane (below: lo < plane, above:
-   hi > plane, planar: flat at the plane). Automatic termination with pbrt's bad refines,
-   which only nodes of at least KD_SMALL_NODE references may use. */
+   Leaf or split (kdtree.py _step), from the exact counts at the chosen plane (below:
+   lo < plane, above: hi > plane, planar: flat at the plane), in double. Automatic
+   termination with pbrt's bad refines, which only nodes of at least KD_SMALL_NODE references
+   may use. */
 
 typedef struct {
     int leaf;
@@ -344,18 +349,20 @@ typedef struct {
 } Decision;
 
 inline Decision decide(uint n, uint level, uint depth_cap, uint bad, Choice ch, uint nb,
-                       uint na, uint np, const Cell* c, float pow2)
+                       uint na, uint np, const Cell* c)
 {
     Decision d = {1, 1, bad};
-    if (n == 0u || level >= depth_cap || !(ch.cost < INFINITY))
+    if (n == 0u || level >= depth_cap || !ch.valid)
         return d;
-    Dims m = cell_dims(c, pow2);
-    AxisTerms t = axis_terms(&m, c, ch.axis, pow2);
-    float cost_below = split_cost(&t, ch.plane, pow2, (float)(nb + np), (float)na);
-    float cost_above = split_cost(&t, ch.plane, pow2, (float)nb, (float)(na + np));
-    d.planar_below = cost_below <= cost_above;
-    float cost = kd_min(cost_below, cost_above);
-    int is_bad = cost >= KD_KI * (float)n * m.half_area;
+    CellD m = cell_d(c);
+    if (!D_LT(D_ZERO, m.area))
+        m.area = D_ONE;                             /* as kdtree.py's safe_area */
+    dbl wb = width_below_d(c, ch.axis, ch.plane);
+    dbl cost_below = split_cost_d(&m, ch.axis, wb, nb + np, na);
+    dbl cost_above = split_cost_d(&m, ch.axis, wb, nb, na + np);
+    d.planar_below = D_LE(cost_below, cost_above);
+    dbl cost = D_MIN(cost_below, cost_above);
+    int is_bad = D_GE(cost, D_MUL(D_KI, D_FROM_U(n)));
     d.bad = bad + (uint)is_bad;
     d.leaf = is_bad && (d.bad >= KD_MAX_BAD || n < KD_SMALL_NODE);
     return d;
@@ -379,12 +386,15 @@ inline void child_cell(const Cell* parent, int axis, float plane, int above, Cel
         child->hi[axis] = plane;
 }
 
-/* SAH share of one node (area / root area times K_T or K_I N) in fixed point, 2^-32 units:
-   integer sums do not depend on their order. */
+/* SAH share of one node (area / root area times K_T or K_I N, float32) in fixed point, 2^-32
+   units: integer sums do not depend on their order. */
 inline long sah_fixed(const Cell* c, float pow2, float inv_root_half_area, float weight)
 {
-    Dims m = cell_dims(c, pow2);
-    return (long)(weight * (m.half_area * inv_root_half_area) * 0x1p32f);
+    float d[3];
+    for (int a = 0; a < 3; a++)
+        d[a] = c->hi[a] * pow2 - c->lo[a] * pow2;
+    float half_area = d[0] * d[1] + d[1] * d[2] + d[2] * d[0];
+    return (long)(weight * (half_area * inv_root_half_area) * 0x1p32f);
 }
 
 /* ----------------------------------------------------------------------------------------

@@ -34,7 +34,6 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
                              __global const float* restrict vertices,
                              __global const uint* restrict triangles,
                              __global const uint* restrict roots,
-                             __global const float* restrict inv_bins,
                              __global Ref* restrict scratch,
                              __global uint2* restrict rec_words,
                              __global uint* restrict rec_meta,
@@ -89,7 +88,7 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
         Entry e = stack[--sp];
         uint level = root_level + e.level;
         uint top = e.start + e.count;
-        Choice ch = {INFINITY, 0, 0.0f};
+        Choice ch = {0, 0, 0.0f};
         Decision d = {1, 1, e.bad};
         uint counts[3] = {0u, 0u, 0u};       /* below, above, planar at the chosen plane */
         if (e.count > 0u && level < depth_cap) {
@@ -113,16 +112,16 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
                         }
                     count_exact(&x);
                 }
-                ch = rank_exact(&x, &e.cell, pow2, counts);
+                ch = rank_exact(&x, &e.cell, counts);
             } else {
                 BinPlanes bp;
-                bin_planes(&e.cell, e.count, inv_bins, &bp);
+                bin_planes(&e.cell, e.count, &bp);
                 uint h[HIST_WORDS];
                 hist_clear(h);
                 for (uint i = 0; i < e.count; i++)
                     hist_add(h, &bp, scr[e.start + i]);
-                ch = choose_binned(h, &bp, &e.cell, e.count, pow2);
-                if (ch.cost < INFINITY)
+                ch = choose_binned(h, &bp, &e.cell, e.count);
+                if (ch.valid)
                     for (uint i = 0; i < e.count; i++) {
                         Ref r = scr[e.start + i];
                         float lo = axis_of(r.lo, ch.axis), hi = axis_of(r.hi, ch.axis);
@@ -131,9 +130,9 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
                         counts[2] += (lo == ch.plane) & (hi == ch.plane);
                     }
             }
-            if (ch.cost < INFINITY)
+            if (ch.valid)
                 d = decide(e.count, level, depth_cap, e.bad, ch, counts[0], counts[1], counts[2],
-                           &e.cell, pow2);
+                           &e.cell);
         }
         if (recs >= rec_cap) {
             status = SUBTREE_RECORDS;
