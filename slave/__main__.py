@@ -166,9 +166,10 @@ def setup_logging(verbose: bool, log_file: str | None) -> None:
     formatter = logging.Formatter(LOG_FORMAT, datefmt="%Y-%m-%d %H:%M:%S")
     for handler in handlers:
         handler.setFormatter(formatter)
-    log.handlers[:] = handlers
+    root = logging.getLogger()   # other packages' warnings (zeroconf's) get the same format
+    root.handlers[:] = handlers
+    root.setLevel(logging.WARNING)
     log.setLevel(logging.DEBUG if verbose else logging.INFO)
-    log.propagate = False
 
 
 def print_status(args) -> int:
