@@ -201,8 +201,8 @@ def test_same_tree_with_one_and_two_pocl_threads(builder):
 # The perfect split and the double arithmetic, kernel by kernel
 
 CLIP_TEST = """
-__kernel void clip_cases(__global const float* vertices, __global const uint* triangles,
-                         __global const float* cells, __global const int* axes,
+__kernel void clip_cases(__global const float* corners, __global const float* cells,
+                         __global const int* axes,
                          __global const float* planes, __global float* out, uint count)
 {
     uint i = get_global_id(0);
@@ -214,7 +214,7 @@ __kernel void clip_cases(__global const float* vertices, __global const uint* tr
         c.hi[a] = cells[8 * i + 4 + a];
     }
     Ref below, above;
-    int kept = clip_straddler(vertices, triangles, i, &c, axes[i], planes[i], &below, &above);
+    int kept = clip_straddler(corners, i, &c, axes[i], planes[i], &below, &above);
     float box[12] = {below.lo.x, below.lo.y, below.lo.z, below.hi.x, below.hi.y, below.hi.z,
                      above.lo.x, above.lo.y, above.lo.z, above.hi.x, above.hi.y, above.hi.z};
     for (int k = 0; k < 12; k++)
@@ -250,8 +250,8 @@ def test_clipping_matches_one_polygon_at_a_time(builder, soft_builder, soft):
     cells = np.zeros((count, 8), np.float32)
     cells[:, 0:3], cells[:, 4:7] = cell_lo, cell_hi
     out = run_kernel(soft_builder if soft else builder, CLIP_TEST, "clip_cases", count,
-                     tri.reshape(-1, 3), np.arange(3 * count, dtype=np.uint32), cells, axis,
-                     plane, out_shape=(count, 13), out_dtype=np.float32)
+                     tri.reshape(-1, 9), cells, axis, plane, out_shape=(count, 13),
+                     out_dtype=np.float32)
     for k in range(count):
         expected = _reference_halves(tri[k].astype(np.float64), cell_lo[k], cell_hi[k], axis[k],
                                      plane[k])

@@ -243,6 +243,7 @@ class _BuildState:
         self.triangle_count = len(triangles)
         self.vertices = builder._buffer(vertices)
         self.triangles = builder._buffer(triangles)
+        self.corners = builder._buffer(nbytes=36 * len(triangles))
         self.max_bins = int(params.max_bins)
         self.queue_refs = None                 # device Ref array of subtree roots' references
         self.queue_used = 0
@@ -264,7 +265,8 @@ class _BuildState:
         u4 = np.uint32
         refs = b._buffer(nbytes=32 * T)
         keep = b._buffer(nbytes=T)
-        b._run(k["init_refs"], T, self.vertices, self.triangles, refs, keep, u4(T))
+        b._run(k["init_refs"], T, self.vertices, self.triangles, refs, keep, self.corners, u4(T))
+        self.vertices = self.triangles = None
         flags = b._read(keep, np.uint8, T)
         kept = int(flags.sum())
         if kept < T:
@@ -355,8 +357,8 @@ class _BuildState:
             b._run(k["big_recount"], C, level_refs, d_chunks, d_choice, d_counts, u4(C))
             b._run(k["big_decide"], m, d_node_chunks, d_counts, d_choice, d_cells, d_n, d_bad,
                    d_decision, d_sah, u4(m), u4(level), u4(self.depth_cap), self.pow2, self.inv_root)
-            b._run(k["big_classify"], C, level_refs, d_chunks, d_decision, d_cells, self.vertices,
-                   self.triangles, d_out, u4(C))
+            b._run(k["big_classify"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
+                   d_out, u4(C))
             decision = b._read(d_decision, u4, (m, 4))
             out = b._read(d_out, u4, (C, 2)).astype(np.int64)
             sah = b._read(d_sah, np.int64, m)
@@ -414,8 +416,8 @@ class _BuildState:
                 dest[:, 2 * side + 1] = base + offset[:-1] - node_offset[chunk_node]
             next_refs = b._buffer(nbytes=32 * max(next_total, 1))
             d_dest = b._buffer(dest)
-            b._run(k["big_scatter"], C, level_refs, d_chunks, d_decision, d_cells, self.vertices,
-                   self.triangles, d_dest, next_refs, self.queue_refs, u4(C))
+            b._run(k["big_scatter"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
+                   d_dest, next_refs, self.queue_refs, u4(C))
             b.queue.finish()
 
             # Inner nodes of this level (placed later), and the next level's big nodes.
@@ -497,8 +499,8 @@ class _BuildState:
             d_result = b._buffer(nbytes=16 * len(batch))
             d_sah = b._buffer(nbytes=8 * len(batch))
             t0 = time.perf_counter()
-            b._run(k["build_subtrees"], len(batch), self.queue_refs, self.vertices,
-                   self.triangles, d_roots, scratch, records[0], records[1],
+            b._run(k["build_subtrees"], len(batch), self.queue_refs, self.corners, d_roots,
+                   scratch, records[0], records[1],
                    leafbuf, d_levels, d_result, d_sah, u4(len(batch)), self.pow2, self.inv_root,
                    u4(self.depth_cap))
             result = b._read(d_result, u4, (len(batch), 4)).astype(np.int64)

@@ -126,8 +126,7 @@ __kernel void big_decide(__global const uint2* restrict node_chunks,
 __kernel void big_classify(__global const Ref* restrict refs, __global const uint4* restrict chunks,
                            __global const uint4* restrict decision,
                            __global const float* restrict cells,
-                           __global const float* restrict vertices,
-                           __global const uint* restrict triangles, __global uint2* restrict out,
+                           __global const float* restrict corners, __global uint2* restrict out,
                            uint chunk_count)
 {
     uint c = get_global_id(0);
@@ -147,8 +146,8 @@ __kernel void big_classify(__global const Ref* restrict refs, __global const uin
         Ref r = refs[i], below, above;
         int sides = ref_sides(r, axis, plane, (d.x >> 1) & 1u);
         if (sides == 3)
-            sides = clip_straddler(vertices, triangles, ref_triangle(r), &cell, axis, plane,
-                                   &below, &above);
+            sides = clip_straddler(corners, ref_triangle(r), &cell, axis, plane, &below,
+                                   &above);
         nb += sides & 1;
         na += (sides >> 1) & 1;
     }
@@ -160,8 +159,7 @@ __kernel void big_classify(__global const Ref* restrict refs, __global const uin
 __kernel void big_scatter(__global const Ref* restrict refs, __global const uint4* restrict chunks,
                           __global const uint4* restrict decision,
                           __global const float* restrict cells,
-                          __global const float* restrict vertices,
-                          __global const uint* restrict triangles,
+                          __global const float* restrict corners,
                           __global const uint4* restrict dest, __global Ref* restrict next,
                           __global Ref* restrict queue, uint chunk_count)
 {
@@ -186,8 +184,8 @@ __kernel void big_scatter(__global const Ref* restrict refs, __global const uint
         Ref r = refs[i], below = r, above = r;
         int sides = ref_sides(r, axis, plane, (d.x >> 1) & 1u);
         if (sides == 3)
-            sides = clip_straddler(vertices, triangles, ref_triangle(r), &cell, axis, plane,
-                                   &below, &above);
+            sides = clip_straddler(corners, ref_triangle(r), &cell, axis, plane, &below,
+                                   &above);
         if (sides & 1)
             below_to[to.y + nb++] = below;
         if (sides & 2)
@@ -196,10 +194,12 @@ __kernel void big_scatter(__global const Ref* restrict refs, __global const uint
 }
 
 /* The first references: box of every triangle and whether it is kept (its cross product in
-   double is not exactly zero, the same operations as numpy's np.cross in kdtree.py). */
+   double is not exactly zero, the same operations as numpy's np.cross in kdtree.py); and the
+   triangles' corners side by side (9 floats each) for the clipping. */
 __kernel void init_refs(__global const float* restrict vertices,
                         __global const uint* restrict triangles, __global Ref* restrict refs,
-                        __global uchar* restrict keep, uint triangle_count)
+                        __global uchar* restrict keep, __global float* restrict corners,
+                        uint triangle_count)
 {
     uint t = get_global_id(0);
     if (t >= triangle_count)
@@ -207,8 +207,10 @@ __kernel void init_refs(__global const float* restrict vertices,
     float p[3][3];
     for (int k = 0; k < 3; k++) {
         uint v = triangles[3 * t + k];
-        for (int a = 0; a < 3; a++)
+        for (int a = 0; a < 3; a++) {
             p[k][a] = vertices[3 * v + a];
+            corners[9 * (size_t)t + 3 * k + a] = p[k][a];
+        }
     }
     dbl e1[3], e2[3];
     for (int a = 0; a < 3; a++) {

@@ -188,6 +188,83 @@ inline void hist_add(uint* h, const BinPlanes* bp, Ref r)
     }
 }
 
+#ifndef KDTRACE_SOFT_FP64
+
+/* split_cost_d() of 4 candidates of one axis (native doubles), the same operations per lane. */
+inline double4 split_cost4(const CellD* m, int axis, double4 width_below, double4 nb, double4 na)
+{
+    double side_a = m->d[axis == 2 ? 0 : axis + 1], side_b = m->d[axis == 0 ? 2 : axis - 1];
+    double perimeter = side_a + side_b, cap = side_a * side_b;
+    double4 width_above = m->d[axis] - width_below;
+    double4 area_below = 2.0 * (width_below * perimeter + cap);
+    double4 area_above = 2.0 * (width_above * perimeter + cap);
+    double4 cost = D_KT + (D_KI * (area_below * nb + area_above * na)) / m->area;
+    return ((nb == 0.0) | (na == 0.0)) ? cost * D_LAMBDA : cost;
+}
+
+#define BINNED_SLOTS (KD_MAX_BINS + 4)       /* bin planes, tight low, tight high, padding */
+
+/* Order of candidates: per axis the bin planes, then the cut at the tight low bound, then the
+   one at the tight high bound; the first of equal costs wins. All costs are formed four at a
+   time, then the first minimum is looked up. */
+inline Choice choose_binned(const uint* h, const BinPlanes* bp, const Cell* c, uint n)
+{
+    CellD m = cell_d(c);
+    union {
+        double4 v[BINNED_SLOTS / 4];
+        double s[BINNED_SLOTS];
+    } plane, nb, na, cost[3];
+    float planes[3][BINNED_SLOTS];
+    int slots = bp->bins + 1;                /* bins - 1 planes and two tight cuts */
+    int blocks = (slots + 3) / 4;
+    double lowest = INFINITY;
+    for (int a = 0; a < 3; a++) {
+        uint below = 0u, not_above = 0u;
+        for (int k = 0; k < bp->bins - 1; k++) {
+            below += h[(2 * a) * KD_MAX_BINS + k];
+            not_above += h[(2 * a + 1) * KD_MAX_BINS + k];
+            planes[a][k] = bp->plane[a][k];
+            nb.s[k] = (double)below;
+            na.s[k] = (double)(n - not_above);
+        }
+        planes[a][slots - 2] = as_float(h[HIST_BOUNDS + a]);
+        planes[a][slots - 1] = as_float(h[HIST_BOUNDS + 3 + a]);
+        nb.s[slots - 2] = 0.0;
+        na.s[slots - 2] = (double)n;
+        nb.s[slots - 1] = (double)n;
+        na.s[slots - 1] = 0.0;
+        for (int k = slots; k < 4 * blocks; k++) {
+            planes[a][k] = c->lo[a];             /* never inside */
+            nb.s[k] = na.s[k] = 0.0;
+        }
+        double lo = (double)c->lo[a];
+        for (int k = 0; k < 4 * blocks; k++)
+            plane.s[k] = (double)planes[a][k] - lo;
+        for (int k = 0; k < blocks; k++)
+            cost[a].v[k] = split_cost4(&m, a, plane.v[k], nb.v[k], na.v[k]);
+        for (int k = 0; k < 4 * blocks; k++) {
+            float p = planes[a][k];
+            if (!(p > c->lo[a] && p < c->hi[a]))
+                cost[a].s[k] = INFINITY;
+            lowest = cost[a].s[k] < lowest ? cost[a].s[k] : lowest;
+        }
+    }
+    Choice best = {0, 0, 0.0f};
+    if (!(lowest < INFINITY))
+        return best;
+    for (int a = 0; a < 3; a++)
+        for (int k = 0; k < slots; k++)
+            if (cost[a].s[k] == lowest) {
+                best.valid = 1;
+                best.axis = a;
+                best.plane = planes[a][k];
+                return best;
+            }
+    return best;
+}
+
+#else
+
 inline void consider_d(Choice* best, dbl* best_cost, dbl cost, int axis, float plane)
 {
     if (!best->valid || D_LT(cost, *best_cost)) {
@@ -227,6 +304,8 @@ inline Choice choose_binned(const uint* h, const BinPlanes* bp, const Cell* c, u
     return best;
 }
 
+#endif
+
 /* ----------------------------------------------------------------------------------------
    Exact SAH for nodes of at most KD_EXACT_MAX references (kdtree.py _exact_best_splits,
    _rank_exact): every box bound is a candidate (per axis all low ends, then all high ends,
@@ -261,12 +340,17 @@ inline int exact_width(uint n)
     return n <= 4u ? 4 : (n <= 8u ? 8 : KD_EXACT_MAX);
 }
 
+/* Counts at every candidate; the flat-at-the-plane count only on axes where some box is
+   flat (rare, as kdtree.py does). */
 inline void count_exact(ExactBoxes* x)
 {
     int w = x->width;
     for (int a = 0; a < 3; a++) {
         const float* lo = x->cand[a].s;
         const float* hi = x->cand[a].s + w;
+        int flat = 0;
+        for (int j = 0; j < w; j++)
+            flat |= lo[j] == hi[j];
         for (int k = 0; k < w / 4; k++) {
             float8 p = x->cand[a].v[k];
             float8 nb = (float8)(0.0f), na = (float8)(0.0f), np = (float8)(0.0f);
@@ -274,8 +358,12 @@ inline void count_exact(ExactBoxes* x)
                 float8 l = (float8)(lo[j]), h = (float8)(hi[j]);
                 nb += (l < p) ? (float8)(1.0f) : (float8)(0.0f);
                 na += (h > p) ? (float8)(1.0f) : (float8)(0.0f);
-                np += ((l == p) & (h == p)) ? (float8)(1.0f) : (float8)(0.0f);
             }
+            if (flat)
+                for (int j = 0; j < w; j++) {
+                    float8 l = (float8)(lo[j]), h = (float8)(hi[j]);
+                    np += ((l == p) & (h == p)) ? (float8)(1.0f) : (float8)(0.0f);
+                }
             x->below[a].v[k] = nb;
             x->above[a].v[k] = na;
             x->planar[a].v[k] = np;
@@ -293,8 +381,15 @@ inline float8 exact_cost8(float8 wp, float q, float r, float8 nb, float8 na)
     return ((nb == 0.0f) | (na == 0.0f)) ? cost * KD_LAMBDA : cost;
 }
 
-/* The cheapest candidate inside the cell (the first of equal costs), and its counts (what
-   the exact recount gives). */
+inline float hmin8(float8 v)
+{
+    float4 a = v.lo < v.hi ? v.lo : v.hi;
+    float2 b = a.lo < a.hi ? a.lo : a.hi;
+    return b.x < b.y ? b.x : b.y;
+}
+
+/* The cheapest candidate inside the cell (the first of equal costs, in the order axis, slot),
+   and its counts (what the exact recount gives). */
 inline Choice rank_exact(const ExactBoxes* x, const Cell* c, uint* counts)
 {
     CellD m = cell_d(c);
@@ -302,16 +397,15 @@ inline Choice rank_exact(const ExactBoxes* x, const Cell* c, uint* counts)
     float dims[3];
     for (int a = 0; a < 3; a++)
         dims[a] = d_to_float_nearest(m.d[a]);
-    Choice best = {0, 0, 0.0f};
-    float best_cost = INFINITY;
-    int w = x->width;
+    int blocks = x->width / 4;
+    float8 cost[3][2 * KD_EXACT_MAX / 8];
+    float8 least = (float8)(INFINITY);
     for (int a = 0; a < 3; a++) {
         float side_a = dims[a == 2 ? 0 : a + 1], side_b = dims[a == 0 ? 2 : a - 1];
         float p_ = (side_a + side_b) * scale;
         float q = side_a * side_b * scale;
         float r = dims[a] * p_ + q;
-        Slots cost;
-        for (int k = 0; k < w / 4; k++) {
+        for (int k = 0; k < blocks; k++) {
             float8 p = x->cand[a].v[k];
             int8 inside = (p > c->lo[a]) & (p < c->hi[a]);
             float8 wp = inside ? (p - c->lo[a]) : (float8)(0.0f);
@@ -320,19 +414,30 @@ inline Choice rank_exact(const ExactBoxes* x, const Cell* c, uint* counts)
             float8 c0 = exact_cost8(wp, q, r, nb + np, na);
             float8 c1 = exact_cost8(wp, q, r, nb, na + np);
             float8 ck = ((np > 0.0f) & (c1 < c0)) ? c1 : c0;
-            cost.v[k] = inside ? ck : (float8)(INFINITY);
+            ck = inside ? ck : (float8)(INFINITY);
+            cost[a][k] = ck;
+            least = ck < least ? ck : least;
         }
-        for (int e = 0; e < 2 * w; e++)
-            if (cost.s[e] < best_cost) {
-                best_cost = cost.s[e];
+    }
+    Choice best = {0, 0, 0.0f};
+    float lowest = hmin8(least);
+    if (!(lowest < INFINITY))
+        return best;
+    const float8 lane = (float8)(0.0f, 1.0f, 2.0f, 3.0f, 4.0f, 5.0f, 6.0f, 7.0f);
+    for (int a = 0; a < 3; a++)
+        for (int k = 0; k < blocks; k++) {
+            float first = hmin8(cost[a][k] == lowest ? lane : (float8)(8.0f));
+            if (first < 8.0f) {
+                int e = 8 * k + (int)first;
                 best.valid = 1;
                 best.axis = a;
                 best.plane = x->cand[a].s[e];
                 counts[0] = (uint)x->below[a].s[e];
                 counts[1] = (uint)x->above[a].s[e];
                 counts[2] = (uint)x->planar[a].s[e];
+                return best;
             }
-    }
+        }
     return best;
 }
 
@@ -441,18 +546,16 @@ inline int clip_face(dbl p[3][CLIP_VERTS], int n, int axis, dbl value, int keep_
     return m;
 }
 
-/* Clip the triangle of a straddling reference for both children. Returns bit 1 if the below
-   half is kept (its box in *below), bit 2 for the above half. */
-inline int clip_straddler(__global const float* vertices, __global const uint* triangles,
-                          uint tri, const Cell* c, int axis, float plane, Ref* below,
-                          Ref* above)
+/* Clip the triangle of a straddling reference (its corners: 9 floats per triangle) for both
+   children. Returns bit 1 if the below half is kept (its box in *below), bit 2 for the above
+   half. */
+inline int clip_straddler(__global const float* corners, uint tri, const Cell* c, int axis,
+                          float plane, Ref* below, Ref* above)
 {
     float corner[3][3];
-    for (int k = 0; k < 3; k++) {
-        uint v = triangles[3 * tri + k];
+    for (int k = 0; k < 3; k++)
         for (int a = 0; a < 3; a++)
-            corner[k][a] = vertices[3 * v + a];
-    }
+            corner[k][a] = corners[9 * (size_t)tri + 3 * k + a];
     dbl p[3][CLIP_VERTS];
     int flat[3];
     int n = 3;

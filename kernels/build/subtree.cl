@@ -31,8 +31,7 @@ typedef struct {
    the queue, reference count, then offset and capacity of its records, leaf references and
    scratch, and of its per-level counts. */
 __kernel void build_subtrees(__global const Ref* restrict queue,
-                             __global const float* restrict vertices,
-                             __global const uint* restrict triangles,
+                             __global const float* restrict corners,
                              __global const uint* restrict roots,
                              __global Ref* restrict scratch,
                              __global uint2* restrict rec_words,
@@ -199,8 +198,8 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
             Ref below = r, above = r;
             int sides = ref_sides(r, ch.axis, ch.plane, d.planar_below);
             if (sides == 3)
-                sides = clip_straddler(vertices, triangles, ref_triangle(r), &e.cell, ch.axis,
-                                       ch.plane, &below, &above);
+                sides = clip_straddler(corners, ref_triangle(r), &e.cell, ch.axis, ch.plane,
+                                       &below, &above);
             if (sides & 1) {
                 if (top + kb >= scr_cap) {
                     status = SUBTREE_SCRATCH;
