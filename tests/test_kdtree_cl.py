@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 
 from core.accel.compact import MODES, _standard_reencoded, compact_params, compact_tree
-from core.accel.kdtree import LEAF_TAG, KDTreeParams, build_kdtree
+from core.accel.kdtree import KDTreeParams, build_kdtree
 from core.accel.kdtree_cl import KDTreeBuilderCL
+from core.layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
 from core.opencl import kernel_source
 from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
 from core.scene.scene import Scene
@@ -28,7 +29,7 @@ from tests.test_kdtree import SCENES, _reference_halves, check_tree, cube_of_qua
 from tests.test_kdtree_compact import brute_force, check_invariants, random_rays, trace_compact
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SPLIT_FILES = ("build/format.cl", "build/fp64.cl", "build/split.cl")
+SPLIT_FILES = ("build/fp64.cl", "build/split.cl")
 
 
 @pytest.fixture(scope="module")
@@ -123,8 +124,8 @@ def test_breadth_first_layout_like_the_numpy_builder(builder):
     # compaction's fast path for mode standard applies, as for the numpy builder's trees.
     vertices, triangles = load_bunny()
     tree = builder.build(vertices, triangles)
-    inner = np.flatnonzero((tree.nodes[:, 0] & 3) != LEAF_TAG)
-    assert np.array_equal(tree.nodes[inner, 0] >> 2, 1 + 2 * np.arange(len(inner)))
+    inner = np.flatnonzero(PLAIN_TAG.get(tree.nodes[:, 0]) != LEAF_TAG)
+    assert np.array_equal(PLAIN_FIELD.get(tree.nodes[inner, 0]), 1 + 2 * np.arange(len(inner)))
     assert _standard_reencoded(tree, len(triangles), compact_params("standard")) is not None
 
 

@@ -26,10 +26,11 @@ import time
 
 import numpy as np
 
-from .kdtree import KDTree, KDTreeParams, LEAF_TAG, MAX_NODE_FIELD, _root_bounds
+from ..layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
+from .kdtree import KDTree, KDTreeParams, _root_bounds
 
-KERNEL_FILES = ("build/format.cl", "build/fp64.cl", "build/split.cl", "build/big.cl",
-                "build/subtree.cl", "build/layout.cl")
+KERNEL_FILES = ("build/fp64.cl", "build/split.cl", "build/big.cl", "build/subtree.cl",
+                "build/layout.cl")
 EXACT_MAX = 16          # nodes with up to this many references get exact SAH (as kdtree.py)
 ROOT_WORDS = 18         # subtree.cl's root record
 MAX_STACK = 64          # subtree.cl's KD_STACK: a subtree spans fewer levels than this
@@ -178,7 +179,7 @@ class KDTreeBuilderCL:
             raise ValueError("a triangle refers to a vertex that does not exist")
         if not np.isfinite(vertices).all():
             raise ValueError("vertex coordinates contain NaN or infinity")
-        if len(triangles) > MAX_NODE_FIELD:
+        if len(triangles) > PLAIN_FIELD.max:
             raise ValueError("too many triangles for the 30-bit leaf reference count")
         # Coordinates below FLT_MIN are treated as 0: devices that flush float32 denormals
         # then see the same numbers.
@@ -207,12 +208,12 @@ class KDTreeBuilderCL:
         nodes, leaf_indices = state.layout()
         lap("layout")
 
-        leaf = (nodes[:, 0] & 3) == LEAF_TAG
+        leaf = PLAIN_TAG.get(nodes[:, 0]) == LEAF_TAG
         tree = KDTree(nodes, leaf_indices, bounds)
         tree.stats = {
             "nodes": len(nodes),
             "leaves": int(leaf.sum()),
-            "empty_leaves": int((nodes[:, 0] == LEAF_TAG).sum()),
+            "empty_leaves": int((nodes[:, 0] == PLAIN_TAG.put(LEAF_TAG)).sum()),
             "depth": state.depth,
             "depth_cap": depth_cap,
             "references": len(leaf_indices),
@@ -564,7 +565,7 @@ class _BuildState:
         leaf_base[order] = _exclusive(e_leaf[order])[:-1]
         total_nodes = int(e_nodes.sum())
         total_refs = int(e_leaf.sum())
-        if total_nodes - 1 > MAX_NODE_FIELD:
+        if total_nodes - 1 > PLAIN_FIELD.max:
             raise ValueError("kd-tree too large for the 30-bit child index")
         self.depth = int(e_level.max()) if len(e_level) else 0
         nsub_entries = len(sub_of)
@@ -593,7 +594,7 @@ class _BuildState:
                 child[rows] = node_base[order[pos]]
             axis = np.concatenate([x["axis"] for x in self.inner])
             plane = np.concatenate([x["plane"] for x in self.inner])
-            nodes[inner_at, 0] = (axis | (child << 2)).astype(u4)
+            nodes[inner_at, 0] = (PLAIN_TAG.put(axis) | PLAIN_FIELD.put(child)).astype(u4)
             nodes[inner_at, 1] = plane
         return nodes, leaf_indices
 

@@ -43,15 +43,15 @@ __kernel void place_subtrees(__global const uint2* restrict store_words,
         uint meta = store_meta[r];
         uint2 base = bases[p.w + (meta & 63u)];
         uint at = base.x + (meta >> 6);
-        if ((w.x & 3u) == KD_LEAF_TAG) {
-            uint count = w.x >> KD_FIELD_SHIFT, offset = base.y + w.y;
+        if (KD_PLAIN_TAG(w.x) == KD_LEAF_TAG) {
+            uint count = KD_PLAIN_FIELD(w.x), offset = base.y + w.y;
             nodes[at] = (uint2)(w.x, offset);
             for (uint j = 0; j < count; j++)
                 leaf_indices[offset + j] = store_leaf_refs[leaf_run + j];
             leaf_run += count;
         } else {
-            uint child = bases[p.w + (meta & 63u) + 1u].x + (w.x >> KD_FIELD_SHIFT);
-            nodes[at] = (uint2)((w.x & 3u) | (child << KD_FIELD_SHIFT), w.y);
+            uint child = bases[p.w + (meta & 63u) + 1u].x + KD_PLAIN_FIELD(w.x);
+            nodes[at] = (uint2)(KD_PLAIN_TAG_PUT(KD_PLAIN_TAG(w.x)) | KD_PLAIN_FIELD_PUT(child), w.y);
         }
     }
 }

@@ -14,7 +14,7 @@
    KD_LAMBDA_BITS, KD_BPR_BITS (traversal and intersection cost, twice the latter, empty bonus,
    bins per reference: IEEE double bit patterns), KD_KT, KD_LAMBDA (the same as float32),
    KD_MIN_BINS, KD_MAX_BINS, KD_MAX_BAD (bad refines), KD_SMALL_NODE, KD_EXACT_MAX (nodes up to
-   this size: exact SAH). Node format constants: format.cl. Needs fp64.cl. */
+   this size: exact SAH). Node format: core/layout.py's header (KD_PLAIN_*). Needs fp64.cl. */
 
 #pragma OPENCL FP_CONTRACT OFF
 

@@ -143,7 +143,8 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
                 status = SUBTREE_LEAF_REFS;
                 break;
             }
-            rec_words[rec_off + recs] = (uint2)(KD_LEAF_TAG | (e.count << KD_FIELD_SHIFT),
+            rec_words[rec_off + recs] = (uint2)(KD_PLAIN_TAG_PUT(KD_LEAF_TAG)
+                                                | KD_PLAIN_FIELD_PUT(e.count),
                                                 leaf_prefix[e.level]);
             rec_meta[rec_off + recs] = meta;
             recs++;
@@ -161,7 +162,8 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
         }
         node_count[e.level + 1] = child_rank + 2u;
         levels = levels > e.level + 2u ? levels : e.level + 2u;
-        rec_words[rec_off + recs] = (uint2)((uint)ch.axis | (child_rank << KD_FIELD_SHIFT),
+        rec_words[rec_off + recs] = (uint2)(KD_PLAIN_TAG_PUT(ch.axis)
+                                            | KD_PLAIN_FIELD_PUT(child_rank),
                                             as_uint(ch.plane));
         rec_meta[rec_off + recs] = meta;
         recs++;
