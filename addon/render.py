@@ -144,19 +144,20 @@ def render(engine, depsgraph):
         secret = shared_secret(prefs)
         endpoints = find_slaves(engine, settings, prefs, secret)
         with Master(endpoints, secret=secret) as master:
+            legend = state.start_legend(master)   # the panel follows each slave from here on
             master.connect()
             engine.update_stats("", f"KD Trace | Sending scene to {len(master.slaves)} slave(s)")
             master.load_scene(scene)
             for problem in master.errors:
                 engine.report({"WARNING"}, f"KD Trace: {problem}")
-            legend = state.start_legend(master.slaves)
-            job = master.render(view, **job_options(settings))
+            job = master.render(view, **job_options(settings),
+                                hold_when_stranded=bool(settings.local_slaves))
             canvas = TileCanvas(engine, view, depsgraph.view_layer)
             try:
-                _receive_tiles(engine, job, canvas, legend, master)
+                _receive_tiles(engine, job, canvas, legend, master,
+                               local_takeover(engine, settings, prefs, secret, master))
             finally:
                 canvas.finish()
-                legend.frame_over(master)
             for problem in job.errors:
                 engine.report({"WARNING"}, f"KD Trace: {problem}")
             if job.error and not job.cancelled:
@@ -187,16 +188,42 @@ def render(engine, depsgraph):
     engine.report({"INFO"}, f"KD Trace: {summary}")
 
 
-def _receive_tiles(engine, job, canvas, legend, master):
+def local_takeover(engine, settings, prefs, secret, master):
+    """What to do when every slave is lost and none could be reconnected: once, local slaves
+    (where enabled) join the frame. The returned function says False when nothing is left."""
+    tried = []
+
+    def take_over() -> bool:
+        if tried or not settings.local_slaves:
+            return False
+        tried.append(True)
+        engine.update_stats("", f"KD Trace | Every slave lost: starting {settings.local_slaves} "
+                                "local slave(s)")
+        try:
+            endpoints = session.current().local_slaves.ensure(
+                settings.local_slaves, prefs.slave_python, prefs.slave_device, secret,
+                cancelled=engine.test_break)
+        except RuntimeError as error:
+            engine.report({"WARNING"}, f"KD Trace: local slaves did not start: {error}")
+            return False
+        for host, port in endpoints:
+            master.join(host, port)
+        return True
+
+    return take_over
+
+
+def _receive_tiles(engine, job, canvas, legend, master, take_over):
     """Show tiles as they arrive; stop promptly on Esc."""
     done, total = 0, len(job.tiles)
     while not job.finished:
         if engine.test_break():
             job.cancel()
             return
+        if job.stranded and not take_over():
+            job.give_up()    # its error names every slave and why it was lost
         tile = job.next_result(POLL_SECONDS)
         if tile is None:
-            legend.check_lost(master)
             continue
         canvas.add(tile)
         legend.tile_done(tile)

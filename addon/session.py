@@ -66,7 +66,9 @@ class SlaveStatus:
     device: str
     tiles: int = 0
     render_ms: float = 0.0
-    state: str = "idle"  # idle, rendering or lost
+    # What the master last heard (core.net.master.SlaveState): connecting, uploading, idle,
+    # waiting, loading, compiling, rendering, reconnecting or lost.
+    state: str = "idle"
 
     @property
     def ms_per_tile(self) -> float:
@@ -74,31 +76,30 @@ class SlaveStatus:
 
 
 class Legend:
-    """Which slave renders what, for the panel (read by draw(), written by the render thread)."""
+    """Which slave renders what, for the panel: what each slave is doing, read live from the
+    master (its threads keep it current, also while the scene uploads), and the tiles each
+    delivered (counted by the render thread). draw() only reads it."""
 
-    def __init__(self, connections):
-        self.slaves = {c.name: SlaveStatus(c.name, slave_color(c.name), c.device, state="rendering")
-                       for c in connections}
+    def __init__(self, master):
+        self._master = master
+        self._tiles: dict = {}      # slave name -> [tiles, render ms]
+
+    @property
+    def slaves(self) -> dict:
+        out = {}
+        for state in self._master.slave_states():
+            tiles, render_ms = self._tiles.get(state.name, (0, 0.0))
+            out[state.name] = SlaveStatus(state.name, slave_color(state.name), state.device,
+                                          tiles, render_ms, state.state)
+        return out
 
     def tile_done(self, tile):
-        status = self.slaves.get(tile.slave_name)
-        if status is not None:
-            status.tiles += 1
-            status.render_ms += tile.render_ms
-
-    def check_lost(self, master):
-        for connection in master.connections:
-            if connection.closed and connection.name in self.slaves:
-                self.slaves[connection.name].state = "lost"
-
-    def frame_over(self, master):
-        self.check_lost(master)
-        for status in self.slaves.values():
-            if status.state == "rendering":
-                status.state = "idle"
+        counts = self._tiles.setdefault(tile.slave_name, [0, 0.0])
+        counts[0] += 1
+        counts[1] += tile.render_ms
 
     def tiles_per_slave(self) -> dict:
-        return {name: s.tiles for name, s in self.slaves.items() if s.tiles}
+        return {name: tiles for name, (tiles, _) in self._tiles.items() if tiles}
 
 
 class Session:
@@ -111,8 +112,8 @@ class Session:
         self.legend: Legend | None = None
         self.local_reason = ""       # why the last render started local slaves ("": it did not)
 
-    def start_legend(self, connections) -> Legend:
-        self.legend = Legend(connections)
+    def start_legend(self, master) -> Legend:
+        self.legend = Legend(master)
         return self.legend
 
     def browser(self):

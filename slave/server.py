@@ -1,11 +1,22 @@
 """The slave's TCP server: one handler per master connection, the paper's Fig. 3b on this side.
 
-Per connection three threads:
+Per admitted connection four threads:
 - the reader receives messages; it answers scene queries/uploads, validates frames, and puts
   tile requests (and cancels) on the work queue at once, so a cancel is seen while a tile renders;
 - the connection's main thread renders tiles from the work queue (the one OpenCL device is
   shared by all connections: render calls are serialised with a lock);
-- the sender transmits finished tiles and replies, so rendering never waits on the network.
+- the sender transmits finished tiles and replies, so rendering never waits on the network;
+- the keeper says what the slave is doing (HEARTBEAT) while it has work, so a long tile or a
+  kernel build is never mistaken for silence, and closes the connection when the master has
+  been idle too long.
+
+Everything a master can make the slave hold is bounded: the work queue (a master may have at
+most protocol.MAX_TILES_IN_FLIGHT tiles requested and not yet sent; a tile requested twice is
+refused), the outbox (the render loop and the reader wait when it is full: backpressure), each
+message (protocol.Channel: limits, and a deadline for the whole message either way).
+Connections in their handshake are a pool of their own with a deadline for the whole handshake,
+so unauthenticated peers never hold the slots of authenticated masters; a master that finds
+every slot taken by masters at work is told "slave busy" with the reason.
 
 A misbehaving master (garbage, truncated or oversized frames) gets an ERROR message if possible
 and its connection is closed with a logged reason; the server keeps serving the others.
@@ -13,17 +24,17 @@ and its connection is closed with a logged reason; the server keeps serving the 
 from __future__ import annotations
 
 import collections
+import ipaddress
 import logging
-import queue
 import socket
 import threading
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from core.net import protocol
 from core.net.protocol import MsgType, ProtocolError
-from core.net.tiles import tile_grid
+from core.net.tiles import TileGrid
 from core.scene.model import SCENE_FORMAT_VERSION, SceneError, View
 from core.scene.scene import Scene
 
@@ -32,8 +43,14 @@ from .scene_cache import SceneCache
 
 log = logging.getLogger("kdtrace.slave")
 
-HANDSHAKE_TIMEOUT = 10.0   # seconds a new connection may take to say HELLO
-MAX_CONNECTIONS = 16
+MAX_CONNECTIONS = 16        # masters served at once
+MAX_HANDSHAKES = 32         # connections still in their handshake (the oldest gives way)
+HANDSHAKE_TIMEOUT_S = 10.0  # for the whole handshake, from accept to WELCOME
+IDLE_TIMEOUT_S = 300.0      # a master with no work here that says nothing this long is closed
+EVICTABLE_AFTER_S = 5.0     # an idle master gives its slot to a new one after this long
+OUTBOX_TILES = 2            # finished tiles waiting for the sender
+OUTBOX_MESSAGES = 64        # other replies waiting for the sender
+LINGER_S = 1.0              # reading what a closed peer still sends, so it sees our last words
 
 
 @dataclass
@@ -41,7 +58,7 @@ class Frame:
     frame_id: int
     scene: Scene
     view: View
-    tiles: list
+    tiles: TileGrid
     model: str = protocol.DEFAULT_MODEL   # "3a": the render thread sends each tile itself
     payload: str = "f32"
     compress: bool = False
@@ -49,123 +66,287 @@ class Frame:
 
 
 class WorkQueue:
-    """Tile requests in arrival order; a cancel removes the frame's queued tiles at once."""
+    """Tile requests in arrival order, bounded: at most `capacity` tiles requested and not yet
+    handed to the sender, no tile twice; a cancel removes the frame's queued tiles at once."""
 
-    def __init__(self):
+    def __init__(self, capacity: int = protocol.MAX_TILES_IN_FLIGHT):
+        self.capacity = capacity
         self._items = collections.deque()
+        self._in_flight = set()     # (frame id, tile) requested and not yet sent back
+        self._acks = 0              # cancel confirmations queued
+        self._closed = False
         self._ready = threading.Condition()
 
-    def put(self, item) -> None:
+    def request(self, frame: Frame, index: int) -> None:
+        key = (frame.frame_id, index)
         with self._ready:
-            self._items.append(item)
+            if key in self._in_flight:
+                raise ProtocolError(f"tile {index} requested again while it is in flight")
+            if len(self._in_flight) >= self.capacity:
+                raise ProtocolError(f"more than {self.capacity} tiles requested at once")
+            self._in_flight.add(key)
+            self._items.append(("tile", frame, index))
             self._ready.notify()
 
-    def cancel(self, frame: Frame | None, frame_id: int) -> None:
+    def cancel(self, frame: Frame | None, frame_id: int, ack: bool = True) -> None:
         with self._ready:
             if frame is not None:
                 frame.cancelled = True
-                self._items = collections.deque(
-                    i for i in self._items if not (i[0] == "tile" and i[1] is frame))
-            # The ack goes through the render loop, so it leaves after the tile being rendered.
-            self._items.append(("cancel_ack", frame_id))
+                kept = collections.deque()
+                for item in self._items:
+                    if item[0] == "tile" and item[1] is frame:
+                        self._in_flight.discard((frame.frame_id, item[2]))
+                    else:
+                        kept.append(item)
+                self._items = kept
+            if ack:
+                # The ack goes through the render loop, so it leaves after the tile being rendered.
+                if self._acks >= self.capacity:
+                    raise ProtocolError(f"more than {self.capacity} cancels unanswered")
+                self._acks += 1
+                self._items.append(("cancel_ack", frame_id))
             self._ready.notify()
 
-    def get(self):
+    def done(self, frame: Frame, index: int) -> None:
+        """The tile left the queue's care (handed to the sender, skipped or failed)."""
         with self._ready:
-            self._ready.wait_for(lambda: self._items)
-            return self._items.popleft()
+            self._in_flight.discard((frame.frame_id, index))
+
+    def get(self):
+        """The next item, or None once closed."""
+        with self._ready:
+            self._ready.wait_for(lambda: self._items or self._closed)
+            if self._closed:
+                return None
+            item = self._items.popleft()
+            if item[0] == "cancel_ack":
+                self._acks -= 1
+            return item
+
+    @property
+    def pending(self) -> bool:
+        return bool(self._items or self._in_flight)
+
+    def close(self) -> None:
+        with self._ready:
+            self._closed = True
+            self._items.clear()
+            self._in_flight.clear()
+            self._ready.notify_all()
+
+
+class Outbox:
+    """What the sender transmits, in order, bounded: at most OUTBOX_TILES finished tiles (the
+    render loop waits) and OUTBOX_MESSAGES other messages (the reader waits). After close()
+    nothing more is taken; what is queued still goes out."""
+
+    def __init__(self):
+        self._items = collections.deque()
+        self._counts = {True: 0, False: 0}
+        self._closed = False
+        self._changed = threading.Condition()
+
+    def put(self, item, is_tile: bool = False, block: bool = True) -> bool:
+        limit = OUTBOX_TILES if is_tile else OUTBOX_MESSAGES
+        with self._changed:
+            if block:
+                self._changed.wait_for(lambda: self._closed or self._counts[is_tile] < limit)
+            if self._closed or self._counts[is_tile] >= limit:
+                return False
+            self._items.append((is_tile, item))
+            self._counts[is_tile] += 1
+            self._changed.notify_all()
+            return True
+
+    def get(self):
+        """The next item; None when closed and empty."""
+        with self._changed:
+            self._changed.wait_for(lambda: self._items or self._closed)
+            if not self._items:
+                return None
+            is_tile, item = self._items.popleft()
+            self._counts[is_tile] -= 1
+            self._changed.notify_all()
+            return item
+
+    @property
+    def pending(self) -> bool:
+        return bool(self._items)
+
+    def close(self, discard: bool = False) -> None:
+        with self._changed:
+            self._closed = True
+            if discard:
+                self._items.clear()
+                self._counts = {True: 0, False: 0}
+            self._changed.notify_all()
 
 
 class MasterConnection:
     """One master's connection; run() is its main (render) thread."""
 
     def __init__(self, server: "SlaveServer", sock: socket.socket, peer: str):
-        self.server, self.sock, self.peer = server, sock, peer
+        self.server, self.peer = server, peer
+        self.channel = protocol.Channel(sock, "slave", grace_s=HANDSHAKE_TIMEOUT_S)
+        self.accepted = time.monotonic()
         self.work = WorkQueue()
-        self.outbox: queue.Queue = queue.Queue()
+        self.outbox = Outbox()
         self.frame: Frame | None = None
-        self._send_lock = threading.Lock()
+        self.heartbeat_s = protocol.HEARTBEAT_S
+        self.last_heard = self.accepted        # the master's last complete message
+        self.doing = None          # the render loop's (state, frame id, tile), None when idle
+        self.reader_doing = None   # the reader's, while it validates a scene upload
+        self.ended = threading.Event()
+        self._refused = False
 
     # -- threads
 
     def run(self) -> None:
-        sender = threading.Thread(target=self._send_loop, name=f"send {self.peer}", daemon=True)
         try:
-            if not self._handshake():
-                return
-            sender.start()
-            threading.Thread(target=self._read_loop, name=f"read {self.peer}", daemon=True).start()
-            self._render_loop()
+            admitted = self._handshake()
         except Exception:  # never let one connection take the server down
-            log.exception("master %s: unexpected error", self.peer)
+            log.exception("master %s: unexpected error in the handshake", self.peer)
+            admitted = False
         finally:
-            self.outbox.put(None)
-            if sender.is_alive():
-                sender.join(timeout=10)
-            self._close_socket()
+            self.server._handshake_over(self)
+        if not admitted:
+            self._close_socket(linger=self._refused)
+            self.server.activity.master_left(self.peer)
+            return
+        threads = [threading.Thread(target=target, name=f"{what} {self.peer}", daemon=True)
+                   for what, target in (("send", self._send_loop), ("read", self._read_loop),
+                                        ("keep", self._keep_loop))]
+        for thread in threads:
+            thread.start()
+        try:
+            self._render_loop()
+        except Exception:
+            log.exception("master %s: unexpected error", self.peer)
+            self._end()
+        finally:
+            self._end()
+            threads[0].join()   # the sender: bounded by the channel's send deadline
+            self._close_socket(linger=True, reader=threads[1])
             self.server.activity.master_left(self.peer)
             self.server._connection_closed(self)
 
+    def _end(self, error: str | None = None) -> None:
+        """Wind the connection down: `error` (if any) is the last thing sent; the sender then
+        ends the stream, the reader sees the master close, the render loop stops."""
+        if error is not None:
+            self.outbox.put((MsgType.ERROR, {"message": error}, None), block=False)
+        self.ended.set()
+        self.work.close()
+        self.outbox.close()
+
+    def _close_socket(self, linger: bool, reader: threading.Thread | None = None) -> None:
+        """Close so that the master reads our last message: end our direction, let it close
+        (reading and discarding what it still sends), then close."""
+        sock = self.channel.sock
+        if linger:
+            try:
+                sock.shutdown(socket.SHUT_WR)
+            except OSError:
+                linger = False
+        if linger and reader is not None and reader.is_alive():
+            reader.join(LINGER_S)
+        elif linger:
+            deadline = time.monotonic() + LINGER_S
+            try:
+                while time.monotonic() < deadline:
+                    try:
+                        if not sock.recv(65536):
+                            break
+                    except socket.timeout:
+                        pass
+            except OSError:
+                pass
+        self.channel.close()
+        if reader is not None:
+            reader.join(LINGER_S)
+
     def _handshake(self) -> bool:
-        self.sock.settimeout(HANDSHAKE_TIMEOUT)
+        deadline = self.accepted + HANDSHAKE_TIMEOUT_S
         try:
-            msg = protocol.recv_message(self.sock, self.server.limits, {MsgType.HELLO})
+            msg = self.channel.recv(self.server.limits, {MsgType.HELLO}, deadline=deadline)
             peer_scene = msg.header.get("scene_format_version")
             if peer_scene != SCENE_FORMAT_VERSION:
                 raise ProtocolError(f"scene format version mismatch: master uses version "
                                     f"{peer_scene}, slave uses version {SCENE_FORMAT_VERSION}")
             self.peer = f"{protocol.get_str(msg.header, 'name', 64) or '?'}@{self.peer}"
-            if self.server.secret is not None and not self._authenticate(msg.header.get("nonce")):
-                return False
+            if "heartbeat_s" in msg.header:
+                low, high = protocol.HEARTBEAT_RANGE_S
+                self.heartbeat_s = min(max(protocol.get_float(msg.header, "heartbeat_s"), low), high)
+            key = None
+            if self.server.secret is not None:
+                key = self._authenticate(msg.header.get("nonce"), deadline)
+                if key is None:
+                    return False
+            admitted, reason = self.server._admit(self)
+            if not admitted:
+                return self._refuse(f"slave busy: {reason}", busy=True)
         except protocol.VersionMismatch as exc:
             return self._refuse(f"protocol version mismatch: master speaks version "
                                 f"{exc.peer_version}, slave speaks version {protocol.PROTOCOL_VERSION}")
         except (ProtocolError, OSError) as exc:
             return self._refuse(str(exc) or type(exc).__name__)
-        self.sock.settimeout(None)  # masters stay connected, idle, between renders
-        info = self.server.device_info
-        protocol.send_message(self.sock, MsgType.WELCOME, {
-            "protocol_version": protocol.PROTOCOL_VERSION,
-            "scene_format_version": SCENE_FORMAT_VERSION,
-            "name": self.server.name, "id": self.server.slave_id,
-            "device": info["name"], "compute_units": info["compute_units"],
-            "memory": info["memory"], "platform": info.get("platform", ""),
-            "authenticated": self.server.secret is not None})
+        try:
+            if key is not None:
+                self.channel.authenticate(key)
+            self.channel.grace_s = protocol.SILENCE_S
+            info = self.server.device_info
+            self.channel.send(MsgType.WELCOME, {
+                "protocol_version": protocol.PROTOCOL_VERSION,
+                "scene_format_version": SCENE_FORMAT_VERSION,
+                "name": self.server.name, "id": self.server.slave_id,
+                "device": info["name"], "compute_units": info["compute_units"],
+                "memory": info["memory"], "platform": info.get("platform", ""),
+                "authenticated": key is not None})
+        except (ProtocolError, OSError) as exc:
+            log.info("master %s: left during the handshake: %s", self.peer, exc)
+            self.server._connection_closed(self)
+            return False
+        self.last_heard = time.monotonic()
         log.info("master %s connected", self.peer)
         self.server.activity.master_connected(self.peer)
         return True
 
-    def _authenticate(self, master_nonce) -> bool:
-        """The HMAC challenge-response (see core.net.protocol); nothing else is accepted before it."""
+    def _authenticate(self, master_nonce, deadline: float) -> bytes | None:
+        """The HMAC challenge-response (see core.net.protocol); nothing else is accepted before
+        it. Returns the session key, or None (refused)."""
         if master_nonce is None:
-            return self._refuse("this slave requires authentication: the master sent no nonce")
+            self._refuse("this slave requires authentication: the master sent no nonce")
+            return None
         master_nonce = protocol.check_hex(master_nonce, protocol.NONCE_HEX, "master nonce")
         secret, nonce = self.server.secret, protocol.new_nonce()
-        protocol.send_message(self.sock, MsgType.CHALLENGE, {
+        self.channel.send(MsgType.CHALLENGE, {
             "nonce": nonce, "proof": protocol.auth_proof(secret, "slave", master_nonce, nonce)})
         try:
-            reply = protocol.recv_message(self.sock, protocol.DEFAULT_LIMITS, {MsgType.AUTH})
+            reply = self.channel.recv(protocol.DEFAULT_LIMITS, {MsgType.AUTH}, deadline=deadline)
         except protocol.ConnectionClosed:
             log.warning("master %s refused: it left during authentication (no or another "
                         "secret)", self.peer)
-            return False
+            return None
         if not protocol.proof_ok(secret, "master", master_nonce, nonce, reply.header.get("proof")):
             time.sleep(0.2)  # a little friction for guessers
-            return self._refuse("authentication failed: wrong shared secret")
-        return True
+            self._refuse("authentication failed: wrong shared secret")
+            return None
+        return protocol.session_key(secret, master_nonce, nonce)
 
-    def _refuse(self, reason: str) -> bool:
+    def _refuse(self, reason: str, busy: bool = False) -> bool:
         log.warning("master %s refused: %s", self.peer, reason)
+        self._refused = True
         try:
-            protocol.send_message(self.sock, MsgType.ERROR, {"message": reason})
-        except OSError:
+            self.channel.send(MsgType.ERROR, {"message": reason, **({"busy": True} if busy else {})})
+        except (OSError, ProtocolError):
             pass
         return False
 
     def _read_loop(self) -> None:
         try:
             while True:
-                msg = protocol.recv_message(self.sock, self.server.limits, protocol.MASTER_TO_SLAVE)
+                msg = self.channel.recv(self.server.limits, protocol.MASTER_TO_SLAVE)
+                self.last_heard = time.monotonic()
                 if msg.type == MsgType.BYE:
                     log.info("master %s said bye", self.peer)
                     return
@@ -174,17 +355,63 @@ class MasterConnection:
                     return
                 self._handle(msg)
         except protocol.ConnectionClosed:
-            log.info("master %s disconnected", self.peer)
+            if not self.ended.is_set():
+                log.info("master %s disconnected", self.peer)
         except ProtocolError as exc:
             log.warning("master %s: closing connection: %s", self.peer, exc)
-            self.outbox.put((MsgType.ERROR, {"message": str(exc)}, None))
+            self._end(str(exc))
         except OSError as exc:
-            log.info("master %s: connection lost: %s", self.peer, exc)
+            if not self.ended.is_set():
+                log.info("master %s: connection lost: %s", self.peer, exc)
         except Exception:  # a bug or MemoryError: end this connection, keep the server
             log.exception("master %s: unexpected error", self.peer)
-            self.outbox.put((MsgType.ERROR, {"message": "internal error in the slave"}, None))
+            self._end("internal error in the slave")
         finally:
-            self.work.put(None)  # stops the render loop, which stops the sender
+            self.reader_doing = None
+            self._end()
+
+    def _keep_loop(self) -> None:
+        try:
+            self._keep()
+        except Exception:
+            log.exception("master %s: unexpected error", self.peer)
+            self._end()
+
+    def _keep(self) -> None:
+        """Heartbeats while there is work for this master; the idle deadline when there is none."""
+        while not self.ended.wait(self.heartbeat_s / 4):
+            now = time.monotonic()
+            if self.busy:
+                if now - self.channel.last_sent >= self.heartbeat_s / 2:
+                    try:
+                        self.channel.try_send(MsgType.HEARTBEAT, self._heartbeat())
+                    except (OSError, ProtocolError) as exc:
+                        log.info("master %s: heartbeat failed: %s", self.peer, exc)
+                        self._end()
+            elif now - self.last_heard > IDLE_TIMEOUT_S:
+                log.info("master %s: closing: idle for %.0f s", self.peer, now - self.last_heard)
+                self._end(f"closing: idle for {now - self.last_heard:.0f} s")
+
+    @property
+    def busy(self) -> bool:
+        """Something for this master is under way: the master may be waiting for it."""
+        return (self.doing is not None or self.reader_doing is not None or self.work.pending
+                or self.outbox.pending)
+
+    def evictable(self, now: float) -> float | None:
+        """Seconds this master has been idle if it may give its slot to another, else None."""
+        idle = now - self.last_heard
+        return idle if not self.busy and idle >= EVICTABLE_AFTER_S else None
+
+    def _heartbeat(self) -> dict:
+        doing = self.doing or self.reader_doing or ("waiting", None, None)
+        state, frame_id, tile = doing[:3]
+        fields = {"state": state}
+        if frame_id is not None:
+            fields["frame_id"] = frame_id
+        if tile is not None:
+            fields["tile"] = tile
+        return fields
 
     def _render_loop(self) -> None:
         while True:
@@ -192,65 +419,78 @@ class MasterConnection:
             if item is None:
                 return
             if item[0] == "cancel_ack":
-                self.outbox.put((MsgType.CANCEL, {"frame_id": item[1]}, None))
+                if not self.outbox.put((MsgType.CANCEL, {"frame_id": item[1]}, None)):
+                    return
                 continue
             _, frame, index = item
             if frame.cancelled:
+                self.work.done(frame, index)
                 continue
             x, y, w, h = frame.tiles[index]
-            start, built_before = time.perf_counter(), self.server.tracer.build_seconds
+            built_before = self.server.tracer.build_seconds
             try:
-                passes = self.server.render_tile(frame, x, y, w, h)
+                passes, ms = self.server.render_tile(
+                    frame, x, y, w, h, lambda state: self._doing(state, frame, index))
             except Exception as exc:  # a tracer failure ends this frame, not the slave
                 log.exception("master %s: rendering tile %d failed", self.peer, index)
                 frame.cancelled = True
+                self.work.done(frame, index)
                 self.outbox.put((MsgType.ERROR, {"frame_id": frame.frame_id,
                                                  "message": f"rendering failed: {exc}"}, None))
                 continue
-            ms = (time.perf_counter() - start) * 1000.0
+            finally:
+                self.doing = None
             self.server.activity.tile_rendered(self.peer, frame.frame_id, ms,
                                                self.server.tracer.build_seconds - built_before)
-            tile = ("tile", frame, {"frame_id": frame.frame_id, "tile": index, "x": x, "y": y,
-                                    "w": w, "h": h, "render_ms": round(ms, 3)}, passes)
+            tile = ("tile", frame, index, {"frame_id": frame.frame_id, "tile": index, "x": x,
+                                           "y": y, "w": w, "h": h, "render_ms": round(ms, 3)},
+                    passes)
             if frame.model == "3a":
                 # Fig. 3a: this thread transmits the tile itself before it renders the next.
                 try:
                     self._send(tile)
-                except OSError as exc:
+                except (OSError, ProtocolError) as exc:
                     log.info("master %s: send failed: %s", self.peer, exc)
-                    self._close_socket()
                     return
-            else:
-                self.outbox.put(tile)
+            elif not self.outbox.put(tile, is_tile=True):
+                return
+
+    def _doing(self, state: str, frame: Frame, index: int) -> None:
+        self.doing = (state, frame.frame_id, index)
 
     def _send(self, item) -> None:
         if item[0] == "tile":  # encoding (float16, zlib) happens here, off the render thread in 3b
-            _, frame, header, passes = item
+            _, frame, index, header, passes = item
+            self.work.done(frame, index)   # before the master can see it and ask for the next
             fields, arrays = protocol.encode_tile(passes, frame.payload, frame.compress)
             item = (MsgType.TILE_RESULT, {**header, **fields}, arrays)
             self.server.activity.sent(self.peer, frame.frame_id,
                                       sum(a.nbytes for a in arrays.values()))
-        with self._send_lock:
-            protocol.send_message(self.sock, *item)
+        self.channel.send(*item)
 
     def _send_loop(self) -> None:
-        while True:
-            item = self.outbox.get()
-            if item is None:
-                return
-            try:
-                self._send(item)
-            except OSError as exc:
-                log.info("master %s: send failed: %s", self.peer, exc)
-                self._close_socket()  # wakes the reader, which winds the connection down
-                return
-
-    def _close_socket(self) -> None:
         try:
-            self.sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
-        self.sock.close()
+            while True:
+                item = self.outbox.get()
+                if item is None:
+                    return
+                self._send(item)
+        except protocol.PeerTooSlow as exc:
+            log.warning("master %s: closing connection: %s", self.peer, exc)
+            self.outbox.close(discard=True)
+        except (OSError, ProtocolError) as exc:
+            if not self.ended.is_set():
+                log.info("master %s: send failed: %s", self.peer, exc)
+            self.outbox.close(discard=True)
+        except Exception:
+            log.exception("master %s: unexpected error", self.peer)
+            self.outbox.close(discard=True)
+        finally:
+            self._end()
+            try:   # our direction is over: the master sees the end after our last message
+                self.channel.sock.shutdown(socket.SHUT_WR)
+            except OSError:
+                pass
 
     # -- messages (reader thread)
 
@@ -262,10 +502,13 @@ class MasterConnection:
             self.outbox.put((MsgType.SCENE_READY, {"scene_hash": scene_hash, "present": present}, None))
         elif msg.type == MsgType.SCENE_UPLOAD:
             scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
+            self.reader_doing = ("loading", None, None)
             try:
                 scene = Scene.from_wire(msg.arrays)
             except SceneError as exc:
                 raise ProtocolError(f"invalid scene upload: {exc}") from None
+            finally:
+                self.reader_doing = None
             if scene.hash != scene_hash:
                 raise ProtocolError(f"scene upload hash mismatch: announced {scene_hash}, "
                                     f"content hashes to {scene.hash}")
@@ -283,7 +526,7 @@ class MasterConnection:
             if frame is None or frame.frame_id != frame_id or frame.cancelled:
                 return
             index = protocol.get_int(h, "tile", 0, len(frame.tiles) - 1)
-            self.work.put(("tile", frame, index))
+            self.work.request(frame, index)
         elif msg.type == MsgType.CANCEL:
             frame_id = protocol.get_int(h, "frame_id")
             frame = self.frame if self.frame and self.frame.frame_id == frame_id else None
@@ -293,9 +536,11 @@ class MasterConnection:
             raise ProtocolError(f"unexpected {msg.type.name} after the handshake")
 
     def _start_frame(self, h: dict) -> None:
+        """Validate the whole frame now (scene, view against the scene, tiles, formats): a
+        frame that is accepted can be rendered."""
         frame_id = protocol.get_int(h, "frame_id")
-        if self.frame is not None:
-            self.frame.cancelled = True  # a new frame supersedes the old one
+        if self.frame is not None:   # a new frame supersedes the old one
+            self.work.cancel(self.frame, self.frame.frame_id, ack=False)
         self.frame = None
         try:
             scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
@@ -307,6 +552,10 @@ class MasterConnection:
             tile_w = protocol.get_int(h, "tile_size", 1, protocol.MAX_TILE_SIZE)
             tile_h = protocol.get_int(h, "tile_height", 1, protocol.MAX_TILE_SIZE) \
                 if "tile_height" in h else tile_w
+            tiles = TileGrid(view.region, (tile_w, tile_h))
+            if len(tiles) > protocol.MAX_FRAME_TILES:
+                raise ProtocolError(f"{len(tiles)} tiles in the frame, at most "
+                                    f"{protocol.MAX_FRAME_TILES}")
             model = h.get("model", protocol.DEFAULT_MODEL)
             payload = h.get("payload", "f32")
             compress = h.get("compress", False)
@@ -317,9 +566,8 @@ class MasterConnection:
             log.warning("master %s: frame %d refused: %s", self.peer, frame_id, exc)
             self.outbox.put((MsgType.ERROR, {"frame_id": frame_id, "message": str(exc)}, None))
             return
-        self.frame = Frame(frame_id, scene, view, tile_grid(view.region, (tile_w, tile_h)),
-                           model, payload, compress)
-        self.server.activity.frame_started(self.peer, frame_id, scene_hash, len(self.frame.tiles))
+        self.frame = Frame(frame_id, scene, view, tiles, model, payload, compress)
+        self.server.activity.frame_started(self.peer, frame_id, scene_hash, len(tiles))
 
 
 class SlaveServer:
@@ -337,16 +585,22 @@ class SlaveServer:
         self.limits = limits
         self.secret = secret
         self.scenes = SceneCache(cache_size, cache_dir, cache_disk_bytes)
-        self.activity = Activity()
+        self.activity = Activity()   # what it is doing: per-frame log lines, the status query
         self._device_lock = threading.Lock()
         self._loaded_hash = None
-        self._connections = set()
+        self._connections = set()    # admitted masters
+        self._handshakes = {}        # connections in their handshake, oldest first
         self._connections_lock = threading.Lock()
+        self.bind = bind
         self._listener = socket.create_server((bind, port), reuse_port=False)
         self.address = self._listener.getsockname()[:2]
         self._accept_thread = None
 
     def start(self) -> None:
+        if self.secret is None and not ipaddress.ip_address(self.bind).is_loopback:
+            log.warning("listening on %s:%d without a shared secret: anyone who can reach this "
+                        "port can use this slave (set --secret-file or %s)",
+                        self.address[0], self.address[1], protocol.SECRET_ENV)
         self._accept_thread = threading.Thread(target=self._accept_loop, name="accept", daemon=True)
         self._accept_thread.start()
 
@@ -361,33 +615,64 @@ class SlaveServer:
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             except OSError:
                 pass
+            connection = MasterConnection(self, sock, peer)
             with self._connections_lock:
-                busy = len(self._connections) >= MAX_CONNECTIONS
-                if not busy:
-                    connection = MasterConnection(self, sock, peer)
-                    self._connections.add(connection)
-            if busy:
-                log.warning("refusing master %s: %d connections already", peer, MAX_CONNECTIONS)
-                sock.close()
-                continue
+                if len(self._handshakes) >= MAX_HANDSHAKES:
+                    oldest = next(iter(self._handshakes))
+                    del self._handshakes[oldest]
+                    log.warning("dropping master %s: %d connections in their handshake",
+                                oldest.peer, MAX_HANDSHAKES)
+                    oldest.channel.close()
+                self._handshakes[connection] = None
             threading.Thread(target=connection.run, name=f"master {peer}", daemon=True).start()
+
+    def _handshake_over(self, connection: MasterConnection) -> None:
+        with self._connections_lock:
+            self._handshakes.pop(connection, None)
+
+    def _admit(self, connection: MasterConnection) -> tuple:
+        """(True, "") if `connection` gets a slot, taking it from the longest idle master when
+        all are taken; else (False, why)."""
+        with self._connections_lock:
+            if len(self._connections) >= MAX_CONNECTIONS:
+                now = time.monotonic()
+                idle = [(c.evictable(now), c) for c in self._connections]
+                idle = [(seconds, c) for seconds, c in idle if seconds is not None]
+                if not idle:
+                    return False, f"{MAX_CONNECTIONS} masters connected and at work"
+                seconds, victim = max(idle, key=lambda pair: pair[0])
+                self._connections.discard(victim)
+                log.info("master %s: closing: idle for %.0f s and %s needs the slot",
+                         victim.peer, seconds, connection.peer)
+                victim._end(f"closing: idle for {seconds:.0f} s and another master needs the slot")
+            self._connections.add(connection)
+            return True, ""
 
     def _connection_closed(self, connection: MasterConnection) -> None:
         with self._connections_lock:
             self._connections.discard(connection)
 
-    def render_tile(self, frame: Frame, x: int, y: int, w: int, h: int) -> dict:
-        # One device for all masters: loading and rendering are serialised.
+    def render_tile(self, frame: Frame, x: int, y: int, w: int, h: int, step) -> tuple:
+        """(passes, render ms) of one tile; step(state) says what is happening (the master hears
+        it in heartbeats). One device for all masters: loading and rendering are serialised."""
+        step("waiting")
         with self._device_lock:
             if self._loaded_hash != frame.scene.hash:
+                step("loading")
                 self._loaded_hash = None
                 self.tracer.load(frame.scene)
                 self._loaded_hash = frame.scene.hash
-            return self.tracer.render_tile(frame.view, x, y, w, h)
+            step("compiling")
+            self.tracer.prepare(frame.view)
+            step("rendering")
+            start = time.perf_counter()
+            passes = self.tracer.render_tile(frame.view, x, y, w, h)
+            return passes, (time.perf_counter() - start) * 1000.0
 
     def close(self) -> None:
         self._listener.close()
         with self._connections_lock:
-            connections = list(self._connections)
+            connections = list(self._connections) + list(self._handshakes)
         for connection in connections:
-            connection._close_socket()
+            connection._end()
+            connection.channel.close()

@@ -216,19 +216,7 @@ class Tracer:
                              f"{view.width}x{view.height} image")
         scene = self._scene_buffers()
         shading = view.shading
-        if view is not self._checked_view:     # once per frame: its tiles share the view
-            try:
-                self._loaded.check_view(view)
-            except SceneError as error:
-                raise TracerError(str(error)) from None
-            self._checked_view = view
-        geometry = self._loaded.geometry
-        flags = self._loaded.features(view) if self.specialise else ALL_FEATURES
-        missing = [name for name in needed_arrays(flags) if getattr(geometry, name) is None]
-        if missing:
-            raise TracerError(f"features {sorted(flags)} need the geometry arrays {missing}; "
-                              "load core.scene.features.full_geometry(geometry) to render unspecialised")
-        kernel = self._program(self._features(flags))["render_samples"]
+        kernel, flags = self._render_kernel(view)
         mf = cl.mem_flags
         ctx = self.context
 
@@ -267,6 +255,27 @@ class Tracer:
                             "samples": tile.traced, "features": sorted(flags)}
         return {"combined": combined.reshape(h, w, 4), "depth": depth, "normal": normal}
 
+
+    def prepare(self, view: View) -> None:
+        """Check `view` against the loaded scene and build its render kernel (cached): what
+        render_tile does first, callable on its own so that a slave can say it is compiling."""
+        self._render_kernel(view)
+
+    def _render_kernel(self, view: View) -> tuple:
+        self._scene_buffers()
+        if view is not self._checked_view:     # once per frame: its tiles share the view
+            try:
+                self._loaded.check_view(view)
+            except SceneError as error:
+                raise TracerError(str(error)) from None
+            self._checked_view = view
+        geometry = self._loaded.geometry
+        flags = self._loaded.features(view) if self.specialise else ALL_FEATURES
+        missing = [name for name in needed_arrays(flags) if getattr(geometry, name) is None]
+        if missing:
+            raise TracerError(f"features {sorted(flags)} need the geometry arrays {missing}; "
+                              "load core.scene.features.full_geometry(geometry) to render unspecialised")
+        return self._program(self._features(flags))["render_samples"], flags
 
 @functools.lru_cache(maxsize=8)
 def tile_pixel_order(w: int, h: int) -> np.ndarray:

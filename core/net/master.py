@@ -14,12 +14,15 @@ polls that queue with a timeout, so it can check for cancel in between:
         ...                                # job.cancel() on user break
     job.error                              # None, or why the frame could not be finished
 
-A slave that fails loses its tiles back to the pool and the others finish the frame.
+Liveness is not work: a busy slave sends heartbeats (what it is doing), and a slave is dropped
+only for silence (`silence_timeout`) or for a step that exceeds its TileBudget, which scales
+with the tile's work. A dropped slave's tiles go back to the pool for the others, and the master
+reconnects to it with back-off; `master.join(host, port)` brings a slave found later (or
+restarted) into the frame in progress. The frame fails only when no slave is left.
 """
 from __future__ import annotations
 
 import queue
-import select
 import socket
 import threading
 import time
@@ -28,19 +31,41 @@ from dataclasses import dataclass
 
 from . import protocol
 from .protocol import MsgType, ProtocolError
-from ..scene.model import SCENE_FORMAT_VERSION, View
+from ..scene.model import SCENE_FORMAT_VERSION, SceneError, View
 from ..scene.scene import Scene
-from .tiles import TilePool, partition_tile_size, tile_dims, tile_grid
+from .tiles import TileGrid, TilePool, partition_tile_size, tile_dims
 
 POLL_S = 0.2             # how often worker threads look at the job's state
-SLAVE_TIMEOUT_S = 30.0   # a slave that holds tiles and says nothing this long is dropped
 DEFAULT_TILE_SIZE = 64
 DEFAULT_TILES_IN_FLIGHT = 2
-MAX_TILES_IN_FLIGHT = 16
+MAX_TILES_IN_FLIGHT = protocol.MAX_TILES_IN_FLIGHT
+RETRY_DELAYS_S = (0.5, 1.0, 2.0, 4.0, 8.0)   # reconnecting to a lost (or busy) slave
 
 
 class MasterError(Exception):
     """Something the user should read: an unreachable slave, a refused handshake, no slaves."""
+
+
+class SlaveBusy(MasterError):
+    """The slave serves as many masters as it can; worth trying again later."""
+
+
+@dataclass(frozen=True)
+class TileBudget:
+    """How long one step of a slave (loading a scene, compiling, waiting for its device,
+    rendering one tile) may take before the slave is dropped although it says it is busy:
+    base_s for any step, plus s_per_ray for each ray a tile may trace at most (samples x
+    (1 + shadow rays) x (1 + bounces) per pixel). Generous: it catches a slave stuck for good,
+    never a slow one (the default allows a device 500 times slower than one core here)."""
+
+    base_s: float = 600.0
+    s_per_ray: float = 1e-4
+
+    def seconds(self, view: View, w: int, h: int) -> float:
+        s = view.settings
+        shadow_rays = len(view.shading.lights) * s.light_samples_per_axis ** 2
+        rays = w * h * s.max_samples * (1 + shadow_rays) * (1 + s.max_bounces)
+        return self.base_s + rays * self.s_per_ray
 
 
 @dataclass
@@ -56,29 +81,46 @@ class TileResult:
     render_ms: float
 
 
-class SlaveConnection:
-    """A connected, handshaken slave. Sends are serialised by a lock; one thread receives."""
+@dataclass
+class SlaveState:
+    """What one slave is doing, for the panel: connecting, uploading, idle, waiting, loading,
+    compiling, rendering, reconnecting or lost (`reason` says why)."""
+    host: str
+    port: int
+    name: str
+    device: str = ""
+    state: str = "connecting"
+    reason: str = ""
 
-    def __init__(self, host: str, port: int, sock: socket.socket, welcome: dict):
-        self.host, self.port, self.sock = host, port, sock
+
+class SlaveConnection:
+    """A connected, handshaken slave. Sends are serialised by the channel; one thread receives."""
+
+    def __init__(self, host: str, port: int, channel: protocol.Channel, welcome: dict):
+        self.host, self.port, self.channel = host, port, channel
         self.name = protocol.get_str(welcome, "name", 64)
         self.id = protocol.get_str(welcome, "id", 64)
         self.device = protocol.get_str(welcome, "device", 256)
         self.compute_units = protocol.get_int(welcome, "compute_units")
         self.memory = protocol.get_int(welcome, "memory")
+        self.scene_hash: str | None = None   # the scene this master made present there
         self.closed = False
-        self._send_lock = threading.Lock()
+
+    @property
+    def endpoint(self) -> tuple:
+        return (self.host, self.port)
 
     @property
     def label(self) -> str:
         return f"{self.name} ({self.host}:{self.port})"
 
     def send(self, msg_type: MsgType, header: dict | None = None, arrays: dict | None = None) -> None:
-        with self._send_lock:
-            protocol.send_message(self.sock, msg_type, header, arrays)
+        self.channel.send(msg_type, header, arrays)
 
-    def recv(self, limits: protocol.Limits = protocol.DEFAULT_LIMITS) -> protocol.Message:
-        return protocol.recv_message(self.sock, limits, protocol.SLAVE_TO_MASTER)
+    def recv(self, limits: protocol.Limits = protocol.DEFAULT_LIMITS,
+             wait: float | None = None) -> protocol.Message | None:
+        """The next message (None if none began within `wait` s), whole-message deadline."""
+        return self.channel.recv(limits, protocol.SLAVE_TO_MASTER, wait=wait)
 
     def close(self, say_bye: bool = False) -> None:
         if self.closed:
@@ -87,13 +129,9 @@ class SlaveConnection:
         if say_bye:
             try:
                 self.send(MsgType.BYE)
-            except OSError:
+            except (OSError, ProtocolError):
                 pass
-        try:
-            self.sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
-        self.sock.close()
+        self.channel.close()
 
 
 def _reason(exc: OSError) -> str:
@@ -107,16 +145,17 @@ def _reason(exc: OSError) -> str:
 FROM_ENVIRONMENT = object()   # Master(secret=...) default: read $KDTRACE_SECRET if it is set
 
 
-def _handshake(sock: socket.socket, host: str, port: int, master_name: str,
-               secret: bytes | None) -> dict:
+def _handshake(channel: protocol.Channel, host: str, port: int, master_name: str,
+               secret: bytes | None, heartbeat_s: float, deadline: float) -> dict:
     """HELLO, the HMAC challenge-response when the slave asks for it, WELCOME; returns the
-    WELCOME header. MasterError names what went wrong."""
+    WELCOME header. MasterError names what went wrong (SlaveBusy for a slave at capacity)."""
     nonce = protocol.new_nonce()
-    protocol.send_message(sock, MsgType.HELLO, {
+    channel.send(MsgType.HELLO, {
         "protocol_version": protocol.PROTOCOL_VERSION,
-        "scene_format_version": SCENE_FORMAT_VERSION, "name": master_name, "nonce": nonce})
+        "scene_format_version": SCENE_FORMAT_VERSION, "name": master_name, "nonce": nonce,
+        "heartbeat_s": heartbeat_s})
     expect = {MsgType.WELCOME, MsgType.ERROR, MsgType.CHALLENGE}
-    reply = protocol.recv_message(sock, protocol.DEFAULT_LIMITS, expect)
+    reply = channel.recv(protocol.DEFAULT_LIMITS, expect, deadline=deadline)
     if reply.type == MsgType.CHALLENGE:
         if secret is None:
             raise MasterError(f"slave {host}:{port} requires a shared secret and this master has "
@@ -125,15 +164,19 @@ def _handshake(sock: socket.socket, host: str, port: int, master_name: str,
         if not protocol.proof_ok(secret, "slave", nonce, slave_nonce, reply.header.get("proof")):
             raise MasterError(f"slave {host}:{port} failed authentication "
                               f"(its shared secret differs from the master's)")
-        protocol.send_message(sock, MsgType.AUTH, {
-            "proof": protocol.auth_proof(secret, "master", nonce, slave_nonce)})
-        reply = protocol.recv_message(sock, protocol.DEFAULT_LIMITS, {MsgType.WELCOME, MsgType.ERROR})
+        channel.send(MsgType.AUTH, {"proof": protocol.auth_proof(secret, "master", nonce, slave_nonce)})
+        # From here on every message carries a MAC; only a refusal may come without one.
+        channel.authenticate(protocol.session_key(secret, nonce, slave_nonce))
+        reply = channel.recv(protocol.DEFAULT_LIMITS, {MsgType.WELCOME, MsgType.ERROR},
+                             deadline=deadline, unauthenticated=frozenset({MsgType.ERROR}))
     elif reply.type == MsgType.WELCOME and secret is not None:
         raise MasterError(f"slave {host}:{port} does not authenticate (no shared secret "
                           f"configured on the slave); refused")
     if reply.type == MsgType.ERROR:
-        raise MasterError(f"slave {host}:{port} refused the connection: "
-                          f"{reply.header.get('message')}")
+        message = protocol.get_str(reply.header, "message", 4096)
+        if reply.header.get("busy") is True:
+            raise SlaveBusy(f"slave {host}:{port} is busy: {message}")
+        raise MasterError(f"slave {host}:{port} refused the connection: {message}")
     theirs = reply.header.get("scene_format_version")
     if theirs != SCENE_FORMAT_VERSION:
         raise MasterError(f"slave {host}:{port}: scene format version mismatch: slave uses "
@@ -142,18 +185,20 @@ def _handshake(sock: socket.socket, host: str, port: int, master_name: str,
 
 
 def connect_slave(host: str, port: int, timeout: float = 3.0, master_name: str = "master",
-                  secret: bytes | None = None) -> SlaveConnection:
-    """Connect and handshake; MasterError with a readable message on any failure."""
+                  secret: bytes | None = None, heartbeat_s: float = protocol.HEARTBEAT_S,
+                  silence_s: float = protocol.SILENCE_S) -> SlaveConnection:
+    """Connect and handshake (the whole handshake within `timeout` + `silence_s`); MasterError
+    with a readable message on any failure."""
     try:
         sock = socket.create_connection((host, port), timeout=timeout)
     except OSError as exc:
         raise MasterError(f"cannot reach slave {host}:{port} ({_reason(exc)})") from None
     try:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # tile requests are tiny
-        welcome = _handshake(sock, host, port, master_name, secret)
-        connection = SlaveConnection(host, port, sock, welcome)
-        sock.settimeout(None)
-        return connection
+        channel = protocol.Channel(sock, "master", grace_s=silence_s)
+        welcome = _handshake(channel, host, port, master_name, secret, heartbeat_s,
+                             time.monotonic() + timeout + silence_s)
+        return SlaveConnection(host, port, channel, welcome)
     except protocol.VersionMismatch as exc:
         sock.close()
         raise MasterError(f"slave {host}:{port}: protocol version mismatch: slave speaks version "
@@ -185,14 +230,28 @@ def _in_parallel(function, items) -> list:
     return outcomes
 
 
+def _describe(exc: Exception) -> str:
+    if isinstance(exc, protocol.ConnectionClosed):
+        return "disconnected"
+    if isinstance(exc, OSError):
+        return f"connection lost ({_reason(exc)})"
+    if isinstance(exc, (ProtocolError, MasterError)):
+        return str(exc)
+    return f"internal error ({type(exc).__name__}: {exc})"
+
+
 class Master:
     """A set of slave connections that render frames of one scene."""
 
     def __init__(self, endpoints, connect_timeout: float = 3.0, name: str = "master",
-                 secret=FROM_ENVIRONMENT, slave_timeout: float = SLAVE_TIMEOUT_S):
+                 secret=FROM_ENVIRONMENT, silence_timeout: float = protocol.SILENCE_S,
+                 heartbeat_s: float = protocol.HEARTBEAT_S, tile_budget: TileBudget = TileBudget(),
+                 retry_delays=RETRY_DELAYS_S):
         """`secret`: bytes/str shared with the slaves, None for none, default: $KDTRACE_SECRET
-        if set. `slave_timeout`: a slave holding tiles that sends nothing for this many seconds
-        is dropped and its tiles go to the others."""
+        if set. A slave that owes an answer and says nothing for `silence_timeout` seconds is
+        dropped (busy slaves say so every `heartbeat_s`), as is one whose step takes longer
+        than `tile_budget` allows; either way its tiles go to the others, and the master tries
+        to reconnect after each of `retry_delays` (seconds)."""
         self.endpoints = [(str(host), int(port)) for host, port in endpoints]
         self.connect_timeout = connect_timeout
         self.name = name
@@ -202,81 +261,225 @@ class Master:
             except protocol.AuthError as exc:
                 raise MasterError(str(exc)) from None
         self.secret = secret.encode("utf-8") if isinstance(secret, str) else secret
-        self.slave_timeout = float(slave_timeout)
-        self.connections: list = []
+        low, high = protocol.HEARTBEAT_RANGE_S
+        if not low <= heartbeat_s <= high:
+            raise MasterError(f"heartbeat interval must be {low} to {high} s, got {heartbeat_s}")
+        if not silence_timeout >= 2 * heartbeat_s:
+            raise MasterError(f"the silence timeout ({silence_timeout} s) must be at least two "
+                              f"heartbeat intervals ({heartbeat_s} s)")
+        self.silence_timeout, self.heartbeat_s = float(silence_timeout), float(heartbeat_s)
+        self.tile_budget = tile_budget
+        self.retry_delays = tuple(retry_delays)
+        self.connections: list = []      # every connection made, closed ones too
         self.errors: list = []           # connection and upload problems, readable
-        self.scene_hash: str | None = None
+        self.scene: Scene | None = None
         self.uploaded_to: list = []      # labels of the slaves the last load_scene uploaded to
         self._job: RenderJob | None = None
+        self._states: dict = {}          # endpoint -> SlaveState
+        self._joining: set = set()       # endpoints a thread is connecting to
+        self._lock = threading.RLock()
+        self._closed = False
+
+    @property
+    def scene_hash(self) -> str | None:
+        return None if self.scene is None else self.scene.hash
 
     @property
     def slaves(self) -> list:
-        return [c for c in self.connections if not c.closed]
+        with self._lock:
+            return [c for c in self.connections if not c.closed]
+
+    # -- what the panel shows
+
+    def slave_states(self) -> list:
+        """A snapshot of what each slave is doing (SlaveState copies), in the order first seen."""
+        with self._lock:
+            return [SlaveState(**vars(s)) for s in self._states.values()]
+
+    def _set_state(self, endpoint, state: str, reason: str = "", connection=None) -> None:
+        with self._lock:
+            status = self._states.get(endpoint)
+            if status is None:
+                status = self._states[endpoint] = SlaveState(endpoint[0], endpoint[1],
+                                                             f"{endpoint[0]}:{endpoint[1]}")
+            if connection is not None:
+                status.name, status.device = connection.name, connection.device
+            status.state, status.reason = state, reason
+
+    # -- connecting
+
+    def _connect(self, endpoint, busy_retries: bool = True) -> SlaveConnection:
+        """Connect and handshake; a busy slave is asked again after each retry delay."""
+        delays = list(self.retry_delays) if busy_retries else []
+        self._set_state(endpoint, "connecting")
+        while True:
+            try:
+                connection = connect_slave(endpoint[0], endpoint[1], self.connect_timeout,
+                                           self.name, self.secret, self.heartbeat_s,
+                                           self.silence_timeout)
+            except SlaveBusy as exc:
+                if not delays or self._closed:
+                    self._set_state(endpoint, "lost", str(exc))
+                    raise
+                self._set_state(endpoint, "reconnecting", str(exc))
+                time.sleep(delays.pop(0))
+                continue
+            except MasterError as exc:
+                self._set_state(endpoint, "lost", str(exc))
+                raise
+            self._set_state(endpoint, "idle", connection=connection)
+            return connection
 
     def connect(self) -> list:
         """Connect to every endpoint; MasterError if none answers. Returns the connections."""
-        outcomes = _in_parallel(
-            lambda ep: connect_slave(ep[0], ep[1], self.connect_timeout, self.name, self.secret),
-            self.endpoints)
-        for _, outcome in outcomes:
-            if isinstance(outcome, SlaveConnection):
-                self.connections.append(outcome)
-            else:
-                self.errors.append(str(outcome))
+        outcomes = _in_parallel(self._connect, self.endpoints)
+        with self._lock:
+            for _, outcome in outcomes:
+                if isinstance(outcome, SlaveConnection):
+                    self.connections.append(outcome)
+                else:
+                    self.errors.append(str(outcome))
         if not self.slaves:
             raise MasterError("no slave reachable: " + "; ".join(self.errors or ["no endpoints given"]))
         return self.slaves
+
+    def join(self, host: str, port: int) -> None:
+        """Bring a slave into this master: found by discovery, restarted, or started late. It
+        is connected (a busy one is asked again), given the scene and, when a frame is in
+        progress, joins that frame and takes tiles. Returns at once; see slave_states()."""
+        endpoint = (str(host), int(port))
+        with self._lock:
+            if endpoint not in self.endpoints:
+                self.endpoints.append(endpoint)
+            if any(c.endpoint == endpoint for c in self.slaves):
+                return
+        self._start_join(endpoint, None, (0.0,) + self.retry_delays)
+
+    def _start_join(self, endpoint, job, delays) -> bool:
+        """Connect to `endpoint` on a thread, trying after each of `delays`; `job` (if any)
+        waits for the outcome before it may fail for want of slaves. False if a thread is
+        already at it."""
+        with self._lock:
+            if endpoint in self._joining or self._closed:
+                return False
+            self._joining.add(endpoint)
+            if job is None and self._job is not None and not self._job.over:
+                job = self._job
+            if job is not None:
+                job._joins_started()
+        threading.Thread(target=self._join_loop, args=(endpoint, job, delays),
+                         name=f"join {endpoint[0]}:{endpoint[1]}", daemon=True).start()
+        return True
+
+    def _join_loop(self, endpoint, job, delays) -> None:
+        reason = "no attempt"
+        try:
+            for attempt, delay in enumerate(delays, 1):
+                self._set_state(endpoint, "reconnecting", f"attempt {attempt} of {len(delays)}")
+                end = time.monotonic() + delay
+                while time.monotonic() < end and not self._closed:
+                    time.sleep(min(0.05, max(0.0, end - time.monotonic())))
+                if self._closed or (job is not None and job.over):
+                    reason = "the frame ended first"
+                    return
+                try:
+                    connection = connect_slave(endpoint[0], endpoint[1], self.connect_timeout,
+                                               self.name, self.secret, self.heartbeat_s,
+                                               self.silence_timeout)
+                except MasterError as exc:
+                    reason = str(exc)
+                    self._set_state(endpoint, "reconnecting", reason)
+                    continue
+                try:
+                    if self.scene is not None:
+                        self._ensure_scene(connection, self.scene)
+                except Exception as exc:
+                    connection.close()
+                    reason = _describe(exc)
+                    self._set_state(endpoint, "reconnecting", reason)
+                    continue
+                with self._lock:
+                    if self._closed:
+                        connection.close()
+                        return
+                    self.connections.append(connection)
+                    current = self._job
+                self._set_state(endpoint, "idle", connection=connection)
+                if current is not None:
+                    current.add_connection(connection)
+                reason = None
+                return
+        finally:
+            with self._lock:
+                self._joining.discard(endpoint)
+            if reason is not None:
+                self._set_state(endpoint, "lost", reason)
+            if job is not None:
+                job._join_over(endpoint, reason)
+
+    # -- the scene
 
     def load_scene(self, scene: Scene) -> str:
         """Make the scene present on every slave, uploading only where its hash is unknown.
         Slaves that fail are dropped (see .errors). Returns the scene hash."""
         if self._job is not None:
             self._job.wait()  # its threads may still read the sockets (copies being cancelled)
-        scene_hash = scene.hash
-        arrays = scene.wire_arrays()
-        upload_bytes = sum(a.nbytes for a in arrays.values())
-        # Generous: the slave validates and hashes the scene before it answers.
-        timeout = 60.0 + upload_bytes / (10 * 2 ** 20)
-
-        def ensure(connection: SlaveConnection) -> bool:
-            connection.sock.settimeout(timeout)
-            try:
-                connection.send(MsgType.SCENE_QUERY, {"scene_hash": scene_hash})
-                if self._scene_ready(connection, scene_hash):
-                    return False
-                connection.send(MsgType.SCENE_UPLOAD, {"scene_hash": scene_hash}, arrays)
-                if not self._scene_ready(connection, scene_hash):
-                    raise MasterError("slave did not accept the scene")
-                return True
-            finally:
-                connection.sock.settimeout(None)
-
+        self.scene = scene
         self.uploaded_to = []
-        for connection, outcome in _in_parallel(ensure, self.slaves):
+        for connection, outcome in _in_parallel(lambda c: self._ensure_scene(c, scene), self.slaves):
             if outcome is True:
                 self.uploaded_to.append(connection.label)
             elif isinstance(outcome, Exception):
-                reason = _reason(outcome) if isinstance(outcome, OSError) else str(outcome)
-                self.errors.append(f"slave {connection.label} dropped while loading the scene: {reason}")
+                self.errors.append(f"slave {connection.label} dropped while loading the scene: "
+                                   f"{_describe(outcome)}")
+                self._set_state(connection.endpoint, "lost", _describe(outcome))
                 connection.close()
         if not self.slaves:
             raise MasterError("no slave could load the scene: " + "; ".join(self.errors))
-        self.scene_hash = scene_hash
-        return scene_hash
+        return scene.hash
 
-    @staticmethod
-    def _scene_ready(connection: SlaveConnection, scene_hash: str) -> bool:
-        reply = connection.recv()
-        if reply.type == MsgType.ERROR:
-            raise MasterError(f"slave error: {reply.header.get('message')}")
-        if reply.type != MsgType.SCENE_READY or reply.header.get("scene_hash") != scene_hash:
-            raise ProtocolError(f"expected SCENE_READY for {scene_hash}, got {reply.type.name}")
-        return reply.header.get("present") is True
+    def _ensure_scene(self, connection: SlaveConnection, scene: Scene) -> bool:
+        """Make `scene` present on the slave; True if it had to be uploaded."""
+        connection.send(MsgType.SCENE_QUERY, {"scene_hash": scene.hash})
+        uploaded = False
+        if not self._scene_ready(connection, scene.hash):
+            self._set_state(connection.endpoint, "uploading", connection=connection)
+            connection.send(MsgType.SCENE_UPLOAD, {"scene_hash": scene.hash}, scene.wire_arrays())
+            if not self._scene_ready(connection, scene.hash):
+                raise MasterError("slave did not accept the scene")
+            uploaded = True
+        connection.scene_hash = scene.hash
+        self._set_state(connection.endpoint, "idle", connection=connection)
+        return uploaded
+
+    def _scene_ready(self, connection: SlaveConnection, scene_hash: str) -> bool:
+        """Wait for SCENE_READY; the slave heartbeats while it validates a large upload."""
+        heard = time.monotonic()
+        while True:
+            reply = connection.recv(wait=POLL_S)
+            if reply is None:
+                if time.monotonic() - heard > self.silence_timeout:
+                    raise MasterError(f"did not answer within {self.silence_timeout:g} s")
+                continue
+            heard = time.monotonic()
+            if reply.type == MsgType.HEARTBEAT:
+                state = reply.header.get("state")
+                if state in protocol.SLAVE_STATES:
+                    self._set_state(connection.endpoint, state, connection=connection)
+                continue
+            if reply.type == MsgType.ERROR:
+                raise MasterError(f"slave error: {reply.header.get('message')}")
+            if reply.type != MsgType.SCENE_READY or reply.header.get("scene_hash") != scene_hash:
+                raise ProtocolError(f"expected SCENE_READY for {scene_hash}, got {reply.type.name}")
+            return reply.header.get("present") is True
+
+    # -- frames
 
     def render(self, view: View, tile_size=DEFAULT_TILE_SIZE,
                tiles_in_flight: int = DEFAULT_TILES_IN_FLIGHT, *, partition: int | None = None,
                model: str = protocol.DEFAULT_MODEL, payload: str = "f32",
-               compress: bool = False, duplicates: bool = True) -> "RenderJob":
+               compress: bool = False, duplicates: bool = True,
+               hold_when_stranded: bool = False) -> "RenderJob":
         """Start rendering `view` on every connected slave; returns at once with the job.
 
         tile_size: pixels (int, square tiles, or a (w, h) pair); partition=N instead cuts the
@@ -285,8 +488,10 @@ class Master:
         (one thread per slave that asks for a tile and waits for it: for comparison).
         payload: "f32" or "f16" (combined and normal as float16); compress: zlib when it pays.
         duplicates: near the end idle slaves take copies of tiles still outstanding elsewhere.
+        hold_when_stranded: when every slave is lost and no reconnection is left, the job waits
+        (job.stranded) for the caller to join() more slaves or give_up(), instead of failing.
         """
-        if self.scene_hash is None:
+        if self.scene is None:
             raise MasterError("no scene loaded: call load_scene first")
         if model not in protocol.MODELS:
             raise MasterError(f"model must be one of {protocol.MODELS}, got {model!r}")
@@ -301,22 +506,66 @@ class Master:
             raise MasterError(str(exc)) from None
         if not all(1 <= d <= protocol.MAX_TILE_SIZE for d in dims):
             raise MasterError(f"tile size must be 1 to {protocol.MAX_TILE_SIZE}, got {dims}")
+        try:
+            self.scene.check_view(view)   # what every slave checks at FRAME_START
+        except SceneError as exc:
+            raise MasterError(f"the frame cannot be rendered: {exc}") from None
+        tiles = TileGrid(view.region, dims)
+        if len(tiles) > protocol.MAX_FRAME_TILES:
+            raise MasterError(f"{len(tiles)} tiles in the frame, at most {protocol.MAX_FRAME_TILES}: "
+                              f"use larger tiles")
         if self._job is not None:
             self._job.wait()  # one receiver per socket: the previous job's threads must be gone
-        if not self.slaves:
-            raise MasterError("no slaves connected")
-        self._job = RenderJob(self.slaves, view, dims, int(tiles_in_flight),
-                              self.scene_hash, model=model, payload=payload,
-                              compress=bool(compress), duplicates=duplicates,
-                              slave_timeout=self.slave_timeout)
-        self._job.start()
-        return self._job
+        problems = self._heal()
+        with self._lock:
+            slaves = [c for c in self.slaves if c.scene_hash == self.scene.hash]
+        if not slaves:
+            raise MasterError("no slaves connected: " + ("; ".join(problems) or "none given"))
+        job = RenderJob(slaves, view, tiles, int(tiles_in_flight), self.scene.hash, master=self,
+                        model=model, payload=payload, compress=bool(compress),
+                        duplicates=duplicates, silence_timeout=self.silence_timeout,
+                        tile_budget=self.tile_budget, hold_when_stranded=hold_when_stranded)
+        with self._lock:
+            self._job = job
+        job.start()
+        return job
+
+    def _heal(self) -> list:
+        """Before a frame: reconnect to endpoints without a live connection (in the background
+        while other slaves are there, else at once) and make the scene present where it is
+        not. Returns the problems found."""
+        with self._lock:
+            live = {c.endpoint for c in self.slaves}
+            missing = [e for e in self.endpoints if e not in live and e not in self._joining]
+        problems = []
+        if live:
+            for endpoint in missing:
+                self._start_join(endpoint, None, (0.0,))
+        else:
+            for _, outcome in _in_parallel(lambda e: self._connect(e, busy_retries=False), missing):
+                if isinstance(outcome, SlaveConnection):
+                    with self._lock:
+                        self.connections.append(outcome)
+                else:
+                    problems.append(str(outcome))
+        stale = [c for c in self.slaves if c.scene_hash != self.scene.hash]
+        for connection, outcome in _in_parallel(lambda c: self._ensure_scene(c, self.scene), stale):
+            if isinstance(outcome, Exception):
+                problems.append(f"slave {connection.label} dropped while loading the scene: "
+                                f"{_describe(outcome)}")
+                self._set_state(connection.endpoint, "lost", _describe(outcome))
+                connection.close()
+        self.errors += problems
+        return problems
 
     def close(self) -> None:
-        if self._job is not None:
-            self._job.cancel()
-            self._job.wait(5)
-        for connection in self.connections:
+        with self._lock:
+            self._closed = True
+            job = self._job
+        if job is not None:
+            job.cancel()
+            job.wait(5)
+        for connection in list(self.connections):
             connection.close(say_bye=True)
 
     def __enter__(self):
@@ -326,33 +575,55 @@ class Master:
         self.close()
 
 
+class _SlaveLost(Exception):
+    def __init__(self, reason: str, retry: bool):
+        super().__init__(reason)
+        self.reason, self.retry = reason, retry
+
+
 class _SlaveWorker:
     """One slave's part in one job: its threads (model 3b: a sender and a receiver; model 3a:
-    one that does both) and its tiles in flight."""
+    one that does both), its tiles in flight and what it says it is doing."""
 
     def __init__(self, job: "RenderJob", connection: SlaveConnection):
         self.job, self.connection = job, connection
         self.in_flight: set = set()
         self.alive = True
-        self.cancel_deadline = None     # set while waiting for the slave to confirm a cancel
+        self.cancelling = False         # waiting for the slave to confirm a cancel
         self.last_heard = time.monotonic()
+        self.step = None                # (state, tile) the slave last said it was at
+        self.step_since = time.monotonic()
         self.tiles_done = 0
         self.state = threading.Condition()
         label = connection.label
         if job.model == "3a":
-            self.threads = [threading.Thread(target=self._simple_loop, name=f"slave {label}",
-                                             daemon=True)]
+            self.threads = [threading.Thread(target=self._guarded, args=(self._simple_loop,),
+                                             name=f"slave {label}", daemon=True)]
         else:
             self.threads = [
-                threading.Thread(target=self._send_loop, name=f"send {label}", daemon=True),
-                threading.Thread(target=self._receive_loop, name=f"recv {label}", daemon=True)]
+                threading.Thread(target=self._guarded, args=(self._send_loop,),
+                                 name=f"send {label}", daemon=True),
+                threading.Thread(target=self._guarded, args=(self._receive_loop,),
+                                 name=f"recv {label}", daemon=True)]
 
-    # -- model 3b
+    def _guarded(self, loop) -> None:
+        """Any exception in a worker thread drops this slave, with the reason: a frame never
+        waits on a thread that died."""
+        try:
+            loop()
+        except _SlaveLost as exc:
+            self.lose(exc.reason, exc.retry)
+        except Exception as exc:
+            self.lose(_describe(exc), protocol.is_transient(exc))
+        finally:
+            master = self.job.master
+            if self.alive and master is not None and loop != self._send_loop:
+                master._set_state(self.connection.endpoint, "idle", connection=self.connection)
 
     def _frame_start(self) -> None:
         job = self.job
         self.connection.send(MsgType.FRAME_START, {
-            "frame_id": job.frame_id, "scene_hash": job.scene_hash, "view": job.view.to_dict(),
+            "frame_id": job.frame_id, "scene_hash": job.scene_hash, "view": job.view_dict,
             "tile_size": job.tile_w, "tile_height": job.tile_h, "model": job.model,
             "payload": job.payload, "compress": job.compress})
 
@@ -365,95 +636,102 @@ class _SlaveWorker:
             if not self.alive:
                 job.pool.put_back(index, self)
                 return None
-            if not self.in_flight:
-                self.last_heard = time.monotonic()  # the deadline runs from the first request
+            if not self.in_flight:      # the deadlines run from the first request
+                self.last_heard = self.step_since = time.monotonic()
             self.in_flight.add(index)
         return index
 
+    # -- model 3b
+
     def _send_loop(self) -> None:
         job = self.job
-        try:
-            self._frame_start()
-            while self.alive and not job.over:
-                with self.state:
-                    if not self.state.wait_for(
-                            lambda: len(self.in_flight) < job.tiles_in_flight or not self.alive,
-                            POLL_S):
-                        continue
-                index = self._take()
-                if index is not None:
-                    self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
-        except OSError as exc:
-            self.lose(f"send failed ({_reason(exc)})")
+        self._frame_start()
+        while self.alive and not job.over:
+            with self.state:
+                if not self.state.wait_for(
+                        lambda: len(self.in_flight) < job.tiles_in_flight or not self.alive,
+                        POLL_S):
+                    continue
+            index = self._take()
+            if index is not None:
+                self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
 
     def _receive_loop(self) -> None:
-        job, sock = self.job, self.connection.sock
-        try:
-            while True:
-                with self.state:
-                    waiting = self.in_flight or self.cancel_deadline is not None
-                    if not self.alive or (job.over and not waiting):
-                        return
-                    if job.over and self.in_flight and self.cancel_deadline is None:
-                        stale = True    # copies of tiles another slave finished first
-                    else:
-                        stale = False
-                if stale:
-                    self.cancel()
-                self._check_deadlines(waiting)
-                # Wait for data with a timeout, then read a whole message: a timeout inside a
-                # message would desynchronise the stream.
-                if not select.select([sock], [], [], POLL_S)[0]:
-                    continue
-                self._handle(self.connection.recv(job.limits))
-        except _SlaveTimeout as exc:
-            self.lose(str(exc))
-        except (ProtocolError, OSError, ValueError) as exc:
-            self.lose(_describe(exc))
+        job = self.job
+        while True:
+            with self.state:
+                waiting = bool(self.in_flight) or self.cancelling
+                if not self.alive or (job.over and not waiting):
+                    return
+                # copies of tiles another slave finished first
+                stale = job.over and self.in_flight and not self.cancelling
+            if stale:
+                self.cancel()
+            self._check_deadlines(waiting)
+            msg = self.connection.recv(job.limits, wait=POLL_S)
+            if msg is not None:
+                self._handle(msg)
 
-    def _check_deadlines(self, waiting) -> None:
+    def _check_deadlines(self, waiting: bool) -> None:
+        # A cancel is confirmed after the tile being rendered: owed like a tile, so the same
+        # liveness rules apply (a slave finishing a long tile says so in its heartbeats).
         now = time.monotonic()
-        if self.cancel_deadline is not None and now > self.cancel_deadline:
-            raise _SlaveTimeout("did not confirm the cancel")
-        if waiting and now - self.last_heard > self.job.slave_timeout:
-            raise _SlaveTimeout(f"did not answer within {self.job.slave_timeout:g} s")
+        if not waiting:
+            return
+        silence = self.job.silence_timeout
+        if now - self.last_heard > silence:
+            raise _SlaveLost(f"did not answer within {silence:g} s", retry=True)
+        budget, what = self._budget()
+        if now - self.step_since > budget:
+            raise _SlaveLost(f"{what} took longer than its budget of {budget:.0f} s", retry=False)
+
+    def _budget(self) -> tuple:
+        """(seconds, what) the current step may take."""
+        job = self.job
+        state, tile = self.step or ("rendering", None)
+        if state != "rendering":
+            return job.tile_budget.base_s, state
+        if tile is not None and 0 <= tile < len(job.tiles):
+            _, _, w, h = job.tiles[tile]
+            return job.tile_budget.seconds(job.view, w, h), f"tile {tile}"
+        return job.tile_budget.seconds(job.view, job.tile_w, job.tile_h), "a tile"
 
     # -- model 3a
 
     def _simple_loop(self) -> None:
         """Fig. 3a: ask for one tile, wait for it, deliver it, ask for the next."""
-        job, sock = self.job, self.connection.sock
-        try:
-            self._frame_start()
-            while self.alive and not job.over:
-                index = self._take()
-                if index is None:
-                    continue
-                self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
-                while self.alive and index in self.in_flight:
-                    if job.over and self.cancel_deadline is None:
-                        self.cancel()
-                    self._check_deadlines(True)
-                    if select.select([sock], [], [], POLL_S)[0]:
-                        self._handle(self.connection.recv(job.limits))
-            while self.alive and self.cancel_deadline is not None:  # a cancel being confirmed
+        job = self.job
+        self._frame_start()
+        while self.alive and not job.over:
+            index = self._take()
+            if index is None:
+                continue
+            self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
+            while self.alive and index in self.in_flight:
+                if job.over and not self.cancelling:
+                    self.cancel()
                 self._check_deadlines(True)
-                if select.select([sock], [], [], POLL_S)[0]:
-                    self._handle(self.connection.recv(job.limits))
-        except _SlaveTimeout as exc:
-            self.lose(str(exc))
-        except (ProtocolError, OSError, ValueError) as exc:
-            self.lose(_describe(exc))
+                msg = self.connection.recv(job.limits, wait=POLL_S)
+                if msg is not None:
+                    self._handle(msg)
+        while self.alive and self.cancelling:  # a cancel being confirmed
+            self._check_deadlines(True)
+            msg = self.connection.recv(job.limits, wait=POLL_S)
+            if msg is not None:
+                self._handle(msg)
 
     # -- both
 
     def _handle(self, msg: protocol.Message) -> None:
         job, h = self.job, msg.header
-        self.last_heard = time.monotonic()
+        now = self.last_heard = time.monotonic()
+        if msg.type == MsgType.HEARTBEAT:
+            self._heartbeat(h, now)
+            return
         if msg.type == MsgType.CANCEL:
             if h.get("frame_id") == job.frame_id:
                 with self.state:
-                    self.cancel_deadline = None
+                    self.cancelling = False
                     for index in self.in_flight:  # the slave dropped what it had not rendered
                         job.pool.put_back(index, self)
                     self.in_flight.clear()
@@ -468,7 +746,7 @@ class _SlaveWorker:
         index = protocol.get_int(h, "tile", 0, len(job.tiles) - 1)
         with self.state:
             if index not in self.in_flight:
-                if self.cancel_deadline is not None or job.cancelled:
+                if self.cancelling or job.cancelled:
                     return
                 raise ProtocolError(f"sent tile {index}, which was not asked of it")
         x, y, w, h_ = job.tiles[index]
@@ -478,84 +756,118 @@ class _SlaveWorker:
         render_ms = protocol.get_float(h, "render_ms")
         with self.state:
             self.in_flight.discard(index)
+            self.step, self.step_since = None, now
             self.state.notify_all()
         if job.cancelled:
             return
         if job.pool.mark_done(index):
             self.tiles_done += 1
+            job._rejoined.discard(self.connection.endpoint)
             job._deliver(TileResult(index, x, y, w, h_, passes, self.connection.name,
                                     self.connection.id, render_ms))
 
+    def _heartbeat(self, h: dict, now: float) -> None:
+        state = h.get("state")
+        if state not in protocol.SLAVE_STATES:
+            raise ProtocolError(f"heartbeat with an unknown state {str(state)[:32]!r}")
+        frame_id = h.get("frame_id")
+        if frame_id is not None and protocol.get_int(h, "frame_id") != self.job.frame_id:
+            return   # still busy with an earlier frame: alive, but no step of ours
+        tile = protocol.get_int(h, "tile", 0, len(self.job.tiles) - 1) if "tile" in h else None
+        if (state, tile) != self.step:
+            self.step, self.step_since = (state, tile), now
+            master = self.job.master
+            if master is not None:
+                master._set_state(self.connection.endpoint, state, connection=self.connection)
+
     def cancel(self) -> None:
         with self.state:
-            if not self.alive or self.cancel_deadline is not None:
+            if not self.alive or self.cancelling:
                 return
-            self.cancel_deadline = time.monotonic() + self.job.slave_timeout
+            self.cancelling = True
+            if not self.in_flight:      # owed from now on
+                self.last_heard = self.step_since = time.monotonic()
         try:
             self.connection.send(MsgType.CANCEL, {"frame_id": self.job.frame_id})
-        except OSError as exc:
-            self.lose(f"send failed ({_reason(exc)})")
+        except (OSError, ProtocolError) as exc:
+            self.lose(f"send failed ({_describe(exc)})", retry=True)
 
-    def lose(self, reason: str) -> None:
-        """Drop this slave: its tiles go back to the pool for the others."""
+    def lose(self, reason: str, retry: bool = False) -> None:
+        """Drop this slave: its tiles go back to the pool for the others; with `retry` the
+        master tries to reconnect and bring it back into the frame."""
         with self.state:
             if not self.alive:
                 return
             self.alive = False
             lost = sorted(self.in_flight)
             self.in_flight.clear()
-            self.cancel_deadline = None
+            self.cancelling = False
             self.state.notify_all()
         self.connection.close()
         for index in lost:
             self.job.pool.put_back(index, self)
-        self.job._slave_lost(self, reason)
-
-
-class _SlaveTimeout(Exception):
-    pass
-
-
-def _describe(exc: Exception) -> str:
-    if isinstance(exc, protocol.ConnectionClosed):
-        return "disconnected"
-    if isinstance(exc, OSError):
-        return f"connection lost ({_reason(exc)})"
-    return str(exc)
+        self.job._slave_lost(self, reason, retry)
 
 
 class RenderJob:
     """One frame in progress. Thread-safe; the caller polls next_result()."""
 
-    def __init__(self, connections: list, view: View, tile_dims: tuple, tiles_in_flight: int,
-                 scene_hash: str, model: str = protocol.DEFAULT_MODEL, payload: str = "f32",
+    def __init__(self, connections: list, view: View, tiles: TileGrid, tiles_in_flight: int,
+                 scene_hash: str, master: Master | None = None,
+                 model: str = protocol.DEFAULT_MODEL, payload: str = "f32",
                  compress: bool = False, duplicates: bool = True,
-                 slave_timeout: float = SLAVE_TIMEOUT_S):
-        self.view, self.tiles_in_flight = view, tiles_in_flight
-        self.tile_w, self.tile_h = tile_dims
+                 silence_timeout: float = protocol.SILENCE_S,
+                 tile_budget: TileBudget = TileBudget(), hold_when_stranded: bool = False):
+        self.master = master
+        self.view, self.view_dict, self.tiles_in_flight = view, view.to_dict(), tiles_in_flight
+        self.tiles = tiles
+        self.tile_w, self.tile_h = tiles.tile_w, tiles.tile_h
         self.model, self.payload, self.compress = model, payload, compress
-        self.duplicates, self.slave_timeout = duplicates, slave_timeout
+        self.duplicates, self.silence_timeout = duplicates, silence_timeout
+        self.tile_budget, self.hold_when_stranded = tile_budget, hold_when_stranded
         self.scene_hash = scene_hash
         self.frame_id = uuid.uuid4().int >> 65   # unique across masters and renders; fits JSON ints
-        self.tiles = tile_grid(view.region, tile_dims)
         self.pool = TilePool(len(self.tiles), max_copies=2 if duplicates else 1)
         self.limits = protocol.Limits(max_tile_pixels=self.tile_w * self.tile_h)
         self.errors: list = []       # every problem, including slaves lost and recovered from
         self.error: str | None = None  # set when the frame cannot be finished
         self.cancelled = False
+        self.stranded = False        # no slave left, none reconnecting (hold_when_stranded)
         self.started = time.monotonic()
         self.first_tile_s: float | None = None   # seconds from start to the first result
         self.elapsed_s: float | None = None      # seconds from start to the last tile
         self._results: queue.Queue = queue.Queue()
         self._delivered = self._taken = 0
+        self._joins = 0              # reconnections under way that may still bring a slave
+        self._rejoined: set = set()  # endpoints reconnected after a loss, no tile since
         self._over = threading.Event()
         self._lock = threading.Lock()
         self._workers = [_SlaveWorker(self, c) for c in connections]
 
     def start(self) -> None:
-        for worker in self._workers:
-            for thread in worker.threads:
-                thread.start()
+        for worker in list(self._workers):
+            self._start_worker(worker)
+
+    def _start_worker(self, worker: _SlaveWorker) -> None:
+        if self.master is not None:
+            self.master._set_state(worker.connection.endpoint, "waiting",
+                                   connection=worker.connection)
+        for thread in worker.threads:
+            thread.start()
+
+    def add_connection(self, connection: SlaveConnection) -> bool:
+        """Let a slave that connected after the start (reconnected, or found later) take tiles
+        of this frame; False if the frame is over or the slave lacks its scene."""
+        if connection.scene_hash != self.scene_hash or connection.closed:
+            return False
+        with self._lock:
+            if self._over.is_set():
+                return False
+            worker = _SlaveWorker(self, connection)
+            self._workers.append(worker)
+            self.stranded = False
+        self._start_worker(worker)
+        return True
 
     # -- the caller's side
 
@@ -576,7 +888,11 @@ class RenderJob:
 
     @property
     def tiles_by_slave(self) -> dict:
-        return {w.connection.label: w.tiles_done for w in self._workers}
+        counts: dict = {}
+        for worker in list(self._workers):
+            label = worker.connection.label
+            counts[label] = counts.get(label, 0) + worker.tiles_done
+        return counts
 
     @property
     def duplicates_handed_out(self) -> int:
@@ -602,16 +918,27 @@ class RenderJob:
                 return
             self.cancelled = True
         self._end()
-        for worker in self._workers:
+        for worker in list(self._workers):
             worker.cancel()
+
+    def give_up(self) -> None:
+        """End a stranded frame (hold_when_stranded) with its error."""
+        with self._lock:
+            if self._over.is_set():
+                return
+            self.error = self._lost_message()
+        self._end()
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait for the job's threads to end (after the frame or a cancel); True if they did."""
         deadline = None if timeout is None else time.monotonic() + timeout
-        for worker in self._workers:
-            for thread in worker.threads:
+        while True:
+            threads = [t for w in list(self._workers) for t in w.threads]
+            for thread in threads:
                 thread.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
-        return not any(t.is_alive() for w in self._workers for t in w.threads)
+            alive = any(t.is_alive() for t in threads)
+            if alive or len(threads) == sum(len(w.threads) for w in list(self._workers)):
+                return not alive
 
     # -- the workers' side
 
@@ -626,12 +953,46 @@ class RenderJob:
             self.elapsed_s = now
             self._end()
 
-    def _slave_lost(self, worker: _SlaveWorker, reason: str) -> None:
+    def _slave_lost(self, worker: _SlaveWorker, reason: str, retry: bool) -> None:
+        """A slave that drops is reconnected to, once per loss; one that drops again before
+        it delivers a tile is not tried again in this frame (it would only fail again)."""
+        connection = worker.connection
         with self._lock:
-            self.errors.append(f"slave {worker.connection.label} lost: {reason}")
-            if self._over.is_set() or any(w.alive for w in self._workers):
+            self.errors.append(f"slave {connection.label} lost: {reason}")
+            retry = retry and not self._over.is_set() and (
+                worker.tiles_done > 0 or connection.endpoint not in self._rejoined)
+            if retry:
+                self._rejoined.add(connection.endpoint)
+        if self.master is not None:
+            self.master._set_state(connection.endpoint, "lost", reason, connection)
+            if retry:
+                self.master._start_join(connection.endpoint, self, self.master.retry_delays)
+        self._check_stranded()
+
+    def _joins_started(self) -> None:
+        with self._lock:
+            self._joins += 1
+
+    def _join_over(self, endpoint, reason: str | None) -> None:
+        with self._lock:
+            self._joins -= 1
+            if reason is not None and not self._over.is_set():
+                self.errors.append(f"reconnecting to {endpoint[0]}:{endpoint[1]} failed: {reason}")
+        self._check_stranded()
+
+    def _lost_message(self) -> str:
+        return "all slaves lost before the frame was finished: " + "; ".join(self.errors)
+
+    def _check_stranded(self) -> None:
+        """Fail the frame (or, with hold_when_stranded, wait for help) once no slave is left
+        and no reconnection is under way."""
+        with self._lock:
+            if self._over.is_set() or self._joins or any(w.alive for w in self._workers):
                 return
-            self.error = ("all slaves lost before the frame was finished: " + "; ".join(self.errors))
+            if self.hold_when_stranded:
+                self.stranded = True
+                return
+            self.error = self._lost_message()
         self._end()
 
     def _end(self) -> None:

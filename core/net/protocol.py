@@ -7,6 +7,11 @@ in the JSON under "arrays": [{"name", "dtype", "shape"}], concatenated in that o
 Nothing received is unpickled or evaluated: the JSON is parsed with the json module, arrays are
 built with numpy.frombuffer from an allow-listed set of dtypes, and every length is checked
 against a per-type limit *before* anything is allocated. See docs/protocol.md.
+
+A `Channel` is one peer connection as both sides use it after connecting: every message, sent
+or received, has a deadline for the whole message (a grace, then a minimum average rate), and
+with a shared secret every message after the handshake carries a MAC under a per-connection
+session key and an implicit sequence number (no injection, replay or reordering).
 """
 from __future__ import annotations
 
@@ -19,13 +24,17 @@ import os
 import secrets
 import socket
 import struct
+import threading
+import time
 import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
 
 
-PROTOCOL_VERSION = 3   # 2: HMAC handshake, float16/zlib tiles, N x M tiles; 3: compact kd-tree arrays
+# 2: HMAC handshake, float16/zlib tiles, N x M tiles; 3: compact kd-tree arrays; 4: HEARTBEAT,
+# heartbeat_s in HELLO, "busy" refusals, session MACs after an authenticated handshake.
+PROTOCOL_VERSION = 4
 MAGIC = b"KDTR"
 HEADER = struct.Struct("!4sHHIQ")
 DEFAULT_PORT = 47600
@@ -36,6 +45,19 @@ ALLOWED_DTYPES = {name: np.dtype("<" + name) for name in ("f4", "f2", "u4", "u2"
 MAX_ARRAYS = 16
 MAX_DIMS = 4
 MAX_TILE_SIZE = 1024
+MAX_FRAME_TILES = 1 << 20       # tiles of one frame (65536 x 65536 pixels in 64-pixel tiles)
+MAX_TILES_IN_FLIGHT = 16        # tile requests a master may have outstanding on one slave
+
+# Liveness (docs/protocol.md, "Liveness and deadlines"). A busy slave sends HEARTBEAT at least
+# every heartbeat_s (the master asks for its interval in HELLO); a peer that owes an answer and
+# says nothing for SILENCE_S is lost. Every message, either way, must arrive or leave within
+# SILENCE_S plus its size at MIN_RATE_BPS: a stalled or dribbling peer cannot hold a thread.
+HEARTBEAT_S = 2.0
+HEARTBEAT_RANGE_S = (0.05, 30.0)
+SILENCE_S = 10.0
+MIN_RATE_BPS = 256 * 1024
+POLL_S = 0.25                   # how often a blocked send or receive looks at its deadline
+SLAVE_STATES = ("idle", "loading", "compiling", "waiting", "rendering")
 # How master and slave exchange a frame's tiles (FRAME_START "model"): the paper's Fig. 3a (one
 # thread per slave asks for a tile and waits for it) and Fig. 3b (requests and results overlap).
 MODELS = ("3a", "3b")
@@ -56,13 +78,14 @@ class MsgType(enum.IntEnum):
     BYE = 11           # master -> slave: closing
     CHALLENGE = 12     # slave -> master: slave nonce + the slave's proof (only with a shared secret)
     AUTH = 13          # master -> slave: the master's proof; WELCOME follows if it is right
+    HEARTBEAT = 14     # slave -> master: what a busy slave is doing (state, frame id, tile)
 
 
 MASTER_TO_SLAVE = frozenset({MsgType.HELLO, MsgType.SCENE_QUERY, MsgType.SCENE_UPLOAD,
                              MsgType.FRAME_START, MsgType.TILE_REQUEST, MsgType.CANCEL,
                              MsgType.ERROR, MsgType.BYE, MsgType.AUTH})
 SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_RESULT,
-                             MsgType.CANCEL, MsgType.ERROR, MsgType.CHALLENGE})
+                             MsgType.CANCEL, MsgType.ERROR, MsgType.CHALLENGE, MsgType.HEARTBEAT})
 
 # Tile passes: name -> (channels, dtype); (h, w) or (h, w, channels).
 TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3}
@@ -74,6 +97,19 @@ class ProtocolError(Exception):
 
 class ConnectionClosed(ProtocolError):
     """The peer closed the connection cleanly between two messages."""
+
+
+class ConnectionBroken(ProtocolError):
+    """The connection ended in the middle of a message."""
+
+
+class PeerTooSlow(ProtocolError):
+    """A message did not arrive (or could not leave) within its deadline."""
+
+
+def is_transient(exc: Exception) -> bool:
+    """The connection failed, not the peer's logic: worth reconnecting."""
+    return isinstance(exc, (OSError, ConnectionClosed, ConnectionBroken, PeerTooSlow))
 
 
 class VersionMismatch(ProtocolError):
@@ -137,14 +173,19 @@ def encode_message(msg_type: MsgType, header: dict | None = None, arrays: dict |
     return [head + text] + buffers
 
 
+def _coalesce(buffers: list) -> list:
+    # Small messages go out in one write: several small writes meet Nagle's algorithm and
+    # delayed ACKs (40 ms stalls).
+    if len(buffers) > 1 and sum(len(b) for b in buffers) <= 1 << 20:
+        return [b"".join(buffers)]
+    return buffers
+
+
 def send_message(sock: socket.socket, msg_type: MsgType, header: dict | None = None,
                  arrays: dict | None = None) -> None:
-    """Send one message (the caller serialises senders on one socket). Small messages go out
-    in one write: several small writes meet Nagle's algorithm and delayed ACKs (40 ms stalls)."""
-    buffers = encode_message(msg_type, header, arrays)
-    if len(buffers) > 1 and sum(len(b) for b in buffers) <= 1 << 20:
-        buffers = [b"".join(buffers)]
-    for buffer in buffers:
+    """Send one message on a plain blocking socket, unauthenticated (tests, tools); peers talk
+    through a Channel."""
+    for buffer in _coalesce(encode_message(msg_type, header, arrays)):
         if len(buffer):
             sock.sendall(buffer)
 
@@ -159,8 +200,8 @@ def _recv_exactly(sock: socket.socket, count: int, what: str, allow_eof: bool = 
         if not chunk:
             if allow_eof and not buffer:
                 raise ConnectionClosed("connection closed by peer")
-            raise ProtocolError(f"connection closed in the middle of a message ({what}: "
-                                f"{len(buffer)} of {count} bytes)")
+            raise ConnectionBroken(f"connection closed in the middle of a message ({what}: "
+                                   f"{len(buffer)} of {count} bytes)")
         buffer += chunk
     return buffer
 
@@ -179,13 +220,13 @@ def _parse_arrays(specs, payload: bytearray) -> dict:
         name, code, shape = spec.get("name"), spec.get("dtype"), spec.get("shape")
         if not isinstance(name, str) or not name or len(name) > 64 or name in arrays:
             raise ProtocolError(f"bad or duplicate array name {name!r}")
-        if code not in ALLOWED_DTYPES:
-            raise ProtocolError(f"array {name!r}: dtype {code!r} not allowed "
+        if not isinstance(code, str) or code not in ALLOWED_DTYPES:
+            raise ProtocolError(f"array {name!r}: dtype {str(code)[:32]!r} not allowed "
                                 f"(allowed: {', '.join(ALLOWED_DTYPES)})")
         if (not isinstance(shape, list) or len(shape) > MAX_DIMS
                 or not all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n < 2 ** 40
                            for n in shape)):
-            raise ProtocolError(f"array {name!r}: bad shape {shape!r}")
+            raise ProtocolError(f"array {name!r}: bad shape {str(shape)[:64]}")
         dtype = ALLOWED_DTYPES[code]
         size = math.prod(shape) * dtype.itemsize
         if offset + size > len(payload):
@@ -199,10 +240,8 @@ def _parse_arrays(specs, payload: bytearray) -> dict:
     return arrays
 
 
-def recv_message(sock: socket.socket, limits: Limits = DEFAULT_LIMITS,
-                 allowed: frozenset | None = None) -> Message:
-    """Receive and validate one message; raise ProtocolError (ConnectionClosed on a clean EOF)."""
-    head = _recv_exactly(sock, HEADER.size, "header", allow_eof=True)
+def _check_header(head, limits: Limits, allowed) -> tuple:
+    """(type, JSON length, payload length) of a header, checked before anything else is read."""
     magic, version, type_code, json_length, payload_length = HEADER.unpack(head)
     if magic != MAGIC:
         raise ProtocolError(f"not a KD Trace message (magic {bytes(magic)!r}, expected {MAGIC!r})")
@@ -220,16 +259,192 @@ def recv_message(sock: socket.socket, limits: Limits = DEFAULT_LIMITS,
     if payload_length > limits.payload_limit(msg_type):
         raise ProtocolError(f"{msg_type.name} payload of {payload_length} bytes exceeds the limit "
                             f"of {limits.payload_limit(msg_type)}")
-    text = _recv_exactly(sock, json_length, "JSON")
+    return msg_type, json_length, payload_length
+
+
+def _parse_body(msg_type: MsgType, text, payload) -> Message:
     try:
-        header = json.loads(text.decode("utf-8"), parse_constant=_reject_constant)
+        header = json.loads(bytes(text).decode("utf-8"), parse_constant=_reject_constant)
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise ProtocolError(f"{msg_type.name}: invalid JSON ({exc})") from None
     if not isinstance(header, dict):
         raise ProtocolError(f"{msg_type.name}: JSON is not an object")
-    payload = _recv_exactly(sock, payload_length, "payload")
     arrays = _parse_arrays(header.pop("arrays", []), payload)
     return Message(msg_type, header, arrays)
+
+
+def recv_message(sock: socket.socket, limits: Limits = DEFAULT_LIMITS,
+                 allowed: frozenset | None = None) -> Message:
+    """Receive and validate one unauthenticated message from a plain blocking socket, without
+    deadlines (tests, tools); raise ProtocolError (ConnectionClosed on a clean EOF)."""
+    head = _recv_exactly(sock, HEADER.size, "header", allow_eof=True)
+    msg_type, json_length, payload_length = _check_header(head, limits, allowed)
+    text = _recv_exactly(sock, json_length, "JSON")
+    payload = _recv_exactly(sock, payload_length, "payload")
+    return _parse_body(msg_type, text, payload)
+
+
+# ----------------------------------------------------------------------------- channels
+
+MAC_BYTES = 32
+_DIRECTION_LABELS = {"master": b"kdtrace-mac|M>S|", "slave": b"kdtrace-mac|S>M|"}
+
+
+def session_key(secret: bytes, master_nonce: str, slave_nonce: str) -> bytes:
+    """The per-connection key of the messages after an authenticated handshake."""
+    message = b"|".join((b"kdtrace-session", master_nonce.encode(), slave_nonce.encode()))
+    return hmac.new(secret, message, hashlib.sha256).digest()
+
+
+def transfer_deadline(nbytes: int, grace_s: float = SILENCE_S) -> float:
+    """Seconds a message of `nbytes` may take to arrive or leave: the grace, then MIN_RATE_BPS."""
+    return grace_s + nbytes / MIN_RATE_BPS
+
+
+class Channel:
+    """One peer connection, for one sending thread at a time (sends are locked) and one
+    receiving thread. `role` is this side ("master" or "slave"). `grace_s`: how long a message
+    may be silent before it must flow at MIN_RATE_BPS on average."""
+
+    def __init__(self, sock: socket.socket, role: str, grace_s: float = SILENCE_S):
+        self.sock, self.role, self.grace_s = sock, role, grace_s
+        sock.settimeout(POLL_S)     # blocked calls wake up to look at their deadline
+        self._send_label = _DIRECTION_LABELS[role]
+        self._recv_label = _DIRECTION_LABELS["slave" if role == "master" else "master"]
+        self._key = None
+        self._send_seq = self._recv_seq = 0
+        self._send_lock = threading.Lock()
+        self.last_sent = self.last_received = time.monotonic()
+        self.closed = False
+
+    @property
+    def authenticated(self) -> bool:
+        return self._key is not None
+
+    def authenticate(self, key: bytes) -> None:
+        """From now on every message either way carries a MAC under `key` over a per-direction
+        sequence number and its bytes."""
+        self._key = key
+
+    def _mac(self, label: bytes, seq: int, buffers) -> bytes:
+        mac = hmac.new(self._key, label + seq.to_bytes(8, "big"), hashlib.sha256)
+        for buffer in buffers:
+            mac.update(buffer)
+        return mac.digest()
+
+    # -- sending
+
+    def send(self, msg_type: MsgType, header: dict | None = None, arrays: dict | None = None) -> None:
+        with self._send_lock:
+            self._send_locked(msg_type, header, arrays)
+
+    def try_send(self, msg_type: MsgType, header: dict | None = None) -> bool:
+        """Send unless another send is under way (then bytes are flowing anyway): heartbeats."""
+        if not self._send_lock.acquire(blocking=False):
+            return False
+        try:
+            self._send_locked(msg_type, header, None)
+        finally:
+            self._send_lock.release()
+        return True
+
+    def _send_locked(self, msg_type, header, arrays) -> None:
+        buffers = encode_message(msg_type, header, arrays)
+        if self._key is not None:
+            buffers.append(self._mac(self._send_label, self._send_seq, buffers))
+            self._send_seq += 1
+        total = sum(len(b) for b in buffers)
+        started, sent = time.monotonic(), 0
+        for buffer in _coalesce(buffers):
+            view = memoryview(buffer).cast("B")
+            while len(view):
+                try:
+                    count = self.sock.send(view[:1 << 20])
+                except socket.timeout:
+                    count = 0
+                view, sent = view[count:], sent + count
+                if len(view):
+                    self._check_rate(started, sent, total, "sent", "the peer stopped reading")
+        self.last_sent = time.monotonic()
+
+    def _check_rate(self, started, done, total, verb, what) -> None:
+        elapsed = time.monotonic() - started
+        if elapsed > self.grace_s and done < (elapsed - self.grace_s) * MIN_RATE_BPS:
+            raise PeerTooSlow(f"{what}: {done} of {total} bytes {verb} after {elapsed:.1f} s")
+
+    # -- receiving
+
+    def recv(self, limits: Limits = DEFAULT_LIMITS, allowed: frozenset | None = None,
+             wait: float | None = None, deadline: float | None = None,
+             unauthenticated: frozenset = frozenset()) -> Message | None:
+        """The next message, validated (and its MAC checked on an authenticated channel);
+        None if none began within `wait` seconds (None: wait as long as it takes). Once a
+        message begins it must arrive within its transfer deadline, and before the absolute
+        `deadline` (time.monotonic()) if given. `unauthenticated`: types accepted without a MAC
+        (the handshake's refusals). ProtocolError on anything else."""
+        waited_from = time.monotonic()
+        head = bytearray()
+        while not head:      # the first byte: nothing owed yet, so no transfer deadline
+            if deadline is not None and time.monotonic() > deadline:
+                raise PeerTooSlow("nothing arrived before the deadline")
+            try:
+                chunk = self.sock.recv(HEADER.size)
+            except socket.timeout:
+                if wait is not None and time.monotonic() - waited_from >= wait:
+                    return None
+                continue
+            if not chunk:
+                raise ConnectionClosed("connection closed by peer")
+            head += chunk
+        started = time.monotonic()
+        self._read_into(head, HEADER.size, started, HEADER.size, deadline, "header")
+        msg_type, json_length, payload_length = _check_header(head, limits, allowed)
+        keyed = self._key is not None and msg_type not in unauthenticated
+        total = HEADER.size + json_length + payload_length + (MAC_BYTES if keyed else 0)
+        text = self._read_into(bytearray(), json_length, started, total, deadline, "JSON",
+                               HEADER.size)
+        payload = self._read_into(bytearray(), payload_length, started, total, deadline,
+                                  "payload", HEADER.size + json_length)
+        if keyed:
+            tag = self._read_into(bytearray(), MAC_BYTES, started, total, deadline, "MAC",
+                                  total - MAC_BYTES)
+            expected = self._mac(self._recv_label, self._recv_seq, (head, text, payload))
+            if not hmac.compare_digest(expected, bytes(tag)):
+                raise ProtocolError(f"{msg_type.name}: message authentication failed "
+                                    f"(injected, replayed or reordered)")
+            self._recv_seq += 1
+        self.last_received = time.monotonic()
+        return _parse_body(msg_type, text, payload)
+
+    def _read_into(self, buffer: bytearray, count: int, started: float, total: int,
+                   deadline, what: str, before: int = 0) -> bytearray:
+        """Fill `buffer` to `count` bytes; `before`: bytes of this message already read."""
+        while len(buffer) < count:
+            try:
+                chunk = self.sock.recv(min(count - len(buffer), 1 << 20))
+            except socket.timeout:
+                chunk = None
+            if chunk == b"":
+                raise ConnectionBroken(f"connection closed in the middle of a message ({what}: "
+                                       f"{len(buffer)} of {count} bytes)")
+            if chunk:
+                buffer += chunk
+            if len(buffer) < count:
+                if deadline is not None and time.monotonic() > deadline:
+                    raise PeerTooSlow(f"message not complete before the deadline ({what}: "
+                                      f"{len(buffer)} of {count} bytes)")
+                self._check_rate(started, before + len(buffer), total, "received",
+                                 "message arrived too slowly")
+        return buffer
+
+    def close(self) -> None:
+        """Shut the connection down (wakes a thread blocked on it) and close it."""
+        self.closed = True
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self.sock.close()
 
 
 # ----------------------------------------------------------------------------- field helpers

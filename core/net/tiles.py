@@ -7,6 +7,7 @@ hung slave then no longer holds up the frame.
 """
 from __future__ import annotations
 
+import heapq
 import math
 import threading
 import time
@@ -31,16 +32,39 @@ def partition_tile_size(region, n: int) -> tuple:
     return (max(1, math.ceil((x1 - x0) / n)), max(1, math.ceil((y1 - y0) / n)))
 
 
+class TileGrid:
+    """The (x, y, w, h) tiles covering region (x0, y0, x1, y1; top-left origin, x1/y1
+    exclusive), row by row from the top; the last tile of a row or column may be smaller.
+    Computed per index, so a frame of a million tiles costs nothing until they are asked for."""
+
+    def __init__(self, region, tile_size):
+        self.x0, self.y0, self.x1, self.y1 = (int(v) for v in region)
+        self.tile_w, self.tile_h = tile_dims(tile_size)
+        if self.x1 <= self.x0 or self.y1 <= self.y0:
+            raise ValueError(f"empty region {region!r}")
+        self.columns = -(-(self.x1 - self.x0) // self.tile_w)
+        self.rows = -(-(self.y1 - self.y0) // self.tile_h)
+
+    def __len__(self) -> int:
+        return self.columns * self.rows
+
+    def __getitem__(self, index: int) -> tuple:
+        if index < 0:
+            index += len(self)
+        if not 0 <= index < len(self):
+            raise IndexError(f"tile {index} of {len(self)}")
+        row, column = divmod(index, self.columns)
+        x, y = self.x0 + column * self.tile_w, self.y0 + row * self.tile_h
+        return (x, y, min(self.tile_w, self.x1 - x), min(self.tile_h, self.y1 - y))
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+
 def tile_grid(region, tile_size) -> list:
-    """(x, y, w, h) tiles covering region (x0, y0, x1, y1; top-left origin, x1/y1 exclusive),
-    row by row from the top; the last tile of a row or column may be smaller. `tile_size` is an
-    int (square tiles) or a (width, height) pair."""
-    x0, y0, x1, y1 = (int(v) for v in region)
-    tw, th = tile_dims(tile_size)
-    if x1 <= x0 or y1 <= y0:
-        raise ValueError(f"empty region {region!r}")
-    return [(x, y, min(tw, x1 - x), min(th, y1 - y))
-            for y in range(y0, y1, th) for x in range(x0, x1, tw)]
+    """The tiles of TileGrid(region, tile_size) as a list (`tile_size`: an int for square
+    tiles or a (width, height) pair)."""
+    return list(TileGrid(region, tile_size))
 
 
 class TilePool:
@@ -50,7 +74,8 @@ class TilePool:
     def __init__(self, count: int, max_copies: int = 2):
         self.count = count
         self.max_copies = max_copies      # holders of one tile at once (1 = no duplicates)
-        self._pending = list(range(count - 1, -1, -1))  # pop() hands out index 0 first
+        self._next = 0                    # tiles from here on were never handed out
+        self._returned = []               # heap of tiles handed out and given back
         self._holders: dict = {}          # index -> set of holder keys
         self._taken_at: dict = {}         # index -> monotonic time first handed out
         self._done = set()
@@ -68,18 +93,28 @@ class TilePool:
                 best = (key, index)
         return None if best is None else best[1]
 
+    @property
+    def _has_pending(self) -> bool:
+        return bool(self._returned) or self._next < self.count
+
+    def _pop_pending(self) -> int:
+        if self._returned:
+            return heapq.heappop(self._returned)
+        self._next += 1
+        return self._next - 1
+
     def take(self, timeout: float | None = None, holder=None, duplicates: bool = False) -> int | None:
-        """The next pending tile; with `duplicates`, when nothing is pending, a copy of a tile
-        that other holders still have. Waits up to `timeout` for one; None if none."""
+        """The pending tile of the lowest index; with `duplicates`, when nothing is pending, a
+        copy of a tile that other holders still have. Waits up to `timeout`; None if none."""
         def ready():
-            return (self._pending or self._closed or self.all_done
+            return (self._has_pending or self._closed or self.all_done
                     or (duplicates and self._copyable(holder) is not None))
         with self._changed:
             self._changed.wait_for(ready, timeout)
             if self._closed or self.all_done:
                 return None
-            if self._pending:
-                index = self._pending.pop()
+            if self._has_pending:
+                index = self._pop_pending()
                 self._taken_at[index] = time.monotonic()
             elif duplicates:
                 index = self._copyable(holder)
@@ -101,8 +136,8 @@ class TilePool:
                 if holders:
                     return
                 del self._holders[index]
-            if index not in self._done and index not in self._pending:
-                self._pending.append(index)
+            if index not in self._done and index not in self._returned and index < self._next:
+                heapq.heappush(self._returned, index)
             self._changed.notify_all()
 
     def mark_done(self, index: int) -> bool:
@@ -112,8 +147,9 @@ class TilePool:
                 return False
             self._done.add(index)
             self._holders.pop(index, None)
-            if index in self._pending:
-                self._pending.remove(index)
+            if index in self._returned:
+                self._returned.remove(index)
+                heapq.heapify(self._returned)
             self._changed.notify_all()
             return True
 

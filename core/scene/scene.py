@@ -16,8 +16,9 @@ import numpy as np
 from ..accel.compact import CompactTree, compact_tree
 from ..accel.kdtree import KDTree
 from ..accel.validate import validate_compact
-from .features import scene_features
-from .model import INDEX_DTYPE, MATERIAL_ID_DTYPE, VERTEX_DTYPE, Geometry, SceneError, View
+from .features import needed_arrays, scene_features
+from .model import (INDEX_DTYPE, MATERIAL_ID_DTYPE, MAX_LIGHTS, VERTEX_DTYPE, Geometry,
+                    SceneError, View)
 
 # The arrays of a scene as they travel and are stored: name -> (dtype, shape; -1 = any length).
 SCENE_ARRAYS = {
@@ -100,15 +101,30 @@ class Scene:
         return _wire_arrays(self.geometry, self.tree)
 
     def check_view(self, view: View) -> None:
-        """SceneError unless `view` can shade this scene: a material for every triangle, and
-        every texture a material names present in the geometry."""
+        """SceneError unless `view` can shade this scene, so that a frame is refused when it
+        starts, never at its first tile: a material for every material id a triangle uses;
+        every texture index an integer, -1 (none) or a texture of the geometry; the camera's
+        view axis not degenerate; every geometry array the view's features need present."""
         if self.material_count > len(view.shading.materials):
             raise SceneError(f"the geometry uses {self.material_count} materials, the view's "
                              f"shading has {len(view.shading.materials)}")
         textures = view.shading.param("texture")
-        if len(textures) and textures.max() >= self.geometry.texture_count:
-            raise SceneError(f"a material uses texture {int(textures.max())}, the geometry has "
+        if len(textures) and (textures != np.round(textures)).any():
+            raise SceneError("a material's texture index is not a whole number")
+        if len(textures) and (textures.min() < -1 or textures.max() >= self.geometry.texture_count):
+            bad = textures.max() if textures.max() >= self.geometry.texture_count else textures.min()
+            raise SceneError(f"a material uses texture {int(bad)}, the geometry has "
                              f"{self.geometry.texture_count}")
+        if len(view.shading.lights) > MAX_LIGHTS:
+            raise SceneError(f"{len(view.shading.lights)} lights, at most {MAX_LIGHTS}")
+        axis = view.camera.to_world[:3, :3] @ np.array([0.0, 0.0, -1.0])
+        if not np.isfinite(axis).all() or not np.linalg.norm(axis) > 0:
+            raise SceneError("the camera's to_world maps its view axis to zero")
+        missing = sorted(name for name in needed_arrays(self.features(view))
+                         if getattr(self.geometry, name) is None)
+        if missing:
+            raise SceneError(f"the view needs the geometry arrays {missing}, which the scene "
+                             f"does not carry")
 
     def features(self, view: View) -> frozenset:
         """The kernel features this scene needs for `view` (core/scene/features.py)."""
