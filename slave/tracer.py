@@ -22,13 +22,13 @@ from core.scene.model import SceneError, View
 from core.scene.scene import Scene
 
 from .adaptive import sample_tile
-from .buffers import pack_camera, pack_lights, pack_materials
+from .buffers import pack_bounds, pack_camera, pack_lights, pack_materials, pack_triangles
 
 # Concatenated in this order: each file uses only what the ones before it define.
-KERNEL_FILES = ("trace/trace.cl", "shade/sampling.cl", "shade/shading.cl", "trace/intersect.cl",
-                "trace/packet.cl", "shade/render.cl")
+KERNEL_FILES = ("trace/trace.cl", "shade/sampling.cl", "shade/shading.cl", "trace/packet.cl",
+                "trace/intersect.cl", "shade/render.cl")
 MIN_STACK_SIZE = 32
-PACKET_RAYS = 8             # rays per work-item of intersect_packets on CPU devices
+PACKET_RAYS = 8             # rays per work-item of intersect_rays on CPU devices
 
 
 class TracerError(OpenCLError):
@@ -49,7 +49,7 @@ def kernel_options(features: dict) -> list:
     set from core.scene.features.scene_features: light kinds and shading features, each becomes
     -DHAS_<NAME>), "light_kinds" (extra light kinds, for callers that only name those),
     "correct_divide_sqrt" (bool: the device can round / and sqrt correctly, which keeps pixels
-    identical across devices), "packet" (rays per work-item of intersect_packets: 8 on CPU
+    identical across devices), "packet" (rays per work-item of intersect_rays: 8 on CPU
     devices, 0 elsewhere). Never fast-math: traversal needs inf/NaN/-0.
     """
     options = [f"-DKD_STACK_SIZE={int(features.get('stack_size', MIN_STACK_SIZE))}",
@@ -120,16 +120,7 @@ class Tracer:
         validated) once; later calls trace against it."""
         cl = self._cl
         geometry, tree = scene.geometry, scene.tree
-        tri_count = geometry.triangle_count
-        bounds = np.asarray(tree.bounds, dtype=np.float32)
         self._stack_size = max(MIN_STACK_SIZE, -(-(scene.depth + 1) // 16) * 16)
-
-        # Triangles as three float4 corners each: one gather per triangle in the kernel.
-        corners = np.zeros((max(tri_count, 1), 3, 4), np.float32)
-        corners[:tri_count, :, :3] = geometry.vertices[geometry.triangles]
-        box = np.zeros((2, 4), np.float32)
-        box[:, :3] = bounds
-        box[0, 3] = np.abs(bounds).max()   # the scene's extent, for the tie tolerance (trace.cl)
         mf = cl.mem_flags
 
         def upload(array):  # OpenCL has no empty buffers
@@ -144,7 +135,8 @@ class Tracer:
         self._scene = {"nodes": upload(tree.nodes), "leaf_index32": upload(tree.leaf_index32),
                        "leaf_index16": upload(tree.leaf_index16),
                        "leaf_shift": np.uint32(tree.leaf_shift),
-                       "tri_verts": upload(corners), "bounds": upload(box),
+                       "tri_verts": upload(pack_triangles(geometry)),
+                       "bounds": upload(pack_bounds(tree.bounds)),
                        "material_ids": upload(geometry.material_ids),
                        "normals": optional(geometry.normals, np.float32),
                        "uvs": optional(geometry.uvs, np.float32),
@@ -187,7 +179,7 @@ class Tracer:
         outs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in out]
         # Only intersect() compiles the packet kernel (render programs build without it).
         if self.packet:
-            kernel = self._program(self._features(packet=self.packet))["intersect_packets"]
+            kernel = self._program(self._features(packet=self.packet))["intersect_rays"]
             work_items = -(-n // self.packet)
         else:
             kernel = self._program(self._features())["intersect_rays"]

@@ -356,3 +356,134 @@ def test_bounds_and_triangles_as_the_traversal_reads_them(device):
     np.testing.assert_array_equal(out[3:6], bounds[1])
     assert out[6] == 3.0
     np.testing.assert_array_equal(out[7:].reshape(2, 3, 3), vertices[triangles])
+
+
+def reachable_nodes(nodes):
+    """(inner, leaves): the node indices a traversal reaches, by the tables (breadth-first)."""
+    inner, leaves, level = [], [], np.zeros(1, np.int64)
+    while len(level):
+        w = nodes[level, 0].astype(np.int64)
+        leaf = layout.TAG.get(w) == layout.LEAF_TAG
+        leaves.append(level[leaf])
+        level, w = level[~leaf], w[~leaf]
+        inner.append(level)
+        below = layout.INNER_GROUP.get(w) + layout.INNER_REF.get(w)
+        above = below + 1 - layout.INNER_EMPTY_BELOW.get(w)
+        level = np.concatenate([below[layout.INNER_EMPTY_BELOW.get(w) == 0],
+                                above[layout.INNER_EMPTY_ABOVE.get(w) == 0]])
+    return np.concatenate(inner), np.concatenate(leaves)
+
+
+@pytest.fixture(scope="module")
+def bunny_trees():
+    from core.accel.compact import compact_tree
+    from core.accel.kdtree import build_kdtree
+    from tests.meshes import load_bunny
+    vertices, triangles = load_bunny()
+    tree = build_kdtree(vertices, triangles)
+    return [compact_tree(tree, len(triangles), "ours"),
+            compact_tree(tree, len(triangles), "ours", leaf16=False)]
+
+
+@pytest.mark.parametrize("which", [0, 1], ids=["16-bit leaves", "32-bit leaves"])
+def test_nodes_as_the_traversal_decodes_them(device, bunny_trees, which):
+    """trace.cl's node routines (inner_node, tref_slot, leaf_node and the leaf lists), which
+    trace_ray and trace_packet share, on every node a traversal reaches of a compact tree with
+    T-reference slots (one and two triangles), elided children and 16- or 32-bit leaves (a
+    leaf_shift of 5 for the 16-bit one, so the base's shift counts), against the tables."""
+    ct = bunny_trees[which]
+    shift = 5 if which == 0 else 0
+    inner, leaves = reachable_nodes(ct.nodes)
+    w = ct.nodes[inner, 0].astype(np.int64)
+    has_ref = layout.INNER_REF.get(w)
+    assert has_ref.any() and (layout.INNER_EMPTY_BELOW.get(w) | layout.INNER_EMPTY_ABOVE.get(w)).any()
+    refs = ct.nodes[layout.INNER_GROUP.get(w)]
+    assert ((refs[:, 1] != layout.NO_TRIANGLE) & (has_ref == 1)).any()
+    lw = ct.nodes[leaves, 0].astype(np.int64)
+    wide = layout.LEAF_WIDE.get(lw) == 1
+    assert wide.all() if which == 0 else not wide.any()
+    count = np.where(wide, layout.LEAF16_COUNT.get(lw), layout.LEAF32_COUNT.get(lw))
+    offset = ct.nodes[leaves, 1].astype(np.int64)
+    base = layout.LEAF16_BASE.get(lw) << shift
+    want_tris = np.concatenate([
+        (b + ct.leaf_index16[o:o + c].astype(np.int64)) if is16 else ct.leaf_index32[o:o + c]
+        for b, o, c, is16 in zip(base, offset, count, wide)]).astype(np.uint32)
+    below = layout.INNER_GROUP.get(w) + has_ref
+    want_inner = np.column_stack([
+        layout.TAG.get(w), ct.nodes[inner, 1], below, below + 1 - layout.INNER_EMPTY_BELOW.get(w),
+        1 - layout.INNER_EMPTY_BELOW.get(w), 1 - layout.INNER_EMPTY_ABOVE.get(w), has_ref,
+        np.where(has_ref == 1, refs[:, 0], 0),
+        np.where(has_ref == 1, refs[:, 1] != layout.NO_TRIANGLE, 0),
+        np.where((has_ref == 1) & (refs[:, 1] != layout.NO_TRIANGLE), refs[:, 1], 0),
+    ]).astype(np.uint32)
+    source = tracer_source("""
+__kernel void decode(__global uint *out_inner, __global uint *out_leaf, __global uint *out_tris,
+                     __global const uint *inner, uint inner_count, __global const uint *leaves,
+                     uint leaf_count, __global const uint2 *nodes, __global const uint *leaf32,
+                     __global const ushort *leaf16, uint leaf_shift, __global const float4 *bounds)
+{
+    KdTree kd = make_kdtree(nodes, leaf32, leaf16, leaf_shift, bounds);
+    for (uint i = 0; i < inner_count; ++i) {
+        uint2 n = load_node(&kd, inner[i]);
+        InnerNode in = inner_node(n);
+        uint2 refs = in.has_refs ? tref_slot(&kd, &in) : (uint2)(0u, 0u);
+        bool second = in.has_refs && has_second_ref(refs);
+        uint row[10] = {in.axis, as_uint(in.split), in.below, in.above, in.below_stored,
+                        in.above_stored, in.has_refs, in.has_refs ? refs.x : 0u, second,
+                        second ? refs.y : 0u};
+        for (int k = 0; k < 10; ++k)
+            out_inner[10 * i + k] = is_leaf(n) ? 0xDEADu : row[k];
+    }
+    uint t = 0;
+    for (uint i = 0; i < leaf_count; ++i) {
+        uint2 n = load_node(&kd, leaves[i]);
+        LeafNode leaf = leaf_node(&kd, n);
+        out_leaf[2 * i] = is_leaf(n);
+        out_leaf[2 * i + 1] = leaf.count16 + leaf.count32;
+        for (uint j = 0; j < leaf.count16; ++j)
+            out_tris[t++] = leaf16_triangle(&leaf, j);
+        for (uint j = 0; j < leaf.count32; ++j)
+            out_tris[t++] = leaf32_triangle(&leaf, j);
+    }
+}
+""")
+    cl, context, queue, programs = device
+    kernel = programs.kernels(source, ["-DKD_STACK_SIZE=32"])["decode"]
+    mf = cl.mem_flags
+
+    def buffer(a):
+        a = np.ascontiguousarray(a)
+        return cl.Buffer(context, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                         hostbuf=a if a.nbytes else np.zeros(1, a.dtype))
+
+    outs = [np.zeros(want_inner.shape, np.uint32), np.zeros((len(leaves), 2), np.uint32),
+            np.zeros(len(want_tris), np.uint32)]
+    out_bufs = [cl.Buffer(context, mf.WRITE_ONLY, max(a.nbytes, 4)) for a in outs]
+    kernel(queue, (1,), None, *out_bufs, buffer(inner.astype(np.uint32)), np.uint32(len(inner)),
+           buffer(leaves.astype(np.uint32)), np.uint32(len(leaves)), buffer(ct.nodes),
+           buffer(ct.leaf_index32), buffer(ct.leaf_index16), np.uint32(shift),
+           buffer(pack_bounds(ct.bounds)))
+    for host, buf in zip(outs, out_bufs):
+        cl.enqueue_copy(queue, host, buf)
+    queue.finish()
+    np.testing.assert_array_equal(outs[0], want_inner)
+    np.testing.assert_array_equal(outs[1], np.column_stack([np.ones(len(leaves)), count]))
+    np.testing.assert_array_equal(outs[2], want_tris)
+
+
+# What a kernel would write if it spelled a layout itself: a record buffer indexed by a literal
+# stride or slot, and (in the traversal) a node word decoded with literal shifts and masks.
+RECORD_BY_NUMBER = re.compile(r"\b(lights|materials|tri_verts|emitters|L|cam|bounds|accum|stats)"
+                              r"\s*(\[\s*\d|[+\[]\s*\d+\s*\*)")
+FIELD_BY_NUMBER = re.compile(r"(>>|<<)\s*\d|&\s*(0x[0-9a-fA-F]+|\d+)u?\b")
+SIGN_MASK = "& 0x7FFFFFFFu"      # |x| as a bit operation: not a layout
+
+
+def test_kernels_read_records_and_node_words_by_name():
+    for path in kernel_files():
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            code = line.split("//")[0]
+            assert not RECORD_BY_NUMBER.search(code), f"{path.name}:{number}: {line.strip()}"
+            if path.parent.name == "trace":
+                code = code.replace(SIGN_MASK, "")
+                assert not FIELD_BY_NUMBER.search(code), f"{path.name}:{number}: {line.strip()}"

@@ -3,14 +3,15 @@
 // so one work-item takes 8 neighbouring rays and does each node's plane test for all of them
 // in one float8 operation: neighbouring rays share most of their path through the tree.
 // Compiled only where the host defines KD_PACKET (CPU devices; a GPU already runs neighbouring
-// work-items in lock step and keeps the one-ray kernel of intersect.cl).
+// work-items in lock step and keeps one ray per work-item): intersect_rays (intersect.cl) then
+// traces KD_PACKET rays per work-item with trace_packet.
 //
 // Each lane does exactly what trace_ray does for its ray: the same child cases, intervals and
 // tie tolerance, the same triangles in the same order (a lane is masked off where its ray
 // would not go), and it stops for good where trace_ray would stop. Where the lanes disagree
 // on which child comes first, the packet visits the first child for the lanes that want it
 // first, then the second for all, then the first again for the others; so the results are
-// bit-identical to intersect_rays.
+// bit-identical to trace_ray's.
 #ifdef KD_PACKET
 
 #if KD_PACKET != 8
@@ -183,7 +184,6 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
     float8 stack_t0[2 * KD_STACK_SIZE], stack_t1[2 * KD_STACK_SIZE];
     int sp = 0;
     uint node = 0;
-    uint leaf_shift = kd->leaf_shift;
 
     while (true) {
         // trace_ray stops a ray for good at a node that starts beyond its best hit.
@@ -191,31 +191,27 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
         alive &= ~stop;
         m &= ~stop;
         if (any_lane(m)) {
-            uint2 n = nodes[node];
-            uint w = n.x;
-            uint axis = KD_TAG(w);
-            if (axis != KD_LEAF_TAG) {
-                uint group = KD_GROUP(w);
-                uint has_ref = KD_REF(w);
-                if (has_ref) {
+            uint2 n = load_node(kd, node);
+            if (!is_leaf(n)) {
+                InnerNode in = inner_node(n);
+                if (in.has_refs) {
                     // Each lane tests refs.x, then refs.y, as trace_ray does.
-                    uint2 refs = nodes[group];
+                    uint2 refs = tref_slot(kd, &in);
                     consider_lanes(m, refs.x, &p, q, tri_verts, tmin, &b);
-                    if (refs.y != KD_NO_TRIANGLE)
+                    if (has_second_ref(refs))
                         consider_lanes(m, refs.y, &p, q, tri_verts, tmin, &b);
                 }
-                float split = as_float(n.y);
-                float8 o = org[axis].v, d = dir[axis].v;
-                float8 tplane = (split - o) * inv[axis].v;
+                float split = in.split;
+                float8 o = org[in.axis].v, d = dir[in.axis].v;
+                float8 tplane = (split - o) * inv[in.axis].v;
                 float8 abs_tplane = fabs8(tplane);
                 float8 err = as_float8(as_int8((2.0f * GAMMA3) * abs_tplane)
                                        & (abs_tplane < INFINITY));
                 float8 enter = tplane - err, leave = tplane + err;
                 int8 below_first = (o < split) | ((o == split) & (d <= 0.0f));
-                uint below = group + has_ref;
-                uint above = below + 1u - KD_EMPTY_BELOW(w);
-                int8 below_ok = (w & KD_EMPTY_BELOW_BIT) == 0u ? (int8)(-1) : (int8)(0);
-                int8 above_ok = (w & KD_EMPTY_ABOVE_BIT) == 0u ? (int8)(-1) : (int8)(0);
+                uint below = in.below, above = in.above;
+                int8 below_ok = in.below_stored ? (int8)(-1) : (int8)(0);
+                int8 above_ok = in.above_stored ? (int8)(-1) : (int8)(0);
                 int8 first_ok = pick_mask8(above_ok, below_ok, below_first);
                 int8 second_ok = pick_mask8(below_ok, above_ok, below_first);
                 // trace_ray's three cases: first child only, second only, both.
@@ -264,18 +260,11 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
                 // No lane goes on from here: pop.
             } else {
                 // A leaf: each triangle for every lane here, against the lane's [tmin, best].
-                if ((w & KD_LEAF16_BIT) != 0u) {
-                    uint count = KD_LEAF16_COUNT(w);
-                    uint base = KD_LEAF16_BASE(w) << leaf_shift;
-                    __global const ushort *list = kd->leaf16 + n.y;
-                    for (uint i = 0; i < count; ++i)
-                        consider_lanes(m, base + (uint)list[i], &p, q, tri_verts, tmin, &b);
-                } else {
-                    uint count = KD_LEAF32_COUNT(w);
-                    __global const uint *list = kd->leaf32 + n.y;
-                    for (uint i = 0; i < count; ++i)
-                        consider_lanes(m, list[i], &p, q, tri_verts, tmin, &b);
-                }
+                LeafNode leaf = leaf_node(kd, n);
+                for (uint i = 0; i < leaf.count16; ++i)
+                    consider_lanes(m, leaf16_triangle(&leaf, i), &p, q, tri_verts, tmin, &b);
+                for (uint i = 0; i < leaf.count32; ++i)
+                    consider_lanes(m, leaf32_triangle(&leaf, i), &p, q, tri_verts, tmin, &b);
             }
         }
         // Pop the next entry that still has a lane going on.
@@ -296,32 +285,6 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
         t0 = stack_t0[sp];
         t1 = stack_t1[sp];
     }
-}
-
-// intersect_rays for packets: work-item i traces rays 8i .. 8i+7 (same arguments and results).
-__kernel void intersect_packets(__global const float *origins, __global const float *directions,
-                                float tmin, float tmax, uint ray_count,
-                                __global const uint2 *nodes, __global const uint *leaf_index32,
-                                __global const ushort *leaf_index16, uint leaf_shift,
-                                __global const float4 *tri_verts, __global const float4 *bounds,
-                                __global float *out_t, __global int *out_tri,
-                                __global float *out_u, __global float *out_v)
-{
-    uint first = get_global_id(0) * KD_PACKET;
-    if (first >= ray_count)
-        return;
-    Ray r[KD_PACKET];
-    LaneMask live;
-    for (uint k = 0; k < KD_PACKET; ++k) {
-        // Past the end: a copy of the last ray, switched off.
-        r[k] = load_ray(origins, directions, min(first + k, ray_count - 1u));
-        live.s[k] = first + k < ray_count ? -1 : 0;
-    }
-    KdTree kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
-    Hit h[KD_PACKET];
-    trace_packet(r, live.v, tmin, tmax, &kd, tri_verts, h);
-    for (uint k = 0; k < KD_PACKET && first + k < ray_count; ++k)
-        write_hit(&h[k], first + k, out_t, out_tri, out_u, out_v);
 }
 
 #endif

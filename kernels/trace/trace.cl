@@ -174,6 +174,97 @@ KD_INLINE KdTree make_kdtree(__global const uint2 *nodes, __global const uint *l
     return kd;
 }
 
+// The node format, decoded here for every traversal (trace_ray, trace_packet): the KD_* fields
+// of the layout header (core/layout.py COMPACT_NODE).
+
+// The two words of node `index`, loaded as scalars: word 0 goes straight to the integer
+// decoding (a uint2 load may land in a vector register first, a longer path to the branch).
+KD_INLINE uint2 load_node(const KdTree *kd, uint index)
+{
+    __global const uint *words = (__global const uint *)(kd->nodes + index);
+    uint2 n;
+    n.x = words[0];
+    n.y = words[1];
+    return n;
+}
+
+KD_INLINE bool is_leaf(uint2 n)
+{
+    return KD_TAG(n.x) == KD_LEAF_TAG;
+}
+
+// An inner node: its split plane, its children (an elided child is an empty leaf: nothing to
+// visit) and its T-reference slot, if any.
+typedef struct {
+    uint axis;
+    float split;
+    uint below, above;              // node indices of the children that are stored
+    bool below_stored, above_stored;
+    bool has_refs;
+    uint refs;                      // node index of the T-reference slot (when has_refs)
+} InnerNode;
+
+KD_INLINE InnerNode inner_node(uint2 n)
+{
+    uint w = n.x;
+    InnerNode in;
+    in.axis = KD_TAG(w);
+    in.split = as_float(n.y);
+    // The group: the T-reference slot (if R), the below child (unless Eb), the above child.
+    uint group = KD_GROUP(w), has_ref = KD_REF(w);
+    in.has_refs = has_ref != 0u;
+    in.refs = group;
+    in.below = group + has_ref;
+    in.above = in.below + 1u - KD_EMPTY_BELOW(w);
+    in.below_stored = (w & KD_EMPTY_BELOW_BIT) == 0u;
+    in.above_stored = (w & KD_EMPTY_ABOVE_BIT) == 0u;
+    return in;
+}
+
+// The triangles of a T-reference slot: `first`, and `second` unless it is KD_NO_TRIANGLE.
+KD_INLINE uint2 tref_slot(const KdTree *kd, const InnerNode *in)
+{
+    return kd->nodes[in->refs];
+}
+
+KD_INLINE bool has_second_ref(uint2 refs)
+{
+    return refs.y != KD_NO_TRIANGLE;
+}
+
+// A leaf's triangle list: count16 16-bit entries on a base, or count32 32-bit triangle indices
+// (the other count is 0, so a traversal runs one loop of each kind without a test per entry).
+typedef struct {
+    uint count16, count32;
+    uint base;                      // 16-bit lists: B << leaf_shift
+    __global const ushort *entries16;
+    __global const uint *entries32;
+} LeafNode;
+
+KD_INLINE LeafNode leaf_node(const KdTree *kd, uint2 n)
+{
+    uint w = n.x;
+    bool list16 = (w & KD_LEAF16_BIT) != 0u;
+    LeafNode leaf;
+    leaf.count16 = list16 ? KD_LEAF16_COUNT(w) : 0u;
+    leaf.count32 = list16 ? 0u : KD_LEAF32_COUNT(w);
+    leaf.base = KD_LEAF16_BASE(w) << kd->leaf_shift;
+    leaf.entries16 = kd->leaf16 + n.y;
+    leaf.entries32 = kd->leaf32 + n.y;
+    return leaf;
+}
+
+// Triangle i (< count16) of a 16-bit list, and i (< count32) of a 32-bit one.
+KD_INLINE uint leaf16_triangle(const LeafNode *leaf, uint i)
+{
+    return leaf->base + (uint)leaf->entries16[i];
+}
+
+KD_INLINE uint leaf32_triangle(const LeafNode *leaf, uint i)
+{
+    return leaf->entries32[i];
+}
+
 // The best hit so far, in registers (written to the caller's Hit once, at the end).
 typedef struct {
     float best;             // accepted hits satisfy t <= best (tmax at first)
@@ -258,7 +349,6 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
     b.t = INFINITY;
     b.u = b.v = 0.0f;
     b.tri = NO_HIT;
-    uint leaf_shift = kd->leaf_shift;
     StackEntry stack[KD_STACK_SIZE];
     int sp = 0;
     uint node = 0;
@@ -269,24 +359,20 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
         // rounding of) the best t is still visited, so equal-t hits there can win the tie.
         if (t0 > b.limit)
             break;
-        uint2 n = nodes[node];
-        uint w = n.x;
-        uint axis = KD_TAG(w);
-        if (axis != KD_LEAF_TAG) {
-            uint group = KD_GROUP(w);
-            uint has_ref = KD_REF(w);
-            if (has_ref) {
+        uint2 n = load_node(kd, node);
+        if (!is_leaf(n)) {
+            InnerNode in = inner_node(n);
+            if (in.has_refs) {
                 // T-reference slot: one or two triangles lifted from the leaves below.
-                uint2 refs = nodes[group];
+                uint2 refs = tref_slot(kd, &in);
                 if (consider(&q, refs.x, ignore_tri, tri_verts, tmin, &b) && any_hit)
                     break;
-                if (refs.y != KD_NO_TRIANGLE
-                    && consider(&q, refs.y, ignore_tri, tri_verts, tmin, &b) && any_hit)
+                if (has_second_ref(refs) && consider(&q, refs.y, ignore_tri, tri_verts, tmin, &b)
+                    && any_hit)
                     break;
             }
-            float split = as_float(n.y);
-            float o = org[axis];
-            float tplane = (split - o) * inv[axis];
+            float o = org[in.axis];
+            float tplane = (in.split - o) * inv[in.axis];
             // Bound on tplane's rounding error (one rounding in split - o, which is exact when
             // they are close, one in 1/d, one in the product). Cells that the ray meets within
             // it are visited too, so a ray through an edge or vertex lying in a split plane,
@@ -297,16 +383,11 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
             float err = abs_tplane < INFINITY ? 2.0f * GAMMA3 * abs_tplane : 0.0f;
             float enter = tplane - err, leave = tplane + err;
             // The child holding the origin comes first; on the plane the direction decides.
-            bool below_first = (o < split) || (o == split && dir[axis] <= 0.0f);
-            // Elided (empty) children are not stored: below = c + R, above = below + 1 - Eb.
-            uint below = group + has_ref;
-            uint above = below + 1u - KD_EMPTY_BELOW(w);
-            bool below_ok = (w & KD_EMPTY_BELOW_BIT) == 0u;
-            bool above_ok = (w & KD_EMPTY_ABOVE_BIT) == 0u;
-            uint first = below_first ? below : above;
-            uint second = below_first ? above : below;
-            bool first_ok = below_first ? below_ok : above_ok;
-            bool second_ok = below_first ? above_ok : below_ok;
+            bool below_first = (o < in.split) || (o == in.split && dir[in.axis] <= 0.0f);
+            uint first = below_first ? in.below : in.above;
+            uint second = below_first ? in.above : in.below;
+            bool first_ok = below_first ? in.below_stored : in.above_stored;
+            bool second_ok = below_first ? in.above_stored : in.below_stored;
             // A NaN tplane fails every test and both children are visited: safe. Max/min are
             // comparisons that keep t0/t1 when tplane is NaN (as fmax/fmin would; t0 and t1
             // are never NaN, and the signs of their zeros are never read).
@@ -342,29 +423,14 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
             // A leaf. Its triangles are tested against [tmin, best] (not the cell interval: a
             // hit found here outside the cell is still a valid candidate, kept until a nearer
             // one appears).
+            LeafNode leaf = leaf_node(kd, n);
             bool found = false;
-            if ((w & KD_LEAF16_BIT) != 0u) {
-                // 16-bit list: triangle = (B << leaf_shift) + leaf16[offset + i].
-                uint count = KD_LEAF16_COUNT(w);
-                uint base = KD_LEAF16_BASE(w) << leaf_shift;
-                __global const ushort *list = kd->leaf16 + n.y;
-                for (uint i = 0; i < count; ++i) {
-                    if (consider(&q, base + (uint)list[i], ignore_tri, tri_verts, tmin, &b)
-                        && any_hit) {
-                        found = true;
-                        break;
-                    }
-                }
-            } else {
-                uint count = KD_LEAF32_COUNT(w);
-                __global const uint *list = kd->leaf32 + n.y;
-                for (uint i = 0; i < count; ++i) {
-                    if (consider(&q, list[i], ignore_tri, tri_verts, tmin, &b) && any_hit) {
-                        found = true;
-                        break;
-                    }
-                }
-            }
+            for (uint i = 0; i < leaf.count16 && !found; ++i)
+                found = consider(&q, leaf16_triangle(&leaf, i), ignore_tri, tri_verts, tmin, &b)
+                        && any_hit;
+            for (uint i = 0; i < leaf.count32 && !found; ++i)
+                found = consider(&q, leaf32_triangle(&leaf, i), ignore_tri, tri_verts, tmin, &b)
+                        && any_hit;
             if (found)
                 break;
         }
