@@ -76,6 +76,7 @@ def find_slaves(engine, settings, prefs, secret) -> list[tuple[str, int]]:
             time.sleep(POLL_SECONDS)
         endpoints += [e for e in state.lan_endpoints() if e not in endpoints]
     state.local_reason = local_slaves_reason(settings, endpoints, state.browsing_seconds())
+    state.joined = []
     if state.local_reason:
         engine.update_stats("", f"KD Trace | Starting {settings.local_slaves} local slave(s): "
                                 f"{state.local_reason}")
@@ -99,6 +100,16 @@ def local_slaves_reason(settings, known: list, browsed_seconds: float) -> str:
     if settings.use_zeroconf:
         return f"no slave answered on the LAN in {browsed_seconds:.1f} s and no host is listed"
     return "LAN discovery is off and no host is listed"
+
+
+def join_new_lan_slaves(master) -> None:
+    """A slave the LAN browser sees during a frame joins it (Master.join connects, uploads and
+    hands it tiles on the master's threads)."""
+    state = session.current()
+    for endpoint in state.lan_endpoints():
+        if endpoint not in master.endpoints:
+            state.joined.append(endpoint)
+            master.join(*endpoint)
 
 
 def job_options(settings) -> dict:
@@ -177,13 +188,16 @@ def render(engine, depsgraph):
         "triangles": geometry.triangle_count, "tiles_per_slave": per_slave,
         "slave_colors": {name: slave_color(name) for name in per_slave},
         "uploaded_to": uploaded_to, "cancelled": job.cancelled,
-        "local_reason": state.local_reason}
+        "local_reason": state.local_reason,
+        "joined_during_frame": [f"{host}:{port}" for host, port in state.joined]}
     summary = (f"export {exported - started:.2f} s, kd-tree {'built' if built else 'reused'} "
                f"{tree_done - exported:.2f} s ({tree.stats['mode']}: {tree.stats['nodes']:,} nodes, "
                f"{tree.nbytes / 1e6:.1f} MB), render "
                f"{finished - tree_done:.2f} s; tiles: "
                + ", ".join(f"{name} {count}" for name, count in sorted(per_slave.items()))
-               + (f"; local slaves started: {state.local_reason}" if state.local_reason else ""))
+               + (f"; local slaves started: {state.local_reason}" if state.local_reason else "")
+               + ("; joined during the frame: " + ", ".join(state.last_render["joined_during_frame"])
+                  if state.joined else ""))
     engine.update_stats("", f"KD Trace | Done: {summary}")
     engine.report({"INFO"}, f"KD Trace: {summary}")
 
@@ -224,6 +238,7 @@ def _receive_tiles(engine, job, canvas, legend, master, take_over):
             job.give_up()    # its error names every slave and why it was lost
         tile = job.next_result(POLL_SECONDS)
         if tile is None:
+            join_new_lan_slaves(master)
             continue
         canvas.add(tile)
         legend.tile_done(tile)

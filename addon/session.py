@@ -111,6 +111,7 @@ class Session:
         self.last_render: dict = {}  # timings and tiles per slave of the last render, for reports
         self.legend: Legend | None = None
         self.local_reason = ""       # why the last render started local slaves ("": it did not)
+        self.joined: list = []       # endpoints the LAN browser found during the last frame
 
     def start_legend(self, master) -> Legend:
         self.legend = Legend(master)

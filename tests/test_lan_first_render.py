@@ -1,43 +1,103 @@
-"""Discovery that does not miss: a slave on another host of the LAN (a network namespace, see
-test_netns.py), advertised before F12, renders the first frame of a fresh Blender with KD
-Trace's default settings, and no local slave is started; the browser that finds it runs while
-KD Trace is the render engine."""
+"""Discovery that does not miss, on a LAN of network namespaces (test_netns.py) with Blender on
+a host of its own, so that it sees only this LAN: a slave advertised before F12 renders the
+first frame of a fresh Blender with KD Trace's default settings, and no local slave is started;
+the browser that finds it runs while KD Trace is the render engine; a slave that appears during
+a frame joins it."""
+import json
+import subprocess
+import time
 import uuid
 
 import pytest
 
-from tests.blender import build_extension, run_bpy_script
-from tests.test_netns import Lan, pytestmark, start_slave  # noqa: F401  (root and `ip` only)
+from tests.blender import ROOT, SCRIPTS, build_extension
+from tests.test_netns import HostProcess, Lan, pytestmark, start_fake, start_slave  # noqa: F401
 
 ATTEMPTS = 3   # fresh Blenders, one F12 each
+BLENDER_HOST = 0
+
+
+def start_blender(lan: Lan, script: str, work, **arguments) -> HostProcess:
+    """tests/bpy_scripts/<script>.py in a fresh process on the LAN's host 0."""
+    work.mkdir(parents=True, exist_ok=True)
+    blender = HostProcess(lan.namespaces[BLENDER_HOST],
+                          [str(SCRIPTS / f"{script}.py"), json.dumps(arguments),
+                           str(work / "result.json")],
+                          env={"BLENDER_USER_RESOURCES": str(work / "blender-user"),
+                               "PYTHONPATH": str(ROOT)})
+    blender.result_path = work / "result.json"
+    return blender
+
+
+def result(blender: HostProcess, timeout: float = 180) -> dict:
+    assert blender.proc.wait(timeout) == 0, "".join(blender.lines)[-2000:] + blender.log[-3000:]
+    return json.loads(blender.result_path.read_text())
 
 
 @pytest.fixture(scope="module")
-def lan_slave():
-    lan = Lan(1)
-    slave = None
+def lan():
+    network = Lan(2)
     try:
-        slave = start_slave(lan, 0, f"lan-{uuid.uuid4().hex[:6]}")
-        yield slave
+        yield network
     finally:
-        if slave is not None:
-            slave.stop()
-        lan.close()
+        network.close()
 
 
-def test_first_render_in_a_fresh_blender_uses_the_slave_on_the_lan(tmp_path, lan_slave):
-    slave = lan_slave
-    zip_path = build_extension(tmp_path / "dist")
+@pytest.fixture(scope="module")
+def lan_slave(lan):
+    slave = start_slave(lan, 1, f"lan-{uuid.uuid4().hex[:6]}")
+    yield slave
+    slave.stop()
+
+
+@pytest.fixture(scope="module")
+def zip_path(tmp_path_factory):
+    return build_extension(tmp_path_factory.mktemp("dist"))
+
+
+def test_first_render_in_a_fresh_blender_uses_the_slave_on_the_lan(tmp_path, lan, lan_slave,
+                                                                   zip_path):
     for attempt in range(ATTEMPTS):
-        report = run_bpy_script("render_once", tmp_path / f"blender-{attempt}",
-                                zip=str(zip_path), width=64, height=48)
-        # Other slaves on this machine's networks may join; the LAN slave must be one.
-        assert report["tiles_per_slave"].get(slave.name, 0) >= 1, report["log"][-3000:]
+        report = result(start_blender(lan, "render_once", tmp_path / f"blender-{attempt}",
+                                      zip=str(zip_path), width=64, height=48))
+        assert list(report["tiles_per_slave"]) == [lan_slave.name], report["tiles_per_slave"]
         assert report["local_slave_pids"] == [] and report["local_reason"] == "", report
 
 
-def test_browser_runs_while_kdtrace_is_the_engine(tmp_path, lan_slave):
-    result = run_bpy_script("browse_while_selected", tmp_path, zip=str(build_extension(tmp_path / "dist")),
-                            slave=lan_slave.name, wait_seconds=10.0)
-    assert result["steps"] == {"cycles": False, "kdtrace": True, "discovery off": False}
-    assert lan_slave.name in result["seen"]
+def test_browser_runs_while_kdtrace_is_the_engine(tmp_path, lan, lan_slave, zip_path):
+    report = result(start_blender(lan, "browse_while_selected", tmp_path, zip=str(zip_path),
+                                  slave=lan_slave.name, wait_seconds=10.0))
+    assert report["steps"] == {"cycles": False, "kdtrace": True, "discovery off": False}
+    assert report["seen"] == [lan_slave.name]
+
+
+def test_slave_found_during_a_frame_joins_it(tmp_path, zip_path):
+    """F12 starts with one listed slave that takes tiles and never answers (it is dropped after
+    the silence timeout); a slave that starts advertising once the frame has begun must join
+    the frame and finish it."""
+    lan = Lan(3)
+    fake = late = None
+    try:
+        fake = start_fake(lan, 1, "hang", 47660)
+        blender = start_blender(lan, "render_once", tmp_path, zip=str(zip_path), width=64,
+                                height=48, hosts=[list(fake.endpoint)],
+                                settings={"local_slaves": 0, "tile_size": 16})
+        deadline = time.monotonic() + 120
+        while not _connected(lan.namespaces[1], fake.endpoint[1]):   # F12 has found its slaves
+            assert time.monotonic() < deadline and blender.alive(), blender.log[-3000:]
+            time.sleep(0.1)
+        late = start_slave(lan, 2, f"late-{uuid.uuid4().hex[:6]}")
+        report = result(blender)
+        assert report["joined_during_frame"] == [f"{late.endpoint[0]}:{late.endpoint[1]}"], report
+        assert report["tiles_per_slave"] == {late.name: 12}, report["tiles_per_slave"]
+    finally:
+        for process in (late, fake):
+            if process is not None:
+                process.stop()
+        lan.close()
+
+
+def _connected(namespace: str, port: int) -> bool:
+    listed = subprocess.run(["ip", "netns", "exec", namespace, "ss", "-Htn", "state", "established",
+                             f"( sport = :{port} )"], capture_output=True, text=True).stdout
+    return bool(listed.strip())
