@@ -167,8 +167,32 @@ def _run_starts(*keys) -> np.ndarray:
     return np.flatnonzero(change)
 
 
+def level_ranges(is_leaf: np.ndarray, field: np.ndarray):
+    """The level ranges of a tree in the builders' order (breadth-first, the k-th inner
+    node's children at 1 + 2k: then level k + 1 starts where level k ends, and ends at 1 + 2
+    (inner nodes before it)); None for a tree in any other order."""
+    inner = np.flatnonzero(~is_leaf)
+    if len(is_leaf) != 1 + 2 * len(inner) or not np.array_equal(
+            field[inner], 1 + 2 * np.arange(len(inner))):
+        return None
+    inner_before = _exclusive_cumsum(~is_leaf)
+    ranges = [(0, 1)]
+    while True:
+        a, b = ranges[-1]
+        end = 1 + 2 * int(inner_before[b])
+        if end == b:
+            return ranges
+        ranges.append((b, end))
+
+
 class _Topology:
-    """The standard tree decoded: levels, parents, cells' surface areas, preorder numbers."""
+    """The standard tree decoded: levels, parents, cells' surface areas, preorder numbers.
+
+    For a tree in the builders' order (breadth-first, the k-th inner node's children at
+    1 + 2k, see `builder_order`), every level is a contiguous range (`ranges`) and the
+    children of its inner nodes are, pair by pair, the next level: the per-level passes here
+    and below then work on slices (same values as the general passes, which follow child
+    indices). `ranges` is None for any other order."""
 
     def __init__(self, tree):
         nodes = tree.nodes
@@ -179,6 +203,36 @@ class _Topology:
         self.axis = PLAIN_TAG.get(word0).astype(np.int8)
         self.field = PLAIN_FIELD.get(word0).astype(np.int64)
         self.split_bits = nodes[:, 1]
+        self.ranges = level_ranges(self.is_leaf, self.field)
+        if self.ranges is not None:
+            self._decode_levels(tree)
+        else:
+            self._decode(tree)
+        self.max_depth = len(self.levels) - 1
+
+    @classmethod
+    def shape_only(cls, tree):
+        """Only the node fields and the level ranges (a tree in the builders' order: None
+        for any other), for the kernel path (core/accel/compact_cl.py), which keeps the rest
+        on the device."""
+        topo = cls.__new__(cls)
+        word0 = tree.nodes[:, 0]
+        topo.n = len(tree.nodes)
+        topo.is_leaf = PLAIN_TAG.get(word0) == LEAF_TAG
+        topo.axis = PLAIN_TAG.get(word0).astype(np.int8)
+        topo.field = PLAIN_FIELD.get(word0).astype(np.int64)
+        topo.split_bits = tree.nodes[:, 1]
+        topo.ranges = level_ranges(topo.is_leaf, topo.field)
+        if topo.ranges is None:
+            return None
+        topo.levels = [np.arange(a, b) for a, b in topo.ranges]
+        topo.max_depth = len(topo.levels) - 1
+        return topo
+
+    def _decode(self, tree):
+        """Levels, parents, depths, areas, then subtree sizes and preorder numbers, following
+        child indices from the root (any order of nodes)."""
+        n = self.n
         self.parent = np.full(n, -1, np.int64)
         self.depth = np.zeros(n, np.int16)
         self.area = np.zeros(n, np.float64)
@@ -230,12 +284,66 @@ class _Topology:
             self.pre[child] = self.pre[inner] + 1
             self.pre[child + 1] = self.pre[inner] + 1 + size[child]
         self.pre_end = self.pre + size
-        self.max_depth = len(self.levels) - 1
+
+    def _decode_levels(self, tree):
+        """The same arrays for a tree in the builders' order, level range by level range."""
+        n, is_leaf = self.n, self.is_leaf
+        ranges = self.ranges
+        self.levels = [np.arange(a, b) for a, b in ranges]
+        self.parent = np.full(n, -1, np.int64)
+        self.parent[1:] = np.flatnonzero(~is_leaf)[(np.arange(1, n) - 1) >> 1]
+        self.depth = np.repeat(np.arange(len(ranges), dtype=np.int16),
+                               [b - a for a, b in ranges])
+        self.area = np.empty(n, np.float64)
+        split = self.split_bits.view(np.float32)
+        lo = tree.bounds[0].astype(np.float64)[None]
+        hi = tree.bounds[1].astype(np.float64)[None]
+        for a, b in ranges:
+            dims = hi - lo
+            self.area[a:b] = 2 * (dims[:, 0] * dims[:, 1] + dims[:, 1] * dims[:, 2]
+                                  + dims[:, 2] * dims[:, 0])
+            inner = ~is_leaf[a:b]
+            if not inner.any():
+                break
+            parents = a + np.flatnonzero(inner)
+            ax = self.axis[parents].astype(np.int64)
+            sp = split[parents].astype(np.float64)
+            lo = np.repeat(lo[inner], 2, 0)
+            hi = np.repeat(hi[inner], 2, 0)
+            rows = 2 * np.arange(len(parents))
+            hi[rows, ax] = sp
+            lo[rows + 1, ax] = sp
+        size = np.ones(n, np.int64)
+        for (a, b), (c, d) in reversed(self.level_pairs()):
+            size[a:b][~is_leaf[a:b]] += size[c:d].reshape(-1, 2).sum(1)
+        self.pre = np.zeros(n, np.int64)
+        for (a, b), (c, d) in self.level_pairs():
+            below = np.repeat(self.pre[a:b][~is_leaf[a:b]] + 1, 2)
+            below[1::2] += size[c:d][0::2]
+            self.pre[c:d] = below
+        self.pre_end = self.pre + size
+
+    def level_pairs(self) -> list:
+        """(level range, its children's range) for every level with children (builders'
+        order only)."""
+        return list(zip(self.ranges[:-1], self.ranges[1:]))
+
+    def inner_at(self, k) -> np.ndarray:
+        """Inner nodes of level k, in index order."""
+        if self.ranges is not None:
+            a, b = self.ranges[k]
+            return a + np.flatnonzero(~self.is_leaf[a:b])
+        level = self.levels[k]
+        return level[~self.is_leaf[level]]
 
     def subtree_sum(self, values) -> np.ndarray:
         """Sum of `values` (one per node) over each node's subtree, bottom-up level by level
         (siblings are neighbours in memory, unlike a preorder prefix sum's scattered reads)."""
         total = np.array(values, copy=True)
+        if self.ranges is not None:
+            for (a, b), (c, d) in reversed(self.level_pairs()):
+                total[a:b][~self.is_leaf[a:b]] += total[c:d].reshape(-1, 2).sum(1)
+            return total
         for level in reversed(self.levels):
             inner = level[~self.is_leaf[level]]
             child = self.field[inner]
@@ -379,9 +487,30 @@ def _falls_going_up(topo):
     """Nodes from which the cell area never shrinks up to the root (and is positive, finite):
     there occupancy, like frequency, can only fall going up, so a failed test ends a walk."""
     ok = np.isfinite(topo.area) & (topo.area > 0)
+    if topo.ranges is not None:
+        for (a, b), (c, d) in topo.level_pairs():
+            inner = ~topo.is_leaf[a:b]
+            parent_ok = np.repeat(ok[a:b][inner], 2)
+            parent_area = np.repeat(topo.area[a:b][inner], 2)
+            ok[c:d] &= parent_ok & (parent_area >= topo.area[c:d])
+        return ok
     for level in topo.levels[1:]:
         ok[level] &= ok[topo.parent[level]] & (topo.area[topo.parent[level]] >= topo.area[level])
     return ok
+
+
+def _pass_down(topo, k, target, source, extra):
+    """target[children] = source[parent] + extra[parent] for the inner nodes of level k."""
+    if topo.ranges is not None:
+        if k + 1 < len(topo.ranges):
+            (a, b), (c, d) = topo.ranges[k], topo.ranges[k + 1]
+            inner = ~topo.is_leaf[a:b]
+            target[c:d] = np.repeat(source[a:b][inner] + extra[a:b][inner], 2)
+        return
+    inner = topo.inner_at(k)
+    child = topo.field[inner]
+    target[child] = source[inner] + extra[inner]
+    target[child + 1] = target[child]
 
 
 def _select_lifts(topo, per_depth, ref_count, params):
@@ -397,7 +526,7 @@ def _select_lifts(topo, per_depth, ref_count, params):
     on_path = np.zeros(topo.n, np.int64)          # references on the proper ancestors
     path_cap = params.refs_per_path if params.refs_per_path is not None else 1 << 30
     lift_node, lift_tri, lift_first = [], [], []
-    for d, level in enumerate(topo.levels):
+    for d in range(len(topo.levels)):
         cand = per_depth[d] if d < len(per_depth) else None
         if cand is not None and len(cand[0]) and params.refs_per_node:
             node, tri, r, first, end = cand
@@ -414,10 +543,7 @@ def _select_lifts(topo, per_depth, ref_count, params):
             lift_node.append(node[take])
             lift_tri.append(tri[take])
             lift_first.append(first[take])
-        inner = level[~topo.is_leaf[level]]
-        child = topo.field[inner]
-        on_path[child] = on_path[inner] + refs_at[inner]
-        on_path[child + 1] = on_path[child]
+        _pass_down(topo, d, on_path, on_path, refs_at)
     lift_node, lift_tri, lift_first = (np.concatenate(part) if part else np.zeros(0, np.int64)
                                        for part in (lift_node, lift_tri, lift_first))
     return removed, lift_node, lift_tri, refs_at, lift_first
@@ -449,8 +575,8 @@ def _collapse(topo, leaf_count, refs_at, distinct, params):
     K_T, K_I = params.traversal_cost, params.intersection_cost
     cost = K_I * leaf_count.astype(np.float64)
     collapsed = np.zeros(topo.n, bool)
-    for level in reversed(topo.levels):
-        inner = level[~topo.is_leaf[level]]
+    for k in reversed(range(len(topo.levels))):
+        inner = topo.inner_at(k)
         if not len(inner):
             continue
         child = topo.field[inner]
@@ -469,12 +595,17 @@ def _collapse(topo, leaf_count, refs_at, distinct, params):
 
 def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float | None = None,
                  tau_freq: float | None = None, refs_per_node: int | None = None,
-                 refs_per_path: int | None = -1, progress=None, **options) -> CompactTree:
+                 refs_per_path: int | None = -1, progress=None, device=None,
+                 **options) -> CompactTree:
     """Rewrite a standard kd-tree (core.accel.kdtree.KDTree) in the compact layout of `mode`.
 
     `refs_per_path=-1` keeps the mode's default (8 for `ours`, unlimited for `choi`); None means
     unlimited. Other CompactParams fields (min_refs, collapse, elide_empty, leaf16) may be
     overridden by keyword. `progress(fraction, message)` is called after each step.
+    `device`: an OpenCL device (a core.opencl.select_device spec, or a
+    core.accel.kdtree_cl.KDTreeBuilderCL to share its context) that runs the heavy steps as
+    kernels (core/accel/compact_cl.py) for trees in the builders' order; the result is the
+    same, bit for bit. None: numpy only.
     """
     started = time.perf_counter()
     overrides = dict(tau_occu=tau_occu, tau_freq=tau_freq, refs_per_node=refs_per_node, **options)
@@ -491,6 +622,12 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
         if out is not None:
             out.stats["compact_seconds"] = time.perf_counter() - started
             report(1.0, f"compact (standard): {len(out.nodes)} nodes, {out.nbytes} bytes")
+            return out
+
+    if device is not None:
+        from .compact_cl import compact_on_device
+        out = compact_on_device(device, tree, triangles_count, params, report, started)
+        if out is not None:
             return out
 
     topo = _Topology(tree)
@@ -538,42 +675,30 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
     report(0.7, f"compact: {int(collapsed.sum())} subtrees collapsed")
 
     # Which nodes survive, and the leaf each removed node's contents go to.
-    dead = np.zeros(topo.n, bool)
-    owner = np.arange(topo.n)
-    for level in topo.levels:
-        inner = level[~topo.is_leaf[level]]
-        child = topo.field[inner]
-        gone = dead[inner] | collapsed[inner]
-        for c in (child, child + 1):
-            dead[c] = gone
-            owner[c] = np.where(gone, owner[inner], c)
+    dead, owner = _owners(topo, collapsed)
     is_final_leaf = ~dead & (topo.is_leaf | collapsed)
     lift_gone = dead[lift_node] | collapsed[lift_node]
     item_leaf = np.concatenate([owner[k_leaf], owner[lift_node[lift_gone]]])
     item_tri = np.concatenate([k_tri, lift_tri[lift_gone]])
     lift_node, lift_tri = lift_node[~lift_gone], lift_tri[~lift_gone]
-    refs_at = np.bincount(lift_node, minlength=topo.n)
     del k_leaf, k_tri
     key = np.unique(item_leaf * np.int64(triangles_count) + item_tri)
     item_leaf, item_tri = key // triangles_count, key % triangles_count
     del key
     final_count = np.bincount(item_leaf, minlength=topo.n)
+    return _finish(tree, topo, params, triangles_count, reference_count, collapsed, dead,
+                   is_final_leaf, final_count, item_tri, lift_node, lift_tri, started, report)
 
+
+def _finish(tree, topo, params, triangles_count, reference_count, collapsed, dead, is_final_leaf,
+            final_count, item_tri, lift_node, lift_tri, started, report) -> CompactTree:
+    """Lay the surviving nodes out and gather the stats (both the numpy and the kernel path):
+    final leaves' items sorted by (leaf, triangle) without repeats, and the lifts that stay."""
+    refs_at = np.bincount(lift_node, minlength=topo.n)
     nodes, leaf32, leaf16, shift, kinds, leaf_stats = _layout(
-        topo, params, is_final_leaf, dead, final_count, item_leaf, item_tri, lift_node,
-        lift_tri, refs_at, triangles_count)
-
-    on_path = np.zeros(topo.n, np.int64)
-    max_path = 0
-    for level in topo.levels:
-        live = level[~dead[level]]
-        if len(live):
-            max_path = max(max_path, int((on_path[live] + refs_at[live]).max()))
-        inner = level[~topo.is_leaf[level]]
-        child = topo.field[inner]
-        on_path[child] = on_path[inner] + refs_at[inner]
-        on_path[child + 1] = on_path[child]
-
+        topo, params, is_final_leaf, dead, final_count, item_tri, lift_node, lift_tri, refs_at,
+        triangles_count)
+    max_path = _max_refs_on_path(topo, dead, refs_at)
     out = CompactTree(nodes, leaf32, leaf16, tree.bounds.astype(np.float32), shift, params)
     out.stats = {
         "mode": params.mode,
@@ -595,6 +720,47 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
     }
     report(1.0, f"compact ({params.mode}): {len(nodes)} nodes, {out.nbytes} bytes")
     return out
+
+
+def _owners(topo, collapsed):
+    """Which nodes are gone (below a collapsed node), and the leaf that takes each node's
+    contents: top-down level by level."""
+    dead = np.zeros(topo.n, bool)
+    owner = np.arange(topo.n)
+    if topo.ranges is not None:
+        for (a, b), (c, d) in topo.level_pairs():
+            inner = ~topo.is_leaf[a:b]
+            gone = np.repeat((dead[a:b] | collapsed[a:b])[inner], 2)
+            dead[c:d] = gone
+            owner[c:d] = np.where(gone, np.repeat(owner[a:b][inner], 2), np.arange(c, d))
+        return dead, owner
+    for k in range(len(topo.levels)):
+        inner = topo.inner_at(k)
+        child = topo.field[inner]
+        gone = dead[inner] | collapsed[inner]
+        for c in (child, child + 1):
+            dead[c] = gone
+            owner[c] = np.where(gone, owner[inner], c)
+    return dead, owner
+
+
+def _max_refs_on_path(topo, dead, refs_at) -> int:
+    """The most triangle references met on a path from the root to a surviving node."""
+    on_path = np.zeros(topo.n, np.int64)
+    max_path = 0
+    for k in range(len(topo.levels)):
+        if topo.ranges is not None:
+            a, b = topo.ranges[k]
+            live = ~dead[a:b]
+            if live.any():
+                max_path = max(max_path, int((on_path[a:b][live] + refs_at[a:b][live]).max()))
+        else:
+            level = topo.levels[k]
+            live = level[~dead[level]]
+            if len(live):
+                max_path = max(max_path, int((on_path[live] + refs_at[live]).max()))
+        _pass_down(topo, k, on_path, on_path, refs_at)
+    return max_path
 
 
 def _leaf_shift(triangles_count: int) -> int:
@@ -653,8 +819,8 @@ def _standard_reencoded(tree, triangles_count, params):
     return out
 
 
-def _layout(topo, params, is_final_leaf, dead, final_count, item_leaf, item_tri, lift_node,
-            lift_tri, refs_at, triangles_count):
+def _layout(topo, params, is_final_leaf, dead, final_count, item_tri, lift_node, lift_tri,
+            refs_at, triangles_count):
     """Number the surviving nodes level by level and write the words (module docstring)."""
     empty_leaf = is_final_leaf & (final_count == 0)
     elided = np.zeros(topo.n, bool)
@@ -674,8 +840,13 @@ def _layout(topo, params, is_final_leaf, dead, final_count, item_leaf, item_tri,
     group_of = np.zeros(topo.n, np.int64)
     new_index[0] = 0
     next_free = 1
-    for level in topo.levels:
-        inner = level[~dead[level] & ~is_final_leaf[level]]
+    for k in range(len(topo.levels)):
+        if topo.ranges is not None:
+            a, b = topo.ranges[k]
+            inner = a + np.flatnonzero(~dead[a:b] & ~is_final_leaf[a:b])
+        else:
+            level = topo.levels[k]
+            inner = level[~dead[level] & ~is_final_leaf[level]]
         if not len(inner):
             continue
         if (np.diff(new_index[inner]) < 0).any():     # already in order for breadth-first trees

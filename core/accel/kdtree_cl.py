@@ -143,10 +143,12 @@ class KDTreeBuilderCL:
                              hostbuf=array)
         return cl.Buffer(self.context, cl.mem_flags.READ_WRITE, max(int(nbytes), 4))
 
-    def _run(self, kernel, count, *args):
+    def _run(self, kernel, count, *args, local_size=None):
+        """kernel over `count` work-items (padded to the work-group size; kernels skip the
+        padding)."""
         if count == 0:
             return
-        ls = self.local_size
+        ls = local_size or self.local_size
         size = -(-int(count) // ls) * ls
         kernel(self.queue, (size,), (ls,), *args)
 
@@ -641,12 +643,20 @@ class _Store:
 _BUILDERS: dict = {}
 
 
-def build_kdtree_cl(vertices, triangles, params: KDTreeParams | None = None, progress=None,
-                    device=None) -> KDTree:
-    """build_kdtree() on an OpenCL device (None: a GPU if any, else the CPU; as
-    core.opencl.select_device). The builder (context, programs) is kept per device name."""
+def builder_for(device) -> KDTreeBuilderCL:
+    """A builder for `device` (a KDTreeBuilderCL itself, or a core.opencl.select_device spec:
+    None means a GPU if any, else the CPU), kept per spec: contexts and programs are made
+    once."""
+    if isinstance(device, KDTreeBuilderCL):
+        return device
     key = str(device)
     builder = _BUILDERS.get(key)
     if builder is None:
         builder = _BUILDERS[key] = KDTreeBuilderCL(device)
-    return builder.build(vertices, triangles, params, progress)
+    return builder
+
+
+def build_kdtree_cl(vertices, triangles, params: KDTreeParams | None = None, progress=None,
+                    device=None) -> KDTree:
+    """build_kdtree() on an OpenCL device (see builder_for)."""
+    return builder_for(device).build(vertices, triangles, params, progress)

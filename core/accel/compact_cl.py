@@ -1,0 +1,271 @@
+"""core/accel/compact.py's compaction in OpenCL kernels (kernels/build/compact.cl), for trees in
+the builders' order: breadth-first with the k-th inner node's children at 1 + 2k, leaf lists in
+node order (what core/accel/kdtree.py and kdtree_cl.py both build). Each level of such a tree is
+a contiguous range of nodes whose inner nodes' children are, pair by pair, the next level, so
+every per-level step is one kernel over a range. The result is compact_tree's, bit for bit:
+the kernels use its float64 arithmetic and numpy's summation order; steps that need the whole
+tree in order (the greedy choice of lifts, numbering the nodes) stay on the host, over level
+ranges. docs/kdtree_native.md.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
+from . import compact as host
+
+KERNEL_FILES = ("build/fp64.cl", "build/compact.cl")
+
+
+def _exclusive(counts) -> np.ndarray:
+    out = np.zeros(len(counts) + 1, np.int64)
+    np.cumsum(counts, out=out[1:])
+    return out
+
+
+class DeviceTopology:
+    """compact.py _Topology's arrays on the device, for a tree in the builders' order (`shape`:
+    its host part, compact._Topology.shape_only)."""
+
+    def __init__(self, c, tree, shape):
+        b, k = c.b, c.k
+        u4 = np.uint32
+        nodes = np.ascontiguousarray(tree.nodes, np.uint32)
+        n = len(nodes)
+        self.n = n
+        self.is_leaf = shape.is_leaf
+        ranges = shape.ranges
+        self.nodes = b._buffer(nodes)
+        self.area = b._buffer(nbytes=8 * n)
+        self.depth = b._buffer(nbytes=n)
+        self.parent = b._buffer(nbytes=4 * n)
+        self.stops = b._buffer(nbytes=n)
+        self.size = b._buffer(nbytes=4 * n)
+        self.nonempty = b._buffer(nbytes=4 * n)
+        self.pre = b._buffer(np.zeros(1, u4)) if n == 1 else b._buffer(nbytes=4 * n)
+        widest = max(e - a for a, e in ranges)
+        cells = [b._buffer(nbytes=24 * widest), b._buffer(nbytes=24 * widest)]
+        bounds = b._buffer(np.ascontiguousarray(tree.bounds, np.float32).reshape(-1))
+        k["topo_root"](b.queue, (1,), None, bounds, cells[0], self.area, self.depth,
+                       self.parent, self.stops)
+        for level, (first, end) in enumerate(ranges):
+            c._run(b, k["topo_down"], end - first, self.nodes, cells[level % 2],
+                   cells[(level + 1) % 2], self.area, self.depth, self.parent, self.stops,
+                   u4(first), u4(end), u4(level))
+        del cells
+        for first, end in reversed(ranges):
+            c._run(b, k["topo_up"], end - first, self.nodes, self.size, self.nonempty, u4(first),
+                   u4(end))
+        b._cl.enqueue_fill_buffer(b.queue, self.pre, np.uint32(0), 0, 4)
+        for first, end in ranges:
+            c._run(b, k["topo_pre"], end - first, self.nodes, self.size, self.pre, u4(first), u4(end))
+        self.max_depth = len(ranges) - 1
+        self.node_at_pre = b._buffer(nbytes=4 * n)
+        self.climb = b._buffer(nbytes=16 * n)
+        self.walk = b._buffer(nbytes=16 * n)
+        c._run(b, k["preorder_records"], n, self.pre, self.size, self.parent, self.depth,
+               self.area, self.nonempty, self.stops, self.node_at_pre, self.climb, self.walk,
+               u4(n))
+
+
+class CompactorCL:
+    """Kernel compaction on a kd-tree builder's device (core.accel.kdtree_cl.KDTreeBuilderCL)."""
+
+    def __init__(self, builder, local_size=None):
+        from ..opencl import kernel_source
+        self.b = builder
+        # Many small work-items: work-groups of them (PoCL pays per work-group).
+        self.local_size = local_size or (256 if builder.is_cpu else 64)
+        self.k = builder._programs.kernels(kernel_source(KERNEL_FILES),
+                                           ["-DKDTRACE_SOFT_FP64"] if builder.soft_fp64 else [])
+
+    def _run(self, b, kernel, count, *args):
+        b._run(kernel, count, *args, local_size=self.local_size)
+
+    def sorted_references(self, topo, tree, triangle_count):
+        """References sorted by (triangle, preorder of the leaf): (s_leaf, s_tri, tri_first)
+        buffers and the reference count."""
+        b, k = self.b, self.k
+        u4 = np.uint32
+        leaves = np.flatnonzero(topo.is_leaf).astype(u4)
+        R = len(tree.leaf_indices)
+        d_leaves = b._buffer(leaves)
+        d_lists = b._buffer(np.ascontiguousarray(tree.leaf_indices, u4))
+        per_triangle = b._buffer(np.zeros(max(triangle_count, 1), u4))
+        self._run(b, k["refs_count"], len(leaves), topo.nodes, d_leaves, d_lists, per_triangle,
+               u4(len(leaves)))
+        counts = b._read(per_triangle, u4, max(triangle_count, 1))[:triangle_count]
+        tri_first = _exclusive(counts).astype(u4)
+        d_first = b._buffer(tri_first)
+        b._cl.enqueue_fill_buffer(b.queue, per_triangle, np.uint32(0), 0, 4 * max(triangle_count, 1))
+        s_leaf, s_pre, s_tri = (b._buffer(nbytes=4 * max(R, 1)) for _ in range(3))
+        self._run(b, k["refs_scatter"], len(leaves), topo.nodes, d_leaves, d_lists, d_first,
+               per_triangle, topo.pre, s_leaf, s_pre, u4(len(leaves)))
+        self._run(b, k["refs_sort"], triangle_count, d_first, s_leaf, s_pre, s_tri, u4(triangle_count))
+        return s_leaf, s_pre, s_tri, d_first, tri_first, R
+
+    def neighbour_lcas(self, topo, s_pre, s_tri, R):
+        b, k = self.b, self.k
+        gap_node, gap_pre, gap_depth = (b._buffer(nbytes=4 * (R + 1)) for _ in range(3))
+        self._run(b, k["neighbour_lcas"], R + 1, s_pre, s_tri, topo.climb, gap_node, gap_pre,
+                  gap_depth, np.uint32(R))
+        return gap_node, gap_pre, gap_depth
+
+    def lift_candidates(self, topo, d_first, triangle_count, s_pre, gap_pre, gap_depth, R,
+                        params, node_at_pre):
+        """compact.py _lift_candidates: per depth (node, triangle, r, first, end) arrays."""
+        b, k = self.b, self.k
+        u4 = np.uint32
+        scratch = [b._buffer(nbytes=4 * (R + 1)) for _ in range(3)]
+        taus = (np.float64(params.tau_occu).view(np.uint64), np.float64(params.tau_freq).view(np.uint64))
+        capacity = max(R, 1024)
+        while True:
+            out = b._buffer(nbytes=24 * capacity)
+            used = b._buffer(np.zeros(1, u4))
+            self._run(b, k["lift_candidates"], triangle_count, d_first, s_pre, gap_pre, gap_depth,
+                      topo.nodes, topo.climb, topo.walk, *scratch, out, used, u4(capacity),
+                      u4(triangle_count), u4(params.min_refs), *taus)
+            total = int(b._read(used, u4, 1)[0])
+            if total <= capacity:
+                break
+            capacity = total          # more candidates than room: again with room for all
+        found = b._read(out, u4, (total, 6)).astype(np.int64)
+        found[:, 1] = node_at_pre[found[:, 1]]
+        order = np.argsort(found[:, 0], kind="stable")
+        found = found[order]
+        bounds = np.searchsorted(found[:, 0], np.arange(topo.max_depth + 2))
+        per_depth = [None] * (topo.max_depth + 1)
+        for d in range(topo.max_depth + 1):
+            if bounds[d] < bounds[d + 1]:
+                part = found[bounds[d]:bounds[d + 1]]
+                per_depth[d] = tuple(part[:, j] for j in range(1, 6))
+        return per_depth
+
+    def collapse(self, topo, shape, d_removed, s_leaf, gap_node, gap_depth, lift_node,
+                 lift_first, refs_at, R, params):
+        """compact.py _distinct_below and _collapse: the collapsed nodes (host bool array)."""
+        b, k = self.b, self.k
+        u4 = np.uint32
+        n = topo.n
+        per_node = b._buffer(np.zeros(n, np.int32))
+        leaf_count = b._buffer(np.zeros(n, u4))
+        self._run(b, k["distinct_refs"], R, d_removed, s_leaf, gap_node, gap_depth, per_node,
+                  leaf_count, u4(R))
+        self._run(b, k["distinct_lifts"], len(lift_node), b._buffer(lift_node.astype(u4)),
+                  b._buffer(lift_first.astype(u4)), gap_node, gap_depth, per_node,
+                  u4(len(lift_node)))
+        for first, end in reversed(shape.ranges):
+            self._run(b, k["subtree_sums"], end - first, topo.nodes, per_node, u4(first), u4(end))
+        d_refs_at = b._buffer(refs_at.astype(u4))
+        cost = b._buffer(nbytes=8 * n)
+        collapsed = b._buffer(nbytes=n)
+        kt = np.float64(params.traversal_cost).view(np.uint64)
+        ki = np.float64(params.intersection_cost).view(np.uint64)
+        for first, end in reversed(shape.ranges):
+            self._run(b, k["collapse"], end - first, topo.nodes, topo.area, leaf_count, d_refs_at,
+                      per_node, cost, collapsed, u4(first), u4(end), kt, ki)
+        return b._read(collapsed, np.uint8, n).astype(bool)
+
+    def owners(self, topo, shape, collapsed):
+        """compact.py _owners: (dead, owner) host arrays."""
+        b, k = self.b, self.k
+        u4 = np.uint32
+        n = topo.n
+        d_collapsed = b._buffer(collapsed.astype(np.uint8))
+        dead = b._buffer(np.zeros(n, np.uint8))
+        owner = b._buffer(np.zeros(n, u4))
+        for first, end in shape.ranges:
+            self._run(b, k["owners"], end - first, topo.nodes, d_collapsed, dead, owner,
+                      u4(first), u4(end))
+        return b._read(dead, np.uint8, n).astype(bool), b._read(owner, u4, n).astype(np.int64)
+
+    def items(self, topo, d_removed, s_leaf, s_tri, owner, R, extra_owner, extra_tri):
+        """Every final leaf's triangles (kept references and the lifts of removed nodes),
+        sorted, without repeats: (count per node, the lists one after another by node)."""
+        b, k = self.b, self.k
+        u4 = np.uint32
+        n = topo.n
+        d_owner = b._buffer(owner.astype(u4))
+        per_owner = b._buffer(np.zeros(n, u4))
+        self._run(b, k["items_count"], R, d_removed, s_leaf, d_owner, per_owner, u4(R))
+        extra_count = np.bincount(extra_owner, minlength=n)
+        counts = b._read(per_owner, u4, n).astype(np.int64) + extra_count
+        owner_first = _exclusive(counts)
+        total = int(owner_first[-1])
+        items = np.zeros(max(total, 1), u4)
+        # The lifts of removed nodes first in their owner's bucket (in their order), then the
+        # references from the kernel.
+        by_owner = np.sort(extra_owner)
+        rank = np.arange(len(by_owner)) - np.searchsorted(by_owner, by_owner)
+        items[owner_first[by_owner] + rank] = extra_tri[np.argsort(extra_owner, kind="stable")]
+        d_items = b._buffer(items)
+        d_first = b._buffer(owner_first.astype(u4))
+        self._run(b, k["items_scatter"], R, d_removed, s_leaf, s_tri, d_owner, d_first,
+                  b._buffer(extra_count.astype(u4)), d_items, u4(R))
+        kept = b._buffer(nbytes=4 * n)
+        self._run(b, k["items_unique"], n, d_first, d_items, kept, u4(n))
+        final_count = b._read(kept, u4, n).astype(np.int64)
+        all_items = b._read(d_items, u4, max(total, 1)).astype(np.int64)
+        shift = owner_first[:-1] - _exclusive(final_count)[:-1]
+        item_tri = all_items[np.arange(int(final_count.sum())) + np.repeat(shift, final_count)]
+        return final_count, item_tri
+
+
+def compactor_for(builder) -> CompactorCL:
+    """The builder's compactor (made once per builder)."""
+    c = getattr(builder, "_compactor", None)
+    if c is None:
+        c = builder._compactor = CompactorCL(builder)
+    return c
+
+
+def compact_on_device(device, tree, triangles_count, params, report, started):
+    """compact_tree's lifting, collapse and leaf items in kernels, the numbering and stats on
+    the host (compact._finish). None when the tree is not in the builders' order."""
+    from .kdtree_cl import builder_for
+    shape = host._Topology.shape_only(tree)
+    if shape is None:
+        return None
+    builder = builder_for(device)
+    c = compactor_for(builder)
+    b, k = c.b, c.k
+    u4 = np.uint32
+    n = shape.n
+    topo = DeviceTopology(c, tree, shape)
+    s_leaf, s_pre, s_tri, d_first, tri_first, R = c.sorted_references(topo, tree, triangles_count)
+    report(0.2, "compact: tree decoded")
+
+    lifting = params.refs_per_node > 0 and (params.refs_per_path is None
+                                            or params.refs_per_path > 0)
+    if lifting or params.collapse:
+        gap_node, gap_pre, gap_depth = c.neighbour_lcas(topo, s_pre, s_tri, R)
+    if lifting:
+        node_at_pre = b._read(topo.node_at_pre, u4, n).astype(np.int64)
+        per_depth = c.lift_candidates(topo, d_first, triangles_count, s_pre, gap_pre, gap_depth,
+                                      R, params, node_at_pre)
+        del node_at_pre
+        removed, lift_node, lift_tri, refs_at, lift_first = host._select_lifts(
+            shape, per_depth, R, params)
+        del per_depth
+    else:
+        removed = np.zeros(R, bool)
+        lift_node = lift_tri = lift_first = np.zeros(0, np.int64)
+        refs_at = np.zeros(n, np.int64)
+    report(0.5, f"compact: {len(lift_tri)} triangle references lifted")
+
+    d_removed = b._buffer(removed.astype(np.uint8))
+    if params.collapse:
+        collapsed = c.collapse(topo, shape, d_removed, s_leaf, gap_node, gap_depth, lift_node,
+                               lift_first, refs_at, R, params)
+    else:
+        collapsed = np.zeros(n, bool)
+    report(0.7, f"compact: {int(collapsed.sum())} subtrees collapsed")
+
+    dead, owner = c.owners(topo, shape, collapsed)
+    is_final_leaf = ~dead & (shape.is_leaf | collapsed)
+    lift_gone = dead[lift_node] | collapsed[lift_node]
+    final_count, item_tri = c.items(topo, d_removed, s_leaf, s_tri, owner, R,
+                                    owner[lift_node[lift_gone]], lift_tri[lift_gone])
+    lift_node, lift_tri = lift_node[~lift_gone], lift_tri[~lift_gone]
+    return host._finish(tree, shape, params, triangles_count, R, collapsed, dead, is_final_leaf,
+                        final_count, item_tri, lift_node, lift_tri, started, report)

@@ -1,0 +1,693 @@
+/* The compaction of a builder-ordered plain kd-tree (core/accel/compact_cl.py), step for step
+   core/accel/compact.py's numpy post-pass, with the same float64 arithmetic (fp64.cl), so the
+   compact tree is the same bits.
+
+   A builder-ordered tree is breadth-first with the k-th inner node's children at 1 + 2k: each
+   level is a contiguous range of nodes and the children of its inner nodes, pair by pair,
+   are the next level. Per-level kernels get the level's range [first, end). */
+
+#pragma OPENCL FP_CONTRACT OFF
+
+#define NONE 0xFFFFFFFFu
+
+inline int is_leaf(uint2 w)
+{
+    return KD_PLAIN_TAG(w.x) == KD_LEAF_TAG;
+}
+
+/* Double compare helpers (fp64.cl has no isfinite). */
+#ifndef KDTRACE_SOFT_FP64
+inline int d_finite(double x)
+{
+    return x == x && x != INFINITY && x != -INFINITY;
+}
+#else
+inline int d_finite(ulong x)
+{
+    return ((x >> 52) & 0x7FF) != 0x7FF;
+}
+#endif
+
+inline dbl cell_area(const float* lo, const float* hi)
+{
+    dbl d[3];
+    for (int a = 0; a < 3; a++)
+        d[a] = D_SUB(D_FROM_F(hi[a]), D_FROM_F(lo[a]));
+    dbl sum = D_ADD(D_ADD(D_MUL(d[0], d[1]), D_MUL(d[1], d[2])), D_MUL(d[2], d[0]));
+    return D_MUL(D_BITS(0x4000000000000000UL), sum);
+}
+
+/* ----------------------------------------------------------------------------------------
+   Topology (compact.py _Topology, _falls_going_up, subtree sums). Cells of one level (6 floats
+   per node, by position in the level) give the next level's. */
+
+__kernel void topo_root(__global const float* restrict bounds, __global float* restrict cells,
+                        __global dbl* restrict area, __global uchar* restrict depth,
+                        __global uint* restrict parent, __global uchar* restrict stops)
+{
+    float lo[3], hi[3];
+    for (int a = 0; a < 3; a++) {
+        lo[a] = bounds[a];
+        hi[a] = bounds[3 + a];
+        cells[a] = lo[a];
+        cells[3 + a] = hi[a];
+    }
+    dbl A = cell_area(lo, hi);
+    area[0] = A;
+    depth[0] = 0;
+    parent[0] = NONE;
+    stops[0] = d_finite(A) && D_LT(D_ZERO, A);
+}
+
+/* Per node of level [first, end): its children's cells, areas, depths, parents and whether
+   the area never shrinks from them up to the root. */
+__kernel void topo_down(__global const uint2* restrict nodes, __global const float* restrict cells,
+                        __global float* restrict next_cells, __global dbl* restrict area,
+                        __global uchar* restrict depth, __global uint* restrict parent,
+                        __global uchar* restrict stops, uint first, uint end, uint level)
+{
+    uint i = first + get_global_id(0);
+    if (i >= end)
+        return;
+    uint2 w = nodes[i];
+    if (is_leaf(w))
+        return;
+    uint c = KD_PLAIN_FIELD(w.x);
+    int axis = (int)KD_PLAIN_TAG(w.x);
+    float split = as_float(w.y);
+    __global const float* cell = cells + 6 * (i - first);
+    for (int side = 0; side < 2; side++) {
+        float lo[3], hi[3];
+        for (int a = 0; a < 3; a++) {
+            lo[a] = cell[a];
+            hi[a] = cell[3 + a];
+        }
+        if (side)
+            lo[axis] = split;
+        else
+            hi[axis] = split;
+        uint child = c + (uint)side;
+        __global float* out = next_cells + 6 * (child - end);
+        for (int a = 0; a < 3; a++) {
+            out[a] = lo[a];
+            out[3 + a] = hi[a];
+        }
+        dbl A = cell_area(lo, hi);
+        area[child] = A;
+        depth[child] = (uchar)(level + 1);
+        parent[child] = i;
+        stops[child] = d_finite(A) && D_LT(D_ZERO, A) && stops[i] && D_GE(area[i], A);
+    }
+}
+
+/* Per node of a level, bottom-up: subtree size and non-empty leaves below (leaves: 1 and
+   count > 0). */
+__kernel void topo_up(__global const uint2* restrict nodes, __global uint* restrict size,
+                      __global uint* restrict nonempty, uint first, uint end)
+{
+    uint i = first + get_global_id(0);
+    if (i >= end)
+        return;
+    uint2 w = nodes[i];
+    if (is_leaf(w)) {
+        size[i] = 1u;
+        nonempty[i] = KD_PLAIN_FIELD(w.x) > 0u;
+    } else {
+        uint c = KD_PLAIN_FIELD(w.x);
+        size[i] = 1u + size[c] + size[c + 1];
+        nonempty[i] = nonempty[c] + nonempty[c + 1];
+    }
+}
+
+/* Per node of a level, top-down: the children's preorder numbers. */
+__kernel void topo_pre(__global const uint2* restrict nodes, __global const uint* restrict size,
+                       __global uint* restrict pre, uint first, uint end)
+{
+    uint i = first + get_global_id(0);
+    if (i >= end)
+        return;
+    uint2 w = nodes[i];
+    if (is_leaf(w))
+        return;
+    uint c = KD_PLAIN_FIELD(w.x);
+    pre[c] = pre[i] + 1u;
+    pre[c + 1] = pre[i] + 1u + size[c];
+}
+
+/* ----------------------------------------------------------------------------------------
+   References sorted by (triangle, preorder of the leaf): counted per triangle, scattered into
+   their triangle's range (in any order), then each range sorted by preorder. */
+
+/* Per leaf (leaves: the leaf node indices): its references counted per triangle. */
+__kernel void refs_count(__global const uint2* restrict nodes, __global const uint* restrict leaves,
+                         __global const uint* restrict leaf_indices,
+                         __global uint* restrict per_triangle, uint leaf_count)
+{
+    uint l = get_global_id(0);
+    if (l >= leaf_count)
+        return;
+    uint2 w = nodes[leaves[l]];
+    uint n = KD_PLAIN_FIELD(w.x);
+    for (uint j = 0; j < n; j++)
+        atomic_inc(per_triangle + leaf_indices[w.y + j]);
+}
+
+__kernel void refs_scatter(__global const uint2* restrict nodes,
+                           __global const uint* restrict leaves,
+                           __global const uint* restrict leaf_indices,
+                           __global const uint* restrict tri_first, __global uint* restrict cursor,
+                           __global const uint* restrict pre, __global uint* restrict s_leaf,
+                           __global uint* restrict s_pre, uint leaf_count)
+{
+    uint l = get_global_id(0);
+    if (l >= leaf_count)
+        return;
+    uint node = leaves[l];
+    uint2 w = nodes[node];
+    uint n = KD_PLAIN_FIELD(w.x);
+    for (uint j = 0; j < n; j++) {
+        uint t = leaf_indices[w.y + j];
+        uint at = tri_first[t] + atomic_inc(cursor + t);
+        s_leaf[at] = node;
+        s_pre[at] = pre[node];
+    }
+}
+
+/* Per triangle: its range sorted by preorder (insertion sort for short ranges, heap sort for
+   long ones; preorder numbers of one triangle's leaves are distinct). */
+__kernel void refs_sort(__global const uint* restrict tri_first, __global uint* restrict s_leaf,
+                        __global uint* restrict s_pre, __global uint* restrict s_tri,
+                        uint triangle_count)
+{
+    uint t = get_global_id(0);
+    if (t >= triangle_count)
+        return;
+    uint a = tri_first[t], n = tri_first[t + 1] - a;
+    __global uint* key = s_pre + a;
+    __global uint* val = s_leaf + a;
+    if (n <= 32u) {
+        for (uint i = 1; i < n; i++) {
+            uint k = key[i], v = val[i];
+            uint j = i;
+            while (j > 0 && key[j - 1] > k) {
+                key[j] = key[j - 1];
+                val[j] = val[j - 1];
+                j--;
+            }
+            key[j] = k;
+            val[j] = v;
+        }
+    } else {
+        for (uint start = n / 2; start-- > 0;) {              /* heapify (max-heap) */
+            uint r = start;
+            for (;;) {
+                uint child = 2 * r + 1;
+                if (child >= n)
+                    break;
+                if (child + 1 < n && key[child + 1] > key[child])
+                    child++;
+                if (key[r] >= key[child])
+                    break;
+                uint k = key[r], v = val[r];
+                key[r] = key[child];
+                val[r] = val[child];
+                key[child] = k;
+                val[child] = v;
+                r = child;
+            }
+        }
+        for (uint last = n - 1; last > 0; last--) {
+            uint k = key[0], v = val[0];
+            key[0] = key[last];
+            val[0] = val[last];
+            key[last] = k;
+            val[last] = v;
+            uint r = 0;
+            for (;;) {
+                uint child = 2 * r + 1;
+                if (child >= last)
+                    break;
+                if (child + 1 < last && key[child + 1] > key[child])
+                    child++;
+                if (key[r] >= key[child])
+                    break;
+                uint kk = key[r], vv = val[r];
+                key[r] = key[child];
+                val[r] = val[child];
+                key[child] = kk;
+                val[child] = vv;
+                r = child;
+            }
+        }
+    }
+    for (uint i = 0; i < n; i++)
+        s_tri[a + i] = t;
+}
+
+/* ----------------------------------------------------------------------------------------
+   Gap j lies before sorted reference j: the LCA of references j-1 and j when they hold the
+   same triangle (climbing from the first until its subtree holds the second), and its depth;
+   -1 between triangles and at both ends (compact.py _neighbour_lcas). */
+
+/* Per node, by its preorder number p (so that climbing stays near its start: a below child
+   follows its parent directly): the node, what climbing needs (end of its preorder range,
+   the parent's preorder number, depth) and what walking up needs (area, parent, non-empty
+   leaves below and whether the area never shrinks from there up). */
+typedef struct {
+    dbl area;
+    uint parent;             /* preorder number, NONE at the root */
+    uint nonempty_stops;     /* bits 0-30: non-empty leaves below; bit 31: stops */
+} WalkRecord;
+
+__kernel void preorder_records(__global const uint* restrict pre, __global const uint* restrict size,
+                               __global const uint* restrict parent,
+                               __global const uchar* restrict depth,
+                               __global const dbl* restrict area,
+                               __global const uint* restrict nonempty,
+                               __global const uchar* restrict stops,
+                               __global uint* restrict node_at_pre, __global uint4* restrict climb,
+                               __global WalkRecord* restrict walk, uint n)
+{
+    uint i = get_global_id(0);
+    if (i >= n)
+        return;
+    uint p = pre[i];
+    uint up = parent[i] == NONE ? NONE : pre[parent[i]];
+    node_at_pre[p] = i;
+    climb[p] = (uint4)(p + size[i], up, depth[i], i);
+    WalkRecord w;
+    w.area = area[i];
+    w.parent = up;
+    w.nonempty_stops = nonempty[i] | ((uint)stops[i] << 31);
+    walk[p] = w;
+}
+
+/* In preorder numbers: x holds b when x <= b < end(x). gap_pre: the LCA's preorder number. */
+__kernel void neighbour_lcas(__global const uint* restrict s_pre, __global const uint* restrict s_tri,
+                             __global const uint4* restrict climb, __global uint* restrict gap_node,
+                             __global uint* restrict gap_pre, __global int* restrict gap_depth,
+                             uint ref_count)
+{
+    uint j = get_global_id(0);
+    if (j > ref_count)
+        return;
+    if (j == 0 || j == ref_count || s_tri[j] != s_tri[j - 1]) {
+        gap_node[j] = 0u;
+        gap_pre[j] = 0u;
+        gap_depth[j] = -1;
+        return;
+    }
+    uint x = s_pre[j - 1], b = s_pre[j];
+    uint4 cx = climb[x];
+    while (!(x <= b && b < cx.x)) {
+        x = cx.y;
+        cx = climb[x];
+    }
+    gap_node[j] = cx.w;
+    gap_pre[j] = x;
+    gap_depth[j] = (int)cx.z;
+}
+
+/* ----------------------------------------------------------------------------------------
+   Lift candidates (compact.py _lift_candidates), one work-item per triangle: its references
+   are one range of the sorted list, its gaps the range's inner gaps (the range's end gaps are
+   -1). Runs from the nearest lower gaps on both sides (stacks in the scratch arrays), then
+   each run walked up from its LCA while it qualifies. */
+
+/* numpy's pairwise sum (what np.add.reduceat uses) of values[s_leaf[k]] over k in
+   [first, first + n): below 8 terms in order, up to 128 in 8 accumulators, above that the two
+   halves (split at a multiple of 8) summed separately; an explicit stack replaces the
+   recursion. */
+#define PAIRWISE_STACK 40
+
+#define AREA_OF(k) walk[s_pre[k]].area
+
+inline dbl pairwise_block(__global const WalkRecord* walk, __global const uint* s_pre, uint first,
+                          uint n)
+{
+    if (n < 8u) {
+        dbl res = D_ZERO;
+        for (uint i = 0; i < n; i++)
+            res = D_ADD(res, AREA_OF(first + i));
+        return res;
+    }
+    dbl r[8];
+    for (int j = 0; j < 8; j++)
+        r[j] = AREA_OF(first + j);
+    uint i = 8u;
+    for (; i < n - (n % 8u); i += 8u)
+        for (int j = 0; j < 8; j++)
+            r[j] = D_ADD(r[j], AREA_OF(first + i + j));
+    dbl res = D_ADD(D_ADD(D_ADD(r[0], r[1]), D_ADD(r[2], r[3])), D_ADD(D_ADD(r[4], r[5]), D_ADD(r[6], r[7])));
+    for (; i < n; i++)
+        res = D_ADD(res, AREA_OF(first + i));
+    return res;
+}
+
+inline dbl pairwise_sum(__global const WalkRecord* walk, __global const uint* s_pre, uint first,
+                        uint n)
+{
+    /* A frame per pending half: its range, and whether its left half is done (then kept). */
+    uint f_first[PAIRWISE_STACK], f_n[PAIRWISE_STACK];
+    int f_right[PAIRWISE_STACK];
+    dbl f_left[PAIRWISE_STACK];
+    int sp = 0;
+    f_first[0] = first;
+    f_n[0] = n;
+    for (;;) {
+        while (f_n[sp] > 128u) {                  /* down the left halves */
+            uint n2 = f_n[sp] / 2u;
+            n2 -= n2 % 8u;
+            f_right[sp] = 0;
+            f_first[sp + 1] = f_first[sp];
+            f_n[sp + 1] = n2;
+            sp++;
+        }
+        dbl value = pairwise_block(walk, s_pre, f_first[sp], f_n[sp]);
+        for (;;) {                                /* up, until a right half is pending */
+            if (sp == 0)
+                return value;
+            sp--;
+            if (!f_right[sp]) {
+                uint n2 = f_n[sp] / 2u;
+                n2 -= n2 % 8u;
+                f_left[sp] = value;
+                f_right[sp] = 1;
+                f_first[sp + 1] = f_first[sp] + n2;
+                f_n[sp + 1] = f_n[sp] - n2;
+                sp++;
+                break;
+            }
+            value = D_ADD(f_left[sp], value);
+        }
+    }
+}
+
+inline dbl run_area(__global const WalkRecord* walk, __global const uint* s_pre, uint first, uint n)
+{
+    dbl head = AREA_OF(first);
+    return n > 1u ? D_ADD(head, pairwise_sum(walk, s_pre, first + 1u, n - 1u)) : head;
+}
+
+/* Candidate words (6 uints): depth, node (its preorder number), triangle, references, first,
+   end; appended in blocks through `used` (any order: the host sorts them). */
+#define CANDIDATE_BLOCK 32
+
+__kernel void lift_candidates(__global const uint* restrict tri_first,
+                              __global const uint* restrict s_pre,
+                              __global const uint* restrict gap_pre,
+                              __global const int* restrict gap_depth,
+                              __global const uint2* restrict nodes,
+                              __global const uint4* restrict climb,
+                              __global const WalkRecord* restrict walk,
+                              __global uint* restrict left, __global uint* restrict right,
+                              __global uint* restrict stack, __global uint* restrict out,
+                              __global uint* restrict used, uint capacity, uint triangle_count,
+                              uint min_refs, ulong tau_occu_bits, ulong tau_freq_bits)
+{
+    uint t = get_global_id(0);
+    if (t >= triangle_count)
+        return;
+    uint a = tri_first[t], e = tri_first[t + 1];
+    if (e == a)
+        return;
+    dbl tau_occu = D_BITS(tau_occu_bits), tau_freq = D_BITS(tau_freq_bits);
+    /* Nearest gap to the left with depth <= ours, to the right with depth < ours. */
+    uint sp = 0;
+    __global uint* st = stack + a;
+    st[sp++] = a;
+    for (uint g = a + 1; g < e; g++) {
+        int dg = gap_depth[g];
+        while (gap_depth[st[sp - 1]] > dg)
+            sp--;
+        left[g] = st[sp - 1];
+        st[sp++] = g;
+    }
+    sp = 0;
+    st[sp++] = e;
+    for (uint g = e - 1; g > a; g--) {
+        int dg = gap_depth[g];
+        while (gap_depth[st[sp - 1]] >= dg)
+            sp--;
+        right[g] = st[sp - 1];
+        st[sp++] = g;
+    }
+    uint block[6 * CANDIDATE_BLOCK];
+    uint held = 0u;
+    /* Runs of two or more references (one per gap that is the first of its depth in its
+       run), then, with min_refs <= 1, every single reference below the root. */
+    for (uint g = a + 1; g < e + (min_refs <= 1u ? e - a : 0u); g++) {
+        uint run_lo, run_hi, node;
+        int run_depth;
+        if (g < e) {
+            int dg = gap_depth[g];
+            if (dg < 0 || !(gap_depth[left[g]] < dg))
+                continue;
+            run_lo = left[g];
+            run_hi = right[g];
+            node = gap_pre[g];
+            run_depth = dg;
+            if (is_leaf(nodes[climb[node].w])) {       /* copies of a triangle in one leaf */
+                node = walk[node].parent;
+                run_depth -= 1;
+            }
+        } else {
+            uint k = a + (g - e);
+            uint leaf = s_pre[k];
+            uint leaf_depth = climb[leaf].z;
+            if (leaf_depth == 0u)
+                continue;
+            run_lo = k;
+            run_hi = k + 1u;
+            node = walk[leaf].parent;
+            run_depth = (int)leaf_depth - 1;
+        }
+        int bound_lo = gap_depth[run_lo], bound_hi = gap_depth[run_hi];
+        int top_depth = (bound_lo < 0 && bound_hi < 0) ? run_depth
+                                                       : (bound_lo > bound_hi ? bound_lo : bound_hi) + 1;
+        uint r = run_hi - run_lo;
+        if (!(r >= min_refs && run_depth >= top_depth && run_depth >= 0))
+            continue;
+        dbl area_sum = run_area(walk, s_pre, run_lo, r);
+        dbl count = D_FROM_U(r);
+        int d = run_depth;
+        for (;;) {
+            WalkRecord w = walk[node];
+            dbl occupancy = D_DIV(area_sum, w.area);
+            uint ne = w.nonempty_stops & 0x7FFFFFFFu;
+            dbl frequency = D_DIV(count, D_FROM_U(ne > 1u ? ne : 1u));
+            int ok = D_GE(occupancy, tau_occu) && D_GE(frequency, tau_freq);
+            if (ok) {
+                if (held == CANDIDATE_BLOCK) {
+                    uint at = atomic_add(used, held);
+                    for (uint i = 0; i < 6 * held && at + held <= capacity; i++)
+                        out[6 * (size_t)at + i] = block[i];
+                    held = 0u;
+                }
+                uint* c = block + 6 * held++;
+                c[0] = (uint)d;
+                c[1] = node;
+                c[2] = t;
+                c[3] = r;
+                c[4] = run_lo;
+                c[5] = run_hi;
+            }
+            if (!(d > top_depth && (ok || !(w.nonempty_stops >> 31))))
+                break;
+            node = w.parent;
+            d--;
+        }
+    }
+    if (held) {
+        uint at = atomic_add(used, held);
+        for (uint i = 0; i < 6 * held && at + held <= capacity; i++)
+            out[6 * (size_t)at + i] = block[i];
+    }
+}
+
+/* ----------------------------------------------------------------------------------------
+   Distinct triangles below each node (compact.py _distinct_below): kept references and lifts
+   count +1 at their node, the gap before each of them -1 at its LCA; then summed over
+   subtrees. Also each leaf's kept references (leaf_count). */
+
+__kernel void distinct_refs(__global const uchar* restrict removed,
+                            __global const uint* restrict s_leaf,
+                            __global const uint* restrict gap_node,
+                            __global const int* restrict gap_depth, __global int* restrict per_node,
+                            __global uint* restrict leaf_count, uint ref_count)
+{
+    uint j = get_global_id(0);
+    if (j >= ref_count || removed[j])
+        return;
+    atomic_inc(per_node + s_leaf[j]);
+    atomic_inc(leaf_count + s_leaf[j]);
+    if (gap_depth[j] >= 0)
+        atomic_dec(per_node + gap_node[j]);
+}
+
+__kernel void distinct_lifts(__global const uint* restrict lift_node,
+                             __global const uint* restrict lift_first,
+                             __global const uint* restrict gap_node,
+                             __global const int* restrict gap_depth, __global int* restrict per_node,
+                             uint lift_count)
+{
+    uint j = get_global_id(0);
+    if (j >= lift_count)
+        return;
+    atomic_inc(per_node + lift_node[j]);
+    uint f = lift_first[j];
+    if (gap_depth[f] >= 0)
+        atomic_dec(per_node + gap_node[f]);
+}
+
+/* Per node of a level, bottom-up: values summed over its subtree. */
+__kernel void subtree_sums(__global const uint2* restrict nodes, __global int* restrict values,
+                           uint first, uint end)
+{
+    uint i = first + get_global_id(0);
+    if (i >= end)
+        return;
+    uint2 w = nodes[i];
+    if (!is_leaf(w)) {
+        uint c = KD_PLAIN_FIELD(w.x);
+        values[i] += values[c] + values[c + 1];
+    }
+}
+
+/* ----------------------------------------------------------------------------------------
+   Collapse (compact.py _collapse), bottom-up per level in double: a subtree becomes one leaf
+   when K_I distinct <= K_T + K_I refs + (A_b cost_b + A_a cost_a) / A. */
+
+__kernel void collapse(__global const uint2* restrict nodes, __global const dbl* restrict area,
+                       __global const uint* restrict leaf_count,
+                       __global const uint* restrict refs_at, __global const int* restrict distinct,
+                       __global dbl* restrict cost, __global uchar* restrict collapsed,
+                       uint first, uint end, ulong kt_bits, ulong ki_bits)
+{
+    uint i = first + get_global_id(0);
+    if (i >= end)
+        return;
+    uint2 w = nodes[i];
+    dbl K_T = D_BITS(kt_bits), K_I = D_BITS(ki_bits);
+    if (is_leaf(w)) {
+        cost[i] = D_MUL(K_I, D_FROM_U(leaf_count[i]));
+        collapsed[i] = 0;
+        return;
+    }
+    uint c = KD_PLAIN_FIELD(w.x);
+    dbl below = D_ADD(D_MUL(area[c], cost[c]), D_MUL(area[c + 1], cost[c + 1]));
+    dbl sub = D_ADD(D_ADD(K_T, D_MUL(K_I, D_FROM_U(refs_at[i]))), D_DIV(below, area[i]));
+    dbl as_leaf = D_MUL(K_I, D_FROM_U((uint)distinct[i]));
+    int take = D_LE(as_leaf, sub);
+    collapsed[i] = (uchar)take;
+    cost[i] = take ? as_leaf : sub;
+}
+
+/* Top-down per level: which nodes are gone (below a collapsed node) and the leaf that takes
+   each node's contents. */
+__kernel void owners(__global const uint2* restrict nodes, __global const uchar* restrict collapsed,
+                     __global uchar* restrict dead, __global uint* restrict owner, uint first,
+                     uint end)
+{
+    uint i = first + get_global_id(0);
+    if (i >= end)
+        return;
+    uint2 w = nodes[i];
+    if (is_leaf(w))
+        return;
+    uint c = KD_PLAIN_FIELD(w.x);
+    int gone = dead[i] || collapsed[i];
+    for (uint k = c; k < c + 2; k++) {
+        dead[k] = (uchar)gone;
+        owner[k] = gone ? owner[i] : k;
+    }
+}
+
+/* ----------------------------------------------------------------------------------------
+   Items of the final leaves: the kept references and the lifts of removed nodes, per owner
+   leaf sorted by triangle without repeats (compact.py: np.unique of owner * T + triangle). */
+
+__kernel void items_count(__global const uchar* restrict removed, __global const uint* restrict s_leaf,
+                          __global const uint* restrict owner, __global uint* restrict per_owner,
+                          uint ref_count)
+{
+    uint j = get_global_id(0);
+    if (j < ref_count && !removed[j])
+        atomic_inc(per_owner + owner[s_leaf[j]]);
+}
+
+__kernel void items_scatter(__global const uchar* restrict removed,
+                            __global const uint* restrict s_leaf, __global const uint* restrict s_tri,
+                            __global const uint* restrict owner,
+                            __global const uint* restrict owner_first, __global uint* restrict cursor,
+                            __global uint* restrict items, uint ref_count)
+{
+    uint j = get_global_id(0);
+    if (j >= ref_count || removed[j])
+        return;
+    uint o = owner[s_leaf[j]];
+    items[owner_first[o] + atomic_inc(cursor + o)] = s_tri[j];
+}
+
+/* Per node: its bucket [owner_first[i], owner_first[i + 1]) sorted, repeats dropped; the
+   number kept. */
+__kernel void items_unique(__global const uint* restrict owner_first, __global uint* restrict items,
+                           __global uint* restrict kept, uint n)
+{
+    uint i = get_global_id(0);
+    if (i >= n)
+        return;
+    uint a = owner_first[i], m = owner_first[i + 1] - a;
+    __global uint* v = items + a;
+    if (m <= 32u) {
+        for (uint x = 1; x < m; x++) {
+            uint key = v[x], y = x;
+            while (y > 0 && v[y - 1] > key) {
+                v[y] = v[y - 1];
+                y--;
+            }
+            v[y] = key;
+        }
+    } else {
+        for (uint start = m / 2; start-- > 0;) {
+            uint r = start;
+            for (;;) {
+                uint child = 2 * r + 1;
+                if (child >= m)
+                    break;
+                if (child + 1 < m && v[child + 1] > v[child])
+                    child++;
+                if (v[r] >= v[child])
+                    break;
+                uint t = v[r];
+                v[r] = v[child];
+                v[child] = t;
+                r = child;
+            }
+        }
+        for (uint last = m - 1; last > 0; last--) {
+            uint t = v[0];
+            v[0] = v[last];
+            v[last] = t;
+            uint r = 0;
+            for (;;) {
+                uint child = 2 * r + 1;
+                if (child >= last)
+                    break;
+                if (child + 1 < last && v[child + 1] > v[child])
+                    child++;
+                if (v[r] >= v[child])
+                    break;
+                uint tt = v[r];
+                v[r] = v[child];
+                v[child] = tt;
+                r = child;
+            }
+        }
+    }
+    uint k = 0;
+    for (uint x = 0; x < m; x++)
+        if (k == 0 || v[x] != v[k - 1])
+            v[k++] = v[x];
+    kept[i] = k;
+}
