@@ -686,34 +686,36 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
     item_leaf, item_tri = key // triangles_count, key % triangles_count
     del key
     final_count = np.bincount(item_leaf, minlength=topo.n)
-    return _finish(tree, topo, params, triangles_count, reference_count, collapsed, dead,
-                   is_final_leaf, final_count, item_tri, lift_node, lift_tri, started, report)
-
-
-def _finish(tree, topo, params, triangles_count, reference_count, collapsed, dead, is_final_leaf,
-            final_count, item_tri, lift_node, lift_tri, started, report) -> CompactTree:
-    """Lay the surviving nodes out and gather the stats (both the numpy and the kernel path):
-    final leaves' items sorted by (leaf, triangle) without repeats, and the lifts that stay."""
     refs_at = np.bincount(lift_node, minlength=topo.n)
-    nodes, leaf32, leaf16, shift, kinds, leaf_stats = _layout(
-        topo, params, is_final_leaf, dead, final_count, item_tri, lift_node, lift_tri, refs_at,
-        triangles_count)
-    max_path = _max_refs_on_path(topo, dead, refs_at)
+    laid_out = _layout(topo, params, is_final_leaf, dead, final_count, item_tri, lift_node,
+                       lift_tri, refs_at, triangles_count)
+    return _finish(tree, params, topo.n, reference_count, int((collapsed & ~dead).sum()),
+                   laid_out, _max_refs_on_path(topo, dead, refs_at), len(item_tri), lift_node,
+                   lift_tri, started, report)
+
+
+def _finish(tree, params, standard_nodes, reference_count, collapsed_subtrees, laid_out,
+            max_path, item_count, lift_node, lift_tri, started, report) -> CompactTree:
+    """The CompactTree and its stats (both the numpy and the kernel path): `laid_out` is
+    _layout's result, item_count the final leaves' references, lift_node / lift_tri the lifts
+    that stay."""
+    nodes, leaf32, leaf16, shift, kinds, leaf_stats = laid_out
+    _, per_node = np.unique(lift_node, return_counts=True)
     out = CompactTree(nodes, leaf32, leaf16, tree.bounds.astype(np.float32), shift, params)
     out.stats = {
         "mode": params.mode,
         "nodes": len(nodes),
         "node_kinds": kinds,
-        "standard_nodes": topo.n,
+        "standard_nodes": standard_nodes,
         "references_standard": reference_count,
-        "leaf_references": int(len(item_tri)),
-        "references_removed": reference_count - int(len(item_tri)),
+        "leaf_references": int(item_count),
+        "references_removed": reference_count - int(item_count),
         "inner_references": int(len(lift_tri)),
         "lifted_triangles": int(len(np.unique(lift_tri))),
-        "tref_nodes": int((refs_at > 0).sum()),
-        "nodes_with_two_refs": int((refs_at > 1).sum()),
+        "tref_nodes": int(len(per_node)),
+        "nodes_with_two_refs": int((per_node > 1).sum()),
         "max_refs_on_path": max_path,
-        "collapsed_subtrees": int((collapsed & ~dead).sum()),
+        "collapsed_subtrees": collapsed_subtrees,
         **leaf_stats,
         "bytes": out.nbytes,
         "compact_seconds": time.perf_counter() - started,

@@ -164,51 +164,187 @@ class CompactorCL:
         for first, end in reversed(shape.ranges):
             self._run(b, k["collapse"], end - first, topo.nodes, topo.area, leaf_count, d_refs_at,
                       per_node, cost, collapsed, u4(first), u4(end), kt, ki)
-        return b._read(collapsed, np.uint8, n).astype(bool)
+        return collapsed
+
+    def zeros(self, nbytes):
+        buffer = self.b._buffer(nbytes=max(int(nbytes), 4))
+        self.b._cl.enqueue_fill_buffer(self.b.queue, buffer, np.uint8(0), 0, max(int(nbytes), 4))
+        return buffer
+
+    def gather(self, buffer, at, dtype=np.uint8):
+        """buffer[at] on the host (a few values of a device array)."""
+        b, k = self.b, self.k
+        if not len(at):
+            return np.zeros(0, dtype)
+        if dtype == np.uint8:
+            values = b._read(buffer, np.uint8, int(np.max(at)) + 1)   # small arrays only
+            return values[at]
+        out = b._buffer(nbytes=4 * len(at))
+        self._run(b, k["gather_values"], len(at), buffer, b._buffer(np.asarray(at, np.uint32)),
+                  out, np.uint32(len(at)))
+        return b._read(out, np.uint32, len(at)).astype(np.int64)
 
     def owners(self, topo, shape, collapsed):
-        """compact.py _owners: (dead, owner) host arrays."""
+        """compact.py _owners: (dead, owner) device buffers."""
         b, k = self.b, self.k
         u4 = np.uint32
         n = topo.n
-        d_collapsed = b._buffer(collapsed.astype(np.uint8))
-        dead = b._buffer(np.zeros(n, np.uint8))
-        owner = b._buffer(np.zeros(n, u4))
+        dead = self.zeros(n)
+        owner = self.zeros(4 * n)
         for first, end in shape.ranges:
-            self._run(b, k["owners"], end - first, topo.nodes, d_collapsed, dead, owner,
+            self._run(b, k["owners"], end - first, topo.nodes, collapsed, dead, owner,
                       u4(first), u4(end))
-        return b._read(dead, np.uint8, n).astype(bool), b._read(owner, u4, n).astype(np.int64)
+        return dead, owner
+
+    def scan(self, values, n, out=None):
+        """Exclusive prefix sum of n uints (into `out`, or in place); returns the total."""
+        b, k = self.b, self.k
+        u4 = np.uint32
+        block = 4096
+        blocks = max(1, -(-n // block))
+        sums = b._buffer(nbytes=8 * blocks)
+        self._run(b, k["block_sums"], blocks, values, sums, u4(n), u4(block))
+        offsets = _exclusive(b._read(sums, np.uint64, blocks).astype(np.int64))
+        self._run(b, k["block_scan"], blocks, values, b._buffer(offsets[:-1].astype(np.uint64)),
+                  values if out is None else out, u4(n), u4(block))
+        return int(offsets[-1])
+
+    def count_collapsed(self, topo, collapsed, dead) -> int:
+        n = topo.n
+        c = self.b._read(collapsed, np.uint8, n).astype(bool)
+        d = self.b._read(dead, np.uint8, n).astype(bool)
+        return int((c & ~d).sum())
 
     def items(self, topo, d_removed, s_leaf, s_tri, owner, R, extra_owner, extra_tri):
         """Every final leaf's triangles (kept references and the lifts of removed nodes),
-        sorted, without repeats: (count per node, the lists one after another by node)."""
+        sorted, without repeats, in buckets by node: device buffers (count per node, bucket
+        start per node, the buckets) and the number of items."""
         b, k = self.b, self.k
         u4 = np.uint32
         n = topo.n
-        d_owner = b._buffer(owner.astype(u4))
-        per_owner = b._buffer(np.zeros(n, u4))
-        self._run(b, k["items_count"], R, d_removed, s_leaf, d_owner, per_owner, u4(R))
-        extra_count = np.bincount(extra_owner, minlength=n)
-        counts = b._read(per_owner, u4, n).astype(np.int64) + extra_count
-        owner_first = _exclusive(counts)
-        total = int(owner_first[-1])
-        items = np.zeros(max(total, 1), u4)
-        # The lifts of removed nodes first in their owner's bucket (in their order), then the
-        # references from the kernel.
-        by_owner = np.sort(extra_owner)
-        rank = np.arange(len(by_owner)) - np.searchsorted(by_owner, by_owner)
-        items[owner_first[by_owner] + rank] = extra_tri[np.argsort(extra_owner, kind="stable")]
-        d_items = b._buffer(items)
-        d_first = b._buffer(owner_first.astype(u4))
-        self._run(b, k["items_scatter"], R, d_removed, s_leaf, s_tri, d_owner, d_first,
-                  b._buffer(extra_count.astype(u4)), d_items, u4(R))
-        kept = b._buffer(nbytes=4 * n)
-        self._run(b, k["items_unique"], n, d_first, d_items, kept, u4(n))
-        final_count = b._read(kept, u4, n).astype(np.int64)
-        all_items = b._read(d_items, u4, max(total, 1)).astype(np.int64)
-        shift = owner_first[:-1] - _exclusive(final_count)[:-1]
-        item_tri = all_items[np.arange(int(final_count.sum())) + np.repeat(shift, final_count)]
-        return final_count, item_tri
+        per_owner = self.zeros(4 * (n + 1))
+        self._run(b, k["items_count"], R, d_removed, s_leaf, owner, per_owner, u4(R))
+        # The lifts of removed nodes go first in their owner's bucket, then the references.
+        extra_count = np.bincount(extra_owner, minlength=1)
+        owners_used = np.flatnonzero(extra_count)
+        cursor = self.zeros(4 * n)
+        if len(owners_used):
+            self._run(b, k["put_values"], len(owners_used), b._buffer(owners_used.astype(u4)),
+                      b._buffer(extra_count[owners_used].astype(u4)), cursor, u4(len(owners_used)))
+            self._run(b, k["add_values"], len(owners_used), b._buffer(owners_used.astype(u4)),
+                      b._buffer(extra_count[owners_used].astype(u4)), per_owner, u4(len(owners_used)))
+        owner_first = b._buffer(nbytes=4 * (n + 1))
+        total = self.scan(per_owner, n + 1, owner_first)
+        items = b._buffer(nbytes=4 * max(total, 1))
+        if len(owners_used):
+            by_owner = np.sort(extra_owner)
+            rank = np.arange(len(by_owner)) - np.searchsorted(by_owner, by_owner)
+            first = self.gather(owner_first, by_owner, np.uint32)
+            self._run(b, k["put_values"], len(by_owner), b._buffer((first + rank).astype(u4)),
+                      b._buffer(extra_tri[np.argsort(extra_owner, kind="stable")].astype(u4)),
+                      items, u4(len(by_owner)))
+        self._run(b, k["items_scatter"], R, d_removed, s_leaf, s_tri, owner, owner_first, cursor,
+                  items, u4(R))
+        kept = b._buffer(nbytes=4 * (n + 1))
+        self._run(b, k["items_unique"], n, owner_first, items, kept, u4(n))
+        # The buckets closed up: final lists one after another in node order.
+        item_first = b._buffer(nbytes=4 * (n + 1))
+        item_count = self.scan(kept, n, item_first)
+        final_items = b._buffer(nbytes=4 * max(item_count, 1))
+        self._run(b, k["close_buckets"], n, owner_first, kept, item_first, items, final_items,
+                  u4(n))
+        return kept, item_first, final_items, item_count
+
+    def layout(self, topo, shape, params, dead, collapsed, final_count, item_first, items,
+               lift_node, lift_tri, triangles_count):
+        """compact.py _layout on the device: (nodes, leaf_index32, leaf_index16, leaf_shift,
+        node kinds, leaf stats)."""
+        from .compact import (MAX_GROUP_INDEX, MAX_LEAF32_COUNT, _leaf_shift, _run_starts)
+        from ..layout import LEAF16_INDEX_BITS
+        b, k = self.b, self.k
+        u4 = np.uint32
+        n = topo.n
+        classes = b._buffer(nbytes=n)
+        self._run(b, k["layout_classes"], n, topo.nodes, dead, collapsed, final_count, classes,
+                  u4(n))
+        refs_at = self.zeros(4 * n)
+        nodes_used, per_node = np.unique(lift_node, return_counts=True)
+        if len(nodes_used):
+            self._run(b, k["put_values"], len(nodes_used), b._buffer(nodes_used.astype(u4)),
+                      b._buffer(per_node.astype(u4)), refs_at, u4(len(nodes_used)))
+        elided = self.zeros(n)
+        group_size = b._buffer(nbytes=4 * n)
+        self._run(b, k["layout_groups"], n, topo.nodes, classes, refs_at, elided, group_size,
+                  u4(n), u4(bool(params.elide_empty)))
+        total = 1 + self.scan(group_size, n)              # now each live inner node's group - 1
+        if total - 1 > MAX_GROUP_INDEX:
+            raise ValueError(f"compact kd-tree too large: {total} nodes (at most {MAX_GROUP_INDEX})")
+        shift = _leaf_shift(triangles_count)
+        count32, count16, base_of = (b._buffer(nbytes=4 * n) for _ in range(3))
+        self._run(b, k["layout_leaves"], n, classes, elided, final_count, item_first, items,
+                  count32, count16, base_of, u4(n), u4(shift), u4(bool(params.leaf16)),
+                  u4(LEAF16_INDEX_BITS))
+        off32, off16 = b._buffer(nbytes=4 * n), b._buffer(nbytes=4 * n)
+        total32 = self.scan(count32, n, off32)
+        total16 = self.scan(count16, n, off16)
+        out = b._buffer(nbytes=8 * total)
+        index32 = b._buffer(nbytes=4 * max(total32, 1))
+        index16 = b._buffer(nbytes=2 * max(total16, 2))
+        new_index = b._buffer(nbytes=4 * n)
+        self._run(b, k["layout_places"], n, topo.nodes, classes, elided, refs_at, group_size,
+                  new_index, out, u4(n))
+        self._run(b, k["layout_words"], n, topo.nodes, classes, elided, refs_at, group_size,
+                  final_count, item_first, items, count16, off32, off16, base_of, new_index, out,
+                  index32, index16, u4(n), u4(shift))
+        if len(lift_node):
+            order = np.lexsort((lift_tri, lift_node))
+            node_sorted = lift_node[order]
+            first = _run_starts(node_sorted)
+            slot = np.arange(len(order)) - np.repeat(first, np.diff(np.append(first, len(order))))
+            self._run(b, k["layout_slots"], len(order), b._buffer(node_sorted.astype(u4)),
+                      b._buffer(lift_tri[order].astype(u4)), b._buffer(slot.astype(u4)),
+                      group_size, out, u4(len(order)))
+        nodes = b._read(out, u4, (total, 2))
+        leaf32 = b._read(index32, u4, total32)
+        leaf16 = b._read(index16, np.uint16, total16)
+        cls = b._read(classes, np.uint8, n)
+        el = b._read(elided, np.uint8, n).astype(bool)
+        c16 = b._read(count16, u4, n)
+        counts = b._read(final_count, u4, n)
+        stored_leaf = ((cls & 1) == 1) & ~el
+        if (counts[stored_leaf] > MAX_LEAF32_COUNT).any():
+            raise ValueError("a leaf holds too many triangles for the 32-bit list's count")
+        nonempty = stored_leaf & (counts > 0)
+        fits16 = c16 > 0
+        inner_count = int(((cls & 2) == 2).sum())
+        kinds = {"inner": inner_count, "tref": int(len(nodes_used)), "leaf": int(stored_leaf.sum())}
+        assert sum(kinds.values()) == total
+        leaf_stats = {
+            "leaves": kinds["leaf"],
+            "empty_leaves_stored": int((stored_leaf & (counts == 0)).sum()),
+            "empty_leaves_elided": int(el.sum()),
+            "leaves_16bit": int(fits16.sum()),
+            "leaves_32bit": int((nonempty & ~fits16).sum()),
+            "leaf16_share": float(fits16.sum() / max(int(nonempty.sum()), 1)),
+            "leaf_shift": shift,
+        }
+        return nodes, leaf32, leaf16, shift, kinds, leaf_stats
+
+    def max_refs_on_path(self, topo, shape, dead, lift_node) -> int:
+        b, k = self.b, self.k
+        u4 = np.uint32
+        n = topo.n
+        refs_at = self.zeros(4 * n)
+        nodes_used, per_node = np.unique(lift_node, return_counts=True)
+        if len(nodes_used):
+            self._run(b, k["put_values"], len(nodes_used), b._buffer(nodes_used.astype(u4)),
+                      b._buffer(per_node.astype(u4)), refs_at, u4(len(nodes_used)))
+        on_path = self.zeros(4 * n)
+        most = self.zeros(4)
+        for first, end in shape.ranges:
+            self._run(b, k["path_refs"], end - first, topo.nodes, dead, refs_at, on_path, most,
+                      u4(first), u4(end))
+        return int(b._read(most, u4, 1)[0])
 
 
 def compactor_for(builder) -> CompactorCL:
@@ -258,14 +394,18 @@ def compact_on_device(device, tree, triangles_count, params, report, started):
         collapsed = c.collapse(topo, shape, d_removed, s_leaf, gap_node, gap_depth, lift_node,
                                lift_first, refs_at, R, params)
     else:
-        collapsed = np.zeros(n, bool)
-    report(0.7, f"compact: {int(collapsed.sum())} subtrees collapsed")
+        collapsed = c.zeros(n)
+    report(0.7, "compact: subtrees collapsed")
 
     dead, owner = c.owners(topo, shape, collapsed)
-    is_final_leaf = ~dead & (shape.is_leaf | collapsed)
-    lift_gone = dead[lift_node] | collapsed[lift_node]
-    final_count, item_tri = c.items(topo, d_removed, s_leaf, s_tri, owner, R,
-                                    owner[lift_node[lift_gone]], lift_tri[lift_gone])
-    lift_node, lift_tri = lift_node[~lift_gone], lift_tri[~lift_gone]
-    return host._finish(tree, shape, params, triangles_count, R, collapsed, dead, is_final_leaf,
-                        final_count, item_tri, lift_node, lift_tri, started, report)
+    gone = c.gather(dead, lift_node).astype(bool) | c.gather(collapsed, lift_node).astype(bool)
+    final_count, item_first, items, item_count = c.items(
+        topo, d_removed, s_leaf, s_tri, owner, R, c.gather(owner, lift_node[gone], np.uint32),
+        lift_tri[gone])
+    lift_node, lift_tri = lift_node[~gone], lift_tri[~gone]
+    laid_out = c.layout(topo, shape, params, dead, collapsed, final_count, item_first, items,
+                        lift_node, lift_tri, triangles_count)
+    max_path = c.max_refs_on_path(topo, shape, dead, lift_node)
+    collapsed_subtrees = c.count_collapsed(topo, collapsed, dead)
+    return host._finish(tree, params, n, R, collapsed_subtrees, laid_out, max_path, item_count,
+                        lift_node, lift_tri, started, report)

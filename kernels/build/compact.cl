@@ -691,3 +691,236 @@ __kernel void items_unique(__global const uint* restrict owner_first, __global u
             v[k++] = v[x];
     kept[i] = k;
 }
+
+/* Per node: its kept items moved from its bucket to its place in the final lists. */
+__kernel void close_buckets(__global const uint* restrict owner_first, __global const uint* restrict kept,
+                            __global const uint* restrict item_first, __global const uint* restrict items,
+                            __global uint* restrict out, uint n)
+{
+    uint i = get_global_id(0);
+    if (i >= n)
+        return;
+    for (uint j = 0; j < kept[i]; j++)
+        out[item_first[i] + j] = items[owner_first[i] + j];
+}
+
+/* ----------------------------------------------------------------------------------------
+   Exclusive prefix sums: per block of `block` values their sum, the host sums the blocks,
+   then each block is scanned from its offset (in place allowed). */
+
+__kernel void block_sums(__global const uint* restrict values, __global ulong* restrict sums,
+                         uint n, uint block)
+{
+    uint g = get_global_id(0);
+    uint first = g * block;
+    if (first >= n)
+        return;
+    uint last = first + block < n ? first + block : n;
+    ulong s = 0;
+    for (uint i = first; i < last; i++)
+        s += values[i];
+    sums[g] = s;
+}
+
+__kernel void block_scan(__global const uint* values, __global const ulong* restrict offsets,
+                         __global uint* out, uint n, uint block)
+{
+    uint g = get_global_id(0);
+    uint first = g * block;
+    if (first >= n)
+        return;
+    uint last = first + block < n ? first + block : n;
+    ulong running = offsets[g];
+    for (uint i = first; i < last; i++) {
+        uint v = values[i];
+        out[i] = (uint)running;
+        running += v;
+    }
+}
+
+/* ----------------------------------------------------------------------------------------
+   The layout (compact.py _layout). For a tree in the builders' order, groups are handed out
+   in node index order, so a node's group is 1 + the sizes of the groups of the live inner
+   nodes before it: one prefix sum; likewise the leaves' list offsets. */
+
+/* Node classes: bit 0 final leaf, bit 1 live inner node, bit 2 empty final leaf. */
+__kernel void layout_classes(__global const uint2* restrict nodes, __global const uchar* restrict dead,
+                             __global const uchar* restrict collapsed,
+                             __global const uint* restrict final_count,
+                             __global uchar* restrict classes, uint n)
+{
+    uint i = get_global_id(0);
+    if (i >= n)
+        return;
+    int final_leaf = !dead[i] && (is_leaf(nodes[i]) || collapsed[i]);
+    int live_inner = !dead[i] && !final_leaf;
+    classes[i] = (uchar)(final_leaf | (live_inner << 1) | ((final_leaf && final_count[i] == 0u) << 2));
+}
+
+/* Per live inner node: which children are elided, and its group size (reference slot, then
+   the children that are stored). */
+__kernel void layout_groups(__global const uint2* restrict nodes, __global const uchar* restrict classes,
+                            __global const uint* restrict refs_at, __global uchar* restrict elided,
+                            __global uint* restrict group_size, uint n, uint elide_empty)
+{
+    uint i = get_global_id(0);
+    if (i >= n)
+        return;
+    if (!(classes[i] & 2u)) {
+        group_size[i] = 0u;
+        return;
+    }
+    uint c = KD_PLAIN_FIELD(nodes[i].x);
+    int empty_b = (classes[c] >> 2) & 1, empty_a = (classes[c + 1] >> 2) & 1;
+    int elide_b = elide_empty && empty_b && !empty_a, elide_a = elide_empty && empty_a && !empty_b;
+    elided[c] = (uchar)elide_b;
+    elided[c + 1] = (uchar)elide_a;
+    group_size[i] = (refs_at[i] > 0u) + (uint)!elide_b + (uint)!elide_a;
+}
+
+/* Per final leaf that is stored: 16-bit or 32-bit list, and how many items go to each. */
+__kernel void layout_leaves(__global const uchar* restrict classes, __global const uchar* restrict elided,
+                            __global const uint* restrict final_count,
+                            __global const uint* restrict item_first,
+                            __global const uint* restrict items, __global uint* restrict count32,
+                            __global uint* restrict count16, __global uint* restrict base_of,
+                            uint n, uint shift, uint leaf16, uint index16_bits)
+{
+    uint i = get_global_id(0);
+    if (i >= n)
+        return;
+    uint count = final_count[i];
+    count32[i] = 0u;
+    count16[i] = 0u;
+    if (!(classes[i] & 1u) || elided[i] || count == 0u)
+        return;
+    uint low = items[item_first[i]], high = items[item_first[i] + count - 1u];
+    uint base = low >> shift;
+    int fits16 = leaf16 && count <= KD_LEAF16_COUNT_MAX
+                 && (ulong)high - ((ulong)base << shift) < (1UL << index16_bits);
+    base_of[i] = base;
+    if (fits16)
+        count16[i] = count;
+    else
+        count32[i] = count;
+}
+
+/* Per live inner node: its children's new indices (from its group; NONE when elided), and
+   its reference slot filled with KD_NO_TRIANGLE (layout_slots puts the lifts in). The root's
+   new index is 0. */
+__kernel void layout_places(__global const uint2* restrict nodes, __global const uchar* restrict classes,
+                            __global const uchar* restrict elided,
+                            __global const uint* restrict refs_at,
+                            __global const uint* restrict group_first,
+                            __global uint* restrict new_index, __global uint2* restrict out, uint n)
+{
+    uint i = get_global_id(0);
+    if (i >= n || !(classes[i] & 2u))
+        return;
+    uint c = KD_PLAIN_FIELD(nodes[i].x);
+    uint group = 1u + group_first[i];
+    uint has_ref = refs_at[i] > 0u;
+    new_index[c] = elided[c] ? NONE : group + has_ref;
+    new_index[c + 1] = elided[c + 1] ? NONE : group + has_ref + (uint)!elided[c];
+    if (has_ref)
+        out[group] = (uint2)(KD_NO_TRIANGLE, KD_NO_TRIANGLE);
+}
+
+/* The words of live inner nodes and stored leaves, and the leaves' lists. */
+__kernel void layout_words(__global const uint2* restrict nodes, __global const uchar* restrict classes,
+                           __global const uchar* restrict elided,
+                           __global const uint* restrict refs_at,
+                           __global const uint* restrict group_first,
+                           __global const uint* restrict final_count,
+                           __global const uint* restrict item_first,
+                           __global const uint* restrict items,
+                           __global const uint* restrict count16, __global const uint* restrict off32,
+                           __global const uint* restrict off16, __global const uint* restrict base_of,
+                           __global const uint* restrict new_index, __global uint2* out,
+                           __global uint* restrict index32, __global ushort* restrict index16,
+                           uint n, uint shift)
+{
+    uint i = get_global_id(0);
+    if (i >= n)
+        return;
+    uchar cls = classes[i];
+    uint at = i == 0u ? 0u : new_index[i];
+    if (cls & 2u) {
+        uint2 w = nodes[i];
+        uint c = KD_PLAIN_FIELD(w.x);
+        out[at] = (uint2)(KD_TAG_PUT(KD_PLAIN_TAG(w.x)) | KD_REF_PUT(refs_at[i] > 0u)
+                          | KD_EMPTY_BELOW_PUT(elided[c]) | KD_EMPTY_ABOVE_PUT(elided[c + 1])
+                          | KD_GROUP_PUT(1u + group_first[i]), w.y);
+    } else if ((cls & 1u) && !elided[i]) {
+        uint count = final_count[i];
+        if (count16[i]) {
+            uint base = base_of[i];
+            out[at] = (uint2)(KD_TAG_PUT(KD_LEAF_TAG) | KD_LEAF16_BIT | KD_LEAF16_COUNT_PUT(count)
+                              | KD_LEAF16_BASE_PUT(base), off16[i]);
+            for (uint j = 0; j < count; j++)
+                index16[off16[i] + j] = (ushort)(items[item_first[i] + j] - (base << shift));
+        } else {
+            out[at] = (uint2)(KD_TAG_PUT(KD_LEAF_TAG) | KD_LEAF32_COUNT_PUT(count),
+                              count ? off32[i] : 0u);
+            for (uint j = 0; j < count; j++)
+                index32[off32[i] + j] = items[item_first[i] + j];
+        }
+    }
+}
+
+/* The lifted triangles into their nodes' slots (lifts sorted by node, then triangle: slot
+   0 and 1). */
+__kernel void layout_slots(__global const uint* restrict lift_node, __global const uint* restrict lift_tri,
+                           __global const uint* restrict lift_slot,
+                           __global const uint* restrict group_first, __global uint* restrict out,
+                           uint lift_count)
+{
+    uint j = get_global_id(0);
+    if (j < lift_count)
+        out[2 * (1u + group_first[lift_node[j]]) + lift_slot[j]] = lift_tri[j];
+}
+
+/* Top-down per level: references on the path to every surviving node (the most of them in
+   *most); then passed to the children of every inner node. */
+__kernel void path_refs(__global const uint2* restrict nodes, __global const uchar* restrict dead,
+                        __global const uint* restrict refs_at, __global uint* restrict on_path,
+                        __global uint* restrict most, uint first, uint end)
+{
+    uint i = first + get_global_id(0);
+    if (i >= end)
+        return;
+    uint here = on_path[i] + refs_at[i];
+    if (!dead[i])
+        atomic_max(most, here);
+    uint2 w = nodes[i];
+    if (!is_leaf(w)) {
+        uint c = KD_PLAIN_FIELD(w.x);
+        on_path[c] = here;
+        on_path[c + 1] = here;
+    }
+}
+
+/* Small helpers: values[places[j]] = what[j] (or +=); out[j] = values[at[j]]. */
+__kernel void put_values(__global const uint* restrict places, __global const uint* restrict what,
+                         __global uint* restrict values, uint count)
+{
+    uint j = get_global_id(0);
+    if (j < count)
+        values[places[j]] = what[j];
+}
+
+__kernel void add_values(__global const uint* restrict places, __global const uint* restrict what,
+                         __global uint* restrict values, uint count)
+{
+    uint j = get_global_id(0);
+    if (j < count)
+        values[places[j]] += what[j];        /* places are distinct */
+}
+
+__kernel void gather_values(__global const uint* restrict values, __global const uint* restrict at,
+                            __global uint* restrict out, uint count)
+{
+    uint j = get_global_id(0);
+    if (j < count)
+        out[j] = values[at[j]];
+}
