@@ -37,19 +37,15 @@ def browse_soon(scene) -> None:
         bpy.app.timers.register(_update_now, first_interval=0.0)
 
 
-def _update_now():
-    update_browsing()
-    return None  # once
-
-
-def _engine_changed(*_):
+def _update_now(*_):
+    """For the timer (once: returns None) and the message bus."""
     update_browsing()
 
 
 def _subscribe():
     bpy.msgbus.clear_by_owner(_owner)
     bpy.msgbus.subscribe_rna(key=(bpy.types.RenderSettings, "engine"), owner=_owner, args=(),
-                             notify=_engine_changed)
+                             notify=_update_now)
 
 
 @persistent

@@ -194,10 +194,11 @@ def _start_status(server, choice, name: str, shown_address: str):
         return {"name": name, "listening": shown_address, "device": server.device_info["name"],
                 **server.activity.status()}
 
-    ports = [choice] if choice != "auto" else [server.address[1] + 1, 0]
+    listening = server.address[1]
+    ports = [choice] if choice != "auto" else [listening + 1 if listening < 65535 else 0, 0]
     for port in ports:
         try:
-            return StatusServer(port % 65536, status)
+            return StatusServer(port, status)
         except OSError as exc:
             reason = exc.strerror or exc
     log.warning("no status query: cannot listen on 127.0.0.1:%d (%s)", ports[0], reason)
