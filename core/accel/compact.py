@@ -524,7 +524,8 @@ def _select_lifts(topo, per_depth, ref_count, params):
     removed = np.zeros(ref_count, bool)
     refs_at = np.zeros(topo.n, np.int64)
     on_path = np.zeros(topo.n, np.int64)          # references on the proper ancestors
-    path_cap = params.refs_per_path if params.refs_per_path is not None else 1 << 30
+    limited = params.refs_per_path is not None    # else on_path never matters
+    path_cap = params.refs_per_path if limited else 1 << 30
     lift_node, lift_tri, lift_first = [], [], []
     for d in range(len(topo.levels)):
         cand = per_depth[d] if d < len(per_depth) else None
@@ -539,11 +540,14 @@ def _select_lifts(topo, per_depth, ref_count, params):
             cap = np.minimum(params.refs_per_node, path_cap - on_path[node])
             take = rank < cap
             removed[_ranges(first[take], end[take] - first[take])] = True
-            np.add.at(refs_at, node[take], 1)
-            lift_node.append(node[take])
+            taken = node[take]                             # sorted: one run per node
+            runs = _run_starts(taken)
+            refs_at[taken[runs]] += np.diff(np.append(runs, len(taken)))
+            lift_node.append(taken)
             lift_tri.append(tri[take])
             lift_first.append(first[take])
-        _pass_down(topo, d, on_path, on_path, refs_at)
+        if limited:
+            _pass_down(topo, d, on_path, on_path, refs_at)
     lift_node, lift_tri, lift_first = (np.concatenate(part) if part else np.zeros(0, np.int64)
                                        for part in (lift_node, lift_tri, lift_first))
     return removed, lift_node, lift_tri, refs_at, lift_first

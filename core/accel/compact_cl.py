@@ -91,13 +91,10 @@ class CompactorCL:
         R = len(tree.leaf_indices)
         d_leaves = b._buffer(leaves)
         d_lists = b._buffer(np.ascontiguousarray(tree.leaf_indices, u4))
-        per_triangle = b._buffer(np.zeros(max(triangle_count, 1), u4))
-        self._run(b, k["refs_count"], len(leaves), topo.nodes, d_leaves, d_lists, per_triangle,
-               u4(len(leaves)))
-        counts = b._read(per_triangle, u4, max(triangle_count, 1))[:triangle_count]
+        counts = np.bincount(tree.leaf_indices, minlength=triangle_count)
         tri_first = _exclusive(counts).astype(u4)
         d_first = b._buffer(tri_first)
-        b._cl.enqueue_fill_buffer(b.queue, per_triangle, np.uint32(0), 0, 4 * max(triangle_count, 1))
+        per_triangle = self.zeros(4 * max(triangle_count, 1))
         s_leaf, s_pre, s_tri = (b._buffer(nbytes=4 * max(R, 1)) for _ in range(3))
         self._run(b, k["refs_scatter"], len(leaves), topo.nodes, d_leaves, d_lists, d_first,
                per_triangle, topo.pre, s_leaf, s_pre, u4(len(leaves)))
@@ -112,7 +109,7 @@ class CompactorCL:
         return gap_node, gap_pre, gap_depth
 
     def lift_candidates(self, topo, d_first, triangle_count, s_pre, gap_pre, gap_depth, R,
-                        params, node_at_pre):
+                        params):
         """compact.py _lift_candidates: per depth (node, triangle, r, first, end) arrays."""
         b, k = self.b, self.k
         u4 = np.uint32
@@ -123,37 +120,38 @@ class CompactorCL:
             out = b._buffer(nbytes=24 * capacity)
             used = b._buffer(np.zeros(1, u4))
             self._run(b, k["lift_candidates"], triangle_count, d_first, s_pre, gap_pre, gap_depth,
-                      topo.nodes, topo.climb, topo.walk, *scratch, out, used, u4(capacity),
-                      u4(triangle_count), u4(params.min_refs), *taus)
+                      topo.nodes, topo.climb, topo.walk, *scratch, out, used, topo.node_at_pre,
+                      u4(capacity), u4(triangle_count), u4(params.min_refs), *taus)
             total = int(b._read(used, u4, 1)[0])
             if total <= capacity:
                 break
             capacity = total          # more candidates than room: again with room for all
-        found = b._read(out, u4, (total, 6)).astype(np.int64)
-        found[:, 1] = node_at_pre[found[:, 1]]
-        order = np.argsort(found[:, 0], kind="stable")
-        found = found[order]
+        found = b._read(out, u4, (total, 6))
+        # By depth (numpy's stable sort of a uint8 key is a radix sort), in columns per depth.
+        found = found[np.argsort(found[:, 0].astype(np.uint8), kind="stable")]
         bounds = np.searchsorted(found[:, 0], np.arange(topo.max_depth + 2))
         per_depth = [None] * (topo.max_depth + 1)
         for d in range(topo.max_depth + 1):
             if bounds[d] < bounds[d + 1]:
-                part = found[bounds[d]:bounds[d + 1]]
+                part = found[bounds[d]:bounds[d + 1]].astype(np.int64)
                 per_depth[d] = tuple(part[:, j] for j in range(1, 6))
         return per_depth
 
-    def collapse(self, topo, shape, d_removed, s_leaf, gap_node, gap_depth, lift_node,
-                 lift_first, refs_at, R, params):
+    def collapse(self, topo, shape, removed, host_s_leaf, host_gap_node, host_gap_depth,
+                 lift_node, lift_first, refs_at, params):
         """compact.py _distinct_below and _collapse: the collapsed nodes (host bool array)."""
         b, k = self.b, self.k
         u4 = np.uint32
         n = topo.n
-        per_node = b._buffer(np.zeros(n, np.int32))
-        leaf_count = b._buffer(np.zeros(n, u4))
-        self._run(b, k["distinct_refs"], R, d_removed, s_leaf, gap_node, gap_depth, per_node,
-                  leaf_count, u4(R))
-        self._run(b, k["distinct_lifts"], len(lift_node), b._buffer(lift_node.astype(u4)),
-                  b._buffer(lift_first.astype(u4)), gap_node, gap_depth, per_node,
-                  u4(len(lift_node)))
+        kept = ~removed
+        kept_leaf = host_s_leaf[kept]
+        counts = np.bincount(kept_leaf, minlength=n)
+        starts = np.concatenate([np.flatnonzero(kept), lift_first])
+        starts = starts[host_gap_depth[starts] >= 0]
+        values = (counts + np.bincount(lift_node, minlength=n)
+                  - np.bincount(host_gap_node[starts], minlength=n))
+        per_node = b._buffer(values.astype(np.int32))
+        leaf_count = b._buffer(counts.astype(u4))
         for first, end in reversed(shape.ranges):
             self._run(b, k["subtree_sums"], end - first, topo.nodes, per_node, u4(first), u4(end))
         d_refs_at = b._buffer(refs_at.astype(u4))
@@ -203,10 +201,10 @@ class CompactorCL:
         block = 4096
         blocks = max(1, -(-n // block))
         sums = b._buffer(nbytes=8 * blocks)
-        self._run(b, k["block_sums"], blocks, values, sums, u4(n), u4(block))
+        b._run(k["block_sums"], blocks, values, sums, u4(n), u4(block), local_size=1)
         offsets = _exclusive(b._read(sums, np.uint64, blocks).astype(np.int64))
-        self._run(b, k["block_scan"], blocks, values, b._buffer(offsets[:-1].astype(np.uint64)),
-                  values if out is None else out, u4(n), u4(block))
+        b._run(k["block_scan"], blocks, values, b._buffer(offsets[:-1].astype(np.uint64)),
+               values if out is None else out, u4(n), u4(block), local_size=1)
         return int(offsets[-1])
 
     def count_collapsed(self, topo, collapsed, dead) -> int:
@@ -304,28 +302,29 @@ class CompactorCL:
             self._run(b, k["layout_slots"], len(order), b._buffer(node_sorted.astype(u4)),
                       b._buffer(lift_tri[order].astype(u4)), b._buffer(slot.astype(u4)),
                       group_size, out, u4(len(order)))
+        block = 4096
+        blocks = max(1, -(-n // block))
+        counters = b._buffer(nbytes=32 * blocks)
+        b._run(k["layout_stats"], blocks, classes, elided, final_count, count16, counters, u4(n),
+               u4(block), local_size=1)
+        per_block = b._read(counters, u4, (blocks, 8)).astype(np.int64)
+        stored, empty, elided_count, leaves16, leaves32, inner_count = (
+            int(x) for x in per_block[:, :6].sum(0))
+        most = int(per_block[:, 6].max())
+        if most > MAX_LEAF32_COUNT:
+            raise ValueError("a leaf holds too many triangles for the 32-bit list's count")
         nodes = b._read(out, u4, (total, 2))
         leaf32 = b._read(index32, u4, total32)
         leaf16 = b._read(index16, np.uint16, total16)
-        cls = b._read(classes, np.uint8, n)
-        el = b._read(elided, np.uint8, n).astype(bool)
-        c16 = b._read(count16, u4, n)
-        counts = b._read(final_count, u4, n)
-        stored_leaf = ((cls & 1) == 1) & ~el
-        if (counts[stored_leaf] > MAX_LEAF32_COUNT).any():
-            raise ValueError("a leaf holds too many triangles for the 32-bit list's count")
-        nonempty = stored_leaf & (counts > 0)
-        fits16 = c16 > 0
-        inner_count = int(((cls & 2) == 2).sum())
-        kinds = {"inner": inner_count, "tref": int(len(nodes_used)), "leaf": int(stored_leaf.sum())}
+        kinds = {"inner": inner_count, "tref": int(len(nodes_used)), "leaf": stored}
         assert sum(kinds.values()) == total
         leaf_stats = {
-            "leaves": kinds["leaf"],
-            "empty_leaves_stored": int((stored_leaf & (counts == 0)).sum()),
-            "empty_leaves_elided": int(el.sum()),
-            "leaves_16bit": int(fits16.sum()),
-            "leaves_32bit": int((nonempty & ~fits16).sum()),
-            "leaf16_share": float(fits16.sum() / max(int(nonempty.sum()), 1)),
+            "leaves": stored,
+            "empty_leaves_stored": empty,
+            "empty_leaves_elided": elided_count,
+            "leaves_16bit": leaves16,
+            "leaves_32bit": leaves32,
+            "leaf16_share": float(leaves16 / max(leaves16 + leaves32, 1)),
             "leaf_shift": shift,
         }
         return nodes, leaf32, leaf16, shift, kinds, leaf_stats
@@ -376,10 +375,8 @@ def compact_on_device(device, tree, triangles_count, params, report, started):
     if lifting or params.collapse:
         gap_node, gap_pre, gap_depth = c.neighbour_lcas(topo, s_pre, s_tri, R)
     if lifting:
-        node_at_pre = b._read(topo.node_at_pre, u4, n).astype(np.int64)
         per_depth = c.lift_candidates(topo, d_first, triangles_count, s_pre, gap_pre, gap_depth,
-                                      R, params, node_at_pre)
-        del node_at_pre
+                                      R, params)
         removed, lift_node, lift_tri, refs_at, lift_first = host._select_lifts(
             shape, per_depth, R, params)
         del per_depth
@@ -391,8 +388,9 @@ def compact_on_device(device, tree, triangles_count, params, report, started):
 
     d_removed = b._buffer(removed.astype(np.uint8))
     if params.collapse:
-        collapsed = c.collapse(topo, shape, d_removed, s_leaf, gap_node, gap_depth, lift_node,
-                               lift_first, refs_at, R, params)
+        collapsed = c.collapse(topo, shape, removed, b._read(s_leaf, u4, R),
+                               b._read(gap_node, u4, R + 1), b._read(gap_depth, np.int32, R + 1),
+                               lift_node, lift_first, refs_at, params)
     else:
         collapsed = c.zeros(n)
     report(0.7, "compact: subtrees collapsed")

@@ -138,20 +138,6 @@ __kernel void topo_pre(__global const uint2* restrict nodes, __global const uint
    References sorted by (triangle, preorder of the leaf): counted per triangle, scattered into
    their triangle's range (in any order), then each range sorted by preorder. */
 
-/* Per leaf (leaves: the leaf node indices): its references counted per triangle. */
-__kernel void refs_count(__global const uint2* restrict nodes, __global const uint* restrict leaves,
-                         __global const uint* restrict leaf_indices,
-                         __global uint* restrict per_triangle, uint leaf_count)
-{
-    uint l = get_global_id(0);
-    if (l >= leaf_count)
-        return;
-    uint2 w = nodes[leaves[l]];
-    uint n = KD_PLAIN_FIELD(w.x);
-    for (uint j = 0; j < n; j++)
-        atomic_inc(per_triangle + leaf_indices[w.y + j]);
-}
-
 __kernel void refs_scatter(__global const uint2* restrict nodes,
                            __global const uint* restrict leaves,
                            __global const uint* restrict leaf_indices,
@@ -389,8 +375,8 @@ inline dbl run_area(__global const WalkRecord* walk, __global const uint* s_pre,
     return n > 1u ? D_ADD(head, pairwise_sum(walk, s_pre, first + 1u, n - 1u)) : head;
 }
 
-/* Candidate words (6 uints): depth, node (its preorder number), triangle, references, first,
-   end; appended in blocks through `used` (any order: the host sorts them). */
+/* Candidate words (6 uints): depth, node, triangle, references, first, end; appended in
+   blocks through `used` (any order: the host sorts them). */
 #define CANDIDATE_BLOCK 32
 
 __kernel void lift_candidates(__global const uint* restrict tri_first,
@@ -402,8 +388,10 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
                               __global const WalkRecord* restrict walk,
                               __global uint* restrict left, __global uint* restrict right,
                               __global uint* restrict stack, __global uint* restrict out,
-                              __global uint* restrict used, uint capacity, uint triangle_count,
-                              uint min_refs, ulong tau_occu_bits, ulong tau_freq_bits)
+                              __global uint* restrict used,
+                              __global const uint* restrict node_at_pre, uint capacity,
+                              uint triangle_count, uint min_refs, ulong tau_occu_bits,
+                              ulong tau_freq_bits)
 {
     uint t = get_global_id(0);
     if (t >= triangle_count)
@@ -486,7 +474,7 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
                 }
                 uint* c = block + 6 * held++;
                 c[0] = (uint)d;
-                c[1] = node;
+                c[1] = node_at_pre[node];
                 c[2] = t;
                 c[3] = r;
                 c[4] = run_lo;
@@ -506,39 +494,9 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
 }
 
 /* ----------------------------------------------------------------------------------------
-   Distinct triangles below each node (compact.py _distinct_below): kept references and lifts
-   count +1 at their node, the gap before each of them -1 at its LCA; then summed over
-   subtrees. Also each leaf's kept references (leaf_count). */
-
-__kernel void distinct_refs(__global const uchar* restrict removed,
-                            __global const uint* restrict s_leaf,
-                            __global const uint* restrict gap_node,
-                            __global const int* restrict gap_depth, __global int* restrict per_node,
-                            __global uint* restrict leaf_count, uint ref_count)
-{
-    uint j = get_global_id(0);
-    if (j >= ref_count || removed[j])
-        return;
-    atomic_inc(per_node + s_leaf[j]);
-    atomic_inc(leaf_count + s_leaf[j]);
-    if (gap_depth[j] >= 0)
-        atomic_dec(per_node + gap_node[j]);
-}
-
-__kernel void distinct_lifts(__global const uint* restrict lift_node,
-                             __global const uint* restrict lift_first,
-                             __global const uint* restrict gap_node,
-                             __global const int* restrict gap_depth, __global int* restrict per_node,
-                             uint lift_count)
-{
-    uint j = get_global_id(0);
-    if (j >= lift_count)
-        return;
-    atomic_inc(per_node + lift_node[j]);
-    uint f = lift_first[j];
-    if (gap_depth[f] >= 0)
-        atomic_dec(per_node + gap_node[f]);
-}
+   Distinct triangles below each node (compact.py _distinct_below: per node +1 for each kept
+   reference and lift there, -1 for the gap before each of them at its LCA, counted on the
+   host), summed over subtrees; then the collapse. */
 
 /* Per node of a level, bottom-up: values summed over its subtree. */
 __kernel void subtree_sums(__global const uint2* restrict nodes, __global int* restrict values,
@@ -923,4 +881,38 @@ __kernel void gather_values(__global const uint* restrict values, __global const
     uint j = get_global_id(0);
     if (j < count)
         out[j] = values[at[j]];
+}
+
+/* Counts for the layout's stats, per block of nodes: stored leaves, empty stored leaves,
+   elided leaves, 16-bit leaves, 32-bit non-empty leaves, live inner nodes, and the largest
+   stored leaf's count. */
+__kernel void layout_stats(__global const uchar* restrict classes, __global const uchar* restrict elided,
+                           __global const uint* restrict final_count,
+                           __global const uint* restrict count16, __global uint* restrict stats,
+                           uint n, uint block)
+{
+    uint g = get_global_id(0);
+    uint first = g * block;
+    if (first >= n)
+        return;
+    uint last = first + block < n ? first + block : n;
+    uint c[7] = {0u, 0u, 0u, 0u, 0u, 0u, 0u};
+    for (uint i = first; i < last; i++) {
+        uchar cls = classes[i];
+        c[5] += (cls >> 1) & 1u;
+        c[2] += elided[i];
+        if (!(cls & 1u) || elided[i])
+            continue;
+        uint count = final_count[i];
+        c[0]++;
+        if (count == 0u)
+            c[1]++;
+        else if (count16[i])
+            c[3]++;
+        else
+            c[4]++;
+        c[6] = c[6] > count ? c[6] : count;
+    }
+    for (int k = 0; k < 7; k++)
+        stats[8 * g + k] = c[k];
 }
