@@ -16,8 +16,9 @@ import sys
 import numpy as np
 import pytest
 
-from core.accel.compact import MODES, _standard_reencoded, compact_params, compact_tree
-from core.accel.kdtree import KDTreeParams, build_kdtree
+from core.accel.compact import (MODES, _standard_reencoded, compact_params, compact_tree,
+                                 level_ranges)
+from core.accel.kdtree import KDTree, KDTreeParams, build_kdtree
 from core.accel.kdtree_cl import KDTreeBuilderCL
 from core.layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
 from core.opencl import kernel_source
@@ -401,3 +402,80 @@ def test_progress_is_reported_and_an_exception_stops_the_build(builder):
     with pytest.raises(Stop):
         small.build(vertices, triangles, progress=stop_in_subtrees)
     same_tree(small.build(vertices, triangles), builder.build(vertices, triangles))
+
+
+# ---------------------------------------------------------------------------------------------
+# The compaction in kernels (core/accel/compact_cl.py): compact_tree's result, bit for bit
+
+COMPACT_VARIANTS = [("standard", {}), ("ours", {}), ("choi", {}),
+                    ("ours", dict(tau_occu=0.05, tau_freq=0.05)),
+                    ("ours", dict(refs_per_path=1, tau_occu=0.1, tau_freq=0.1)),
+                    ("ours", dict(min_refs=1, tau_occu=0.2, tau_freq=0.2)),
+                    ("ours", dict(collapse=False)), ("ours", dict(elide_empty=False)),
+                    ("ours", dict(leaf16=False)), ("ours", dict(refs_per_node=0)),
+                    ("ours", dict(refs_per_path=None)), ("choi", dict(tau_occu=0.0, tau_freq=0.0))]
+
+
+def same_compact(a, b):
+    for name in ("nodes", "leaf_index32", "leaf_index16", "bounds"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and np.array_equal(x, y), name
+    assert a.leaf_shift == b.leaf_shift and a.params == b.params
+    strip = lambda stats: {k: v for k, v in stats.items() if k != "compact_seconds"}
+    assert strip(a.stats) == strip(b.stats)
+
+
+@functools.lru_cache(maxsize=None)
+def compact_scene(name):
+    vertices, triangles = {"sphere": lambda: uv_sphere(12, 16), "bunny": load_bunny,
+                           "architecture": architecture_small,
+                           # more than 65,536 triangles: 16-bit leaves with a leaf_shift
+                           "building": lambda: architecture_scene(rooms=(6, 4), floors=3,
+                                                                  seed=1)}[name]()
+    return build_kdtree(vertices, triangles), len(triangles)
+
+
+@pytest.mark.parametrize("name", ["sphere", "bunny", "architecture", "building"])
+def test_kernel_compaction_is_compact_tree(builder, name):
+    tree, triangle_count = compact_scene(name)
+    variants = COMPACT_VARIANTS if name != "building" else [("ours", {}), ("choi", {})]
+    for mode, options in variants:
+        same_compact(compact_tree(tree, triangle_count, mode, device=builder, **options),
+                     compact_tree(tree, triangle_count, mode, **options))
+
+
+def test_kernel_compaction_with_software_double(soft_builder):
+    tree, triangle_count = compact_scene("architecture")
+    for mode in ("ours", "choi"):
+        same_compact(compact_tree(tree, triangle_count, mode, device=soft_builder),
+                     compact_tree(tree, triangle_count, mode))
+
+
+def depth_first(tree):
+    """The same tree with its nodes in depth-first order: each inner node's children side by
+    side, placed when it is reached (a valid layout, not the builders' order)."""
+    nodes = tree.nodes
+    place, stack = {0: 0}, [0]
+    while stack:
+        i = stack.pop()
+        if PLAIN_TAG.get(int(nodes[i, 0])) != LEAF_TAG:
+            c = PLAIN_FIELD.get(int(nodes[i, 0]))
+            place[c], place[c + 1] = len(place), len(place) + 1
+            stack += [c + 1, c]
+    out = np.zeros_like(nodes)
+    for old, new in place.items():
+        out[new] = nodes[old]
+        tag = PLAIN_TAG.get(int(nodes[old, 0]))
+        if tag != LEAF_TAG:
+            out[new, 0] = PLAIN_TAG.put(tag) | PLAIN_FIELD.put(place[PLAIN_FIELD.get(int(nodes[old, 0]))])
+    return KDTree(out, tree.leaf_indices, tree.bounds)
+
+
+def test_kernel_compaction_falls_back_for_other_orders(builder):
+    tree, triangle_count = compact_scene("sphere")
+    other = depth_first(tree)
+    assert level_ranges(PLAIN_TAG.get(other.nodes[:, 0]) == LEAF_TAG,
+                        PLAIN_FIELD.get(other.nodes[:, 0]).astype(np.int64)) is None
+    for mode in ("ours", "standard"):
+        same_compact(compact_tree(other, triangle_count, mode, device=builder),
+                     compact_tree(other, triangle_count, mode))
