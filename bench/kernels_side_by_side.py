@@ -4,15 +4,15 @@
         [--size 1024] [--rays 250000] [--repeat 7] [--mode ours] [--cases "camera, packets" ...]
 
 `--old` is a copy of the kernels/ folder (e.g. `cp -r kernels /tmp/old_kernels` before a
-change), `--new` another (default: kernels/). Both are built on the same CPU device and run with Tracer.intersect's arguments on the
-same rays and dragon tree: camera rays through the pixel centres of bench/kdtree_tables.py's
-Table 3 view in the render kernel's tile order (16 x 16 blocks, Morton inside), with 8-ray
-packets and with one ray per work-item, and incoherent rays (uniformly random directions from
-random points on the surface, offset off it), both ways. Old and new alternate within each
-repeat (which goes first alternates too); times are process CPU time of one intersect call
-(buffers, kernel, copies) with PoCL on one thread. Prints old/new of the medians and of the
-best times over the repeats (above 1: the new kernels are faster) and whether both gave the
-same bits.
+change), `--new` another (default: kernels/). Both are built on the same CPU device and run with
+Tracer.intersect's arguments on the same rays and dragon tree (one set of scene buffers): camera
+rays through the pixel centres of bench/kdtree_tables.py's Table 3 view in the render kernel's
+tile order (16 x 16 blocks, Morton inside), with 8-ray packets and with one ray per work-item,
+and incoherent rays (uniformly random directions from random points on the surface, offset off
+it), both ways. Old and new alternate within each repeat (which goes first alternates too);
+times are process CPU time of one intersect call (buffers, kernel, copies) with PoCL on one
+thread. Prints old/new of the medians and of the best times over the repeats (above 1: the new
+kernels are faster) and whether both gave the same bits.
 """
 from __future__ import annotations
 
@@ -103,9 +103,9 @@ class Kernels:
         import pyopencl as cl
         from slave.tracer import kernel_options
         self.cl, self.tracer, self.scene_args = cl, tracer, scene_args
+        exact = cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT
         features = {"stack_size": stack_size,
-                    "correct_divide_sqrt": bool(tracer.device.single_fp_config
-                                                & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT)}
+                    "correct_divide_sqrt": bool(tracer.device.single_fp_config & exact)}
         programs = Programs(cl, tracer.context, tracer.device)
         self.one_ray = programs.kernels(source, kernel_options(features))["intersect_rays"]
         packets = programs.kernels(source, kernel_options(dict(features, packet=8)))

@@ -124,8 +124,8 @@ def test_no_kernel_defines_layout_numbers():
     """Kernels take layout numbers from the header only: none defines a header name again, nor
     an integer constant under a layout prefix (a private node bit, slot count or code)."""
     header = set(re.findall(r"^#define (\w+)", layout.c_header(), re.M))
-    own_number = re.compile(r"^\s*#\s*define\s+((?:%s)\w*)\s+\(?(0x[0-9a-fA-F]+|\d+)u?\)?\s*(//.*)?$"
-                            % "|".join(LAYOUT_PREFIXES), re.M)
+    own_number = re.compile(r"^\s*#\s*define\s+((?:%s)\w*)\s+\(?(0x[0-9a-fA-F]+|\d+)u?\)?"
+                            r"\s*(//.*)?$" % "|".join(LAYOUT_PREFIXES), re.M)
     for path in kernel_files():
         text = path.read_text()
         defined = set(re.findall(r"^\s*#\s*define\s+(\w+)", text, re.M))
@@ -215,7 +215,8 @@ def test_lights_as_the_kernels_read_them(device):
     # The codes as the kernel compares them.
     tests = [f"LIGHT_KIND(r) == LIGHT_{kind}" for kind in layout.LIGHT_CODES]
     tests += [f"LIGHT_AREA_SHAPE(r) == LIGHT_SHAPE_{shape}" for shape in layout.AREA_SHAPE_CODES]
-    body = "\n".join(f"        out[{len(tests)} * i + {k}] = {test};" for k, test in enumerate(tests))
+    body = "\n".join(f"        out[{len(tests)} * i + {k}] = {test};"
+                     for k, test in enumerate(tests))
     source = (f"__kernel void codes(__global uint *out, __global const float4 *lights)\n{{\n"
               f"    for (int i = 0; i < {len(LIGHTS)}; ++i) {{\n"
               f"        __global const float4 *r = lights + LIGHT_SIZE * i;\n{body}\n    }}\n}}\n")
@@ -258,7 +259,8 @@ def test_materials_as_material_at_reads_them(device):
         "                        __global const half *texels, __global const uint *sizes)\n{\n"
         "    Scene sc;\n    sc.materials = materials;\n    sc.material_ids = ids;\n"
         "    sc.uvs = uvs;\n    sc.texels = texels;\n    sc.tex_sizes = sizes;\n"
-        "    for (uint i = 0; i < 3u; ++i) {\n        Material m = material_at(&sc, i, 0.25f, 0.25f);\n"
+        "    for (uint i = 0; i < 3u; ++i) {\n"
+        "        Material m = material_at(&sc, i, 0.25f, 0.25f);\n"
         f"{body}\n    }}\n}}\n")
     cl, context, queue, programs = device
     kernel = programs.kernels(source, ["-DKD_STACK_SIZE=32", "-DHAS_TEXTURES"])["materials"]
@@ -295,7 +297,8 @@ def test_camera_as_camera_ray_reads_it(device, camera):
     m = camera.to_world
     forward = m[:3, :3] @ (0, 0, -1)
     for name, value in {"to_world": m[:3], "ndc_scale": camera.ndc_scale,
-                        "ndc_offset": camera.ndc_offset, "view_axis": forward / np.linalg.norm(forward),
+                        "ndc_offset": camera.ndc_offset,
+                        "view_axis": forward / np.linalg.norm(forward),
                         "clip_start": camera.clip_start, "clip_end": min(camera.clip_end, 3e38),
                         "width": 64, "height": 48, "world_color": (0.25, 0.5, 0.75)}.items():
         np.testing.assert_allclose(layout.CAMERA.get(packed, name), value, rtol=1e-6,
@@ -313,7 +316,8 @@ def test_camera_as_camera_ray_reads_it(device, camera):
     out = np.zeros((len(pixels), 2, 3), np.float32)
     out_buf = cl.Buffer(context, mf.WRITE_ONLY, out.nbytes)
     kernel(queue, (1,), None, out_buf,
-           *[cl.Buffer(context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a) for a in (packed, pixels)])
+           *[cl.Buffer(context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+             for a in (packed, pixels)])
     cl.enqueue_copy(queue, out, out_buf)
     ndc = np.column_stack([pixels[:, 0] / 64 * 2 - 1, 1 - pixels[:, 1] / 48 * 2])
     p = ndc * camera.ndc_scale + camera.ndc_offset
@@ -396,7 +400,8 @@ def test_nodes_as_the_traversal_decodes_them(device, bunny_trees, which):
     inner, leaves = reachable_nodes(ct.nodes)
     w = ct.nodes[inner, 0].astype(np.int64)
     has_ref = layout.INNER_REF.get(w)
-    assert has_ref.any() and (layout.INNER_EMPTY_BELOW.get(w) | layout.INNER_EMPTY_ABOVE.get(w)).any()
+    elided = layout.INNER_EMPTY_BELOW.get(w) | layout.INNER_EMPTY_ABOVE.get(w)
+    assert has_ref.any() and elided.any()
     refs = ct.nodes[layout.INNER_GROUP.get(w)]
     assert ((refs[:, 1] != layout.NO_TRIANGLE) & (has_ref == 1)).any()
     lw = ct.nodes[leaves, 0].astype(np.int64)
@@ -471,10 +476,12 @@ __kernel void decode(__global uint *out_inner, __global uint *out_leaf, __global
     np.testing.assert_array_equal(outs[2], want_tris)
 
 
-# What a kernel would write if it spelled a layout itself: a record buffer indexed by a literal
-# stride or slot, and (in the traversal) a node word decoded with literal shifts and masks.
-RECORD_BY_NUMBER = re.compile(r"\b(lights|materials|tri_verts|emitters|L|cam|bounds|accum|stats)"
-                              r"\s*(\[\s*\d|[+\[]\s*\d+\s*\*)")
+# What a kernel would write if it spelled a layout itself: a slot of a tracer record read by
+# number (`cam[5].z`), a record buffer indexed with a literal stride (`materials[4 * id]`), and
+# (in the traversal) a node word decoded with literal shifts and masks.
+RECORD_BY_NUMBER = re.compile(
+    r"\b(lights|materials|tri_verts|emitters|L|cam|bounds|accum|stats)\s*\[\s*\d+\s*\]\s*\."
+    r"|\b(lights|materials|tri_verts|emitters)\s*[+\[]\s*\d+\s*\*")
 FIELD_BY_NUMBER = re.compile(r"(>>|<<)\s*\d|&\s*(0x[0-9a-fA-F]+|\d+)u?\b")
 SIGN_MASK = "& 0x7FFFFFFFu"      # |x| as a bit operation: not a layout
 

@@ -11,7 +11,7 @@
 // would not go), and it stops for good where trace_ray would stop. Where the lanes disagree
 // on which child comes first, the packet visits the first child for the lanes that want it
 // first, then the second for all, then the first again for the others; so the results are
-// bit-identical to trace_ray's.
+// bit-identical to trace_ray's. Nodes are read with trace.cl's node routines, as in trace_ray.
 #ifdef KD_PACKET
 
 #if KD_PACKET != 8

@@ -1,10 +1,13 @@
-// Ray queries against the kd-tree: traversal and the watertight ray/triangle test.
-// Shared by the arbitrary-ray kernel (intersect.cl) and the camera-tile kernel (render.cl).
-// OpenCL C 1.2, single precision only, no extensions.
+// Ray queries against the kd-tree: the watertight ray/triangle test, the compact tree's node
+// format decoded (load_node, inner_node, tref_slot, leaf_node: the one place that reads node
+// words, for trace_ray here and trace_packet in packet.cl) and trace_ray, the one-ray
+// traversal that intersect.cl, shading.cl and render.cl use. OpenCL C 1.2, single precision,
+// no extensions. Node fields, buffer slots and codes are the names of the layout header that
+// core/opencl.py kernel_source puts before the kernel files (generated from core/layout.py).
 //
 // Build options (slave/tracer.py kernel_options): KD_STACK_SIZE (>= tree depth + 1),
-// KDTRACE_HASH (source + options hash, so no driver cache can serve a stale binary),
-// HAS_POINT / HAS_SUN / HAS_SPOT / HAS_AREA (light kinds present).
+// KD_PACKET (packet.cl), HAS_<FEATURE> (shading.cl), and KDTRACE_HASH (core/opencl.py: a hash
+// of source and options, so no driver cache can serve a stale binary).
 
 // Same rounding on every device: no silent a*b+c -> fma contraction.
 #pragma OPENCL FP_CONTRACT OFF
@@ -142,13 +145,13 @@ KD_INLINE bool intersect_triangle(const TriRay *q, Corners c,
     return true;
 }
 
-// The compact kd-tree (docs/kdtree_compression.md; one layout for the modes standard, choi and
-// ours): nodes, the 32- and 16-bit leaf index lists, and the shift of 16-bit leaves' bases.
 // Tolerance of the stopping test, relative to t and to the scene's size along the ray: a
 // triangle coplanar with the best hit (a column on a floor) may sit in a cell whose computed
 // entry rounds just past that hit; visiting it lets the tie go to the lower index.
 #define KD_TIE_EPS 1e-6f
 
+// The compact kd-tree (docs/kdtree_compression.md; one layout for the modes standard, choi and
+// ours): nodes, the 32- and 16-bit leaf index lists, and the shift of 16-bit leaves' bases.
 typedef struct {
     __global const uint2 *nodes;
     __global const uint *leaf32;
@@ -221,7 +224,7 @@ KD_INLINE InnerNode inner_node(uint2 n)
     return in;
 }
 
-// The triangles of a T-reference slot: `first`, and `second` unless it is KD_NO_TRIANGLE.
+// The triangles of a T-reference slot: .x, and .y unless has_second_ref says it is empty.
 KD_INLINE uint2 tref_slot(const KdTree *kd, const InnerNode *in)
 {
     return kd->nodes[in->refs];
@@ -276,8 +279,8 @@ typedef struct {
 
 // Test triangle `tri` against [tmin, best]; keep it when it is nearer, or as near with a lower
 // index (ties go to the lower triangle index, as brute force).
-KD_INLINE bool consider(const TriRay *q, uint tri, uint ignore_tri, __global const float4 *tri_verts,
-                        float tmin, Best *b)
+KD_INLINE bool consider(const TriRay *q, uint tri, uint ignore_tri,
+                        __global const float4 *tri_verts, float tmin, Best *b)
 {
     float t, u, v;
     if (tri != ignore_tri
