@@ -18,9 +18,13 @@ import numpy as np
 
 from ..core.scene.features import scene_features, strip_geometry
 from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
-                          MAX_MATERIALS, RenderSettings, SceneError, Shading, View)
+                                MAX_MATERIALS, RenderSettings, SceneError, Shading, View,
+                                WorldTexture)
 
 DEFAULT_COLOR = (0.8, 0.8, 0.8, 1.0)
+# What Cycles renders where there is no material: a default Principled BSDF.
+PRINCIPLED_DEFAULTS = {"metallic": 0.0, "roughness": 0.5, "ior": 1.5, "specular": 0.5}
+HALF_MAX = 65504.0          # the largest float16: texels travel as half floats
 
 
 def export_view(depsgraph) -> tuple[Geometry, View, dict]:
@@ -29,9 +33,11 @@ def export_view(depsgraph) -> tuple[Geometry, View, dict]:
     scene = depsgraph.scene
     warnings = []
     materials = _MaterialTable(warnings)
+    # The world first: its Environment Texture joins the material textures in one table.
+    world_color, world_texture = export_world(scene, materials, warnings)
     geometry = _export_geometry(depsgraph, materials, warnings)
-    shading = Shading(materials.colors(), _export_lights(depsgraph), _world_color(scene),
-                      materials.params())
+    shading = Shading(materials.colors(), _export_lights(depsgraph, warnings), world_color,
+                      materials.params(), world_texture)
     view = View(_export_camera(depsgraph), *render_size(scene), shading, render_region(scene),
                 render_settings(scene))
     # Only what the scene needs travels (and the kernel compiles only that).
@@ -74,12 +80,14 @@ class _MaterialTable:
     def __init__(self, warnings: list):
         self._index = {None: 0}
         self._colors = [DEFAULT_COLOR]
-        self._params = [DEFAULT_MATERIAL_PARAMS]
+        self._params = [tuple(dict(zip(MATERIAL_PARAMS, DEFAULT_MATERIAL_PARAMS),
+                                   **PRINCIPLED_DEFAULTS)[name] for name in MATERIAL_PARAMS)]
         self._warnings = warnings
         self._images = {}           # image name -> texture index
         self.textures = []          # (texels (N, 4) float16, width, height)
 
-    def index(self, material) -> int:
+    def index(self, material, obj_name: str | None = None) -> int:
+        """The material's index; `obj_name`: the object that uses it (named in warnings)."""
         key = material.name_full if material is not None else None
         if key not in self._index:
             if len(self._colors) >= MAX_MATERIALS:
@@ -87,9 +95,10 @@ class _MaterialTable:
             self._index[key] = len(self._colors)
             color, params, image, problems = material_parameters(material)
             if image is not None:
-                params["texture"] = float(self._texture(image, material.name))
-            for problem in problems:
-                self._warnings.append(f"material '{material.name}': {problem}")
+                params["texture"] = float(self.texture(image, f"material '{material.name}'"))
+            if problems:        # one warning per material, naming everything it lacks
+                on = f" (on object '{obj_name}')" if obj_name else ""
+                self._warnings.append(f"material '{material.name}'{on}: " + "; ".join(problems))
             self._colors.append(color)
             self._params.append(tuple(params[name] for name in MATERIAL_PARAMS))
         return self._index[key]
@@ -98,12 +107,13 @@ class _MaterialTable:
         key = material.name_full if material is not None else None
         return key in self._index and self._params[self._index[key]][-1] >= 0
 
-    def _texture(self, image, material_name) -> int:
+    def texture(self, image, owner: str) -> int:
+        """The index of `image` in the texture table (added on first use); `owner` names the
+        material or world that uses it, for messages."""
         if image.name_full not in self._images:
             width, height = image.size
             if width == 0 or height == 0:
-                raise SceneError(f"material '{material_name}': image '{image.name}' has no pixels "
-                                 "(missing file?)")
+                raise SceneError(f"{owner}: image '{image.name}' has no pixels (missing file?)")
             pixels = np.empty(width * height * image.channels, np.float32)
             image.pixels.foreach_get(pixels)
             pixels = pixels.reshape(-1, image.channels)
@@ -115,8 +125,13 @@ class _MaterialTable:
             if not image.is_float and image.colorspace_settings.name == "sRGB":
                 c = rgba[:, :3]
                 rgba[:, :3] = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+            rgba = np.nan_to_num(rgba, posinf=HALF_MAX, neginf=0.0)
+            if rgba.max() > HALF_MAX:
+                self._warnings.append(f"{owner}: image '{image.name}' has values above "
+                                      f"{HALF_MAX:g}, clamped (texels are half floats)")
+                rgba = np.minimum(rgba, HALF_MAX)
             self._images[image.name_full] = len(self.textures)
-            self.textures.append((np.nan_to_num(rgba).astype(np.float16), width, height))
+            self.textures.append((rgba.astype(np.float16), width, height))
         return self._images[image.name_full]
 
     def colors(self) -> np.ndarray:
@@ -160,6 +175,16 @@ def _input_value(node, name, problems):
     return _plain(socket)
 
 
+def _unhandled_links(node, handled, problems):
+    """A problem for the first linked input of `node` that the mapping does not read (a
+    Normal map, a Coat Normal, ...)."""
+    for socket in node.inputs:
+        if socket.is_linked and socket.name not in handled and socket.enabled:
+            problems.append(f"input '{socket.name}' of '{node.name}' is linked, which KD Trace "
+                            "does not evaluate; ignored")
+            return
+
+
 def _plain(socket):
     value = socket.default_value
     try:
@@ -184,10 +209,13 @@ def _color_input(node, name, problems):
 
 def material_parameters(material):
     """(base colour RGBA, params dict, image or None, problems) of a Blender material."""
-    params = dict(zip(MATERIAL_PARAMS, DEFAULT_MATERIAL_PARAMS))
+    params = dict(zip(MATERIAL_PARAMS, DEFAULT_MATERIAL_PARAMS), **PRINCIPLED_DEFAULTS)
     problems = []
     fallback = tuple(material.diffuse_color)
     if not (material.use_nodes and material.node_tree):
+        # Cycles renders a material without nodes as a Principled BSDF of its viewport values.
+        params.update(metallic=float(material.metallic), roughness=float(material.roughness),
+                      specular=float(material.specular_intensity))
         return fallback, params, None, problems
     node = _surface_node(material)
     kind = node.type if node is not None else None
@@ -204,26 +232,45 @@ def material_parameters(material):
         strength = _input_value(node, "Emission Strength", problems) or 0.0
         params["emission_r"], params["emission_g"], params["emission_b"] = (
             max(0.0, c * strength) for c in emission[:3])
-        for other in ("Coat Weight", "Sheen Weight", "Subsurface Weight"):
+        for other in ("Coat Weight", "Sheen Weight", "Subsurface Weight", "Anisotropic",
+                      "Diffuse Roughness", "Thin Film Thickness"):
             socket = node.inputs.get(other)
             if socket is not None and (socket.is_linked or _plain(socket) > 0):
                 problems.append(f"'{other}' is not supported and is ignored")
+        tint = node.inputs.get("Specular Tint")
+        if tint is not None and (tint.is_linked or min(_plain(tint)[:3]) < 1.0):
+            problems.append("'Specular Tint' is not supported; rendering white")
+        _unhandled_links(node, ("Base Color", "Alpha", "Emission Color", "Emission Strength",
+                                *_PRINCIPLED), problems)
     elif kind == "BSDF_DIFFUSE":
         color, image = _color_input(node, "Color", problems)
-        params["roughness"] = 1.0
+        params["roughness"], params["specular"] = 1.0, 0.0
+        roughness = _input_value(node, "Roughness", problems)
+        if roughness:
+            problems.append("Oren-Nayar roughness is rendered as Lambertian diffuse")
+        _unhandled_links(node, ("Color", "Roughness"), problems)
     elif kind in ("BSDF_GLOSSY", "BSDF_ANISOTROPIC"):
         color, image = _color_input(node, "Color", problems)
         params["metallic"] = 1.0
         params["roughness"] = _input_value(node, "Roughness", problems) or 0.0
+        anisotropy = node.inputs.get("Anisotropy")
+        if anisotropy is not None and (anisotropy.is_linked or _plain(anisotropy) != 0):
+            problems.append("'Anisotropy' is not supported and is ignored")
+        _unhandled_links(node, ("Color", "Roughness", "Anisotropy"), problems)
     elif kind == "BSDF_GLASS":
         color, image = _color_input(node, "Color", problems)
+        # The Glass BSDF tints every refraction by its colour; Principled (the kernel) by the
+        # square root of the base colour.
+        color = tuple(c * c for c in color[:3]) + color[3:]
         params["transmission"], params["specular"] = 1.0, 0.5
         params["roughness"] = _input_value(node, "Roughness", problems) or 0.0
         params["ior"] = _input_value(node, "IOR", problems) or 1.45
+        _unhandled_links(node, ("Color", "Roughness", "IOR"), problems)
     elif kind == "EMISSION":
         emission, _ = _color_input(node, "Color", problems)
         strength = _input_value(node, "Strength", problems) or 0.0
         color = (0.0, 0.0, 0.0, 1.0)
+        params["specular"] = 0.0
         params["emission_r"], params["emission_g"], params["emission_b"] = (
             max(0.0, c * strength) for c in emission[:3])
     else:
@@ -235,8 +282,7 @@ def material_parameters(material):
         params[name] = min(max(params[name], 0.0), 1.0)
     params["specular"] = min(max(params["specular"], 0.0), 1000.0)
     color = tuple(min(max(c, 0.0), 1e6) for c in color[:3]) + (min(max(color[3], 0.0), 1.0),)
-    # Only the first problem per material: one warning per material, as the user sees it.
-    return color, params, image, problems[:1]
+    return color, params, image, list(dict.fromkeys(problems))
 
 
 def _mesh_arrays(mesh, want_normals: bool, want_uvs: bool) -> dict:
@@ -290,7 +336,8 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list) -> Ge
             continue
         mesh = obj.data
         slot_materials = np.array(
-            [materials.index(slot.material) for slot in obj.material_slots] or [0], np.uint16)
+            [materials.index(slot.material, obj.name) for slot in obj.material_slots] or [0],
+            np.uint16)
         textured = any(materials.uses_texture(slot.material) for slot in obj.material_slots)
         key = (mesh.as_pointer(), textured)
         if key not in mesh_cache:
@@ -387,13 +434,27 @@ def _export_camera(depsgraph) -> Camera:
     return Camera(kind, to_world, (sx, sy), offset, data.clip_start, data.clip_end)
 
 
-def _export_lights(depsgraph) -> list:
+def _export_lights(depsgraph, warnings: list) -> list:
+    """Blender's lights. Portals (which only guide Cycles' sampling of the world) are left
+    out; what KD Trace does not render of a light gets one warning naming it."""
     lights = []
+    warned = set()
     for instance in depsgraph.object_instances:
         obj = instance.object
         if obj.type != "LIGHT" or not instance.show_self:
             continue
         data = obj.data
+        if data.type == "AREA" and getattr(getattr(data, "cycles", None), "is_portal", False):
+            continue
+        problem = None
+        if getattr(data, "use_nodes", False) and data.node_tree and any(
+                n.type not in ("EMISSION", "OUTPUT_LIGHT") for n in data.node_tree.nodes):
+            problem = "its shader nodes are not evaluated; rendering its colour"
+        elif data.type == "AREA" and data.spread < math.pi - 1e-6:
+            problem = "area light spread is not supported (rendered as 180 degrees)"
+        if problem and obj.name not in warned:
+            warned.add(obj.name)
+            warnings.append(f"light '{obj.name}': {problem}")
         matrix = np.array(instance.matrix_world, np.float64)
         axes = matrix[:3, :3] / np.maximum(np.linalg.norm(matrix[:3, :3], axis=0), 1e-30)
         scale = np.linalg.norm(matrix[:3, :3], axis=0)
@@ -416,14 +477,104 @@ def _export_lights(depsgraph) -> list:
     return lights
 
 
-def _world_color(scene) -> tuple:
-    """The world's background colour times strength (node Background), else its viewport colour."""
+def export_world(scene, textures: _MaterialTable, warnings: list):
+    """(world colour, WorldTexture or None) of the scene's world: a Background (or Emission)
+    shader's Color x Strength, or an Environment Texture (equirectangular or mirror ball,
+    through a Mapping node from Generated or Object coordinates) times Strength. What cannot
+    be mapped gets one warning naming the world and the node, and renders its plain value."""
     world = scene.world
     if world is None:
-        return (0.0, 0.0, 0.0)
-    if world.use_nodes and world.node_tree:
-        for node in world.node_tree.nodes:
-            if node.type == "BACKGROUND":
-                color, strength = node.inputs["Color"].default_value, node.inputs["Strength"].default_value
-                return tuple(float(c) * strength for c in color[:3])
-    return tuple(world.color)
+        return (0.0, 0.0, 0.0), None
+    name = f"world '{world.name}'"
+    if not (world.use_nodes and world.node_tree):
+        return tuple(float(c) for c in world.color), None
+    problems = []
+    outputs = [n for n in world.node_tree.nodes if n.type == "OUTPUT_WORLD"]
+    active = [n for n in outputs if n.is_active_output] or outputs
+    node = None
+    if active and active[0].inputs["Surface"].is_linked:
+        node = active[0].inputs["Surface"].links[0].from_node
+    if node is None or node.type not in ("BACKGROUND", "EMISSION"):
+        if node is not None:
+            problems.append(f"its surface is '{node.name}' ({node.bl_idname}), which KD Trace "
+                            "cannot map; rendering the first Background's colour")
+        node = next((n for n in world.node_tree.nodes if n.type == "BACKGROUND"), None)
+    if node is None:
+        if problems:
+            warnings.append(f"{name}: " + "; ".join(problems))
+        return (0.0, 0.0, 0.0), None
+    strength = _input_value(node, "Strength", problems)
+    strength = max(float(strength if strength is not None else 1.0), 0.0)
+    color_socket = node.inputs["Color"]
+    texture = None
+    if color_socket.is_linked:
+        source = color_socket.links[0].from_node
+        if source.type == "TEX_ENVIRONMENT" and color_socket.links[0].from_socket.name == "Color":
+            texture = _environment(source, textures, name, problems)
+        else:
+            problems.append(f"'Color' is linked to '{source.name}', which KD Trace cannot "
+                            "evaluate; using its value")
+    if texture is not None:
+        color = (strength,) * 3
+    else:
+        color = tuple(float(c) * strength for c in _plain(color_socket)[:3])
+    if problems:            # one warning for the world, naming everything it lacks
+        warnings.append(f"{name}: " + "; ".join(dict.fromkeys(problems)))
+    return tuple(min(max(c, 0.0), 1e30) for c in color), texture
+
+
+def _environment(node, textures: _MaterialTable, name: str, problems: list):
+    """The WorldTexture of an Environment Texture node, or None (with a problem) without an
+    image."""
+    if node.image is None:
+        problems.append(f"'{node.name}' has no image; rendering black")
+        return None
+    interpolation = "CLOSEST" if node.interpolation == "Closest" else "LINEAR"
+    if node.interpolation not in ("Linear", "Closest"):
+        problems.append(f"'{node.name}': interpolation {node.interpolation} is rendered as Linear")
+    matrix = np.eye(3)
+    vector = node.inputs["Vector"]
+    if vector.is_linked:
+        source = vector.links[0].from_node
+        if source.type == "MAPPING":
+            matrix = _mapping_matrix(source, problems)
+            inner = source.inputs["Vector"]
+            source = inner.links[0].from_node if inner.is_linked else None
+            socket = inner.links[0].from_socket.name if inner.is_linked else "Generated"
+        else:
+            socket = vector.links[0].from_socket.name
+        if source is not None and not (source.type == "TEX_COORD"
+                                       and socket in ("Generated", "Object")):
+            problems.append(f"the vector of '{node.name}' comes from '{source.name}', which "
+                            "KD Trace cannot evaluate; using the view direction")
+    if not abs(np.linalg.det(matrix)) > 1e-9 * float(np.abs(matrix).max()) ** 3:
+        problems.append(f"the mapping of '{node.name}' is singular; ignored")
+        matrix = np.eye(3)
+    index = textures.texture(node.image, name)
+    return WorldTexture(index, node.projection if node.projection in ("EQUIRECTANGULAR", "MIRROR_BALL")
+                        else "EQUIRECTANGULAR", matrix, interpolation)
+
+
+def _mapping_matrix(node, problems: list) -> np.ndarray:
+    """The Mapping node's map of a direction (its linear part), as 3x3 for world directions
+    into texture directions; a location on a Point mapping is not used (directions)."""
+    from mathutils import Euler
+    values = {}
+    for socket_name in ("Location", "Rotation", "Scale"):
+        socket = node.inputs.get(socket_name)
+        if socket is None:
+            values[socket_name] = np.zeros(3) if socket_name != "Scale" else np.ones(3)
+            continue
+        if socket.is_linked:
+            problems.append(f"input '{socket_name}' of '{node.name}' is linked; using its value")
+        values[socket_name] = np.array(_plain(socket), np.float64)
+    rotation = np.array(Euler(values["Rotation"].tolist(), "XYZ").to_matrix(), np.float64)
+    scale = values["Scale"]
+    if node.vector_type == "POINT" and np.abs(values["Location"]).max() > 0:
+        problems.append(f"the Location of '{node.name}' moves points, not directions; ignored")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if node.vector_type == "TEXTURE":
+            return np.diag(1.0 / scale) @ rotation.T
+        if node.vector_type == "NORMAL":
+            return rotation @ np.diag(1.0 / scale)
+        return rotation @ np.diag(scale)

@@ -56,15 +56,18 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
                ("3a", "Simple", "One thread per slave sends a tile index, then waits for the tile", 1)],
         default=DEFAULT_MODEL)
 
+    # Sampling and Light Paths, as Cycles' panels (defaults and ranges: core RenderSettings).
     samples_per_axis: IntProperty(
-        name="Samples", description="N x N stratified samples per pixel",
+        name="Max Samples", description="N x N stratified samples per pixel at most "
+        "(64: 4096 samples, Cycles' default)",
         default=RENDER.samples_per_axis, min=LIMITS["samples_per_axis"][0],
         max=LIMITS["samples_per_axis"][1])
     adaptive: BoolProperty(
-        name="Adaptive Sampling", description="Spend samples only where pixels need them",
-        default=RENDER.adaptive)
+        name="Noise Threshold", description="Adaptive sampling: stop sampling a pixel once its "
+        "noise, estimated as Cycles does, is below the threshold", default=RENDER.adaptive)
     adaptive_threshold: FloatProperty(
-        name="Noise Threshold", description="Error below which a pixel gets no more samples",
+        name="Noise Threshold", description="Noise level below which a pixel gets no more "
+        "samples (Cycles' Noise Threshold)",
         default=RENDER.adaptive_threshold, min=LIMITS["adaptive_threshold"][0],
         max=LIMITS["adaptive_threshold"][1], precision=4)
     adaptive_min_samples: IntProperty(
@@ -72,14 +75,40 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         default=RENDER.adaptive_min_samples, min=LIMITS["adaptive_min_samples"][0],
         max=LIMITS["adaptive_min_samples"][1])
     max_bounces: IntProperty(
-        name="Max Bounces", description="Mirror, glass and diffuse bounces after the camera hit",
+        name="Total", description="Total maximum number of bounces",
         default=RENDER.max_bounces, min=LIMITS["max_bounces"][0], max=LIMITS["max_bounces"][1])
     diffuse_bounces: IntProperty(
-        name="Diffuse Bounces", description="How many of the bounces may be diffuse (0: direct light only)",
-        default=RENDER.diffuse_bounces, min=LIMITS["diffuse_bounces"][0],
+        name="Diffuse", description="Maximum number of diffuse reflection bounces, bounded by "
+        "the total maximum", default=RENDER.diffuse_bounces, min=LIMITS["diffuse_bounces"][0],
         max=LIMITS["diffuse_bounces"][1])
+    glossy_bounces: IntProperty(
+        name="Glossy", description="Maximum number of glossy reflection bounces, bounded by the "
+        "total maximum", default=RENDER.glossy_bounces, min=LIMITS["glossy_bounces"][0],
+        max=LIMITS["glossy_bounces"][1])
+    transmission_bounces: IntProperty(
+        name="Transmission", description="Maximum number of transmission (refraction) "
+        "bounces, bounded by the total maximum", default=RENDER.transmission_bounces,
+        min=LIMITS["transmission_bounces"][0], max=LIMITS["transmission_bounces"][1])
+    transparent_bounces: IntProperty(
+        name="Transparent", description="Maximum number of alpha cut-outs a ray passes through",
+        default=RENDER.transparent_bounces, min=LIMITS["transparent_bounces"][0],
+        max=LIMITS["transparent_bounces"][1])
+    clamp_direct: FloatProperty(
+        name="Direct Light", description="Largest mean of RGB one sample may add through the "
+        "first surface (0: no clamping)", default=RENDER.clamp_direct,
+        min=LIMITS["clamp_direct"][0], max=LIMITS["clamp_direct"][1])
+    clamp_indirect: FloatProperty(
+        name="Indirect Light", description="Largest mean of RGB one sample may add after a "
+        "bounce (0: no clamping); removes fireflies, with a little bias",
+        default=RENDER.clamp_indirect, min=LIMITS["clamp_indirect"][0],
+        max=LIMITS["clamp_indirect"][1])
+    filter_glossy: FloatProperty(
+        name="Filter Glossy", description="Blur sharp glossy reflections after wide bounces "
+        "(fewer fireflies from caustics; 0: off)", default=RENDER.filter_glossy,
+        min=LIMITS["filter_glossy"][0], max=LIMITS["filter_glossy"][1])
     light_samples_per_axis: IntProperty(
-        name="Light Samples", description="L x L shadow samples per soft or area light",
+        name="Light Samples", description="L x L shadow samples per soft light, the world and "
+        "the emissive meshes, per camera sample",
         default=RENDER.light_samples_per_axis, min=LIMITS["light_samples_per_axis"][0],
         max=LIMITS["light_samples_per_axis"][1])
     seed: IntProperty(name="Seed", description="Seed of the sampling pattern",

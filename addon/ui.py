@@ -32,29 +32,45 @@ class RENDER_PT_kdtrace(KDTracePanel, bpy.types.Panel):
 
 
 class RENDER_PT_kdtrace_sampling(KDTracePanel, bpy.types.Panel):
+    """As Cycles' Sampling panel: Noise Threshold (adaptive), Max and Min Samples."""
     bl_label = "Sampling"
     bl_parent_id = "RENDER_PT_kdtrace"
 
     def draw(self, context):
         layout, settings = property_layout(self, context)
-        layout.prop(settings, "samples_per_axis")
-        layout.prop(settings, "adaptive")
-        col = layout.column()
-        col.active = settings.adaptive
-        col.prop(settings, "adaptive_threshold")
-        col.prop(settings, "adaptive_min_samples")
+        heading = layout.column(align=True, heading="Noise Threshold")
+        row = heading.row(align=True)
+        row.prop(settings, "adaptive", text="")
+        sub = row.row()
+        sub.active = settings.adaptive
+        sub.prop(settings, "adaptive_threshold", text="")
+        col = layout.column(align=True)
+        col.prop(settings, "samples_per_axis")
+        sub = col.column(align=True)
+        sub.active = settings.adaptive
+        sub.prop(settings, "adaptive_min_samples")
+        layout.label(text=f"{settings.samples_per_axis ** 2} samples at most")
         layout.prop(settings, "light_samples_per_axis")
         layout.prop(settings, "seed")
 
 
 class RENDER_PT_kdtrace_light_paths(KDTracePanel, bpy.types.Panel):
+    """As Cycles' Light Paths panel: Max Bounces, Clamping, Caustics."""
     bl_label = "Light Paths"
     bl_parent_id = "RENDER_PT_kdtrace"
 
     def draw(self, context):
         layout, settings = property_layout(self, context)
-        layout.prop(settings, "max_bounces")
-        layout.prop(settings, "diffuse_bounces")
+        col = layout.column(align=True, heading="Max Bounces")
+        col.prop(settings, "max_bounces")
+        col.prop(settings, "diffuse_bounces")
+        col.prop(settings, "glossy_bounces")
+        col.prop(settings, "transmission_bounces")
+        col.prop(settings, "transparent_bounces")
+        col = layout.column(align=True, heading="Clamping")
+        col.prop(settings, "clamp_direct")
+        col.prop(settings, "clamp_indirect")
+        layout.prop(settings, "filter_glossy")
 
 
 class RENDER_PT_kdtrace_kdtree(KDTracePanel, bpy.types.Panel):

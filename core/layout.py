@@ -1,7 +1,7 @@
 """Every layout that the host and the kernels share, as tables: the kd-tree node words (the
 builder's plain nodes and the tracer's compact nodes), the records of the tracer's buffers
-(lights, materials, camera, tree bounds, triangle corners, texture sizes, accumulators) and
-the codes stored in them.
+(lights, materials, camera, world, emissive triangles, tree bounds, triangle corners, texture
+sizes, accumulators) and the codes stored in them.
 
 The builder and the compactor (core/accel/), the validator and the packers (slave/buffers.py)
 take their numbers from here, and `c_header()` writes the same tables as the C header that
@@ -193,9 +193,14 @@ NODE_FORMATS = (PLAIN_NODE, COMPACT_NODE)
 LIGHT_CODES = {"POINT": 0, "SUN": 1, "SPOT": 2, "AREA": 3}
 AREA_SHAPE_CODES = {"RECTANGLE": 0, "ELLIPSE": 1}     # Blender's SQUARE / DISK are the same shapes
 CAMERA_CODES = {"PERSP": 0, "ORTHO": 1}
+PROJECTION_CODES = {"EQUIRECTANGULAR": 0, "MIRROR_BALL": 1}
+INTERPOLATION_CODES = {"LINEAR": 0, "CLOSEST": 1}
 CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("LIGHT_SHAPE", "Area light shapes (LIGHT_AREA_SHAPE)", AREA_SHAPE_CODES),
-         Codes("CAMERA", "Camera kinds (CAMERA_KIND)", CAMERA_CODES))
+         Codes("CAMERA", "Camera kinds (CAMERA_KIND)", CAMERA_CODES),
+         Codes("PROJECTION", "World texture projections (WORLD_PROJECTION)", PROJECTION_CODES),
+         Codes("INTERPOLATION", "World texture interpolation (WORLD_INTERPOLATION)",
+               INTERPOLATION_CODES))
 
 LIGHT = Record("LIGHT", "A light (lights buffer, light_count records)", 6, (
     Slot("position", 0, "xyz", "position"),
@@ -260,7 +265,33 @@ STATS = Record("STATS", "A pixel's error statistics (stats buffer, float2, by ti
     Slot("sum_squares", 0, "y", "sum of its squares"),
 ), width=2)
 
-RECORDS = (LIGHT, MATERIAL, CAMERA, BOUNDS, TRIANGLE, ACCUM, STATS)
+# The world as a light (core/scene/model.py Shading.world_color and world_texture; packed by
+# slave/buffers.py pack_world). The constant colour itself is CAMERA_WORLD_COLOR; with a texture
+# it multiplies the texture. Directions go to the texture's own space through `to_texture`
+# (the Mapping node's linear part); sampling maps back through `from_texture`.
+WORLD = Record("WORLD", "The world (one record)", 8, (
+    Slot("to_texture", 0, "xyzw", "rows of the 3x3 map from a world direction to the texture's "
+         "direction (w unused)", rows=3),
+    Slot("from_texture", 3, "xyzw", "rows of its inverse", rows=3),
+    Slot("texture", 6, "x", "texture index into the texture table, -1 = a constant colour"),
+    Slot("projection", 6, "y", "a PROJECTION_<NAME> code"),
+    Slot("interpolation", 6, "z", "an INTERPOLATION_<NAME> code"),
+    Slot("det", 6, "w", "|det| of to_texture (the solid-angle Jacobian of the mapping)"),
+    Slot("cdf_width", 7, "x", "columns of the importance map (env_cdf)"),
+    Slot("cdf_height", 7, "y", "rows of the importance map"),
+))
+
+# Emissive triangles as lights: an alias table over their power (slave/buffers.py
+# pack_emitters). Sampling: pick record i uniformly, keep it if u < threshold, else take its
+# alias; `pmf` is the probability of picking the record's own triangle.
+EMITTER = Record("EMITTER", "An emissive triangle (emitters buffer, emitter_count records)", 1, (
+    Slot("triangle", 0, "x", "triangle index (uint bits)"),
+    Slot("alias", 0, "y", "the record taken when the threshold test fails (uint bits)"),
+    Slot("threshold", 0, "z", "probability of keeping this record"),
+    Slot("pmf", 0, "w", "probability of choosing this triangle: its power over all emitters'"),
+))
+
+RECORDS = (LIGHT, MATERIAL, CAMERA, BOUNDS, TRIANGLE, ACCUM, STATS, WORLD, EMITTER)
 
 # Geometry.texture_sizes (core/scene/model.py): one row per texture.
 TEXTURE_SIZE = Columns("TEXTURE_SIZE", "A texture (texture_sizes, uint32 rows)",

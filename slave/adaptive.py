@@ -87,15 +87,18 @@ def _undersample(tile, x, y, w, h, count, threshold):
 
 
 def pixel_error(stats: np.ndarray, count: int, w: int, h: int) -> np.ndarray:
-    """Per pixel, sigma / n: the spread of its samples (of min(luminance, 1)) over their count.
-    Sampling until sigma / n <= threshold gives each pixel n proportional to sigma, which is
-    the allocation that minimises the image's mean squared error for a given number of samples
-    (minimise sum sigma_i^2 / n_i with sum n_i fixed). Widened to half its 4-neighbours' value
-    (in the spirit of Kim et al. 2016: what a coarse pass finds noisy or at an edge, and its
-    neighbourhood, is refined; smooth regions keep the minimum)."""
+    """Per pixel, Cycles' noise estimate: the expected difference between the mean of all
+    samples and of half of them, summed over RGB, over the square root of the pixel's RGB sum
+    (Cycles' film convergence test), here from the samples' luminance (clamped to 1): with
+    standard error sigma / sqrt(n) per channel that is 3 sqrt(2 / pi) sigma / sqrt(n) over
+    1e-4 + sqrt(3 mean). A pixel is done when it is below the Noise Threshold, as in Cycles.
+    Widened to half its 4-neighbours' value (in the spirit of Kim et al. 2016: what a coarse
+    pass finds noisy or at an edge, and its neighbourhood, is refined; smooth regions keep the
+    minimum)."""
     mean = stats[:, 0] / count
     variance = np.maximum(stats[:, 1] / count - mean * mean, 0.0) * (count / max(count - 1, 1))
-    error = (np.sqrt(variance) / count).reshape(h, w)
+    difference = 3.0 * np.sqrt(2.0 / np.pi) * np.sqrt(variance / count)
+    error = (difference / (1e-4 + np.sqrt(3.0 * np.maximum(mean, 0.0)))).reshape(h, w)
     widened = error.copy()
     widened[1:] = np.maximum(widened[1:], 0.5 * error[:-1])
     widened[:-1] = np.maximum(widened[:-1], 0.5 * error[1:])

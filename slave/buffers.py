@@ -1,15 +1,25 @@
-"""The tracer's scene buffers: materials, lights, the camera, the tree bounds and the triangle
-corners packed into the records of core/layout.py (MATERIAL, LIGHT, CAMERA, BOUNDS, TRIANGLE),
-which the kernels read through the names of the generated header."""
+"""The tracer's scene buffers: materials, lights, the camera, the world, the emissive triangles,
+the tree bounds and the triangle corners packed into the records of core/layout.py (MATERIAL,
+LIGHT, CAMERA, WORLD, EMITTER, BOUNDS, TRIANGLE), which the kernels read through the names of
+the generated header; and the world texture's importance map.
+
+What a slave computes here from the scene (importance map, alias table) uses only operations
+that IEEE arithmetic rounds the same everywhere (+ - * / sqrt, sequential sums), so every slave
+samples the same lights with the same probabilities and renders the same bits."""
 from __future__ import annotations
 
 import math
 
 import numpy as np
 
-from core.layout import (AREA_SHAPE_CODES, BOUNDS, CAMERA, CAMERA_CODES, LIGHT, LIGHT_CODES,
-                         MATERIAL, TRIANGLE)
+from core.layout import (AREA_SHAPE_CODES, BOUNDS, CAMERA, CAMERA_CODES, EMITTER,
+                         INTERPOLATION_CODES, LIGHT, LIGHT_CODES, MATERIAL, PROJECTION_CODES,
+                         TRIANGLE, WORLD)
 from core.scene.model import MATERIAL_PARAMS, View
+
+# The world texture's importance map has at most this many columns (rows: half); larger
+# textures are averaged over square blocks of texels.
+MAX_IMPORTANCE_WIDTH = 1024
 
 
 class BufferError(ValueError):
@@ -122,3 +132,124 @@ def _unit(vector, fallback) -> np.ndarray:
     vector = np.asarray(vector, np.float64)
     norm = np.linalg.norm(vector)
     return vector / norm if norm > 0 else np.asarray(fallback, np.float64)
+
+
+def _cos_taylor(x: np.ndarray) -> np.ndarray:
+    """cos of x in [-pi/2, pi/2] from its Taylor series (to x^22, error below 1e-16): the same
+    bits on every machine, unlike libm's cos."""
+    x2 = np.asarray(x, np.float64) ** 2
+    term, total = np.ones_like(x2), np.ones_like(x2)
+    for k in range(1, 12):
+        term = term * (-x2) / ((2 * k - 1) * (2 * k))
+        total = total + term
+    return total
+
+
+def world_importance(geometry, world_texture):
+    """The importance map of the world texture: (cdf float32, width, height), cdf = the
+    marginal CDF over rows (height + 1 values) then each row's CDF (width + 1 values each).
+    A cell's weight is the mean colour of its texels times the solid angle it covers per unit
+    of uv (equirectangular: the cosine of its elevation; mirror ball: 1 inside the ball, 0
+    outside); the kernel's world_pdf divides by the same Jacobian, exactly."""
+    offset, width, height = (int(v) for v in geometry.texture_sizes[world_texture.texture])
+    texels = geometry.texels[offset:offset + width * height].astype(np.float64)
+    value = np.maximum((texels[:, 0] + texels[:, 1] + texels[:, 2]) / 3.0, 0.0).reshape(height, width)
+    block = max(1, -(-width // MAX_IMPORTANCE_WIDTH), -(-height // (MAX_IMPORTANCE_WIDTH // 2)))
+    w, h = -(-width // block), -(-height // block)
+    padded = np.zeros((h * block, w * block))
+    padded[:height, :width] = value
+    count = np.zeros_like(padded)
+    count[:height, :width] = 1.0
+    cells, cell_count = np.zeros((h, w)), np.zeros((h, w))
+    for dy in range(block):             # block sums as element-wise adds (fixed order)
+        for dx in range(block):
+            cells = cells + padded[dy::block, dx::block]
+            cell_count = cell_count + count[dy::block, dx::block]
+    cells = cells / np.maximum(cell_count, 1.0)
+    v = (np.arange(h) + 0.5) / h
+    u = (np.arange(w) + 0.5) / w
+    if world_texture.projection == "MIRROR_BALL":
+        x, z = 2 * u[None, :] - 1, 2 * v[:, None] - 1
+        cells = np.where(x * x + z * z <= 1.0, cells, 0.0)
+    else:
+        cells = cells * _cos_taylor(np.pi * (v - 0.5))[:, None]
+    rows = np.cumsum(cells, axis=1)
+    row_total = rows[:, -1]
+    conditional = np.zeros((h, w + 1))
+    conditional[:, 1:] = np.where(row_total[:, None] > 0, rows / np.where(row_total > 0, row_total, 1)[:, None],
+                                  np.arange(1, w + 1) / w)
+    marginal = np.zeros(h + 1)
+    marginal[1:] = np.cumsum(row_total)
+    total = marginal[-1]
+    marginal = marginal / total if total > 0 else np.arange(h + 1) / h
+    conditional[:, -1] = 1.0
+    marginal[-1] = 1.0
+    cdf = np.concatenate([marginal, conditional.reshape(-1)]).astype(np.float32)
+    return cdf, w, h
+
+
+def pack_world(shading, cdf_size=(0, 0)) -> np.ndarray:
+    """The world buffer: one WORLD record (the texture's mapping, projection and importance map
+    size; the constant colour is the camera's CAMERA_WORLD_COLOR)."""
+    out = np.zeros((WORLD.size, 4), np.float64)
+    texture = shading.world_texture
+    matrix = np.eye(3) if texture is None else texture.to_texture
+    WORLD.put(out, "to_texture", np.c_[matrix, np.zeros(3)])
+    WORLD.put(out, "from_texture", np.c_[np.linalg.inv(matrix), np.zeros(3)])
+    WORLD.put(out, "texture", -1 if texture is None else texture.texture)
+    WORLD.put(out, "projection", PROJECTION_CODES[texture.projection] if texture else 0)
+    WORLD.put(out, "interpolation", INTERPOLATION_CODES[texture.interpolation] if texture else 0)
+    WORLD.put(out, "det", abs(np.linalg.det(matrix)))
+    WORLD.put(out, "cdf_width", cdf_size[0])
+    WORLD.put(out, "cdf_height", cdf_size[1])
+    return out.astype(np.float32)
+
+
+def emitter_powers(geometry, shading, triangles=None):
+    """(emissive triangle indices, their power: mean emission colour x area, float64)."""
+    emission = np.stack([shading.param(f"emission_{c}") for c in "rgb"], axis=1).astype(np.float64)
+    strength = (emission[:, 0] + emission[:, 1] + emission[:, 2]) / 3.0
+    ids = geometry.material_ids.astype(np.int64)
+    valid = ids < len(strength)
+    emissive = np.flatnonzero(valid & (strength[np.minimum(ids, len(strength) - 1)] > 0))
+    corners = geometry.vertices[geometry.triangles[emissive]].astype(np.float64)
+    c = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    area = 0.5 * np.sqrt(c[:, 0] * c[:, 0] + c[:, 1] * c[:, 1] + c[:, 2] * c[:, 2])
+    power = strength[ids[emissive]] * area
+    keep = power > 0
+    return emissive[keep], power[keep]
+
+
+def alias_table(weights):
+    """Vose's alias table of `weights` (float64): (threshold float64, alias int) per entry.
+    Entry i is kept with probability threshold[i], else alias[i] is taken; each index comes
+    out with probability weights / sum. A fixed sequence of exact steps (same everywhere)."""
+    n = len(weights)
+    scaled = [float(w) for w in np.asarray(weights, np.float64) * (n / float(np.cumsum(weights)[-1]))]
+    threshold = [1.0] * n
+    alias = list(range(n))
+    small = [i for i in range(n) if scaled[i] < 1.0]
+    large = [i for i in range(n) if scaled[i] >= 1.0]
+    while small and large:
+        s, l = small.pop(), large.pop()
+        threshold[s], alias[s] = scaled[s], l
+        scaled[l] = (scaled[l] + scaled[s]) - 1.0
+        (small if scaled[l] < 1.0 else large).append(l)
+    return np.array(threshold), np.array(alias, np.int64)
+
+
+def pack_emitters(geometry, shading):
+    """The emitter buffer (EMITTER records, at least one) and (count, total power)."""
+    triangles, power = emitter_powers(geometry, shading)
+    out = np.zeros((max(len(triangles), 1), EMITTER.size, 4), np.float32)
+    if len(triangles) == 0:
+        return out.reshape(-1, 4), 0, 0.0
+    total = float(np.cumsum(power)[-1])
+    threshold, alias = alias_table(power)
+    records = out[:len(triangles)]
+    EMITTER.put(records, "threshold", threshold)
+    EMITTER.put(records, "pmf", power / total)
+    bits = records.view(np.uint32)
+    EMITTER.put(bits, "triangle", triangles.astype(np.uint32))
+    EMITTER.put(bits, "alias", alias.astype(np.uint32))
+    return out.reshape(-1, 4), len(triangles), total

@@ -17,16 +17,17 @@ from typing import NamedTuple
 import numpy as np
 
 from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
-from core.scene.features import ALL_FEATURES, MIRROR_ROUGHNESS, needed_arrays
+from core.scene.features import ALL_FEATURES, needed_arrays
 from core.scene.model import SceneError, View
 from core.scene.scene import Scene
 
 from .adaptive import sample_tile
-from .buffers import pack_bounds, pack_camera, pack_lights, pack_materials, pack_triangles
+from .buffers import (pack_bounds, pack_camera, pack_emitters, pack_lights, pack_materials,
+                      pack_triangles, pack_world, world_importance)
 
 # Concatenated in this order: each file uses only what the ones before it define.
-KERNEL_FILES = ("trace/trace.cl", "shade/sampling.cl", "shade/shading.cl", "trace/packet.cl",
-                "trace/intersect.cl", "shade/render.cl")
+KERNEL_FILES = ("trace/trace.cl", "shade/sampling.cl", "shade/ggx_albedo.cl", "shade/shading.cl",
+                "trace/packet.cl", "trace/intersect.cl", "shade/render.cl")
 MIN_STACK_SIZE = 32
 PACKET_RAYS = 8             # rays per work-item of intersect_rays on CPU devices
 
@@ -52,8 +53,7 @@ def kernel_options(features: dict) -> list:
     identical across devices), "packet" (rays per work-item of intersect_rays: 8 on CPU
     devices, 0 elsewhere). Never fast-math: traversal needs inf/NaN/-0.
     """
-    options = [f"-DKD_STACK_SIZE={int(features.get('stack_size', MIN_STACK_SIZE))}",
-               f"-DMIRROR_ROUGHNESS={MIRROR_ROUGHNESS!r}f"]
+    options = [f"-DKD_STACK_SIZE={int(features.get('stack_size', MIN_STACK_SIZE))}"]
     flags = set(features.get("flags", ())) | set(features.get("light_kinds", ()))
     options += [f"-DHAS_{flag}" for flag in sorted(flags)]
     if features.get("correct_divide_sqrt"):
@@ -79,6 +79,7 @@ class Tracer:
         self._stack_size = MIN_STACK_SIZE
         self._loaded = None         # the Scene whose buffers self._scene holds
         self._checked_view = None   # the last view checked against it
+        self._light_tables = None   # (key, buffers) of the world importance map and emitters
         self.specialise = True      # False: compile every feature (for measuring specialisation)
         self.last_render = {}       # kernel seconds, samples traced, features of the last tile
         self.local_size = None      # work-group size; None lets the driver choose (measured best on PoCL)
@@ -94,6 +95,7 @@ class Tracer:
 
     @property
     def build_seconds(self) -> float:
+        """Seconds spent building kernel programs so far."""
         return self._programs.build_seconds
 
     # -- programs ------------------------------------------------------------------------
@@ -144,6 +146,7 @@ class Tracer:
                        "texture_sizes": optional(geometry.texture_sizes, np.uint32)}
         self._loaded = scene
         self._checked_view = None
+        self._light_tables = None
 
     def _scene_buffers(self):
         if self._scene is None:
@@ -226,12 +229,14 @@ class Tracer:
         depth_buf = cl.Buffer(ctx, mf.WRITE_ONLY, depth.nbytes)
         normal_buf = cl.Buffer(ctx, mf.WRITE_ONLY, normal.nbytes)
         fixed = (upload(pack_camera(view)), np.int32(x), np.int32(y), np.int32(w))
+        world, env_cdf, emitters, emitter_count, emitter_power = self._lights_for(shading, flags)
         scene_args = (scene["nodes"], scene["leaf_index32"], scene["leaf_index16"],
-               scene["leaf_shift"], scene["tri_verts"], scene["bounds"],
+                      scene["leaf_shift"], scene["tri_verts"], scene["bounds"],
                       scene["material_ids"], upload(pack_materials(shading)),
                       upload(pack_lights(shading.lights)), np.uint32(len(shading.lights)),
                       scene["normals"], scene["uvs"], scene["texels"], scene["texture_sizes"],
-                      accum_buf, stats_buf, depth_buf, normal_buf)
+                      world, env_cdf, emitters, np.uint32(emitter_count),
+                      np.float32(emitter_power), accum_buf, stats_buf, depth_buf, normal_buf)
         started = time.perf_counter()
         tile = _TileOnDevice(self, kernel, fixed, scene_args, settings, accum, accum_buf, stats,
                              stats_buf)
@@ -247,6 +252,31 @@ class Tracer:
                             "samples": tile.traced, "features": sorted(flags)}
         return {"combined": combined.reshape(h, w, 4), "depth": depth, "normal": normal}
 
+    def _lights_for(self, shading, flags) -> tuple:
+        """The world and emitter buffers of `shading` on the loaded scene: the world
+        texture's importance map and the emissive triangles' alias table, computed once per
+        world and set of emissions (a frame's tiles share them)."""
+        cl = self._cl
+        geometry = self._loaded.geometry
+        texture = shading.world_texture if "WORLD_TEXTURE" in flags else None
+        emission = np.ascontiguousarray(shading.material_params[:, 4:7]) if "EMISSION" in flags \
+            else None
+        key = (None if texture is None else repr(texture.to_dict()),
+               None if emission is None else emission.tobytes())
+        if self._light_tables is None or self._light_tables[0] != key:
+            mf = cl.mem_flags
+
+            def upload(array):
+                return cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                                 hostbuf=np.ascontiguousarray(array))
+            cdf, size = np.zeros(4, np.float32), (0, 0)
+            if texture is not None:
+                cdf, *size = world_importance(geometry, texture)
+            records, count, power = (np.zeros((1, 4), np.float32), 0, 0.0) if emission is None \
+                else pack_emitters(geometry, shading)
+            self._light_tables = (key, (upload(pack_world(shading, size)), upload(cdf),
+                                        upload(records), count, power))
+        return self._light_tables[1]
 
     def prepare(self, view: View) -> None:
         """Check `view` against the loaded scene and build its render kernel (cached): what
@@ -268,6 +298,7 @@ class Tracer:
             raise TracerError(f"features {sorted(flags)} need the geometry arrays {missing}; "
                               "load core.scene.features.full_geometry(geometry) to render unspecialised")
         return self._program(self._features(flags))["render_samples"], flags
+
 
 @functools.lru_cache(maxsize=8)
 def tile_pixel_order(w: int, h: int) -> np.ndarray:
@@ -293,8 +324,14 @@ class _TileOnDevice:
                  stats_buf):
         self.tracer, self.kernel, self.fixed, self.scene_args = tracer, kernel, fixed, scene_args
         strata = settings.samples_per_axis
-        self.constants = (np.int32(0 if strata == 1 else strata), np.int32(settings.max_bounces),
-                          np.int32(settings.diffuse_bounces),
+        from pyopencl import cltypes
+        limits = np.array((settings.max_bounces, settings.diffuse_bounces,
+                           settings.glossy_bounces, settings.transmission_bounces), np.int32)
+        clamps = np.array((settings.clamp_direct, settings.clamp_indirect, settings.filter_glossy,
+                           0.0), np.float32)
+        self.constants = (np.int32(0 if strata == 1 else strata),
+                          limits.view(cltypes.int4)[0], np.int32(settings.transparent_bounces),
+                          clamps.view(cltypes.float4)[0],
                           np.int32(settings.light_samples_per_axis), np.uint32(settings.seed))
         self.accum, self.accum_buf, self.stats, self.stats_buf = accum, accum_buf, stats, stats_buf
         self.traced = 0             # samples traced

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from core.accel.kdtree import KDTree
-from core.scene.model import Camera, Geometry, Light, Shading, View
+from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
 from core.scene.scene import Scene
 from slave.tracer import Tracer
 from tests.meshes import grid_plane
@@ -134,7 +134,8 @@ def render_ours(tracer, name, placed, supersample=8):
     camera = Camera("ORTHO", to_world, (ORTHO_SCALE / 2, ORTHO_SCALE / 2), (0, 0), 0.1, 100.0)
     side = SIZE * supersample
     view = View(camera, side, side, Shading(np.array([[ALBEDO, ALBEDO, ALBEDO, 1]], np.float32),
-                                            [light], (0.0, 0.0, 0.0)))
+                                            [light], (0.0, 0.0, 0.0)),
+                settings=RenderSettings(samples_per_axis=1, adaptive=False))
     image = tracer.render_tile(view, 0, 0, side, side)["combined"]
     return image.reshape(SIZE, supersample, SIZE, supersample, 4).mean(axis=(1, 3))
 

@@ -11,22 +11,19 @@ import numpy as np
 
 from .model import MATERIAL_PARAMS, Geometry, View
 
-# Roughness below which a surface is a perfect mirror (reflection rays, no light highlight);
-# at or above it, a GGX highlight from the lights and no reflection rays. Shared with the kernel.
-MIRROR_ROUGHNESS = 0.1
-
 # Every feature, and the geometry arrays each one needs (beyond vertices/triangles/material_ids).
 FEATURES = {
     "POINT": (), "SUN": (), "SPOT": (), "AREA": (),  # light kinds present
     "SOFT_LIGHTS": (),        # a point/spot light with a radius or a sun with an angle
     "SMOOTH": ("normals",),   # interpolated (or custom split) corner normals
     "TEXTURES": ("uvs", "texels", "texture_sizes"),  # image-textured base colours
-    "SPECULAR": (),           # metallic or specular > 0: highlights and mirror reflection
-    "TRANSMISSION": (),       # refraction, Fresnel, total internal reflection; coloured shadows
+    "SPECULAR": (),           # metallic or specular > 0: GGX reflection (any roughness)
+    "TRANSMISSION": (),       # GGX refraction and reflection of glass, total internal reflection
     "ALPHA": (),              # alpha cut-out (< 1): rays and shadow rays pass through
-    "EMISSION": (),           # emissive materials
-    "BOUNCES": (),            # secondary rays at all (max_bounces > 0 and something to bounce)
-    "DIFFUSE_BOUNCES": (),    # diffuse interreflection
+    "EMISSION": (),           # emissive materials: seen, and their triangles sampled as lights
+    "WORLD": (),              # the world lights the scene (a colour that is not black)
+    "WORLD_TEXTURE": ("texels", "texture_sizes"),   # an Environment Texture, importance-sampled
+    "BOUNCES": (),            # BSDF rays: bounces, or lights that a BSDF ray can hit (MIS)
 }
 ALL_FEATURES = frozenset(FEATURES)
 
@@ -54,23 +51,35 @@ def scene_features(geometry: Geometry, view: View, used_materials=None) -> froze
         features.add("SMOOTH")
     if geometry.texture_count and (column("texture") >= 0).any():
         features.add("TEXTURES")
-    if ((column("metallic") > 0) | (column("specular") > 0)).any():
+    specular = (column("metallic") > 0) | (column("specular") > 0)
+    if specular.any():
         features.add("SPECULAR")
     transmissive = (column("transmission") > 0) & (column("metallic") < 1)
     if transmissive.any():
         features.add("TRANSMISSION")
     if (colours[:, 3] < 1).any():
         features.add("ALPHA")
-    if (params[:, 4:7] > 0).any():
+    emission = np.stack([column(f"emission_{c}") for c in "rgb"], axis=1) if len(params) else \
+        np.zeros((0, 3))
+    if (emission > 0).any():
         features.add("EMISSION")
+    if shading.world_lights:
+        features.add("WORLD")
+        if shading.world_texture is not None:
+            features.add("WORLD_TEXTURE")
     settings = view.settings
-    mirrors = (((column("metallic") > 0) | (column("specular") > 0))
-               & (column("roughness") < MIRROR_ROUGHNESS)).any()
-    diffuse = settings.diffuse_bounces > 0 and len(colours) > 0
-    if settings.max_bounces > 0 and (mirrors or transmissive.any() or diffuse):
+    # Diffuse: every material but pure metal and pure glass has a diffuse part.
+    diffuse = settings.diffuse_bounces > 0 and bool(
+        ((1 - column("metallic")) * (1 - column("transmission")) > 0).any())
+    glossy = settings.glossy_bounces > 0 and bool(specular.any())
+    refractive = settings.transmission_bounces > 0 and bool(transmissive.any())
+    bounces = settings.max_bounces > 0 and (diffuse or glossy or refractive)
+    # A BSDF ray can also find the area lights, suns with an angle, the world and emissive
+    # triangles that direct light samples: the two are weighted against each other.
+    hittable = bool({"AREA", "WORLD", "EMISSION"} & features) or any(
+        light.kind == "SUN" and light.radius > 0 for light in shading.lights)
+    if len(params) and (bounces or hittable):
         features.add("BOUNCES")
-        if diffuse:
-            features.add("DIFFUSE_BOUNCES")
     return frozenset(features)
 
 

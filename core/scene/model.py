@@ -29,6 +29,7 @@ UV_DTYPE = np.dtype("<f4")
 TEXEL_DTYPE = np.dtype("<f2")      # linear RGBA, half precision
 TEXTURE_SIZE_DTYPE = np.dtype("<u4")
 MAX_TEXTURES = 4096
+MAX_RADIANCE = 1e30
 
 
 class SceneError(ValueError):
@@ -274,6 +275,52 @@ def default_material_params(count: int) -> np.ndarray:
     return np.tile(np.array(DEFAULT_MATERIAL_PARAMS, np.float32), (count, 1))
 
 
+PROJECTIONS = ("EQUIRECTANGULAR", "MIRROR_BALL")
+INTERPOLATIONS = ("LINEAR", "CLOSEST")
+
+
+@dataclass
+class WorldTexture:
+    """An Environment Texture behind the world colour: the world's radiance in direction d is
+    world_color x texture(lookup of A d), A = `to_texture` (3x3: the Mapping node's rotation and
+    scale, world direction -> the texture's direction). `texture` indexes Geometry's texture
+    table (texels, texture_sizes), where the exporter puts the image.
+
+    Projections as Cycles': EQUIRECTANGULAR u = 0.5 - atan2(y, x) / 2 pi, v = 0.5 + asin(z) / pi;
+    MIRROR_BALL the ball seen along +Y (u, v = (x, z) / sqrt(2 (1 - y)) / 2 + 0.5)."""
+
+    texture: int
+    projection: str = "EQUIRECTANGULAR"
+    to_texture: np.ndarray = field(default_factory=lambda: np.eye(3))
+    interpolation: str = "LINEAR"
+
+    def __post_init__(self):
+        self.to_texture = np.asarray(self.to_texture, dtype=np.float64).reshape(3, 3)
+
+    def to_dict(self) -> dict:
+        return {"texture": self.texture, "projection": self.projection,
+                "to_texture": self.to_texture.reshape(-1).tolist(),
+                "interpolation": self.interpolation}
+
+    @classmethod
+    def from_dict(cls, d) -> "WorldTexture":
+        if not isinstance(d, dict):
+            raise SceneError("world_texture must be an object")
+        projection, interpolation = d.get("projection"), d.get("interpolation")
+        if projection not in PROJECTIONS:
+            raise SceneError(f"world projection must be one of {PROJECTIONS}, got {projection!r}")
+        if interpolation not in INTERPOLATIONS:
+            raise SceneError(f"world interpolation must be one of {INTERPOLATIONS}, "
+                             f"got {interpolation!r}")
+        matrix = np.array(_finite_floats(d.get("to_texture"), 9, "world to_texture")).reshape(3, 3)
+        det = abs(float(np.linalg.det(matrix)))
+        scale = float(np.abs(matrix).max())
+        if not det > 1e-9 * scale ** 3:
+            raise SceneError("the world's mapping is singular (a scale of zero)")
+        return cls(_int(d.get("texture"), "world texture", 0, MAX_TEXTURES - 1), projection,
+                   matrix, interpolation)
+
+
 @dataclass
 class Shading:
     """What colours the geometry: materials, lights and the world. Small; sent with each frame.
@@ -281,12 +328,15 @@ class Shading:
     materials: (M, 4) float32 base colour RGB and alpha (alpha < 1: cut-out, stochastic).
     material_params: (M, len(MATERIAL_PARAMS)) float32, the Principled BSDF's other inputs
     (docs/shading.md); None means the defaults: a pure diffuse surface (specular 0).
+    world_color: the world's radiance (Background colour x strength), seen by rays that leave
+    the scene and lighting it; with `world_texture`, the factor of the texture's colour.
     """
 
     materials: np.ndarray = field(default_factory=lambda: np.array([[0.8, 0.8, 0.8, 1.0]], np.float32))
     lights: list = field(default_factory=list)
     world_color: tuple = (0.05, 0.05, 0.05)
     material_params: np.ndarray | None = None
+    world_texture: WorldTexture | None = None
 
     def __post_init__(self):
         self.materials = np.ascontiguousarray(self.materials, dtype=np.float32).reshape(-1, 4)
@@ -301,10 +351,16 @@ class Shading:
     def param(self, name: str) -> np.ndarray:
         return self.material_params[:, MATERIAL_PARAMS.index(name)]
 
+    @property
+    def world_lights(self) -> bool:
+        """Whether the world gives light (a colour that is not black)."""
+        return max(self.world_color) > 0
+
     def to_dict(self) -> dict:
         return {"materials": self.materials.tolist(), "lights": [l.to_dict() for l in self.lights],
                 "world_color": list(self.world_color),
-                "material_params": self.material_params.tolist()}
+                "material_params": self.material_params.tolist(),
+                "world_texture": None if self.world_texture is None else self.world_texture.to_dict()}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Shading":
@@ -329,29 +385,49 @@ class Shading:
                         raise SceneError(f"material {name} must be in [{low}, {high}], got {value}")
                 rows.append(row)
             params = np.array(rows, np.float32)
-        return cls(np.array(colours, np.float32), [Light.from_dict(l) for l in lights],
-                   _finite_floats(d.get("world_color"), 3, "world colour"), params)
+        world = _finite_floats(d.get("world_color"), 3, "world colour")
+        if min(world) < 0 or max(world) > MAX_RADIANCE:
+            raise SceneError(f"world colour must be in [0, {MAX_RADIANCE}], got {world}")
+        texture = d.get("world_texture")
+        return cls(np.array(colours, np.float32), [Light.from_dict(l) for l in lights], world,
+                   params, None if texture is None else WorldTexture.from_dict(texture))
 
 
 @dataclass
 class RenderSettings:
     """How a frame is sampled; travels with the View so every slave renders the same pixels.
+    The defaults are Cycles' final-render defaults (Sampling, Light Paths), so that F12 gives a
+    clean image; docs/shading.md says what each does.
 
-    samples_per_axis N: N x N stratified samples per pixel (1: one ray through the pixel centre).
+    samples_per_axis N: at most N x N stratified samples per pixel (1: one ray through the pixel
+    centre); 64 = Cycles' 4096 Max Samples.
     adaptive: start every pixel with adaptive_min_samples and add samples (doubling, up to N x N)
-    only where the pixel's estimated error exceeds adaptive_threshold or it differs from its
-    neighbours (docs/shading.md). max_bounces: mirror/glass/diffuse bounces after the camera
-    hit; diffuse_bounces: how many of them may be diffuse (0: direct light only on diffuse).
-    light_samples_per_axis L: L x L stratified shadow samples per soft light and camera sample.
+    only where the pixel's estimated noise, measured as Cycles measures it, exceeds
+    adaptive_threshold (Cycles' Noise Threshold), or it differs from its neighbours.
+    max_bounces: scattering events after the camera hit (0: direct light only); of them at most
+    diffuse_bounces diffuse, glossy_bounces glossy reflections, transmission_bounces
+    refractions; transparent_bounces: alpha cut-outs a path passes through (not bounces).
+    clamp_direct / clamp_indirect: the largest mean of RGB one sample may add through the first
+    surface / after a bounce (0: no clamping), as Cycles' Clamping.
+    filter_glossy: Cycles' Filter Glossy: after wide BSDF samples sharp glossy lobes are
+    blurred (fewer caustic fireflies; 0: off).
+    light_samples_per_axis L: L x L stratified shadow samples per soft light, the world and the
+    emissive meshes, per camera sample.
     """
 
-    samples_per_axis: int = 1
-    adaptive: bool = False
+    samples_per_axis: int = 64
+    adaptive: bool = True
     adaptive_threshold: float = 0.01
-    adaptive_min_samples: int = 4
-    max_bounces: int = 8
-    diffuse_bounces: int = 0
-    light_samples_per_axis: int = 2
+    adaptive_min_samples: int = 16
+    max_bounces: int = 12
+    diffuse_bounces: int = 4
+    glossy_bounces: int = 4
+    transmission_bounces: int = 12
+    transparent_bounces: int = 8
+    clamp_direct: float = 0.0
+    clamp_indirect: float = 10.0
+    filter_glossy: float = 1.0
+    light_samples_per_axis: int = 1
     seed: int = 0
 
     @property
@@ -390,6 +466,9 @@ class RenderSettings:
 RENDER_SETTING_LIMITS = {
     "samples_per_axis": (1, 64), "adaptive_threshold": (0.0, 1.0),
     "adaptive_min_samples": (1, 4096), "max_bounces": (0, 1024), "diffuse_bounces": (0, 1024),
+    "glossy_bounces": (0, 1024), "transmission_bounces": (0, 1024),
+    "transparent_bounces": (0, 1024), "clamp_direct": (0.0, 1e6), "clamp_indirect": (0.0, 1e6),
+    "filter_glossy": (0.0, 10.0),
     "light_samples_per_axis": (1, 16), "seed": (0, 2 ** 31 - 1),
 }
 

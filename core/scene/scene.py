@@ -103,8 +103,9 @@ class Scene:
     def check_view(self, view: View) -> None:
         """SceneError unless `view` can shade this scene, so that a frame is refused when it
         starts, never at its first tile: a material for every material id a triangle uses;
-        every texture index an integer, -1 (none) or a texture of the geometry; the camera's
-        view axis not degenerate; every geometry array the view's features need present."""
+        every texture index (the world's too) an integer, -1 (none) or a texture of the
+        geometry; the camera's view axis not degenerate; every geometry array the view's
+        features need present."""
         if self.material_count > len(view.shading.materials):
             raise SceneError(f"the geometry uses {self.material_count} materials, the view's "
                              f"shading has {len(view.shading.materials)}")
@@ -114,6 +115,10 @@ class Scene:
         if len(textures) and (textures.min() < -1 or textures.max() >= self.geometry.texture_count):
             bad = textures.max() if textures.max() >= self.geometry.texture_count else textures.min()
             raise SceneError(f"a material uses texture {int(bad)}, the geometry has "
+                             f"{self.geometry.texture_count}")
+        world = view.shading.world_texture
+        if world is not None and world.texture >= self.geometry.texture_count:
+            raise SceneError(f"the world uses texture {world.texture}, the geometry has "
                              f"{self.geometry.texture_count}")
         if len(view.shading.lights) > MAX_LIGHTS:
             raise SceneError(f"{len(view.shading.lights)} lights, at most {MAX_LIGHTS}")

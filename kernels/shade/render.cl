@@ -1,6 +1,6 @@
 // Camera tiles: one work-item per pixel of a list, a range of samples per call; each sample
-// follows one path (camera ray, direct light at every surface, then mirror / glass / diffuse
-// bounces up to the bounce limits), and the results are summed into the tile's accumulators.
+// follows one path (camera ray, direct light at every surface, then BSDF bounces up to the
+// bounce limits), and the results are summed into the tile's accumulators.
 // slave/tracer.py decides which pixels get how many samples (uniform or adaptive).
 // The camera buffer is one CAMERA record of the layout header (core/layout.py; packed by
 // slave/buffers.py); the accumulators are ACCUM and STATS records, one per tile pixel.
@@ -37,40 +37,66 @@ inline void camera_ray(__global const float4 *cam, float fx, float fy, float3 *o
     }
 }
 
-inline float3 refract_dir(float3 w, float3 n, float eta_ratio, bool *ok)
-{
-    // w: unit incident direction, n: unit normal facing against w, eta_ratio = n_i / n_t.
-    float cos_i = -dot(n, w);
-    float sin2_t = eta_ratio * eta_ratio * fmax(0.0f, 1.0f - cos_i * cos_i);
-    *ok = sin2_t < 1.0f;
-    float cos_t = sqrt(fmax(0.0f, 1.0f - sin2_t));
-    return eta_ratio * w + (eta_ratio * cos_i - cos_t) * n;
-}
-
-inline float3 reflect_dir(float3 w, float3 n)
-{
-    return w - 2.0f * dot(w, n) * n;
-}
+// The bounce limits of a path (RenderSettings' Light Paths) and its clamping.
+typedef struct {
+    int max_bounces, diffuse, glossy, transmission, transparent;
+    float clamp_direct, clamp_indirect;
+    float filter_glossy;     // Cycles' Filter Glossy (0: off)
+} PathLimits;
 
 // One path from the camera. *depth and *normal get the first opaque surface (1e10 / 0 on a
-// miss). max_bounces: surfaces after the first that may scatter the path further.
+// miss). At each surface: its emission and direct light from every light, the world and the
+// emissive triangles (multiple importance sampling against the BSDF), then one BSDF sample to
+// continue. A path that reaches a bounce limit still traces its last BSDF ray to collect the
+// light it hits (as Cycles), so direct light is complete with any limit.
 inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, float3 d,
-                         Rng *rng, int max_bounces, int diffuse_bounces, float *depth,
-                         float3 *normal)
+                         Rng *rng, const PathLimits *limits, float *depth, float3 *normal)
 {
     float3 radiance = (float3)(0.0f, 0.0f, 0.0f), beta = (float3)(1.0f, 1.0f, 1.0f);
     float along = dot(d, CAMERA_VIEW_AXIS(cam));     // view-axis distance per unit of t
     float tmin = CAMERA_CLIP_START(cam) / along, tmax = CAMERA_CLIP_END(cam) / along;
     float t_before = 0.0f;
     uint ignore = NO_HIT;
-    bool primary = true;
-    int bounces = 0, diffuse = 0, passes = 0;
+    bool primary = true;     // still the camera ray (through cut-outs)
+    bool last = false;       // a limit is reached: collect what the ray hits, then stop
+    float pdf_prev = 0.0f;   // density of the BSDF sample that made this ray; 0: camera/mirror
+    float min_pdf = INFINITY;    // the least density of the path's BSDF samples (Filter Glossy)
+    int bounces = 0, diffuse = 0, glossy = 0, transmission = 0, transparent = 0;
+    float n_light = (float)(sc->light_n * sc->light_n);
     *depth = 1e10f;
     *normal = (float3)(0.0f, 0.0f, 0.0f);
     while (true) {
+        // Clamping as Cycles: light that a ray finds counts for the surface that sent it
+        // (direct light when that is the first surface), direct light of this surface for it.
+        float limit_found = bounces <= 1 ? limits->clamp_direct : limits->clamp_indirect;
+        float limit = bounces == 0 ? limits->clamp_direct : limits->clamp_indirect;
         Hit h;
-        if (!trace(sc, o, d, tmin, tmax, false, ignore, &h)) {
-            radiance += beta * CAMERA_WORLD_COLOR(cam);
+        bool hit = trace(sc, o, d, tmin, tmax, false, ignore, &h);
+#ifdef HAS_AREA
+        // Area lights are seen by reflections and refractions, not by the camera (Cycles'
+        // default ray visibility of lights).
+        if (!primary) {
+            float pdf_l;
+            float3 Le = area_light_hit(sc, o, d, hit ? h.t : INFINITY, &pdf_l);
+            if (any(Le != 0.0f)) {
+                float w = pdf_prev > 0.0f ? mis_weight(pdf_prev, n_light * pdf_l) : 1.0f;
+                radiance += clamp_sample(beta * Le * w, limit_found);
+                break;
+            }
+        }
+#endif
+        if (!hit) {
+            d = normalize(d);
+            float3 Le = world_radiance(sc, d);
+#ifdef HAS_WORLD
+            if (pdf_prev > 0.0f)
+                Le *= mis_weight(pdf_prev, n_light * world_pdf(sc, d));
+#endif
+#if defined(HAS_SUN) && defined(HAS_SOFT_LIGHTS)
+            if (!primary)
+                Le += sun_disks(sc, d, pdf_prev, n_light);
+#endif
+            radiance += clamp_sample(beta * Le, limit_found);
             break;
         }
         Surface s = surface_at(sc, &h, d);
@@ -79,7 +105,7 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         // Cut-out: the path goes on through with probability 1 - alpha (Cycles' stochastic
         // transparency); not a bounce.
         if (m.alpha < 1.0f && rng_next(rng) >= m.alpha) {
-            if (++passes > 64)
+            if (++transparent > limits->transparent)
                 break;
             o = spawn(&s, d);
             ignore = h.tri;
@@ -94,69 +120,66 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         if (primary) {
             *depth = (t_before + h.t) * along;
             *normal = s.ns;
-            primary = false;
         }
-        float3 wo = -normalize(d);
 #ifdef HAS_EMISSION
-        radiance += beta * m.emission;
+        if (any(m.emission > 0.0f)) {
+            float w = 1.0f;
+            if (pdf_prev > 0.0f) {
+                float3 n_l;
+                triangle_area(sc, h.tri, &n_l);
+                float dist = h.t * length(d);
+                w = mis_weight(pdf_prev, n_light * emitter_pdf(sc, h.tri, dist,
+                                                               fabs(dot(n_l, d)) / length(d)));
+            }
+            radiance += clamp_sample(beta * m.emission * w, limit_found);
+        }
 #endif
-        radiance += beta * direct_light(sc, &s, &m, wo, rng);
+        if (last)
+            break;
+        primary = false;
+        float3 wo = -normalize(d);
+        Frame fr = frame_of(s.ns);
+        float3 wo_l = to_local(&fr, wo);
+        // Filter Glossy (Cycles): after a wide BSDF sample, sharp lobes are blurred, which
+        // trades the fireflies of caustics for a little blur.
+        float alpha_min = 0.0f;
+        if (limits->filter_glossy > 0.0f && min_pdf * (1.0f / limits->filter_glossy) < 1.0f)
+            alpha_min = 0.5f * sqrt(1.0f - min_pdf * (1.0f / limits->filter_glossy));
+        Lobes lobes = lobes_at(&m, wo_l.z, s.front, alpha_min);
+        radiance += direct_light(sc, &s, &m, &lobes, &fr, wo_l, beta, limit, rng);
 #ifdef HAS_BOUNCES
-        if (bounces >= max_bounces)
+        float3 wi_l, weight;
+        int kind;
+        float u_lobe = rng_next(rng), u1 = rng_next(rng), u2 = rng_next(rng), u3 = rng_next(rng);
+        if (!bsdf_sample_local(&m, &lobes, wo_l, u_lobe, u1, u2, u3, &wi_l, &weight, &pdf_prev,
+                               &kind))
+            break;
+        float3 wi = to_world(&fr, wi_l);
+        // Reflections stay on the side they came from, refractions cross the surface.
+        if ((dot(wi, s.ng) > 0.0f) != (wi_l.z > 0.0f))
             break;
         ++bounces;
-        // Pick one lobe to continue with, with probability equal to its weight.
-        float pick = rng_next(rng);
-        float w_metal = m.metallic, w_glass = (1.0f - m.metallic) * m.transmission;
-        bool mirror = m.roughness < MIRROR_ROUGHNESS;
-        float cos_o = fmax(dot(s.ns, wo), 0.0f);
-        float3 nd = (float3)(0.0f, 0.0f, 0.0f);
-        bool go = false;
-        if (pick < w_metal) {
-#ifdef HAS_SPECULAR
-            if (mirror) {
-                nd = reflect_dir(-wo, s.ns);
-                beta *= m.base + (1.0f - m.base) * pow5(1.0f - cos_o);
-                go = true;
-            }
-#endif
-        } else if (pick < w_metal + w_glass) {
-#ifdef HAS_TRANSMISSION
-            float eta = s.front ? m.ior : 1.0f / m.ior;       // n_t / n_i
-            float F = fresnel_dielectric(cos_o, eta);
-            bool ok = false;
-            if (rng_next(rng) >= F)
-                nd = refract_dir(-wo, s.ns, 1.0f / eta, &ok);
-            if (ok) {
-                beta *= m.base;
-            } else {
-                nd = reflect_dir(-wo, s.ns);                   // Fresnel or total reflection
-            }
-            go = true;
-#endif
-        } else {
-            bool specular = false;
-#ifdef HAS_SPECULAR
-            float f0 = dielectric_f0(&m);
-            if (mirror && m.specular > 0.0f
-                    && rng_next(rng) < f0 + (1.0f - f0) * pow5(1.0f - cos_o)) {
-                nd = reflect_dir(-wo, s.ns);
-                specular = go = true;
-            }
-#endif
-#ifdef HAS_DIFFUSE_BOUNCES
-            if (!specular && diffuse < diffuse_bounces) {
-                ++diffuse;
-                nd = cosine_hemisphere(s.ns, rng_next(rng), rng_next(rng));
-                beta *= m.base;                                // albedo; pdf cancels cos / pi
-                go = true;
-            }
-#endif
-        }
-        if (!go || all(beta == 0.0f))
+        if (pdf_prev > 0.0f)
+            min_pdf = fmin(min_pdf, pdf_prev);
+        last = bounces > limits->max_bounces;
+        if (kind == LOBE_DIFFUSE)
+            last = last || ++diffuse > limits->diffuse;
+        else if (kind == LOBE_GLOSSY)
+            last = last || ++glossy > limits->glossy;
+        else
+            last = last || ++transmission > limits->transmission;
+        beta *= weight;
+        if (!all(isfinite(beta)) || all(beta == 0.0f))
             break;
-        o = spawn(&s, nd);
-        d = nd;
+        // Russian roulette after 3 bounces (Cycles' continuation probability).
+        if (bounces > 3 && !last) {
+            float q = fmin(sqrt(max3(beta)), 1.0f);
+            if (rng_next(rng) >= q)
+                break;
+            beta /= q;
+        }
+        o = spawn(&s, wi);
+        d = wi;
         tmin = 0.0f;
         tmax = INFINITY;
         ignore = h.tri;
@@ -174,8 +197,9 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
 // write_aux: also write the depth and normal passes (from the pixel-centre ray).
 __kernel void render_samples(__global const float4 *cam, int x0, int y0, int tile_w,
                              __global const int *pixels, int pixel_count, int sample_start,
-                             int sample_count, int strata, int max_bounces, int diffuse_bounces,
-                             int light_n, uint seed, int write_aux,
+                             int sample_count, int strata, int4 bounce_limits,
+                             int transparent_bounces, float4 clamps, int light_n, uint seed,
+                             int write_aux,
                              __global const uint2 *nodes, __global const uint *leaf_index32,
                              __global const ushort *leaf_index16, uint leaf_shift,
                              __global const float4 *tri_verts, __global const float4 *bounds,
@@ -183,7 +207,9 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
                              __global const float4 *materials, __global const float4 *lights,
                              uint light_count, __global const float *normals,
                              __global const float *uvs, __global const half *texels,
-                             __global const uint *tex_sizes,
+                             __global const uint *tex_sizes, __global const float4 *world,
+                             __global const float *env_cdf, __global const float4 *emitters,
+                             uint emitter_count, float emitter_power,
                              __global float4 *accum, __global float2 *stats,
                              __global float *out_depth, __global float *out_normal)
 {
@@ -206,6 +232,14 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     sc.tex_sizes = tex_sizes;
     sc.light_count = light_count;
     sc.light_n = light_n;
+    sc.world = world;
+    sc.env_cdf = env_cdf;
+    sc.emitters = emitters;
+    sc.emitter_count = emitter_count;
+    sc.emitter_power = emitter_power;
+    sc.world_color = CAMERA_WORLD_COLOR(cam);
+    PathLimits limits = {bounce_limits.x, bounce_limits.y, bounce_limits.z, bounce_limits.w,
+                         transparent_bounces, clamps.x, clamps.y, clamps.z};
 
     float4 sum = accum[here];       // this pixel's ACCUM and STATS records, kept in registers
     float2 st = stats[here];
@@ -222,7 +256,7 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
         }
         float3 o, d;
         camera_ray(cam, (float)px + jx, (float)py + jy, &o, &d);
-        float3 c = trace_path(&sc, cam, o, d, &rng, max_bounces, diffuse_bounces, &depth, &normal);
+        float3 c = trace_path(&sc, cam, o, d, &rng, &limits, &depth, &normal);
         if (!all(isfinite(c)))
             c = (float3)(0.0f, 0.0f, 0.0f);                 // never let NaN/inf reach a pixel
         if (write_aux && strata == 0 && k == 0) {

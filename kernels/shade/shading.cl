@@ -1,17 +1,18 @@
-// Materials (a Principled BSDF subset), textures, lights and shadow rays (docs/shading.md).
-// Every optional part sits behind a HAS_<FEATURE> flag that core/scene/features.py derives from the
-// scene, so a scene compiles only what it uses.
+// Materials, textures, lights and shadow rays (docs/shading.md): a Principled BSDF of GGX
+// microfacet lobes at any roughness, the world and emissive triangles as importance-sampled
+// lights, and Blender's lights, combined with the BSDF by multiple importance sampling.
+// Every optional part sits behind a HAS_<FEATURE> flag that core/scene/features.py derives
+// from the scene, so a scene compiles only what it uses.
 //
-// The material and light buffers hold the MATERIAL and LIGHT records of the layout header
-// (core/layout.py; packed by slave/buffers.py), read here through its names.
+// The material, light, world and emitter buffers hold the MATERIAL, LIGHT, WORLD and EMITTER
+// records of the layout header (core/layout.py; packed by slave/buffers.py), read here through
+// its names.
 
 #define MAX_SHADOW_SURFACES 16
 // pbrt's gamma(7): relative error bound of a hit point from barycentrics (pbrt-v3 3.9.2), doubled.
 #define HIT_ERROR (2.0f * 7.0f * 0x1.0p-24f / (1.0f - 7.0f * 0x1.0p-24f))
-
-#ifndef MIRROR_ROUGHNESS
-#define MIRROR_ROUGHNESS 0.1f
-#endif
+// GGX lobes with alpha^2 below this are perfect mirrors (Cycles' singular threshold).
+#define DELTA_ALPHA2 1e-7f
 
 typedef struct {
     KdTree kd;                          // the compact kd-tree (trace.cl)
@@ -21,12 +22,18 @@ typedef struct {
     __global const float4 *lights;
     __global const float *normals;      // (3T, 3) when HAS_SMOOTH
     __global const float *uvs;          // (3T, 2) when HAS_TEXTURES
-    __global const half *texels;        // (N, 4) when HAS_TEXTURES
-    __global const uint *tex_sizes;     // (K, 3) when HAS_TEXTURES
-    uint light_count;
+    __global const half *texels;        // (N, 4) when HAS_TEXTURES or HAS_WORLD_TEXTURE
+    __global const uint *tex_sizes;     // (K, 3) likewise
+    __global const float4 *world;       // one WORLD record
+    __global const float *env_cdf;      // the world texture's importance map (HAS_WORLD_TEXTURE)
+    __global const float4 *emitters;    // EMITTER records (HAS_EMISSION)
+    float3 world_color;
+    uint light_count, emitter_count;
+    float emitter_power;                // sum over emitters of mean(emission) x area
     int light_n;                        // light samples per axis
 } Scene;
 
+// The BSDF inputs at a hit (per material now; a node evaluator may fill them per hit).
 typedef struct {
     float3 base;
     float alpha;
@@ -43,6 +50,16 @@ typedef struct {
     uint tri;
     float u, v;
 } Surface;
+
+inline float mean3(float3 c)
+{
+    return (c.x + c.y + c.z) * (1.0f / 3.0f);
+}
+
+inline float max3(float3 c)
+{
+    return fmax(c.x, fmax(c.y, c.z));
+}
 
 inline bool trace(const Scene *sc, float3 o, float3 d, float tmin, float tmax, bool any_hit,
                   uint ignore, Hit *h)
@@ -113,19 +130,75 @@ inline float3 spawn(const Surface *s, float3 w)
     return offset_origin(s->p, s->err, dot(w, s->ng) >= 0.0f ? s->ng : -s->ng);
 }
 
-#ifdef HAS_TEXTURES
+// ---------------------------------------------------------------------------------------------
+// Angles without transcendental built-ins (their accuracy differs between devices).
+
+// atan of t in [-tan(pi/8), tan(pi/8)]: Taylor to t^15 (error below 2e-8).
+inline float atan_small(float t)
+{
+    float t2 = t * t;
+    float p = 1.0f / 15.0f;
+    p = 1.0f / 13.0f - t2 * p;
+    p = 1.0f / 11.0f - t2 * p;
+    p = 1.0f / 9.0f - t2 * p;
+    p = 1.0f / 7.0f - t2 * p;
+    p = 1.0f / 5.0f - t2 * p;
+    p = 1.0f / 3.0f - t2 * p;
+    return t * (1.0f - t2 * p);
+}
+
+inline float atan_unit(float a)         // a in [0, 1]
+{
+    return a > 0.41421356f ? M_PI_4_F + atan_small((a - 1.0f) / (a + 1.0f)) : atan_small(a);
+}
+
+inline float atan2_poly(float y, float x)
+{
+    float ax = fabs(x), ay = fabs(y);
+    if (ax == 0.0f && ay == 0.0f)
+        return 0.0f;
+    float a = ax >= ay ? atan_unit(ay / ax) : M_PI_2_F - atan_unit(ax / ay);
+    if (x < 0.0f)
+        a = M_PI_F - a;
+    return y < 0.0f ? -a : a;
+}
+
+// sin and cos of any x in [-2 pi, 2 pi]: quarter turns, then the short polynomials.
+inline float2 sincos_poly(float x)
+{
+    float q = floor(x * M_2_PI_F + 0.5f);
+    float r = x - q * M_PI_2_F;
+    float s = sin_small(r), c = cos_small(r);
+    int k = ((int)q) & 3;
+    if (k == 1)
+        return (float2)(c, -s);
+    if (k == 2)
+        return (float2)(-s, -c);
+    if (k == 3)
+        return (float2)(-c, s);
+    return (float2)(s, c);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Textures
+
+#if defined(HAS_TEXTURES) || defined(HAS_WORLD_TEXTURE)
 inline float4 texel(const Scene *sc, uint offset, int w, int x, int y)
 {
     return vload_half4(offset + (uint)(y * w + x), sc->texels);
 }
 
-// Bilinear lookup, repeat wrap; uv (0, 0) is the first texel (Blender's bottom-left).
-inline float4 texture_lookup(const Scene *sc, int tex, float2 uv)
+// Bilinear (or closest) lookup, repeat wrap; uv (0, 0) is the first texel (Blender's
+// bottom-left).
+inline float4 texture_lookup(const Scene *sc, int tex, float2 uv, bool closest)
 {
     __global const uint *size = sc->tex_sizes + TEXTURE_SIZE_COLUMNS * tex;
     uint offset = size[TEXTURE_SIZE_OFFSET];
     int w = (int)size[TEXTURE_SIZE_WIDTH], h = (int)size[TEXTURE_SIZE_HEIGHT];
     uv = uv - floor(uv);                               // [0, 1), also for huge uv
+    if (closest)
+        return texel(sc, offset, w, min((int)(uv.x * (float)w), w - 1),
+                     min((int)(uv.y * (float)h), h - 1));
     float x = uv.x * (float)w - 0.5f, y = uv.y * (float)h - 0.5f;
     float fx = floor(x), fy = floor(y);
     float tx = x - fx, ty = y - fy;
@@ -159,7 +232,7 @@ inline Material material_at(const Scene *sc, uint tri, float u, float v)
     if (tex >= 0) {
         float2 uv = (1.0f - u - v) * vload2(3 * tri, sc->uvs) + u * vload2(3 * tri + 1, sc->uvs)
                     + v * vload2(3 * tri + 2, sc->uvs);
-        float4 c = texture_lookup(sc, tex, uv);
+        float4 c = texture_lookup(sc, tex, uv, false);
         m.base *= c.xyz;
         if (MATERIAL_TEXTURE_ALPHA(M) > 0.0f)
             m.alpha *= c.w;
@@ -167,6 +240,9 @@ inline Material material_at(const Scene *sc, uint tri, float u, float v)
 #endif
     return m;
 }
+
+// ---------------------------------------------------------------------------------------------
+// Fresnel and GGX
 
 // Fresnel reflectance of a dielectric interface (unpolarised); eta = n_transmitted / n_incident.
 inline float fresnel_dielectric(float cos_i, float eta)
@@ -181,45 +257,282 @@ inline float fresnel_dielectric(float cos_i, float eta)
     return 0.5f * (rs * rs + rp * rp);
 }
 
-// F0 of the dielectric specular layer: ((ior - 1) / (ior + 1))^2 scaled by Blender's
-// "Specular IOR Level" (0.5 = as the IOR says).
-inline float dielectric_f0(const Material *m)
-{
-    float r = (m->ior - 1.0f) / (m->ior + 1.0f);
-    return fmin(r * r * 2.0f * m->specular, 1.0f);
-}
-
 inline float pow5(float x)
 {
     float x2 = x * x;
     return x2 * x2 * x;
 }
 
-// The non-delta part of the BSDF (times nothing: the caller multiplies by cos_in and light):
-// Lambertian diffuse, and a GGX highlight for roughness >= MIRROR_ROUGHNESS.
-inline float3 eval_bsdf(const Material *m, float3 ns, float3 wo, float3 wi)
+inline float ggx_d(float alpha2, float cos_h)
 {
-    float f0 = dielectric_f0(m);
-    float diffuse_w = (1.0f - m->metallic) * (1.0f - m->transmission) * (1.0f - f0);
-    float3 f = m->base * (diffuse_w * M_1_PI_F);
+    float den = cos_h * cos_h * (alpha2 - 1.0f) + 1.0f;
+    return alpha2 / (M_PI_F * den * den);
+}
+
+// Smith's Lambda for GGX (masking G1 = 1 / (1 + Lambda); height-correlated G2 = 1 / (1 +
+// Lambda_o + Lambda_i), as Cycles).
+inline float ggx_lambda(float alpha2, float cos_t)
+{
+    float c2 = cos_t * cos_t;
+    return 0.5f * (-1.0f + sqrt(1.0f + alpha2 * fmax(1.0f - c2, 0.0f) / fmax(c2, 1e-20f)));
+}
+
+// A microfacet normal from the visible normals seen from wo (local frame, wo.z > 0; Heitz
+// 2018), with the concentric disk map (no trig).
+inline float3 sample_vndf(float3 wo, float alpha, float u1, float u2)
+{
+    float3 vh = normalize((float3)(alpha * wo.x, alpha * wo.y, wo.z));
+    float lensq = vh.x * vh.x + vh.y * vh.y;
+    float3 t1 = lensq > 0.0f ? (float3)(-vh.y, vh.x, 0.0f) / sqrt(lensq) : (float3)(1.0f, 0.0f, 0.0f);
+    float3 t2 = cross(vh, t1);
+    float2 p = concentric_disk(u1, u2);
+    float s = 0.5f * (1.0f + vh.z);
+    p.y = (1.0f - s) * sqrt(fmax(0.0f, 1.0f - p.x * p.x)) + s * p.y;
+    float3 nh = p.x * t1 + p.y * t2 + sqrt(fmax(0.0f, 1.0f - p.x * p.x - p.y * p.y)) * vh;
+    return normalize((float3)(alpha * nh.x, alpha * nh.y, fmax(nh.z, 1e-7f)));
+}
+
+// pbrt-v4's Refract: wo leaves the surface on the side of n; eta = n_t / n_i across it.
+inline bool refract_local(float3 wo, float3 n, float eta, float3 *wt)
+{
+    float cos_i = dot(n, wo);
+    if (cos_i < 0.0f) {
+        eta = 1.0f / eta;
+        cos_i = -cos_i;
+        n = -n;
+    }
+    float sin2_t = fmax(0.0f, 1.0f - cos_i * cos_i) / (eta * eta);
+    if (sin2_t >= 1.0f)
+        return false;
+    float cos_t = sqrt(fmax(0.0f, 1.0f - sin2_t));
+    *wt = -wo / eta + (cos_i / eta - cos_t) * n;
+    return true;
+}
+
+// Bilinear lookup of the single-scattering GGX albedo table (ggx_albedo.cl).
+inline float ggx_albedo(float cos_o, float roughness)
+{
+    float x = clamp(cos_o, 0.0f, 1.0f) * (float)(GGX_TABLE_SIZE - 1);
+    float y = clamp(roughness, 0.0f, 1.0f) * (float)(GGX_TABLE_SIZE - 1);
+    int x0 = min((int)x, GGX_TABLE_SIZE - 2), y0 = min((int)y, GGX_TABLE_SIZE - 2);
+    float tx = x - (float)x0, ty = y - (float)y0;
+    int i = y0 * GGX_TABLE_SIZE + x0;
+    float a = GGX_E[i] + tx * (GGX_E[i + 1] - GGX_E[i]);
+    float b = GGX_E[i + GGX_TABLE_SIZE] + tx * (GGX_E[i + GGX_TABLE_SIZE + 1] - GGX_E[i + GGX_TABLE_SIZE]);
+    return a + ty * (b - a);
+}
+
+inline float ggx_albedo_avg(float roughness)
+{
+    float y = clamp(roughness, 0.0f, 1.0f) * (float)(GGX_TABLE_SIZE - 1);
+    int y0 = min((int)y, GGX_TABLE_SIZE - 2);
+    float ty = y - (float)y0;
+    return GGX_E_AVG[y0] + ty * (GGX_E_AVG[y0 + 1] - GGX_E_AVG[y0]);
+}
+
+// Trilinear lookup of a dielectric albedo table (ggx_albedo.cl) at relative IOR eta >= 1.
+inline float dielectric_albedo(__constant const float *table, float cos_o, float roughness,
+                               float eta)
+{
+    const int n = DIELECTRIC_TABLE_SIZE;
+    float x = clamp(cos_o, 0.0f, 1.0f) * (float)(n - 1);
+    float y = clamp(roughness, 0.0f, 1.0f) * (float)(n - 1);
+    float z = clamp((eta - DIELECTRIC_IOR_MIN) / (DIELECTRIC_IOR_MAX - DIELECTRIC_IOR_MIN),
+                    0.0f, 1.0f) * (float)(n - 1);
+    int x0 = min((int)x, n - 2), y0 = min((int)y, n - 2), z0 = min((int)z, n - 2);
+    float tx = x - (float)x0, ty = y - (float)y0, tz = z - (float)z0;
+    float c[2];
+    for (int k = 0; k < 2; ++k) {
+        __constant const float *t = table + ((z0 + k) * n + y0) * n + x0;
+        float a = t[0] + tx * (t[1] - t[0]);
+        float b = t[n] + tx * (t[n + 1] - t[n]);
+        c[k] = a + ty * (b - a);
+    }
+    return c[0] + tz * (c[1] - c[0]);
+}
+
+// Single-scattering albedo of a glass boundary seen from wo (eta = n_t / n_i).
+inline float glass_albedo(float cos_o, float roughness, float eta)
+{
+    return eta >= 1.0f ? dielectric_albedo(GLASS_E_ENTER, cos_o, roughness, eta)
+                       : dielectric_albedo(GLASS_E_LEAVE, cos_o, roughness, 1.0f / eta);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The BSDF: Principled's layers (Cycles 4): metal (weight metallic), glass ((1 - metallic)
+// transmission; each refraction tinted by sqrt(base), so that in and out of an object tint
+// by the base colour, as Cycles) and a dielectric specular layer over Lambertian diffuse (the
+// rest), GGX of alpha = roughness^2 for every specular lobe. Directions in the local frame of the shading
+// normal (z up, wo.z > 0).
+
+typedef struct {
+    float3 t, b, n;
+} Frame;
+
+inline Frame frame_of(float3 n)
+{
+    Frame f;
+    basis(n, &f.t, &f.b);
+    f.n = n;
+    return f;
+}
+
+inline float3 to_local(const Frame *f, float3 w)
+{
+    return (float3)(dot(w, f->t), dot(w, f->b), dot(w, f->n));
+}
+
+inline float3 to_world(const Frame *f, float3 w)
+{
+    return w.x * f->t + w.y * f->b + w.z * f->n;
+}
+
+#define LOBE_DIFFUSE 0
+#define LOBE_GLOSSY 1
+#define LOBE_TRANSMISSION 2
+
+typedef struct {
+    float w_metal, w_glass, w_dielectric;       // layer weights
+    float p_diffuse, p_specular, p_metal, p_glass;  // lobe sampling probabilities
+    float alpha, alpha2;
+    bool delta;                                 // the specular lobes are perfect mirrors
+    float eta_specular;                         // IOR of the dielectric specular layer
+    float eta_glass;                            // n_t / n_i for a ray leaving on wo's side
+    float diffuse_weight;                       // 1 - the specular layer's albedo at wo
+    float3 metal_scale;                         // multiple-scattering compensation of metal
+    float glass_scale;                          // ... and of glass
+} Lobes;
+
+inline float3 metal_fresnel(float3 f0, float cos_h)
+{
+    return f0 + (1.0f - f0) * pow5(1.0f - clamp(cos_h, 0.0f, 1.0f));
+}
+
+// `alpha_min`: Filter Glossy's blur (0: none), the least alpha of the specular lobes.
+inline Lobes lobes_at(const Material *m, float cos_o, bool front, float alpha_min)
+{
+    Lobes l;
+    float metallic = clamp(m->metallic, 0.0f, 1.0f);
+    float transmission = clamp(m->transmission, 0.0f, 1.0f);
+    l.w_metal = metallic;
+    l.w_glass = (1.0f - metallic) * transmission;
+    l.w_dielectric = (1.0f - metallic) * (1.0f - transmission);
+    // The energy compensation is that of the material's own roughness; Filter Glossy then
+    // widens the lobes without it (as Cycles blurs closures after their setup).
+    float roughness = clamp(m->roughness, 0.0f, 1.0f);
+    bool sharp = roughness * roughness * roughness * roughness <= DELTA_ALPHA2;
+    l.alpha = fmax(roughness * roughness, alpha_min);
+    l.alpha2 = l.alpha * l.alpha;
+    l.delta = l.alpha2 <= DELTA_ALPHA2;
+    l.alpha = fmax(l.alpha, 1e-4f);
+    l.alpha2 = fmax(l.alpha2, 1e-8f);
+    // "Specular IOR Level" scales F0 of the IOR (0.5 = as the IOR says); back to an IOR.
+    float r = (m->ior - 1.0f) / (m->ior + 1.0f);
+    float f0 = fmin(r * r * 2.0f * fmax(m->specular, 0.0f), 0.9999f);
+    float sf = sqrt(f0);
+    l.eta_specular = (1.0f + sf) / (1.0f - sf);
+    l.eta_glass = front ? m->ior : 1.0f / m->ior;
+    float f_spec = fresnel_dielectric(cos_o, l.eta_specular);
+    // What the specular layer reflects (all directions) the diffuse below does not get.
+    l.diffuse_weight = 1.0f - (sharp ? f_spec : dielectric_albedo(SPECULAR_E, cos_o, roughness,
+                                                                   l.eta_specular));
+    l.metal_scale = (float3)(1.0f, 1.0f, 1.0f);
+    l.glass_scale = 1.0f;
+#ifdef HAS_TRANSMISSION
+    if (l.w_glass > 0.0f && !sharp)
+        l.glass_scale = 1.0f / fmax(glass_albedo(cos_o, roughness, l.eta_glass), 0.05f);
+#endif
+    float a_metal = 0.0f;
 #ifdef HAS_SPECULAR
-    if (m->roughness >= MIRROR_ROUGHNESS) {
-        float spec_w = m->metallic + (1.0f - m->metallic) * (1.0f - m->transmission)
-                       * (m->specular > 0.0f ? 1.0f : 0.0f);
-        if (spec_w > 0.0f) {
-            float cos_o = dot(ns, wo), cos_i = dot(ns, wi);
-            if (cos_o > 0.0f && cos_i > 0.0f) {
-                float3 hv = normalize(wo + wi);
-                float a = m->roughness * m->roughness;
-                float a2 = a * a;
-                float ch = fmax(dot(ns, hv), 0.0f);
-                float den = ch * ch * (a2 - 1.0f) + 1.0f;
-                float D = a2 / (M_PI_F * den * den);
-                float g_o = 2.0f * cos_o / (cos_o + sqrt(a2 + (1.0f - a2) * cos_o * cos_o));
-                float g_i = 2.0f * cos_i / (cos_i + sqrt(a2 + (1.0f - a2) * cos_i * cos_i));
-                float3 F0 = m->metallic * m->base + (1.0f - m->metallic) * (1.0f - m->transmission) * f0;
-                float3 F = F0 + (spec_w - F0) * pow5(1.0f - fmax(dot(wo, hv), 0.0f));
-                f += F * (D * g_o * g_i / (4.0f * cos_o * cos_i));
+    if (l.w_metal > 0.0f) {
+        if (!sharp) {
+            float e = ggx_albedo(cos_o, roughness), e_avg = ggx_albedo_avg(roughness);
+            float3 f_avg = m->base + (1.0f - m->base) * (1.0f / 21.0f);
+            float3 f_ms = f_avg * e_avg / (1.0f - f_avg * (1.0f - e_avg));
+            l.metal_scale = 1.0f + f_ms * ((1.0f - e) / e);
+        }
+        a_metal = l.w_metal * mean3(metal_fresnel(m->base, cos_o) * l.metal_scale);
+    }
+#endif
+    float a_spec = 0.0f, a_glass = 0.0f;
+#ifdef HAS_SPECULAR
+    a_spec = l.w_dielectric * f_spec;
+#endif
+#ifdef HAS_TRANSMISSION
+    a_glass = l.w_glass * fmax(mean3(m->base), 0.05f);
+#endif
+    float a_diff = l.w_dielectric * l.diffuse_weight * mean3(m->base);
+    float total = a_metal + a_spec + a_glass + a_diff;
+    float inv = total > 0.0f ? 1.0f / total : 0.0f;
+    l.p_diffuse = a_diff * inv;
+    l.p_specular = a_spec * inv;
+    l.p_metal = a_metal * inv;
+    l.p_glass = a_glass * inv;
+    return l;
+}
+
+// The non-delta part of the BSDF for wo -> wi (local), without the cosine; *pdf: the
+// density of bsdf_sample choosing wi (solid angle).
+inline float3 bsdf_eval_local(const Material *m, const Lobes *l, float3 wo, float3 wi, float *pdf)
+{
+    float3 f = (float3)(0.0f, 0.0f, 0.0f);
+    *pdf = 0.0f;
+    float cos_o = wo.z, cos_i = wi.z;
+    if (cos_i > 0.0f) {
+        f += m->base * (l->w_dielectric * l->diffuse_weight * M_1_PI_F);
+        *pdf += l->p_diffuse * cos_i * M_1_PI_F;
+    }
+    if (l->delta)
+        return f;
+    float lambda_o = ggx_lambda(l->alpha2, cos_o);
+#if defined(HAS_SPECULAR) || defined(HAS_TRANSMISSION)
+    if (cos_i > 0.0f) {
+        float3 h = normalize(wo + wi);
+        float d = ggx_d(l->alpha2, h.z);
+        float g2 = 1.0f / (1.0f + lambda_o + ggx_lambda(l->alpha2, cos_i));
+        float common = d * g2 / (4.0f * cos_o * cos_i);
+        float pdf_reflect = d / ((1.0f + lambda_o) * 4.0f * cos_o);   // D G1(wo) / (4 cos_o)
+        float cos_oh = dot(wo, h);
+#ifdef HAS_SPECULAR
+        if (l->w_metal > 0.0f) {
+            f += l->w_metal * metal_fresnel(m->base, cos_oh) * l->metal_scale * common;
+            *pdf += l->p_metal * pdf_reflect;
+        }
+        if (l->w_dielectric > 0.0f && l->p_specular > 0.0f) {
+            f += l->w_dielectric * fresnel_dielectric(cos_oh, l->eta_specular) * common;
+            *pdf += l->p_specular * pdf_reflect;
+        }
+#endif
+#ifdef HAS_TRANSMISSION
+        if (l->w_glass > 0.0f) {
+            float F = fresnel_dielectric(cos_oh, l->eta_glass);
+            f += l->w_glass * l->glass_scale * F * common;
+            *pdf += l->p_glass * pdf_reflect * F;
+        }
+#endif
+    }
+#endif
+#ifdef HAS_TRANSMISSION
+    if (cos_i < 0.0f && l->w_glass > 0.0f) {
+        // pbrt-v4's rough dielectric transmission (generalised half vector), radiance mode.
+        float etap = l->eta_glass;
+        float3 h = wi * etap + wo;
+        float hl = length(h);
+        if (hl > 0.0f) {
+            h = h / hl;
+            if (h.z < 0.0f)
+                h = -h;
+            float cos_oh = dot(wo, h), cos_ih = dot(wi, h);
+            if (cos_oh > 0.0f && cos_ih < 0.0f) {
+                float F = fresnel_dielectric(cos_oh, etap);
+                float d = ggx_d(l->alpha2, h.z);
+                float g2 = 1.0f / (1.0f + lambda_o + ggx_lambda(l->alpha2, cos_i));
+                float denom = cos_ih + cos_oh / etap;
+                denom = denom * denom;
+                float ft = d * g2 * (1.0f - F) * fabs(cos_ih * cos_oh) / (fabs(cos_i) * cos_o * denom);
+                f += sqrt(m->base) * (l->w_glass * l->glass_scale * ft / (etap * etap));
+                float pdf_h = d * cos_oh / ((1.0f + lambda_o) * cos_o);     // D_wo(h)
+                *pdf += l->p_glass * pdf_h * fabs(cos_ih) / denom * (1.0f - F);
             }
         }
     }
@@ -227,26 +540,328 @@ inline float3 eval_bsdf(const Material *m, float3 ns, float3 wo, float3 wi)
     return f;
 }
 
+// A direction from the BSDF. Returns false when the sample is lost (below the surface,
+// nothing to scatter). *weight = f cos / pdf; *pdf = 0 for a mirror (delta) direction;
+// *kind: LOBE_DIFFUSE, LOBE_GLOSSY or LOBE_TRANSMISSION (for the bounce limits).
+inline bool bsdf_sample_local(const Material *m, const Lobes *l, float3 wo, float u_lobe,
+                              float u1, float u2, float u3, float3 *wi, float3 *weight,
+                              float *pdf, int *kind)
+{
+    float p_glass = l->p_glass;
+    if (l->p_diffuse + l->p_specular + l->p_metal + p_glass <= 0.0f)
+        return false;
+    if (u_lobe < l->p_diffuse) {
+        *kind = LOBE_DIFFUSE;
+        float2 d = concentric_disk(u1, u2);
+        *wi = (float3)(d.x, d.y, sqrt(fmax(0.0f, 1.0f - d.x * d.x - d.y * d.y)));
+    } else if (u_lobe < l->p_diffuse + l->p_specular + l->p_metal) {
+        *kind = LOBE_GLOSSY;
+        bool metal = u_lobe >= l->p_diffuse + l->p_specular;
+        if (l->delta) {
+            *wi = (float3)(-wo.x, -wo.y, wo.z);
+            *pdf = 0.0f;
+            if (metal)
+                *weight = l->w_metal * metal_fresnel(m->base, wo.z) * l->metal_scale / l->p_metal;
+            else {
+                float F = fresnel_dielectric(wo.z, l->eta_specular);
+                *weight = (float3)(l->w_dielectric * F / l->p_specular);
+            }
+            return true;
+        }
+        float3 h = sample_vndf(wo, l->alpha, u1, u2);
+        *wi = 2.0f * dot(wo, h) * h - wo;
+        if (!(wi->z > 0.0f))
+            return false;
+    } else {
+        float etap = l->eta_glass;
+        float3 h = l->delta ? (float3)(0.0f, 0.0f, 1.0f) : sample_vndf(wo, l->alpha, u1, u2);
+        float cos_oh = dot(wo, h);
+        float F = fresnel_dielectric(cos_oh, etap);
+        bool reflect = u3 < F;
+        if (reflect) {
+            *kind = LOBE_GLOSSY;
+            *wi = 2.0f * cos_oh * h - wo;
+            if (!(wi->z > 0.0f))
+                return false;
+        } else {
+            *kind = LOBE_TRANSMISSION;
+            if (!refract_local(wo, h, etap, wi) || !(wi->z < 0.0f))
+                return false;
+        }
+        if (l->delta) {
+            *pdf = 0.0f;
+            *weight = reflect ? (float3)(l->w_glass / p_glass)
+                              : sqrt(m->base) * (l->w_glass / (p_glass * etap * etap));
+            return true;
+        }
+    }
+    float3 f = bsdf_eval_local(m, l, wo, *wi, pdf);
+    if (!(*pdf > 0.0f))
+        return false;
+    *weight = f * (fabs(wi->z) / *pdf);
+    return true;
+}
+
+// Power heuristic for one sample of strategy a against n_b samples of strategy b.
+inline float mis_weight(float pdf_a, float pdf_b)
+{
+    float a = pdf_a * pdf_a, b = pdf_b * pdf_b;
+    return a > 0.0f ? a / (a + b) : 0.0f;
+}
+
+// ---------------------------------------------------------------------------------------------
+// The world
+
+#ifdef HAS_WORLD_TEXTURE
+// A direction in the texture's space -> uv of the projection (Cycles' conventions).
+inline float2 world_uv(int projection, float3 d)
+{
+    if (projection == PROJECTION_MIRROR_BALL) {
+        float dy = d.y - 1.0f;
+        float div = 2.0f * sqrt(fmax(-0.5f * dy, 0.0f));
+        float x = div > 0.0f ? d.x / div : d.x, z = div > 0.0f ? d.z / div : d.z;
+        return (float2)(0.5f * (x + 1.0f), 0.5f * (z + 1.0f));
+    }
+    float u = 0.5f - atan2_poly(d.y, d.x) * (0.5f * M_1_PI_F);
+    float v = 0.5f + atan2_poly(d.z, sqrt(d.x * d.x + d.y * d.y)) * M_1_PI_F;
+    return (float2)(u, v);
+}
+
+// uv -> a unit direction in the texture's space; false outside a mirror ball's disk.
+inline bool world_direction(int projection, float2 uv, float3 *d)
+{
+    if (projection == PROJECTION_MIRROR_BALL) {
+        float x = 2.0f * uv.x - 1.0f, z = 2.0f * uv.y - 1.0f;
+        float r2 = x * x + z * z;
+        if (r2 > 1.0f)
+            return false;
+        float s = 2.0f * sqrt(1.0f - r2);
+        *d = (float3)(s * x, 2.0f * r2 - 1.0f, s * z);
+        return true;
+    }
+    float2 phi = sincos_poly(M_PI_F * (1.0f - 2.0f * uv.x));
+    float2 elevation = sincos_poly(M_PI_F * (uv.y - 0.5f));
+    *d = (float3)(elevation.y * phi.y, elevation.y * phi.x, elevation.x);
+    return true;
+}
+
+// Solid angle of the texture's space per unit of uv at d (unit).
+inline float world_jacobian(int projection, float3 d)
+{
+    return projection == PROJECTION_MIRROR_BALL ? 16.0f
+                                                : 2.0f * M_PI_F * M_PI_F * sqrt(d.x * d.x + d.y * d.y);
+}
+
+inline float3 rows_times(__global const float4 *m, float3 v)
+{
+    return (float3)(dot(m[0].xyz, v), dot(m[1].xyz, v), dot(m[2].xyz, v));
+}
+
+// The importance map: marginal CDF of the rows (height + 1), then each row's CDF (width + 1).
+inline float env_cell_probability(const Scene *sc, int i, int j)
+{
+    __global const float4 *W = sc->world;
+    int w = (int)WORLD_CDF_WIDTH(W), h = (int)WORLD_CDF_HEIGHT(W);
+    __global const float *row = sc->env_cdf + (h + 1) + j * (w + 1);
+    return (sc->env_cdf[j + 1] - sc->env_cdf[j]) * (row[i + 1] - row[i]);
+}
+
+// Largest k in [0, n) with cdf[k] <= u (cdf[0] = 0, cdf[n] = 1).
+inline int cdf_find(__global const float *cdf, int n, float u)
+{
+    int lo = 0, hi = n;
+    while (hi - lo > 1) {
+        int mid = (lo + hi) >> 1;
+        if (cdf[mid] <= u)
+            lo = mid;
+        else
+            hi = mid;
+    }
+    return lo;
+}
+#endif
+
+// What a ray leaving the scene in unit direction d sees.
+inline float3 world_radiance(const Scene *sc, float3 d)
+{
+    float3 c = sc->world_color;
+#ifdef HAS_WORLD_TEXTURE
+    __global const float4 *W = sc->world;
+    int tex = (int)WORLD_TEXTURE(W);
+    if (tex >= 0) {
+        int projection = (int)WORLD_PROJECTION(W);
+        float3 dt = normalize(rows_times(WORLD_TO_TEXTURE(W), d));
+        float2 uv = world_uv(projection, dt);
+        c *= texture_lookup(sc, tex, uv, WORLD_INTERPOLATION(W) == INTERPOLATION_CLOSEST).xyz;
+    }
+#endif
+    return c;
+}
+
+#ifdef HAS_WORLD
+// Density (solid angle) of world_sample choosing unit direction d.
+inline float world_pdf(const Scene *sc, float3 d)
+{
+#ifdef HAS_WORLD_TEXTURE
+    __global const float4 *W = sc->world;
+    if ((int)WORLD_TEXTURE(W) >= 0) {
+        int projection = (int)WORLD_PROJECTION(W);
+        int w = (int)WORLD_CDF_WIDTH(W), h = (int)WORLD_CDF_HEIGHT(W);
+        float3 a = rows_times(WORLD_TO_TEXTURE(W), d);
+        float la = length(a);
+        float3 dt = a / la;
+        float2 uv = world_uv(projection, dt);
+        uv = uv - floor(uv);
+        int i = min((int)(uv.x * (float)w), w - 1), j = min((int)(uv.y * (float)h), h - 1);
+        float jac = world_jacobian(projection, dt);
+        if (!(jac > 0.0f))
+            return 0.0f;
+        // Texture space -> world: |det A| / |A d|^3 (the solid-angle Jacobian of d -> Ad/|Ad|).
+        return env_cell_probability(sc, i, j) * (float)(w * h) / jac
+               * (WORLD_DET(W) / (la * la * la));
+    }
+#endif
+    return 0.25f * M_1_PI_F;
+}
+
+// A direction towards the world (importance-sampled texture, else uniform); returns its
+// radiance, *pdf its density.
+inline float3 world_sample(const Scene *sc, float u1, float u2, float3 *wi, float *pdf)
+{
+#ifdef HAS_WORLD_TEXTURE
+    __global const float4 *W = sc->world;
+    if ((int)WORLD_TEXTURE(W) >= 0) {
+        int projection = (int)WORLD_PROJECTION(W);
+        int w = (int)WORLD_CDF_WIDTH(W), h = (int)WORLD_CDF_HEIGHT(W);
+        __global const float *marginal = sc->env_cdf;
+        int j = cdf_find(marginal, h, u1);
+        float pj = marginal[j + 1] - marginal[j];
+        __global const float *row = sc->env_cdf + (h + 1) + j * (w + 1);
+        int i = cdf_find(row, w, u2);
+        float pi = row[i + 1] - row[i];
+        if (!(pj > 0.0f) || !(pi > 0.0f)) {
+            *pdf = 0.0f;
+            return (float3)(0.0f, 0.0f, 0.0f);
+        }
+        float2 uv = (float2)(((float)i + clamp((u2 - row[i]) / pi, 0.0f, 1.0f)) / (float)w,
+                             ((float)j + clamp((u1 - marginal[j]) / pj, 0.0f, 1.0f)) / (float)h);
+        float3 dt;
+        if (!world_direction(projection, uv, &dt)) {
+            *pdf = 0.0f;
+            return (float3)(0.0f, 0.0f, 0.0f);
+        }
+        float3 d = rows_times(WORLD_FROM_TEXTURE(W), dt);
+        float ld = length(d);
+        *wi = d / ld;
+        float jac = world_jacobian(projection, dt);
+        // |A wi| = 1 / |A^-1 dt|.
+        *pdf = jac > 0.0f ? pj * pi * (float)(w * h) / jac * (WORLD_DET(W) * ld * ld * ld) : 0.0f;
+        return world_radiance(sc, *wi);
+    }
+#endif
+    *wi = uniform_cone((float3)(0.0f, 0.0f, 1.0f), -1.0f, u1, u2);
+    *pdf = 0.25f * M_1_PI_F;
+    return sc->world_color;
+}
+#endif
+
+// ---------------------------------------------------------------------------------------------
+// Emissive triangles
+
+#ifdef HAS_EMISSION
+inline float triangle_area(const Scene *sc, uint tri, float3 *n)
+{
+    __global const float4 *corners = sc->tri_verts + TRIANGLE_SIZE * tri;
+    float3 c = cross(TRIANGLE_V1(corners) - TRIANGLE_V0(corners),
+                     TRIANGLE_V2(corners) - TRIANGLE_V0(corners));
+    float len = length(c);
+    *n = len > 0.0f ? c / len : (float3)(0.0f, 0.0f, 1.0f);
+    return 0.5f * len;
+}
+
+// Density (solid angle) of emitter_sample choosing the point at distance `dist` on triangle
+// tri whose normal makes cosine cos_l with the ray.
+inline float emitter_pdf(const Scene *sc, uint tri, float dist, float cos_l)
+{
+    float3 n;
+    float area = triangle_area(sc, tri, &n);
+    Material m = material_at(sc, tri, 0.0f, 0.0f);
+    float power = mean3(m.emission) * area;
+    if (!(area > 0.0f) || !(cos_l > 0.0f) || !(sc->emitter_power > 0.0f))
+        return 0.0f;
+    return power / sc->emitter_power / area * (dist * dist / cos_l);
+}
+
+// A point on an emissive triangle (chosen by power with the alias table) seen from p. Returns
+// its emitted radiance (0 when nothing), *wi, *dist, *pdf (solid angle) and *tri.
+inline float3 emitter_sample(const Scene *sc, float3 p, float u0, float u1, float u2,
+                             float3 *wi, float *dist, float *pdf, uint *tri)
+{
+    float x = u0 * (float)sc->emitter_count;
+    uint k = min((uint)x, sc->emitter_count - 1u);
+    __global const float4 *E = sc->emitters + EMITTER_SIZE * k;
+    if (x - (float)k >= EMITTER_THRESHOLD(E))
+        E = sc->emitters + EMITTER_SIZE * as_uint(EMITTER_ALIAS(E));
+    *tri = as_uint(EMITTER_TRIANGLE(E));
+    float pmf = EMITTER_PMF(E);
+    __global const float4 *corners = sc->tri_verts + TRIANGLE_SIZE * *tri;
+    float s = sqrt(u1);
+    float b0 = 1.0f - s, b1 = u2 * s;
+    float3 q = b0 * TRIANGLE_V0(corners) + b1 * TRIANGLE_V1(corners)
+               + (1.0f - b0 - b1) * TRIANGLE_V2(corners);
+    float3 n;
+    float area = triangle_area(sc, *tri, &n);
+    float3 to = q - p;
+    float d2 = dot(to, to);
+    float d = sqrt(d2);
+    if (!(d > 0.0f) || !(area > 0.0f))
+        return (float3)(0.0f, 0.0f, 0.0f);
+    *wi = to / d;
+    *dist = d;
+    float cos_l = fabs(dot(n, *wi));                   // emission is two-sided, as Cycles'
+    if (!(cos_l > 0.0f))
+        return (float3)(0.0f, 0.0f, 0.0f);
+    *pdf = pmf / area * (d2 / cos_l);
+    Material m = material_at(sc, *tri, b1, 1.0f - b0 - b1);
+    return m.emission * clamp(m.alpha, 0.0f, 1.0f);
+}
+#endif
+
+// ---------------------------------------------------------------------------------------------
+// Blender's lights
+
 inline float smoothstep01(float x)
 {
     x = clamp(x, 0.0f, 1.0f);
     return x * x * (3.0f - 2.0f * x);
 }
 
+inline float area_light_area(__global const float4 *L)
+{
+    float a = length(LIGHT_AREA_U(L)) * length(LIGHT_AREA_V(L));
+    return LIGHT_AREA_SHAPE(L) == LIGHT_SHAPE_ELLIPSE ? a * M_PI_4_F : a;
+}
+
 // Sample a point on light l as seen from p: returns the irradiance at normal incidence (before
 // the cosine at the surface and before shadowing); *wi the unit direction to it, *target the
-// point (for local lights) and *dist its distance (INFINITY for the sun).
+// point (for local lights), *dist its distance (INFINITY for the sun) and *pdf the sample's
+// density in solid angle for lights a BSDF ray can also hit (area lights, a sun with an
+// angle), else 0 (no multiple importance sampling).
 inline float3 sample_light(const Scene *sc, uint l, float3 p, float u1, float u2, float3 *wi,
-                           float3 *target, float *dist)
+                           float3 *target, float *dist, float *pdf)
 {
     __global const float4 *L = sc->lights + LIGHT_SIZE * l;
     int kind = (int)LIGHT_KIND(L);
+    *pdf = 0.0f;
     if (kind == LIGHT_SUN) {
 #ifdef HAS_SUN
         float3 w = -LIGHT_DIRECTION(L);
 #ifdef HAS_SOFT_LIGHTS
-        if (LIGHT_SUN_COS_HALF_ANGLE(L) < 1.0f)
-            w = normalize(uniform_cone(w, LIGHT_SUN_COS_HALF_ANGLE(L), u1, u2));
+        float cos_half = LIGHT_SUN_COS_HALF_ANGLE(L);
+        if (cos_half < 1.0f) {
+            w = normalize(uniform_cone(w, cos_half, u1, u2));
+            *pdf = 1.0f / (2.0f * M_PI_F * (1.0f - cos_half));
+        }
 #endif
         *wi = w;
         *dist = INFINITY;
@@ -301,45 +916,85 @@ inline float3 sample_light(const Scene *sc, uint l, float3 p, float u1, float u2
     }
 #endif
 #ifdef HAS_AREA
-    if (kind == LIGHT_AREA)
+    if (kind == LIGHT_AREA) {
         emit = fmax(cos_out, 0.0f);     // one-sided Lambertian emitter
+        float area = area_light_area(L);
+        *pdf = cos_out > 0.0f && area > 0.0f ? dist2 / (area * cos_out) : 0.0f;
+    }
 #endif
     return LIGHT_INTENSITY(L) * (emit / dist2);
 }
 
-// How much light a surface lets through to a shadow ray: cut-out alpha and (for transmissive
-// materials) the unrefracted transmission (1 - Fresnel) tinted by the base colour. Exact for
-// IOR 1; for other IORs the shadow is lighter than a caustic-free one (docs/shading.md).
-inline float3 surface_transmittance(const Scene *sc, const Hit *h, float3 w)
+#ifdef HAS_AREA
+// The nearest area light that the ray (o, unit d) reaches on its emitting side before t_max:
+// returns its radiance (0 when none), *t_light and *pdf (solid angle, as sample_light).
+inline float3 area_light_hit(const Scene *sc, float3 o, float3 d, float t_max, float *pdf)
 {
-    Material m = material_at(sc, h->tri, h->u, h->v);
-    float3 through = (float3)(0.0f, 0.0f, 0.0f);
-#ifdef HAS_TRANSMISSION
-    if (m.transmission > 0.0f) {
-        __global const float4 *corners = sc->tri_verts + TRIANGLE_SIZE * h->tri;
-        float3 v0 = TRIANGLE_V0(corners), v1 = TRIANGLE_V1(corners), v2 = TRIANGLE_V2(corners);
-        float3 n = normalize(cross(v1 - v0, v2 - v0));
-        float c = dot(n, w);
-        bool front = c < 0.0f;
-        float F = fresnel_dielectric(fabs(c), front ? m.ior : 1.0f / m.ior);
-        through = m.base * ((1.0f - m.metallic) * m.transmission * (1.0f - F));
+    float3 found = (float3)(0.0f, 0.0f, 0.0f);
+    float best = t_max;
+    *pdf = 0.0f;
+    for (uint l = 0; l < sc->light_count; ++l) {
+        __global const float4 *L = sc->lights + LIGHT_SIZE * l;
+        if ((int)LIGHT_KIND(L) != LIGHT_AREA)
+            continue;
+        float3 n = LIGHT_DIRECTION(L);
+        float denom = dot(d, n);
+        if (!(denom < 0.0f))
+            continue;
+        float t = dot(LIGHT_POSITION(L) - o, n) / denom;
+        if (!(t > 0.0f) || !(t < best))
+            continue;
+        float3 q = o + t * d - LIGHT_POSITION(L);
+        float3 au = LIGHT_AREA_U(L), av = LIGHT_AREA_V(L);
+        float a = dot(q, au) / dot(au, au), b = dot(q, av) / dot(av, av);
+        bool inside = LIGHT_AREA_SHAPE(L) == LIGHT_SHAPE_ELLIPSE ? 4.0f * (a * a + b * b) <= 1.0f
+                                                                 : fabs(a) <= 0.5f && fabs(b) <= 0.5f;
+        float area = area_light_area(L);
+        if (!inside || !(area > 0.0f))
+            continue;
+        best = t;
+        found = LIGHT_INTENSITY(L) / area;
+        *pdf = t * t / (area * -denom);
     }
-#endif
-    float alpha = clamp(m.alpha, 0.0f, 1.0f);
-    return (1.0f - alpha) + alpha * through;
+    return found;
 }
+#endif
 
-// Visibility (0..1 per channel) from o along unit w up to `target` (or forever for the sun).
+#if defined(HAS_SUN) && defined(HAS_SOFT_LIGHTS)
+// Suns with an angle that a ray leaving the scene in unit direction d looks into: their
+// radiance, with the MIS weight against a BSDF density pdf_bsdf (0: a mirror, weight 1).
+inline float3 sun_disks(const Scene *sc, float3 d, float pdf_bsdf, float n_light)
+{
+    float3 sum = (float3)(0.0f, 0.0f, 0.0f);
+    for (uint l = 0; l < sc->light_count; ++l) {
+        __global const float4 *L = sc->lights + LIGHT_SIZE * l;
+        float cos_half = LIGHT_SUN_COS_HALF_ANGLE(L);
+        if ((int)LIGHT_KIND(L) != LIGHT_SUN || !(cos_half < 1.0f) || dot(d, -LIGHT_DIRECTION(L)) < cos_half)
+            continue;
+        float pdf_l = 1.0f / (2.0f * M_PI_F * (1.0f - cos_half));
+        float w = pdf_bsdf > 0.0f ? mis_weight(pdf_bsdf, n_light * pdf_l) : 1.0f;
+        sum += LIGHT_INTENSITY(L) * (pdf_l * w);
+    }
+    return sum;
+}
+#endif
+
+// ---------------------------------------------------------------------------------------------
+// Shadow rays and direct light
+
+// Visibility (0..1 per channel) from o along unit w up to `target` (or forever): opaque
+// surfaces (glass too, as in Cycles) block; alpha cut-outs let 1 - alpha through.
 inline float3 shadow(const Scene *sc, float3 o, float3 w, float dist, float3 target, uint ignore)
 {
-#if defined(HAS_TRANSMISSION) || defined(HAS_ALPHA)
+#ifdef HAS_ALPHA
     float3 T = (float3)(1.0f, 1.0f, 1.0f);
     for (int k = 0; k < MAX_SHADOW_SURFACES; ++k) {
         float tmax = isinf(dist) ? INFINITY : dist * (1.0f - 0x1.0p-12f);
         Hit h;
         if (!trace(sc, o, w, 0.0f, tmax, false, ignore, &h))
             return T;
-        T *= surface_transmittance(sc, &h, w);
+        Material m = material_at(sc, h.tri, h.u, h.v);
+        T *= 1.0f - clamp(m.alpha, 0.0f, 1.0f);
         if (all(T == 0.0f))
             return T;
         Surface s = surface_at(sc, &h, w);
@@ -357,12 +1012,48 @@ inline float3 shadow(const Scene *sc, float3 o, float3 w, float dist, float3 tar
 #endif
 }
 
-// Direct light at a surface from every light: L x L stratified samples for lights with an
-// extent (area, soft point/spot/sun), one for the others.
-inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m, float3 wo,
-                           Rng *rng)
+// A contribution clamped as Cycles does: the mean of its channels at most `limit` (0: none).
+inline float3 clamp_sample(float3 c, float limit)
+{
+    float mean = mean3(c);
+    return limit > 0.0f && mean > limit ? c * (limit / mean) : c;
+}
+
+// One light sample's contribution: BSDF x radiance-over-pdf x cosine x visibility x MIS.
+inline float3 light_contribution(const Scene *sc, const Surface *s, const Material *m,
+                                 const Lobes *lobes, const Frame *fr, float3 wo_l, float3 wi,
+                                 float3 L, float dist, float3 target, float pdf_light,
+                                 float n_light)
+{
+    float cos_geo = dot(s->ng, wi);
+    float3 wi_l = to_local(fr, wi);
+    // The shading and the geometric normal must agree on the side wi leaves to.
+    if (wi_l.z == 0.0f || (wi_l.z > 0.0f) != (cos_geo > 0.0f))
+        return (float3)(0.0f, 0.0f, 0.0f);
+    float pdf_bsdf;
+    float3 f = bsdf_eval_local(m, lobes, wo_l, wi_l, &pdf_bsdf);
+    if (all(f == 0.0f))
+        return (float3)(0.0f, 0.0f, 0.0f);
+#ifdef HAS_BOUNCES
+    float w = pdf_light > 0.0f ? mis_weight(n_light * pdf_light, pdf_bsdf) : 1.0f;
+#else
+    float w = 1.0f;     // no BSDF rays: light samples alone
+#endif
+    float3 V = shadow(sc, spawn(s, wi), wi, dist, target, s->tri);
+    return f * L * (fabs(wi_l.z) * w) * V;
+}
+
+// Direct light at a surface: every Blender light (L x L stratified samples for lights with an
+// extent, one for the others), the world and the emissive triangles (L x L each), weighted
+// against the BSDF by the power heuristic. `beta` the path's throughput and `limit` the
+// clamp, applied per sample.
+inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
+                           const Lobes *lobes, const Frame *fr, float3 wo_l, float3 beta,
+                           float limit, Rng *rng)
 {
     float3 total = (float3)(0.0f, 0.0f, 0.0f);
+    int n = sc->light_n;
+    float inv_nn = 1.0f / (float)(n * n);
     for (uint l = 0; l < sc->light_count; ++l) {
         __global const float4 *L = sc->lights + LIGHT_SIZE * l;
         int kind = (int)LIGHT_KIND(L);
@@ -371,26 +1062,57 @@ inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
         extended = extended || (kind == LIGHT_SUN ? LIGHT_SUN_COS_HALF_ANGLE(L) < 1.0f
                                                   : LIGHT_RADIUS(L) > 0.0f);
 #endif
-        int n = extended ? sc->light_n : 1;
-        float3 sum = (float3)(0.0f, 0.0f, 0.0f);
-        for (int j = 0; j < n * n; ++j) {
-            float u1 = ((float)(j % n) + rng_next(rng)) / (float)n;
-            float u2 = ((float)(j / n) + rng_next(rng)) / (float)n;
+        int k = extended ? n : 1;
+        float share = extended ? inv_nn : 1.0f;
+        for (int j = 0; j < k * k; ++j) {
+            float u1 = ((float)(j % k) + rng_next(rng)) / (float)k;
+            float u2 = ((float)(j / k) + rng_next(rng)) / (float)k;
             float3 wi, target;
-            float dist;
-            float3 E = sample_light(sc, l, s->p, u1, u2, &wi, &target, &dist);
+            float dist, pdf_light;
+            float3 E = sample_light(sc, l, s->p, u1, u2, &wi, &target, &dist, &pdf_light);
             if (all(E == 0.0f))
                 continue;
-            float cos_in = dot(s->ns, wi);
-            if (!(cos_in > 0.0f) || !(dot(s->ng, wi) > 0.0f))
-                continue;
-            float3 f = eval_bsdf(m, s->ns, wo, wi);
-            if (all(f == 0.0f))
-                continue;
-            float3 V = shadow(sc, spawn(s, wi), wi, dist, target, s->tri);
-            sum += f * E * (cos_in * V);
+            // E is radiance over the sample's density already.
+            total += clamp_sample(beta * light_contribution(sc, s, m, lobes, fr, wo_l, wi, E,
+                                                            dist, target, pdf_light,
+                                                            (float)(k * k)) * share, limit);
         }
-        total += sum / (float)(n * n);
     }
+#ifdef HAS_WORLD
+    for (int j = 0; j < n * n; ++j) {
+        float u1 = ((float)(j % n) + rng_next(rng)) / (float)n;
+        float u2 = ((float)(j / n) + rng_next(rng)) / (float)n;
+        float3 wi;
+        float pdf;
+        float3 L = world_sample(sc, u1, u2, &wi, &pdf);
+        if (!(pdf > 0.0f) || all(L == 0.0f))
+            continue;
+        total += clamp_sample(beta * light_contribution(sc, s, m, lobes, fr, wo_l, wi, L / pdf,
+                                                        INFINITY, s->p, pdf, (float)(n * n))
+                              * inv_nn, limit);
+    }
+#endif
+#ifdef HAS_EMISSION
+    if (sc->emitter_count > 0) {
+        for (int j = 0; j < n * n; ++j) {
+            float u0 = rng_next(rng);
+            float u1 = ((float)(j % n) + rng_next(rng)) / (float)n;
+            float u2 = ((float)(j / n) + rng_next(rng)) / (float)n;
+            float3 wi;
+            float dist, pdf;
+            uint tri;
+            float3 L = emitter_sample(sc, s->p, u0, u1, u2, &wi, &dist, &pdf, &tri);
+            if (tri == s->tri || !(pdf > 0.0f) || all(L == 0.0f))
+                continue;
+            // The MIS weight uses the density a BSDF ray hitting tri sees (emitter_pdf).
+            float3 n_l;
+            triangle_area(sc, tri, &n_l);
+            float pdf_mis = emitter_pdf(sc, tri, dist, fabs(dot(n_l, wi)));
+            float3 c = light_contribution(sc, s, m, lobes, fr, wo_l, wi, L / pdf, dist,
+                                          s->p + dist * wi, pdf_mis, (float)(n * n));
+            total += clamp_sample(beta * c * inv_nn, limit);
+        }
+    }
+#endif
     return total;
 }

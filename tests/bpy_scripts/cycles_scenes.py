@@ -1,0 +1,292 @@
+"""Scenes of issue 14 rendered with Cycles and with KD Trace (the installed add-on, local
+slaves) at matched settings: the world (a colour; a procedural HDRI as equirectangular and as
+mirror ball, through a Mapping node), an emission-lit room, the BSDF nodes and Principled
+inputs, glass under an area light. Writes <scene>-cycles.npy and <scene>-kdtrace.npy (Combined,
+rows top first), <scene>-features.json (the features of the exported scene) and the export
+itself (<scene>-scene.npz, <scene>-view.json) per scene; the result lists the warnings of each
+export and the seconds each render took.
+
+The HDRI is made here: a sky gradient with a small bright sun disc, written as a float image
+and saved as Radiance .hdr in the output folder (then loaded back from the file)."""
+import json
+import math
+
+import bpy
+import numpy as np
+
+from blender_setup import arguments, install_extension, write_result
+
+args, result_path = arguments()
+install_extension(args["zip"])
+import importlib
+export = importlib.import_module("bl_ext.user_default.kdtrace.addon.export")
+features_of = importlib.import_module("bl_ext.user_default.kdtrace.core.scene.features").scene_features
+OUT = args["out"]
+SUN = (math.radians(40), math.radians(35))      # azimuth, elevation of the HDRI's sun
+
+
+def sky(d):
+    """Radiance of the procedural sky in unit directions d (..., 3): zenith-to-horizon
+    gradient, darker ground, a sun disc of 5 degrees radius."""
+    z = d[..., 2]
+    t = np.clip(z, 0, 1)[..., None]
+    colour = (1 - t) * np.array([0.9, 0.85, 0.8]) + t * np.array([0.15, 0.3, 0.8])
+    colour = np.where(z[..., None] < 0, np.array([0.25, 0.2, 0.15]), colour)
+    sun = np.array([math.cos(SUN[1]) * math.cos(SUN[0]), math.cos(SUN[1]) * math.sin(SUN[0]),
+                    math.sin(SUN[1])])
+    disc = (d @ sun) > math.cos(math.radians(5))
+    return np.where(disc[..., None], np.array([120.0, 110.0, 90.0]), colour)
+
+
+def hdri(projection):
+    """The sky as an image in Cycles' projection, saved to .hdr and loaded back."""
+    if projection == "EQUIRECTANGULAR":
+        w, h = 256, 128
+        u = (np.arange(w) + 0.5) / w
+        v = (np.arange(h) + 0.5) / h
+        phi = 2 * np.pi * (0.5 - u)[None, :]
+        elevation = np.pi * (v - 0.5)[:, None]
+        d = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(phi),
+                                         np.cos(elevation) * np.sin(phi), np.sin(elevation)), -1)
+        rgb = sky(d)
+    else:
+        w = h = 192
+        x = 2 * (np.arange(w) + 0.5) / w - 1
+        z = 2 * (np.arange(h) + 0.5) / h - 1
+        x, z = np.meshgrid(x, z)
+        r2 = x * x + z * z
+        s = 2 * np.sqrt(np.maximum(1 - r2, 0))
+        d = np.stack([s * x, 2 * r2 - 1, s * z], -1)
+        rgb = np.where((r2 <= 1)[..., None], sky(d), 0.0)
+    pixels = np.concatenate([rgb, np.ones((h, w, 1))], -1).astype(np.float32)
+    image = bpy.data.images.new(f"sky-{projection}", w, h, float_buffer=True)
+    image.pixels.foreach_set(pixels.ravel())
+    path = f"{OUT}/sky-{projection.lower()}.hdr"
+    image.filepath_raw = path
+    image.file_format = "HDR"
+    image.save()
+    bpy.data.images.remove(image)
+    return bpy.data.images.load(path)
+
+
+def clear():
+    for collection in (bpy.data.objects, bpy.data.meshes, bpy.data.materials, bpy.data.lights,
+                       bpy.data.cameras, bpy.data.worlds, bpy.data.images):
+        for item in list(collection):
+            collection.remove(item)
+
+
+def material(name, kind="PRINCIPLED", color=(0.8, 0.8, 0.8), **inputs):
+    m = bpy.data.materials.new(name)
+    m.use_nodes = True
+    nodes = m.node_tree.nodes
+    out = nodes["Material Output"]
+    if kind == "PRINCIPLED":
+        node = nodes["Principled BSDF"]
+        node.inputs["Base Color"].default_value = (*color, 1)
+    else:
+        nodes.remove(nodes["Principled BSDF"])
+        node = nodes.new({"DIFFUSE": "ShaderNodeBsdfDiffuse", "GLOSSY": "ShaderNodeBsdfGlossy",
+                          "GLASS": "ShaderNodeBsdfGlass", "EMISSION": "ShaderNodeEmission"}[kind])
+        node.inputs["Color"].default_value = (*color, 1)
+        m.node_tree.links.new(node.outputs[0], out.inputs["Surface"])
+    for key, value in inputs.items():
+        node.inputs[key].default_value = value
+    return m
+
+
+def add(op, mat, smooth=False, **kw):
+    op(**kw)
+    obj = bpy.context.object
+    obj.data.materials.append(mat)
+    if smooth:
+        bpy.ops.object.shade_smooth()
+    return obj
+
+
+def sphere(mat, location, radius=0.6):
+    return add(bpy.ops.mesh.primitive_uv_sphere_add, mat, smooth=True, radius=radius,
+               location=location, segments=48, ring_count=24)
+
+
+def camera(location, target, lens=35.0):
+    from mathutils import Vector
+    data = bpy.data.cameras.new("camera")
+    data.lens = lens
+    obj = bpy.data.objects.new("camera", data)
+    obj.location = location
+    obj.rotation_euler = (Vector(target) - Vector(location)).to_track_quat("-Z", "Y").to_euler()
+    bpy.context.scene.collection.objects.link(obj)
+    bpy.context.scene.camera = obj
+
+
+def light(kind, location, target, **props):
+    from mathutils import Vector
+    data = bpy.data.lights.new(kind.lower(), kind)
+    for key, value in props.items():
+        setattr(data, key, value)
+    obj = bpy.data.objects.new(kind.lower(), data)
+    obj.location = location
+    obj.rotation_euler = (Vector(target) - Vector(location)).to_track_quat("-Z", "Y").to_euler()
+    bpy.context.scene.collection.objects.link(obj)
+
+
+def world(color=(0.0, 0.0, 0.0), strength=1.0, image=None, rotation=None):
+    w = bpy.data.worlds.new("world")
+    w.use_nodes = True
+    nodes = w.node_tree.nodes
+    background = nodes["Background"]
+    background.inputs["Color"].default_value = (*color, 1)
+    background.inputs["Strength"].default_value = strength
+    if image is not None:
+        env = nodes.new("ShaderNodeTexEnvironment")
+        env.image = image
+        env.projection = "MIRROR_BALL" if image.name.startswith("sky-mirror") else "EQUIRECTANGULAR"
+        w.node_tree.links.new(env.outputs["Color"], background.inputs["Color"])
+        if rotation is not None:
+            coords = nodes.new("ShaderNodeTexCoord")
+            mapping = nodes.new("ShaderNodeMapping")
+            mapping.inputs["Rotation"].default_value = rotation
+            w.node_tree.links.new(coords.outputs["Generated"], mapping.inputs["Vector"])
+            w.node_tree.links.new(mapping.outputs["Vector"], env.inputs["Vector"])
+    bpy.context.scene.world = w
+
+
+def floor(mat=None, size=12.0):
+    return add(bpy.ops.mesh.primitive_plane_add, mat or material("floor", "DIFFUSE", (0.6, 0.6, 0.6)),
+               size=size)
+
+
+def build(name):
+    clear()
+    if name == "world_color":
+        # Sky fill: a sun's shadows are lit by the world colour.
+        world((0.35, 0.45, 0.6))
+        floor()
+        sphere(material("red", "DIFFUSE", (0.8, 0.25, 0.2)), (-0.7, 0.3, 0.6))
+        add(bpy.ops.mesh.primitive_cube_add, material("grey", color=(0.7, 0.7, 0.7)), size=0.9,
+            location=(0.8, 0.5, 0.45))
+        light("SUN", (0, 0, 5), (0.5, 1.5, 0), energy=2.0, angle=math.radians(3))
+        camera((0.0, -4.5, 2.4), (0, 0.3, 0.4))
+    elif name in ("world_hdri", "world_mirror_ball"):
+        image = hdri("EQUIRECTANGULAR" if name == "world_hdri" else "MIRROR_BALL")
+        world(image=image, strength=1.5, rotation=(0.0, 0.0, math.radians(50)))
+        floor()
+        sphere(material("diffuse", "DIFFUSE", (0.8, 0.8, 0.8)), (-0.8, 0.3, 0.6))
+        sphere(material("metal", color=(0.9, 0.75, 0.5), Metallic=1.0, Roughness=0.25),
+               (0.8, 0.3, 0.6))
+        camera((0.0, -4.5, 1.6), (0, 0.5, 0.7), lens=30)
+    elif name == "emission_room":
+        # A closed room lit only by an emissive ceiling panel (diffuse bounces matter).
+        walls = material("walls", "DIFFUSE", (0.75, 0.75, 0.72))
+        add(bpy.ops.mesh.primitive_cube_add, walls, size=4.0, location=(0, 0, 2.0))
+        bpy.ops.object.mode_set(mode="EDIT")
+        bpy.ops.mesh.flip_normals()
+        bpy.ops.object.mode_set(mode="OBJECT")
+        red = material("red wall", "DIFFUSE", (0.7, 0.15, 0.1))
+        add(bpy.ops.mesh.primitive_plane_add, red, size=3.98, location=(-1.99, 0, 2.0),
+            rotation=(0, math.radians(90), 0))
+        add(bpy.ops.mesh.primitive_plane_add, material("lamp", "EMISSION", (1.0, 0.9, 0.8),
+                                                       Strength=12.0),
+            size=1.0, location=(0, 0.3, 3.98))
+        add(bpy.ops.mesh.primitive_cube_add, material("box", color=(0.8, 0.8, 0.8)), size=1.0,
+            location=(0.7, 0.6, 0.5))
+        sphere(material("ball", "DIFFUSE", (0.2, 0.4, 0.8)), (-0.6, 0.2, 0.5), radius=0.5)
+        camera((0.0, -1.95, 1.6), (0, 1.0, 1.3), lens=18)
+    elif name == "materials":
+        world((0.25, 0.25, 0.3))
+        floor(material("floor", "DIFFUSE", (0.5, 0.5, 0.5)))
+        spheres = [
+            material("metal", color=(0.95, 0.7, 0.4), Metallic=1.0, Roughness=0.35),
+            material("plastic", color=(0.8, 0.15, 0.1), Roughness=0.3),
+            material("rough glass", color=(1.0, 1.0, 1.0),
+                     **{"Transmission Weight": 1.0, "Roughness": 0.25, "IOR": 1.5}),
+            material("glossy", "GLOSSY", (1.0, 1.0, 1.0), Roughness=0.2),
+            material("glass", "GLASS", (1.0, 1.0, 1.0), Roughness=0.0, IOR=1.45),
+            material("diffuse", "DIFFUSE", (0.3, 0.7, 0.3)),
+        ]
+        for k, mat in enumerate(spheres):
+            sphere(mat, (-2.0 + 0.8 * k, 0.4 * (k % 2), 0.35), radius=0.35)
+        add(bpy.ops.mesh.primitive_cube_add, material("emitter", "EMISSION", (0.4, 0.8, 1.0),
+                                                      Strength=4.0),
+            size=0.3, location=(1.9, -0.4, 0.15))
+        light("AREA", (0.5, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.5)
+        camera((0.0, -4.2, 1.8), (0, 0.2, 0.3), lens=40)
+    elif name == "glass":
+        # Glass under an area light: its highlight in the glass, caustics, the shadow.
+        world((0.2, 0.22, 0.25))
+        floor(material("floor", "DIFFUSE", (0.7, 0.7, 0.7)))
+        sphere(material("glass", "GLASS", (1.0, 1.0, 1.0), IOR=1.5, Roughness=0.0),
+               (-0.6, 0.0, 0.6))
+        sphere(material("rough glass", color=(0.9, 1.0, 0.9),
+                        **{"Transmission Weight": 1.0, "Roughness": 0.3, "IOR": 1.5}),
+               (0.7, 0.3, 0.6))
+        light("AREA", (0.3, 2.5, 2.5), (0, 0, 0.5), energy=300.0, size=1.2)
+        camera((0.0, -4.0, 1.5), (0, 0.2, 0.6), lens=40)
+    bpy.context.view_layer.update()
+
+
+def read_exr(path, width, height):
+    image = bpy.data.images.load(path)
+    pixels = np.array(image.pixels[:], np.float32).reshape(height, width, 4)[::-1]
+    bpy.data.images.remove(image)
+    return pixels
+
+
+scene = bpy.context.scene
+width, height = args["width"], args["height"]
+warnings, timings = {}, {}
+for name in args["scenes"]:
+    build(name)
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    scene.view_settings.view_transform = "Standard"
+    scene.view_settings.look = "None"
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    settings = dict(args["kdtrace"], **args.get("per_scene", {}).get(name, {}))
+    geometry, view, info = export.export_view(bpy.context.evaluated_depsgraph_get())
+    warnings[name] = info["warnings"]
+    with open(f"{OUT}/{name}-features.json", "w") as f:
+        json.dump(sorted(features_of(geometry, view)), f)
+    np.savez(f"{OUT}/{name}-scene.npz", **geometry.arrays())
+    with open(f"{OUT}/{name}-view.json", "w") as f:
+        json.dump(view.to_dict(), f)
+
+    scene.render.engine = "CYCLES"
+    cycles = scene.cycles
+    cycles.device = "CPU"
+    cycles.samples = args["cycles_samples"]
+    cycles.use_adaptive_sampling = False
+    cycles.use_denoising = False
+    cycles.pixel_filter_type = "BOX"        # ours: a box of one pixel
+    cycles.filter_width = 1.0
+    cycles.seed = 1
+    cycles.max_bounces = settings["max_bounces"]
+    cycles.diffuse_bounces = settings["diffuse_bounces"]
+    cycles.glossy_bounces = settings["glossy_bounces"]
+    cycles.transmission_bounces = settings["transmission_bounces"]
+    cycles.transparent_max_bounces = settings["transparent_bounces"]
+    cycles.sample_clamp_direct = settings["clamp_direct"]
+    cycles.sample_clamp_indirect = settings["clamp_indirect"]
+    cycles.blur_glossy = settings["filter_glossy"]
+    import time
+    started = time.perf_counter()
+    scene.render.filepath = f"{OUT}/{name}-cycles.exr"
+    bpy.ops.render.render(write_still=True)
+    timings[f"{name}-cycles"] = time.perf_counter() - started
+    np.save(f"{OUT}/{name}-cycles.npy", read_exr(f"{OUT}/{name}-cycles.exr", width, height))
+
+    scene.render.engine = "KDTRACE"
+    props = scene.kdtrace
+    props.use_zeroconf = False
+    props.local_slaves = 2
+    props.tile_size = 32
+    for key, value in settings.items():
+        setattr(props, key, value)
+    started = time.perf_counter()
+    scene.render.filepath = f"{OUT}/{name}-kdtrace.exr"
+    bpy.ops.render.render(write_still=True)
+    timings[f"{name}-kdtrace"] = time.perf_counter() - started
+    np.save(f"{OUT}/{name}-kdtrace.npy", read_exr(f"{OUT}/{name}-kdtrace.exr", width, height))
+write_result(result_path, {"warnings": warnings, "timings": timings})

@@ -1,0 +1,262 @@
+"""The world and emissive meshes as lights (docs/shading.md), against references computed
+here independently of the kernel: the irradiance integral of an environment map, an area
+light of the same size and power as an emissive panel, exact alias-table probabilities; and
+the kernel features a scene compiles."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from core.accel.kdtree import build_kdtree
+from core.scene.features import ALL_FEATURES, scene_features
+from core.scene.model import (Camera, Geometry, Light, RenderSettings, Shading, View, WorldTexture,
+                              default_material_params)
+from core.scene.scene import Scene
+from slave.buffers import alias_table, emitter_powers, world_importance
+from slave.tracer import Tracer, kernel_options
+from tests.meshes import grid_plane, merge
+
+ALBEDO = 0.5
+
+
+@pytest.fixture(scope="module")
+def tracer():
+    return Tracer()
+
+
+def load(tracer, vertices, triangles, ids=None, **arrays):
+    ids = np.zeros(len(triangles), np.uint16) if ids is None else ids
+    geometry = Geometry(vertices, triangles, ids, **arrays)
+    tracer.load(Scene.from_parts(geometry, build_kdtree(geometry.vertices, geometry.triangles)))
+    return geometry
+
+
+def camera_down(height=1.0, half=1.0):
+    """Orthographic, looking straight down at the plane z = 0 (image x = world x)."""
+    m = np.eye(4)
+    m[2, 3] = height
+    return Camera("ORTHO", m, (half, half), (0.0, 0.0), 0.01, 100.0)
+
+
+def settings(n=8, **extra):
+    return RenderSettings(samples_per_axis=n, adaptive=False, **extra)
+
+
+def render(tracer, view):
+    return tracer.render_tile(view, 0, 0, view.width, view.height)["combined"][..., :3]
+
+
+def test_world_colour_lights_a_plane(tracer):
+    """Sky fill: a diffuse plane under a constant world of radiance W is albedo x W."""
+    load(tracer, *grid_plane(40.0, 1, 0.0))
+    world = (0.2, 0.4, 0.6)
+    view = View(camera_down(), 16, 16, Shading(np.array([[ALBEDO] * 3 + [1]], np.float32), [],
+                                               world), settings=settings(8))
+    image = render(tracer, view)
+    assert "WORLD" in tracer.last_render["features"]
+    np.testing.assert_allclose(image.reshape(-1, 3).mean(0), ALBEDO * np.array(world), rtol=0.01)
+
+
+def sky_texels(width, height, projection):
+    """A small sky: a blue gradient and a bright 'sun' patch (float RGBA rows bottom first),
+    as a function of the texture-space direction, sampled at texel centres."""
+    u = (np.arange(width) + 0.5) / width
+    v = (np.arange(height) + 0.5) / height
+    if projection == "EQUIRECTANGULAR":
+        phi = 2 * np.pi * (0.5 - u)[None, :]
+        elevation = np.pi * (v - 0.5)[:, None]
+        d = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(phi),
+                                         np.cos(elevation) * np.sin(phi), np.sin(elevation)), -1)
+        inside = np.ones((height, width), bool)
+    else:
+        x, z = np.meshgrid(2 * u - 1, 2 * v - 1)
+        r2 = x * x + z * z
+        s = 2 * np.sqrt(np.maximum(1 - r2, 0))
+        d = np.stack([s * x, 2 * r2 - 1, s * z], -1)
+        inside = r2 <= 1
+    sun = np.array([0.5, -0.3, 0.8]) / np.linalg.norm([0.5, -0.3, 0.8])
+    rgb = 0.3 + 0.5 * np.clip(d[..., 2:3], 0, 1) * np.array([0.3, 0.6, 1.0])
+    rgb = np.where((d @ sun > 0.985)[..., None], np.array([60.0, 50.0, 40.0]), rgb)
+    rgb = np.where(inside[..., None], rgb, 0.0)
+    return np.concatenate([rgb, np.ones((height, width, 1))], -1).reshape(-1, 4)
+
+
+def closest_lookup(texels, width, height, projection, d):
+    """Reference of the kernel's world lookup (closest texel), in float64."""
+    if projection == "EQUIRECTANGULAR":
+        u = 0.5 - np.arctan2(d[..., 1], d[..., 0]) / (2 * np.pi)
+        v = 0.5 + np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1])) / np.pi
+    else:
+        div = np.sqrt(2 * np.maximum(1 - d[..., 1], 0))
+        u = 0.5 * (np.where(div > 0, d[..., 0] / np.where(div > 0, div, 1), d[..., 0]) + 1)
+        v = 0.5 * (np.where(div > 0, d[..., 2] / np.where(div > 0, div, 1), d[..., 2]) + 1)
+    u, v = u - np.floor(u), v - np.floor(v)
+    i = np.minimum((u * width).astype(int), width - 1)
+    j = np.minimum((v * height).astype(int), height - 1)
+    return texels[j * width + i, :3]
+
+
+def rotation_z(angle):
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+@pytest.mark.parametrize("projection, mapping", [
+    ("EQUIRECTANGULAR", rotation_z(0.7)),
+    ("EQUIRECTANGULAR", np.diag([1.0, -1.0, 1.0]) @ rotation_z(-0.4)),      # mirrored
+    ("MIRROR_BALL", rotation_z(0.3) @ np.diag([1.0, 1.0, 1.3])),           # stretched
+])
+def test_environment_map_lights_a_plane_as_its_integral(tracer, projection, mapping):
+    """A diffuse plane under an environment texture (importance-sampled, weighted against the
+    BSDF) has radiance albedo / pi x the cosine-weighted integral of the texture over the upper
+    hemisphere, computed here on a fine grid of world directions: this holds only if the
+    sampled directions' densities (projection and mapping Jacobians) are right."""
+    width, height = (64, 32) if projection == "EQUIRECTANGULAR" else (48, 48)
+    texels = sky_texels(width, height, projection)
+    load(tracer, *grid_plane(40.0, 1, 0.0), texels=texels.astype(np.float16),
+         texture_sizes=np.array([[0, width, height]], np.uint32))
+    texels = texels.astype(np.float16).astype(np.float64)
+    world = WorldTexture(0, projection, mapping, "CLOSEST")
+    view = View(camera_down(), 8, 8, Shading(np.array([[ALBEDO] * 3 + [1]], np.float32), [],
+                                             (1.5, 1.5, 1.5), world_texture=world),
+                settings=settings(16))
+    image = render(tracer, view)
+    assert {"WORLD", "WORLD_TEXTURE"} <= set(tracer.last_render["features"])
+    # Reference: midpoint rule over the upper hemisphere in (cos theta, phi).
+    n = 1024
+    mu = (np.arange(n) + 0.5) / n
+    phi = (np.arange(2 * n) + 0.5) / (2 * n) * 2 * np.pi
+    mu, phi = np.meshgrid(mu, phi, indexing="ij")
+    s = np.sqrt(1 - mu * mu)
+    d = np.stack([s * np.cos(phi), s * np.sin(phi), mu], -1)
+    a = d @ mapping.T
+    radiance = closest_lookup(texels, width, height, projection, a / np.linalg.norm(a, axis=-1, keepdims=True))
+    irradiance = 1.5 * (radiance * mu[..., None]).mean(axis=(0, 1)) * 2 * np.pi
+    expected = ALBEDO / np.pi * irradiance
+    np.testing.assert_allclose(image.reshape(-1, 3).mean(0), expected, rtol=0.02)
+
+
+def test_environment_importance_map_is_a_cdf():
+    width, height = 64, 32
+    texels = sky_texels(width, height, "EQUIRECTANGULAR")
+    geometry = Geometry(*grid_plane(2.0, 1, 0.0), np.zeros(2, np.uint16),
+                        texels=texels.astype(np.float16),
+                        texture_sizes=np.array([[0, width, height]], np.uint32))
+    cdf, w, h = world_importance(geometry, WorldTexture(0))
+    assert (w, h) == (width, height) and cdf.dtype == np.float32
+    marginal, rows = cdf[:h + 1], cdf[h + 1:].reshape(h, w + 1)
+    for c in (marginal, *rows):
+        assert c[0] == 0 and c[-1] == 1 and (np.diff(c) >= 0).all()
+    # The brightest cell (the sun) is the likeliest; weights follow colour x cos(elevation).
+    p = np.diff(marginal)[:, None] * np.diff(rows, axis=1)
+    mean = texels[:, :3].astype(np.float16).astype(np.float64).mean(1).reshape(h, w)
+    weight = mean * np.cos(np.pi * ((np.arange(h) + 0.5) / h - 0.5))[:, None]
+    np.testing.assert_allclose(p, weight / weight.sum(), rtol=1e-4, atol=1e-8)
+    again, _, _ = world_importance(geometry, WorldTexture(0))
+    assert again.tobytes() == cdf.tobytes()
+
+
+def test_alias_table_probabilities_are_exact():
+    weights = np.random.default_rng(5).exponential(size=1000) ** 3
+    threshold, alias = alias_table(weights)
+    n = len(weights)
+    probability = threshold.copy()
+    np.add.at(probability, alias, 1.0 - threshold)
+    np.testing.assert_allclose(probability / n, weights / weights.sum(), rtol=1e-9, atol=1e-15)
+    assert ((threshold >= 0) & (threshold <= 1 + 1e-12)).all()
+
+
+def panel_scene(emissive=True):
+    """A floor under two square panels facing down (0.6 m at height 2, 0.3 m at height 1.5)
+    of radiance 4 and 9: emissive triangles, or area lights of the same size and power."""
+    floor = grid_plane(40.0, 1, 0.0)
+    big, small = grid_plane(0.6, 1, 2.0), grid_plane(0.3, 1, 1.5)
+    big = (big[0] + np.float32([0.4, 0.2, 0]), big[1][:, ::-1].copy())
+    small = (small[0] + np.float32([-0.6, -0.3, 0]), small[1][:, ::-1].copy())
+    radiance = {"big": (4.0, (0.4, 0.2, 2.0), 0.6), "small": (9.0, (-0.6, -0.3, 1.5), 0.3)}
+    if emissive:
+        vertices, triangles = merge(floor, big, small)
+        ids = np.r_[np.zeros(2), np.ones(2), 2 * np.ones(2)].astype(np.uint16)
+        params = default_material_params(3)
+        params[1, 4:7], params[2, 4:7] = radiance["big"][0], radiance["small"][0]
+        colours = np.array([[ALBEDO] * 3 + [1], [0, 0, 0, 1], [0, 0, 0, 1]], np.float32)
+        return (vertices, triangles, ids), Shading(colours, [], (0, 0, 0), params)
+    lights = [Light("AREA", (1, 1, 1), L * math.pi * size * size, position, (0, 0, -1),
+                    size_u=size, size_v=size) for L, position, size in radiance.values()]
+    return (*floor, None), Shading(np.array([[ALBEDO] * 3 + [1]], np.float32), lights, (0, 0, 0))
+
+
+def test_emissive_panels_light_as_area_lights_do(tracer):
+    """Emissive triangles, sampled by power with the alias table and weighted against the
+    BSDF, light a floor as area lights of the same size and power do (Blender's area light of
+    power P has radiance P / (pi area)); diffuse bounces on, so BSDF rays meet the panels."""
+    images = {}
+    for emissive in (True, False):
+        mesh, shading = panel_scene(emissive)
+        load(tracer, *mesh)
+        view = View(camera_down(1.0, 1.5), 24, 24, shading, settings=settings(12))
+        images[emissive] = render(tracer, view)
+        assert ("EMISSION" in tracer.last_render["features"]) == emissive
+    ours, reference = images[True], images[False]
+    assert reference.mean() > 0.05
+    np.testing.assert_allclose(ours.mean(), reference.mean(), rtol=0.01)
+    mse = np.mean((ours - reference) ** 2)
+    assert math.sqrt(mse) < 0.05 * reference.mean()       # noise, no pattern
+
+
+def test_emitter_powers_follow_emission_and_area():
+    (vertices, triangles, ids), shading = panel_scene(True)
+    geometry = Geometry(vertices, triangles, ids)
+    emissive, power = emitter_powers(geometry, shading)
+    np.testing.assert_array_equal(emissive, [2, 3, 4, 5])
+    np.testing.assert_allclose(power, [4 * 0.18] * 2 + [9 * 0.045] * 2, rtol=1e-6)
+
+
+def feature_view(shading, **extra):
+    return View(camera_down(), 8, 8, shading, settings=RenderSettings(**extra))
+
+
+FEATURE_CASES = {
+    # name: (shading, settings, the features exactly)
+    "point light, direct only": (
+        Shading(np.array([[0.5, 0.5, 0.5, 1]], np.float32), [Light("POINT", (1, 1, 1), 10.0, (0, 0, 2))],
+                (0, 0, 0)), dict(max_bounces=0), {"POINT"}),
+    "sky fill": (
+        Shading(np.array([[0.5, 0.5, 0.5, 1]], np.float32), [], (0.1, 0.1, 0.1)), {},
+        {"WORLD", "BOUNCES"}),
+    "soft sun and bounces": (
+        Shading(np.array([[0.5, 0.5, 0.5, 1]], np.float32),
+                [Light("SUN", (1, 1, 1), 2.0, radius=0.05)], (0, 0, 0)), {},
+        {"SUN", "SOFT_LIGHTS", "BOUNCES"}),
+}
+
+
+@pytest.mark.parametrize("name", sorted(FEATURE_CASES))
+def test_unused_features_are_off_in_the_kernel_build(tracer, name):
+    """The kernel of a scene is built with exactly the features it uses: every other
+    HAS_<FEATURE> is off (tests/test_cycles_scenes.py checks the same for its scenes)."""
+    shading, extra, expected = FEATURE_CASES[name]
+    geometry = load(tracer, *grid_plane(4.0, 1, 0.0))
+    view = feature_view(shading, samples_per_axis=1, adaptive=False, **extra)
+    assert scene_features(geometry, view) == expected
+    tracer.render_tile(view, 0, 0, 8, 8)
+    assert set(tracer.last_render["features"]) == expected
+    options = [o for o in kernel_options({"flags": expected}) if o.startswith("-DHAS_")]
+    assert sorted(options) == sorted(f"-DHAS_{f}" for f in expected)
+    assert not {f"-DHAS_{f}" for f in ALL_FEATURES - expected} & set(options)
+
+
+def test_unused_emissive_and_world_textures_compile_nothing():
+    """An emissive material no triangle uses, a world texture behind a black world colour,
+    and no bounces: no EMISSION, WORLD or WORLD_TEXTURE."""
+    params = default_material_params(2)
+    params[1, 4:7] = 5.0
+    texels = np.ones((4, 4), np.float16)
+    geometry = Geometry(*grid_plane(4.0, 1, 0.0), np.zeros(2, np.uint16), texels=texels,
+                        texture_sizes=np.array([[0, 2, 2]], np.uint32))
+    shading = Shading(np.array([[0.5, 0.5, 0.5, 1], [0, 0, 0, 1]], np.float32),
+                      [Light("POINT", (1, 1, 1), 10.0, (0, 0, 2))], (0, 0, 0), params,
+                      WorldTexture(0))
+    assert scene_features(geometry, feature_view(shading, max_bounces=0)) == {"POINT"}
