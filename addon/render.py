@@ -146,7 +146,7 @@ def render(engine, depsgraph):
         tree_settings = user_settings(settings.kdtree_mode, settings.tau_occu,
                                       settings.tau_freq, settings.refs_per_path)
         tree, built = state.trees.get(geometry, settings.kdtree_mode, tree_settings,
-                                      tree_progress)
+                                      tree_progress, device=prefs.slave_device)
         scene = Scene.from_parts(geometry, tree)
         scene.check_view(view)
         tree_done = time.perf_counter()
@@ -192,7 +192,8 @@ def render(engine, depsgraph):
         "joined_during_frame": [f"{host}:{port}" for host, port in state.joined]}
     summary = (f"export {exported - started:.2f} s, kd-tree {'built' if built else 'reused'} "
                f"{tree_done - exported:.2f} s ({tree.stats['mode']}: {tree.stats['nodes']:,} nodes, "
-               f"{tree.nbytes / 1e6:.1f} MB), render "
+               f"{tree.nbytes / 1e6:.1f} MB; {tree.stats['builder']} builder on "
+               f"{tree.stats['device']}), render "
                f"{finished - tree_done:.2f} s; tiles: "
                + ", ".join(f"{name} {count}" for name, count in sorted(per_slave.items()))
                + (f"; local slaves started: {state.local_reason}" if state.local_reason else "")

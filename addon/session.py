@@ -7,8 +7,8 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass
 
-from ..core.accel.kdtree import build_kdtree
 from ..core.accel.compact import compact_tree
+from ..core.accel.kdtree_cl import build_standard, opencl_builder
 from ..core.net.slave_colors import slave_color
 from .local_slaves import LocalSlaves
 
@@ -27,10 +27,12 @@ class TreeCache:
         self._standard: OrderedDict = OrderedDict()   # geometry hash -> KDTree
         self._lock = threading.Lock()
 
-    def get(self, geometry, mode: str, settings: dict, progress=None):
+    def get(self, geometry, mode: str, settings: dict, progress=None, device="auto"):
         """(compact tree, built): built is True when anything had to be built or compacted.
         `settings`: compact_tree's keyword arguments (core.accel.compact.user_settings).
-        progress(fraction, message) covers both steps: the SAH build 0-0.8, compaction 0.8-1."""
+        progress(fraction, message) covers both steps: the SAH build 0-0.8, compaction 0.8-1.
+        Both run on the OpenCL device `device` (the preferences' local slave device) when
+        there is one, else with numpy; the tree's stats say which builder ran where."""
         report = progress or (lambda fraction, message: None)
         key = (geometry.content_hash(), mode, tuple(sorted(settings.items())))
         with self._lock:
@@ -39,13 +41,16 @@ class TreeCache:
                 return self._trees[key], False
             standard = self._standard.get(key[0])
         if standard is None:
-            standard = build_kdtree(geometry.vertices, geometry.triangles,
-                                    progress=lambda f, m: report(0.8 * f, m))
+            standard, builder = build_standard(geometry.vertices, geometry.triangles, device,
+                                               progress=lambda f, m: report(0.8 * f, m))
             with self._lock:
                 self.builds += 1
                 self._remember(self._standard, key[0], standard)
+        else:
+            builder = opencl_builder(device)[0]
         compact = compact_tree(standard, geometry.triangle_count, mode, **settings,
-                               progress=lambda f, m: report(0.8 + 0.2 * f, m))
+                               progress=lambda f, m: report(0.8 + 0.2 * f, m), device=builder)
+        compact.stats.update({k: standard.stats[k] for k in ("builder", "device", "build_seconds")})
         with self._lock:
             self.compactions += 1
             self._remember(self._trees, key, compact)

@@ -479,3 +479,18 @@ def test_kernel_compaction_falls_back_for_other_orders(builder):
     for mode in ("ours", "standard"):
         same_compact(compact_tree(other, triangle_count, mode, device=builder),
                      compact_tree(other, triangle_count, mode))
+
+
+# ---------------------------------------------------------------------------------------------
+# What the add-on calls (addon/session.py TreeCache.get)
+
+def test_build_standard_uses_the_device_or_falls_back_to_numpy(builder):
+    from core.accel.kdtree_cl import build_standard, opencl_builder
+    vertices, triangles = SCENES["soup"]()
+    tree, used = build_standard(vertices, triangles, "cpu")
+    assert used is not None and tree.stats["builder"] == "opencl"
+    assert opencl_builder("cpu")[0] is used, "one builder per device, made once"
+    fallback, none = build_standard(vertices, triangles, "7:7")    # no such device
+    assert none is None and fallback.stats["builder"] == "numpy"
+    assert "7:7" in fallback.stats["device"]
+    same_tree(tree, fallback)

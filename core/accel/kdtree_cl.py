@@ -660,3 +660,29 @@ def build_kdtree_cl(vertices, triangles, params: KDTreeParams | None = None, pro
                     device=None) -> KDTree:
     """build_kdtree() on an OpenCL device (see builder_for)."""
     return builder_for(device).build(vertices, triangles, params, progress)
+
+
+def opencl_builder(device="auto"):
+    """(builder_for(device), None), or (None, why not) when pyopencl is missing or there is no
+    such OpenCL device."""
+    from ..opencl import OpenCLError
+    try:
+        return builder_for(device), None
+    except ImportError as error:
+        return None, f"pyopencl is not installed ({error})"
+    except OpenCLError as error:
+        return None, str(error).splitlines()[0]
+
+
+def build_standard(vertices, triangles, device="auto", params: KDTreeParams | None = None,
+                   progress=None):
+    """The standard kd-tree, on the OpenCL device `device` (see builder_for) when there is one,
+    else with numpy (core.accel.kdtree.build_kdtree: the same tree). Returns (tree, the builder
+    or None); tree.stats["builder"] / ["device"] say which ran where."""
+    from .kdtree import build_kdtree
+    builder, reason = opencl_builder(device)
+    if builder is not None:
+        return builder.build(vertices, triangles, params, progress), builder
+    tree = build_kdtree(vertices, triangles, params, progress)
+    tree.stats.update(builder="numpy", device=f"host CPU ({reason})")
+    return tree, None
