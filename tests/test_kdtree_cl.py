@@ -494,3 +494,31 @@ def test_build_standard_uses_the_device_or_falls_back_to_numpy(builder):
     assert none is None and fallback.stats["builder"] == "numpy"
     assert "7:7" in fallback.stats["device"]
     same_tree(tree, fallback)
+
+
+def test_launches_in_pieces_give_the_same_tree_and_see_the_callback(monkeypatch):
+    # Long launches go in pieces with the progress callback between them (Esc stays prompt):
+    # the pieces change nothing, and an exception from the callback stops the work there.
+    import core.accel.kdtree_cl as kcl
+    vertices, triangles = load_bunny()
+    small = KDTreeBuilderCL("cpu", subtree_refs=64, chunk_refs=32)
+    reference = small.build(vertices, triangles)
+    calls = []
+    monkeypatch.setattr(kcl, "PIECE_REFS", 64)
+    monkeypatch.setattr(kcl, "PIECE_ITEMS", 256)
+    pieces = small.build(vertices, triangles, progress=lambda f, m: calls.append(m))
+    same_tree(reference, pieces)
+    assert sum(m.startswith("kd-tree level") for m in calls) > 20
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_the_second_call_of_a_level(fraction, message, seen=[]):
+        seen.append(message)
+        if seen.count(message) > 1:
+            raise Stop
+    with pytest.raises(Stop):
+        small.build(vertices, triangles, progress=stop_at_the_second_call_of_a_level)
+    ct = compact_tree(reference, len(triangles), "ours", device=small,
+                      progress=lambda f, m: calls.append(m))
+    same_compact(ct, compact_tree(reference, len(triangles), "ours"))

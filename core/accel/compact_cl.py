@@ -80,7 +80,8 @@ class CompactorCL:
                                            ["-DKDTRACE_SOFT_FP64"] if builder.soft_fp64 else [])
 
     def _run(self, b, kernel, count, *args):
-        b._run(kernel, count, *args, local_size=self.local_size)
+        from .kdtree_cl import PIECE_ITEMS
+        b._run(kernel, count, *args, local_size=self.local_size, piece=PIECE_ITEMS)
 
     def sorted_references(self, topo, tree, triangle_count):
         """References sorted by (triangle, preorder of the leaf): (s_leaf, s_tri, tri_first)
@@ -364,9 +365,12 @@ def compact_on_device(device, tree, triangles_count, params, report, started):
     builder = builder_for(device)
     c = compactor_for(builder)
     b, k = c.b, c.k
+    report = b.reporting(report)
     u4 = np.uint32
     n = shape.n
+    report(0.0, f"compact ({params.mode}): {n:,} nodes")
     topo = DeviceTopology(c, tree, shape)
+    report(0.1, "compact: topology")
     s_leaf, s_pre, s_tri, d_first, tri_first, R = c.sorted_references(topo, tree, triangles_count)
     report(0.2, "compact: tree decoded")
 
@@ -374,6 +378,7 @@ def compact_on_device(device, tree, triangles_count, params, report, started):
                                             or params.refs_per_path > 0)
     if lifting or params.collapse:
         gap_node, gap_pre, gap_depth = c.neighbour_lcas(topo, s_pre, s_tri, R)
+        report(0.3, "compact: neighbouring references' common ancestors")
     if lifting:
         per_depth = c.lift_candidates(topo, d_first, triangles_count, s_pre, gap_pre, gap_depth,
                                       R, params)
@@ -396,11 +401,13 @@ def compact_on_device(device, tree, triangles_count, params, report, started):
     report(0.7, "compact: subtrees collapsed")
 
     dead, owner = c.owners(topo, shape, collapsed)
+    report(0.75, "compact: owners of the collapsed subtrees' contents")
     gone = c.gather(dead, lift_node).astype(bool) | c.gather(collapsed, lift_node).astype(bool)
     final_count, item_first, items, item_count = c.items(
         topo, d_removed, s_leaf, s_tri, owner, R, c.gather(owner, lift_node[gone], np.uint32),
         lift_tri[gone])
     lift_node, lift_tri = lift_node[~gone], lift_tri[~gone]
+    report(0.85, f"compact: {item_count:,} leaf references")
     laid_out = c.layout(topo, shape, params, dead, collapsed, final_count, item_first, items,
                         lift_node, lift_tri, triangles_count)
     max_path = c.max_refs_on_path(topo, shape, dead, lift_node)

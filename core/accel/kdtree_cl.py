@@ -36,6 +36,10 @@ ROOT_WORDS = 18         # subtree.cl's root record
 MAX_STACK = 64          # subtree.cl's KD_STACK: a subtree spans fewer levels than this
 FLT_MIN = np.float32(np.finfo(np.float32).tiny)
 HIST_PAD = 6            # histogram words per chunk: 6 * max_bins + 6
+# Launches over more than this many references (big-node passes) or items (one work-item
+# each) go in pieces, with the progress callback between them: Esc is seen within a piece.
+PIECE_REFS = 1 << 21
+PIECE_ITEMS = 1 << 22
 
 
 def _float_literal(x: float) -> str:
@@ -101,6 +105,20 @@ class KDTreeBuilderCL:
         self.local_size = local_size if local_size is not None else (1 if self.is_cpu else 32)
         self.batch_seconds = 0.15      # target time of one subtree launch (Esc stays prompt)
         self.last_profile: dict = {}
+        self._progress = None          # the running build's or compaction's callback
+        self._last_progress = (0.0, "")
+
+    def reporting(self, progress):
+        """A progress callback that also serves heartbeat() until replaced."""
+        if progress is None:
+            self._progress = None
+            return lambda fraction, message: None
+
+        def report(fraction, message):
+            self._last_progress = (fraction, message)
+            progress(fraction, message)
+        self._progress = progress
+        return report
 
     @property
     def device_name(self) -> str:
@@ -143,14 +161,29 @@ class KDTreeBuilderCL:
                              hostbuf=array)
         return cl.Buffer(self.context, cl.mem_flags.READ_WRITE, max(int(nbytes), 4))
 
-    def _run(self, kernel, count, *args, local_size=None):
-        """kernel over `count` work-items (padded to the work-group size; kernels skip the
-        padding)."""
+    def _run(self, kernel, count, *args, local_size=None, piece=None):
+        """kernel over `count` work-items (padded to the work-group size; kernels skip ids
+        past their count). With `piece`, in launches of that many work-items (by global
+        offset), each waited for and followed by heartbeat(): the progress callback, whose
+        exception (Esc) then stops the work within one piece."""
         if count == 0:
             return
         ls = local_size or self.local_size
-        size = -(-int(count) // ls) * ls
-        kernel(self.queue, (size,), (ls,), *args)
+        count = int(count)
+        if piece is None or count <= piece:
+            kernel(self.queue, (-(-count // ls) * ls,), (ls,), *args)
+            return
+        piece = -(-int(piece) // ls) * ls
+        for start in range(0, count, piece):
+            size = -(-min(piece, count - start) // ls) * ls
+            kernel(self.queue, (size,), (ls,), *args, global_offset=(start,))
+            self.queue.finish()
+            self.heartbeat()
+
+    def heartbeat(self):
+        """The current progress callback with the last fraction and message (see _run)."""
+        if self._progress is not None:
+            self._progress(*self._last_progress)
 
     def _read(self, buffer, dtype, shape):
         out = np.empty(shape, dtype)
@@ -164,7 +197,7 @@ class KDTreeBuilderCL:
         """Build the kd-tree (see module docstring). `progress(fraction, message)` is called
         between kernel launches, on this thread; an exception it raises stops the build."""
         params = params or KDTreeParams()
-        report = progress or (lambda fraction, message: None)
+        report = self.reporting(progress)
         started = time.perf_counter()
         profile = {}
         clock = [time.perf_counter(), time.process_time()]
@@ -268,7 +301,8 @@ class _BuildState:
         u4 = np.uint32
         refs = b._buffer(nbytes=32 * T)
         keep = b._buffer(nbytes=T)
-        b._run(k["init_refs"], T, self.vertices, self.triangles, refs, keep, self.corners, u4(T))
+        b._run(k["init_refs"], T, self.vertices, self.triangles, refs, keep, self.corners, u4(T),
+               piece=PIECE_ITEMS)
         self.vertices = self.triangles = None
         flags = b._read(keep, np.uint8, T)
         kept = int(flags.sum())
@@ -355,13 +389,15 @@ class _BuildState:
             d_decision = b._buffer(nbytes=16 * m)
             d_sah = b._buffer(nbytes=8 * m)
             d_out = b._buffer(nbytes=8 * C)
-            b._run(k["big_bin"], C, level_refs, d_chunks, d_cells, d_n, d_hist, u4(C))
+            piece = max(1, PIECE_REFS // CH)
+            b._run(k["big_bin"], C, level_refs, d_chunks, d_cells, d_n, d_hist, u4(C), piece=piece)
             b._run(k["big_choose"], m, d_node_chunks, d_hist, d_cells, d_n, d_choice, u4(m))
-            b._run(k["big_recount"], C, level_refs, d_chunks, d_choice, d_counts, u4(C))
+            b._run(k["big_recount"], C, level_refs, d_chunks, d_choice, d_counts, u4(C),
+                   piece=piece)
             b._run(k["big_decide"], m, d_node_chunks, d_counts, d_choice, d_cells, d_n, d_bad,
                    d_decision, d_sah, u4(m), u4(level), u4(self.depth_cap), self.pow2, self.inv_root)
             b._run(k["big_classify"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
-                   d_out, u4(C))
+                   d_out, u4(C), piece=piece)
             decision = b._read(d_decision, u4, (m, 4))
             out = b._read(d_out, u4, (C, 2)).astype(np.int64)
             sah = b._read(d_sah, np.int64, m)
@@ -420,7 +456,7 @@ class _BuildState:
             next_refs = b._buffer(nbytes=32 * max(next_total, 1))
             d_dest = b._buffer(dest)
             b._run(k["big_scatter"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
-                   d_dest, next_refs, self.queue_refs, u4(C))
+                   d_dest, next_refs, self.queue_refs, u4(C), piece=piece)
             b.queue.finish()
 
             # Inner nodes of this level (placed later), and the next level's big nodes.
@@ -577,8 +613,10 @@ class _BuildState:
         d_nodes = b._buffer(nbytes=8 * total_nodes)
         d_leaves = b._buffer(nbytes=4 * total_refs)
         store = self.store
+        per_subtree = max(1, int(self.rec_count.sum()) // max(n_sub, 1))
         b._run(k["place_subtrees"], n_sub, store.words, store.meta, store.leaf_refs,
-               b._buffer(places), b._buffer(bases), d_nodes, d_leaves, u4(n_sub))
+               b._buffer(places), b._buffer(bases), d_nodes, d_leaves, u4(n_sub),
+               piece=max(1, PIECE_ITEMS // per_subtree))
         nodes = b._read(d_nodes, u4, (total_nodes, 2))
         leaf_indices = b._read(d_leaves, u4, total_refs)
         self.store = None
