@@ -138,7 +138,13 @@ def test_every_panel_draws_the_settings_it_offers(tmp_path):
     result = run_bpy_script("draw_panels", tmp_path, zip=str(build_extension(tmp_path / "dist")))
     drawn = result["drawn"]
     assert {"tile_partition", "tile_size"} <= set(drawn["RENDER_PT_kdtrace"])
-    assert {"samples_per_axis", "adaptive"} <= set(drawn["RENDER_PT_kdtrace_sampling"])
+    # Sampling and Light Paths, as Cycles' panels, show every render setting between them.
+    assert set(RenderSettings().to_dict()) <= (set(drawn["RENDER_PT_kdtrace_sampling"])
+                                               | set(drawn["RENDER_PT_kdtrace_light_paths"]))
+    assert {"samples_per_axis", "adaptive", "adaptive_threshold"} <= set(
+        drawn["RENDER_PT_kdtrace_sampling"])
+    assert {"max_bounces", "diffuse_bounces", "glossy_bounces", "transmission_bounces",
+            "clamp_indirect"} <= set(drawn["RENDER_PT_kdtrace_light_paths"])
     assert {"kdtree_mode", "tau_occu", "tau_freq"} <= set(drawn["RENDER_PT_kdtrace_kdtree"])
     assert {"payload", "interaction", "secret_file"} <= set(drawn["RENDER_PT_kdtrace_network"])
     assert {"use_zeroconf", "local_slaves"} <= set(drawn["RENDER_PT_kdtrace_slaves"])

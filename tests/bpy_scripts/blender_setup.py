@@ -51,7 +51,8 @@ def mesh_object(name, vertices, triangles, location=(0, 0, 0), color=(0.8, 0.8, 
 
 
 def build_test_scene(width=160, height=120):
-    """A UV sphere, the Stanford bunny and a ground plane, a camera and a sun and point light."""
+    """A UV sphere, the Stanford bunny and a ground plane, a camera and a sun and point light;
+    KD Trace set to one sample per pixel."""
     from tests.meshes import load_bunny
     scene = bpy.context.scene
     bpy.ops.mesh.primitive_uv_sphere_add(radius=1.0, location=(-1.6, 0.5, 1.0), segments=48, ring_count=24)
@@ -79,6 +80,12 @@ def build_test_scene(width=160, height=120):
     scene.collection.objects.link(lamp)
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
+    if hasattr(scene, "kdtrace"):
+        # One sample per pixel, direct light and mirrors: quick renders for the tests of the
+        # pipeline (the default is Cycles' clean, slow final render).
+        settings = scene.kdtrace
+        settings.samples_per_axis, settings.adaptive, settings.light_samples_per_axis = 1, False, 2
+        settings.max_bounces, settings.diffuse_bounces = 8, 0
     return scene
 
 

@@ -170,12 +170,12 @@ def build(name):
         camera((0.0, -4.5, 2.4), (0, 0.3, 0.4))
     elif name in ("world_hdri", "world_mirror_ball"):
         image = hdri("EQUIRECTANGULAR" if name == "world_hdri" else "MIRROR_BALL")
-        world(image=image, strength=1.5, rotation=(0.0, 0.0, math.radians(50)))
+        world(image=image, strength=1.0, rotation=(0.0, 0.0, math.radians(50)))
         floor()
         sphere(material("diffuse", "DIFFUSE", (0.8, 0.8, 0.8)), (-0.8, 0.3, 0.6))
         sphere(material("metal", color=(0.9, 0.75, 0.5), Metallic=1.0, Roughness=0.25),
                (0.8, 0.3, 0.6))
-        camera((0.0, -4.5, 1.6), (0, 0.5, 0.7), lens=30)
+        camera((0.0, -3.8, 2.0), (0, 0.4, 0.6), lens=30)
     elif name == "emission_room":
         # A closed room lit only by an emissive ceiling panel (diffuse bounces matter).
         walls = material("walls", "DIFFUSE", (0.75, 0.75, 0.72))
@@ -211,7 +211,7 @@ def build(name):
                                                       Strength=4.0),
             size=0.3, location=(1.9, -0.4, 0.15))
         light("AREA", (0.5, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.5)
-        camera((0.0, -4.2, 1.8), (0, 0.2, 0.3), lens=40)
+        camera((0.0, -5.5, 2.2), (0, 0.2, 0.3), lens=40)
     elif name == "glass":
         # Glass under an area light: its highlight in the glass, caustics, the shadow.
         world((0.2, 0.22, 0.25))
@@ -221,8 +221,28 @@ def build(name):
         sphere(material("rough glass", color=(0.9, 1.0, 0.9),
                         **{"Transmission Weight": 1.0, "Roughness": 0.3, "IOR": 1.5}),
                (0.7, 0.3, 0.6))
-        light("AREA", (0.3, 2.5, 2.5), (0, 0, 0.5), energy=300.0, size=1.2)
+        light("AREA", (1.6, -2.2, 3.0), (0, 0, 0.5), energy=250.0, size=1.0)
         camera((0.0, -4.0, 1.5), (0, 0.2, 0.6), lens=40)
+    elif name == "warned":
+        # Things KD Trace does not render, each to be named in a warning (export only).
+        w = bpy.data.worlds.new("sky world")
+        w.use_nodes = True
+        sky_node = w.node_tree.nodes.new("ShaderNodeTexSky")
+        w.node_tree.links.new(sky_node.outputs["Color"], w.node_tree.nodes["Background"].inputs["Color"])
+        bpy.context.scene.world = w
+        coat = material("coated", color=(0.5, 0.5, 0.8), **{"Coat Weight": 0.5})
+        bump = coat.node_tree.nodes.new("ShaderNodeBump")
+        coat.node_tree.links.new(bump.outputs["Normal"],
+                                 coat.node_tree.nodes["Principled BSDF"].inputs["Normal"])
+        sphere(coat, (0, 0, 0.5), radius=0.5).name = "coated ball"
+        toon = bpy.data.materials.new("toon")
+        toon.use_nodes = True
+        node = toon.node_tree.nodes.new("ShaderNodeBsdfToon")
+        toon.node_tree.links.new(node.outputs[0], toon.node_tree.nodes["Material Output"].inputs["Surface"])
+        floor(toon).name = "toon floor"
+        light("AREA", (0, 0, 3), (0, 0, 0), energy=100.0, size=1.0, spread=math.radians(60))
+        bpy.data.objects["area"].name = "narrow area"
+        camera((0.0, -4.0, 1.5), (0, 0, 0.5))
     bpy.context.view_layer.update()
 
 
@@ -252,11 +272,13 @@ for name in args["scenes"]:
     np.savez(f"{OUT}/{name}-scene.npz", **geometry.arrays())
     with open(f"{OUT}/{name}-view.json", "w") as f:
         json.dump(view.to_dict(), f)
+    if name == "warned":
+        continue
 
     scene.render.engine = "CYCLES"
     cycles = scene.cycles
     cycles.device = "CPU"
-    cycles.samples = args["cycles_samples"]
+    cycles.samples = settings["samples_per_axis"] ** 2      # the same samples as ours
     cycles.use_adaptive_sampling = False
     cycles.use_denoising = False
     cycles.pixel_filter_type = "BOX"        # ours: a box of one pixel
