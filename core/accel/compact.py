@@ -513,7 +513,7 @@ def _pass_down(topo, k, target, source, extra):
     target[child + 1] = target[child]
 
 
-def _select_lifts(topo, per_depth, ref_count, params):
+def _select_lifts(topo, per_depth, ref_count, params, heartbeat=None):
     """Top-down greedy choice under the per-node and per-path limits.
 
     At each node the candidates that remove the most references win. A candidate is void when
@@ -548,6 +548,8 @@ def _select_lifts(topo, per_depth, ref_count, params):
             lift_first.append(first[take])
         if limited:
             _pass_down(topo, d, on_path, on_path, refs_at)
+        if heartbeat is not None:
+            heartbeat()
     lift_node, lift_tri, lift_first = (np.concatenate(part) if part else np.zeros(0, np.int64)
                                        for part in (lift_node, lift_tri, lift_first))
     return removed, lift_node, lift_tri, refs_at, lift_first

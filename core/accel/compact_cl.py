@@ -52,13 +52,16 @@ class DeviceTopology:
             c._run(b, k["topo_down"], end - first, self.nodes, cells[level % 2],
                    cells[(level + 1) % 2], self.area, self.depth, self.parent, self.stops,
                    u4(first), u4(end), u4(level))
+            b.heartbeat()
         del cells
         for first, end in reversed(ranges):
             c._run(b, k["topo_up"], end - first, self.nodes, self.size, self.nonempty, u4(first),
                    u4(end))
+            b.heartbeat()
         b._cl.enqueue_fill_buffer(b.queue, self.pre, np.uint32(0), 0, 4)
         for first, end in ranges:
             c._run(b, k["topo_pre"], end - first, self.nodes, self.size, self.pre, u4(first), u4(end))
+            b.heartbeat()
         self.max_depth = len(ranges) - 1
         self.node_at_pre = b._buffer(nbytes=4 * n)
         self.climb = b._buffer(nbytes=16 * n)
@@ -144,6 +147,7 @@ class CompactorCL:
         b, k = self.b, self.k
         u4 = np.uint32
         n = topo.n
+        b.heartbeat()
         kept = ~removed
         kept_leaf = host_s_leaf[kept]
         counts = np.bincount(kept_leaf, minlength=n)
@@ -153,8 +157,10 @@ class CompactorCL:
                   - np.bincount(host_gap_node[starts], minlength=n))
         per_node = b._buffer(values.astype(np.int32))
         leaf_count = b._buffer(counts.astype(u4))
+        b.heartbeat()
         for first, end in reversed(shape.ranges):
             self._run(b, k["subtree_sums"], end - first, topo.nodes, per_node, u4(first), u4(end))
+            b.heartbeat()
         d_refs_at = b._buffer(refs_at.astype(u4))
         cost = b._buffer(nbytes=8 * n)
         collapsed = b._buffer(nbytes=n)
@@ -163,6 +169,7 @@ class CompactorCL:
         for first, end in reversed(shape.ranges):
             self._run(b, k["collapse"], end - first, topo.nodes, topo.area, leaf_count, d_refs_at,
                       per_node, cost, collapsed, u4(first), u4(end), kt, ki)
+            b.heartbeat()
         return collapsed
 
     def zeros(self, nbytes):
@@ -193,6 +200,7 @@ class CompactorCL:
         for first, end in shape.ranges:
             self._run(b, k["owners"], end - first, topo.nodes, collapsed, dead, owner,
                       u4(first), u4(end))
+            b.heartbeat()
         return dead, owner
 
     def scan(self, values, n, out=None):
@@ -244,6 +252,7 @@ class CompactorCL:
                       items, u4(len(by_owner)))
         self._run(b, k["items_scatter"], R, d_removed, s_leaf, s_tri, owner, owner_first, cursor,
                   items, u4(R))
+        b.heartbeat()
         kept = b._buffer(nbytes=4 * (n + 1))
         self._run(b, k["items_unique"], n, owner_first, items, kept, u4(n))
         # The buckets closed up: final lists one after another in node order.
@@ -276,6 +285,7 @@ class CompactorCL:
         self._run(b, k["layout_groups"], n, topo.nodes, classes, refs_at, elided, group_size,
                   u4(n), u4(bool(params.elide_empty)))
         total = 1 + self.scan(group_size, n)              # now each live inner node's group - 1
+        b.heartbeat()
         if total - 1 > MAX_GROUP_INDEX:
             raise ValueError(f"compact kd-tree too large: {total} nodes (at most {MAX_GROUP_INDEX})")
         shift = _leaf_shift(triangles_count)
@@ -292,6 +302,7 @@ class CompactorCL:
         new_index = b._buffer(nbytes=4 * n)
         self._run(b, k["layout_places"], n, topo.nodes, classes, elided, refs_at, group_size,
                   new_index, out, u4(n))
+        b.heartbeat()
         self._run(b, k["layout_words"], n, topo.nodes, classes, elided, refs_at, group_size,
                   final_count, item_first, items, count16, off32, off16, base_of, new_index, out,
                   index32, index16, u4(n), u4(shift))
@@ -344,6 +355,7 @@ class CompactorCL:
         for first, end in shape.ranges:
             self._run(b, k["path_refs"], end - first, topo.nodes, dead, refs_at, on_path, most,
                       u4(first), u4(end))
+            b.heartbeat()
         return int(b._read(most, u4, 1)[0])
 
 
@@ -383,7 +395,7 @@ def compact_on_device(device, tree, triangles_count, params, report, started):
         per_depth = c.lift_candidates(topo, d_first, triangles_count, s_pre, gap_pre, gap_depth,
                                       R, params)
         removed, lift_node, lift_tri, refs_at, lift_first = host._select_lifts(
-            shape, per_depth, R, params)
+            shape, per_depth, R, params, b.heartbeat)
         del per_depth
     else:
         removed = np.zeros(R, bool)

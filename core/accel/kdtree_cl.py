@@ -177,12 +177,13 @@ class KDTreeBuilderCL:
         for start in range(0, count, piece):
             size = -(-min(piece, count - start) // ls) * ls
             kernel(self.queue, (size,), (ls,), *args, global_offset=(start,))
-            self.queue.finish()
             self.heartbeat()
 
     def heartbeat(self):
-        """The current progress callback with the last fraction and message (see _run)."""
+        """Wait for the queued kernels, then call the current progress callback with the last
+        fraction and message: between steps, its exception (Esc) stops the work at once."""
         if self._progress is not None:
+            self.queue.finish()
             self._progress(*self._last_progress)
 
     def _read(self, buffer, dtype, shape):
@@ -309,7 +310,8 @@ class _BuildState:
         if kept < T:
             place = (np.cumsum(flags, dtype=np.int64) - flags).astype(u4)
             out = b._buffer(nbytes=32 * kept)
-            b._run(k["compact_refs"], T, refs, keep, b._buffer(place), out, u4(T))
+            b._run(k["compact_refs"], T, refs, keep, b._buffer(place), out, u4(T),
+                   piece=PIECE_ITEMS)
             refs = out
         del keep
         chunk = 1 << 16
