@@ -6,7 +6,8 @@ frame after frame on --slaves local `python -m slave` processes, on loopback, ea
 compared bit for bit with the same frame rendered by the tracer in this process. Meanwhile:
 - chaos: every 20-60 s a random slave is SIGKILLed and restarted on its port 0.5-5 s later;
   the restarted slave is joined to the master as discovery would (Master.join), and the
-  master's own reconnection with back-off runs too;
+  master's own reconnection with back-off runs too; --steady N slaves are left alone, so that
+  their memory is seen over the whole run;
 - fuzz: --mutated messages (10,000 by default), spread over the run, each on a connection of
   its own to a random slave: valid messages with flipped bits, truncated or inflated lengths,
   fields replaced by values of other types, huge numbers and nested junk, random message
@@ -20,8 +21,8 @@ differ; target 0), frame times, kills, unexpected slave exits (crashes; target 0
 answers, and each slave's RSS over time. --long-tiles afterwards runs the 2-minute-tile render
 (tests/test_reliability.py with KDTRACE_LONG_TESTS=1).
 
-    .venv/bin/python bench/soak.py [--minutes 30] [--slaves 3] [--mutated 10000] [--idle 500]
-                                   [--json out.json] [--long-tiles]
+    .venv/bin/python bench/soak.py [--minutes 30] [--slaves 3] [--steady 0] [--mutated 10000]
+                                   [--idle 500] [--json out.json] [--long-tiles]
 """
 from __future__ import annotations
 
@@ -47,9 +48,9 @@ from bench.network_scaling import bench_scene  # noqa: E402
 from core.net import protocol  # noqa: E402
 from core.net.master import Master  # noqa: E402
 from core.net.protocol import HEADER, MsgType  # noqa: E402
-from core.scene.model import SCENE_FORMAT_VERSION, Light, RenderSettings  # noqa: E402
+from core.scene.model import SCENE_FORMAT_VERSION, Light  # noqa: E402
 from core.scene.scene import Scene  # noqa: E402
-from tests.test_network import make_view  # noqa: E402
+from tests.test_network import make_view, network_settings  # noqa: E402
 
 
 def rss_mib(pid: int) -> float | None:
@@ -267,8 +268,9 @@ class IdleSockets:
     def __init__(self, slots, count: int, seconds: float, seed: int):
         self.slots, self.count, self.seconds = slots, count, seconds
         self.rng = random.Random(seed)
-        self.opened = 0
+        self.attempted = self.opened = 0
         self.kinds = {"silent": 0, "hello": 0, "dribble": 0}
+        self.count_lock = threading.Lock()
         self.stop = threading.Event()
 
     def run(self) -> None:
@@ -285,12 +287,15 @@ class IdleSockets:
                                  daemon=True).start()
 
     def hold(self, slot, kind: str, seconds: float) -> None:
+        with self.count_lock:
+            self.attempted += 1
         try:
             sock = socket.create_connection(slot.endpoint, timeout=3)
         except OSError:
-            return
-        self.opened += 1
-        self.kinds[kind] += 1
+            return      # that slave was down (chaos)
+        with self.count_lock:
+            self.opened += 1
+            self.kinds[kind] += 1
         data = hello_bytes(random.Random())
         end = time.monotonic() + seconds
         try:
@@ -315,7 +320,7 @@ def frame_views():
     base = make_view(128, 96)
     lit = make_view(128, 96)
     lit.shading.lights.append(Light("AREA", (1, 1, 1), 200.0, (0, 0, 4), size_u=1, size_v=1))
-    lit.settings = RenderSettings(samples_per_axis=2, light_samples_per_axis=2)
+    lit.settings = network_settings(samples_per_axis=2, light_samples_per_axis=2)
     border = make_view(128, 96, region=(10, 8, 110, 90))
     return [("plain 3b", base, {"tile_size": 16}),
             ("area light 3a", lit, {"tile_size": 24, "model": "3a"}),
@@ -355,6 +360,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--minutes", type=float, default=30.0)
     parser.add_argument("--slaves", type=int, default=3)
+    parser.add_argument("--steady", type=int, default=0,
+                        help="slaves that chaos leaves alone (their RSS over the whole run)")
     parser.add_argument("--mutated", type=int, default=10_000)
     parser.add_argument("--idle", type=int, default=500)
     parser.add_argument("--seed", type=int, default=1)
@@ -385,9 +392,11 @@ def main(argv=None) -> int:
     stop = threading.Event()
     kills = []
 
+    victims = slots[args.steady:]
+
     def chaos():
-        while not stop.wait(rng.uniform(20, 60)):
-            slot = rng.choice(slots)
+        while victims and not stop.wait(rng.uniform(20, 60)):
+            slot = rng.choice(victims)
             slot.kill()
             kills.append((time.monotonic(), slot.name))
             if stop.wait(rng.uniform(0.5, 5)):
@@ -460,7 +469,8 @@ def main(argv=None) -> int:
         "slave_problems_recovered": errors_seen, "kills": len(kills),
         "crashes": {s.name: s.crashes for s in slots if s.crashes},
         "mutated_messages": fuzzer.sent, "mutated_answers": fuzzer.answers,
-        "idle_sockets": idle.opened, "idle_kinds": idle.kinds,
+        "idle_sockets": idle.attempted, "idle_sockets_connected": idle.opened,
+        "idle_kinds": idle.kinds, "steady_slaves": [s.name for s in slots[:args.steady]],
         "rss": rss, "logs": str(log_dir)}
     print(json.dumps({k: v for k, v in report.items() if k != "rss"}, indent=1))
     print("slave RSS (MiB): instance, minutes alive, first, last, max")

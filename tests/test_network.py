@@ -19,7 +19,7 @@ from core.net.discovery import SlaveBrowser, browse_slaves
 from core.accel.kdtree import build_kdtree
 from core.net.master import Master, MasterError
 from core.net.protocol import HEADER, MAGIC, MsgType
-from core.scene.model import Camera, Geometry, Light, Shading, View
+from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
 from core.scene.scene import Scene
 from tests.conftest import ROOT
 from tests.meshes import grid_plane, merge, uv_sphere
@@ -52,6 +52,14 @@ def make_scene(sphere_center=(0.0, 0.0, 1.0)):
     return geometry, build_kdtree(geometry.vertices, geometry.triangles)
 
 
+def network_settings(samples_per_axis=1, light_samples_per_axis=2) -> RenderSettings:
+    """Uniform sampling (never adaptive: its pixels depend on the tiling), direct light plus
+    mirror bounces: cheap frames whose pixels are the same in every tiling, so a tiled render
+    must equal the one-piece render bit for bit."""
+    return RenderSettings(samples_per_axis=samples_per_axis, adaptive=False, max_bounces=8,
+                          diffuse_bounces=0, light_samples_per_axis=light_samples_per_axis)
+
+
 def make_view(width=64, height=48, region=None):
     m = np.eye(4)
     m[:3, 3] = (0, -6, 3)
@@ -62,7 +70,8 @@ def make_view(width=64, height=48, region=None):
               Light("SUN", (1, 0.9, 0.8), 2.0, direction=(-0.3, 0.2, -1))]
     shading = Shading(np.array([[0.8, 0.2, 0.2, 1], [0.7, 0.7, 0.7, 1]], np.float32), lights,
                       (0.05, 0.05, 0.05))
-    return View(Camera("PERSP", m, (0.6, 0.45), (0.05, 0), 0.1, 100), width, height, shading, region)
+    return View(Camera("PERSP", m, (0.6, 0.45), (0.05, 0), 0.1, 100), width, height, shading, region,
+                network_settings())
 
 
 def render_all(job, timeout=60.0):

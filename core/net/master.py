@@ -308,15 +308,17 @@ class Master:
 
     # -- connecting
 
+    def _dial(self, endpoint) -> SlaveConnection:
+        return connect_slave(endpoint[0], endpoint[1], self.connect_timeout, self.name,
+                             self.secret, self.heartbeat_s, self.silence_timeout)
+
     def _connect(self, endpoint, busy_retries: bool = True) -> SlaveConnection:
         """Connect and handshake; a busy slave is asked again after each retry delay."""
         delays = list(self.retry_delays) if busy_retries else []
         self._set_state(endpoint, "connecting")
         while True:
             try:
-                connection = connect_slave(endpoint[0], endpoint[1], self.connect_timeout,
-                                           self.name, self.secret, self.heartbeat_s,
-                                           self.silence_timeout)
+                connection = self._dial(endpoint)
             except SlaveBusy as exc:
                 if not delays or self._closed:
                     self._set_state(endpoint, "lost", str(exc))
@@ -375,7 +377,8 @@ class Master:
         reason = "no attempt"
         try:
             for attempt, delay in enumerate(delays, 1):
-                self._set_state(endpoint, "reconnecting", f"attempt {attempt} of {len(delays)}")
+                self._set_state(endpoint, "connecting" if job is None and attempt == 1
+                                else "reconnecting", f"attempt {attempt} of {len(delays)}")
                 end = time.monotonic() + delay
                 while time.monotonic() < end and not self._closed:
                     time.sleep(min(0.05, max(0.0, end - time.monotonic())))
@@ -383,9 +386,7 @@ class Master:
                     reason = "the frame ended first"
                     return
                 try:
-                    connection = connect_slave(endpoint[0], endpoint[1], self.connect_timeout,
-                                               self.name, self.secret, self.heartbeat_s,
-                                               self.silence_timeout)
+                    connection = self._dial(endpoint)
                 except MasterError as exc:
                     reason = str(exc)
                     self._set_state(endpoint, "reconnecting", reason)
@@ -401,6 +402,7 @@ class Master:
                 with self._lock:
                     if self._closed:
                         connection.close()
+                        reason = "the master was closed"
                         return
                     self.connections.append(connection)
                     current = self._job
@@ -453,12 +455,17 @@ class Master:
         return uploaded
 
     def _scene_ready(self, connection: SlaveConnection, scene_hash: str) -> bool:
-        """Wait for SCENE_READY; the slave heartbeats while it validates a large upload."""
-        heard = time.monotonic()
+        """Wait for SCENE_READY; the slave heartbeats while it validates a large upload, within
+        the budget of a step (TileBudget.base_s)."""
+        started = heard = time.monotonic()
         while True:
             reply = connection.recv(wait=POLL_S)
+            now = time.monotonic()
+            if now - started > self.tile_budget.base_s:
+                raise MasterError(f"did not load the scene within its budget of "
+                                  f"{self.tile_budget.base_s:.0f} s")
             if reply is None:
-                if time.monotonic() - heard > self.silence_timeout:
+                if now - heard > self.silence_timeout:
                     raise MasterError(f"did not answer within {self.silence_timeout:g} s")
                 continue
             heard = time.monotonic()
