@@ -210,25 +210,6 @@ class _Topology:
             self._decode(tree)
         self.max_depth = len(self.levels) - 1
 
-    @classmethod
-    def shape_only(cls, tree):
-        """Only the node fields and the level ranges (a tree in the builders' order: None
-        for any other), for the kernel path (core/accel/compact_cl.py), which keeps the rest
-        on the device."""
-        topo = cls.__new__(cls)
-        word0 = tree.nodes[:, 0]
-        topo.n = len(tree.nodes)
-        topo.is_leaf = PLAIN_TAG.get(word0) == LEAF_TAG
-        topo.axis = PLAIN_TAG.get(word0).astype(np.int8)
-        topo.field = PLAIN_FIELD.get(word0).astype(np.int64)
-        topo.split_bits = tree.nodes[:, 1]
-        topo.ranges = level_ranges(topo.is_leaf, topo.field)
-        if topo.ranges is None:
-            return None
-        topo.levels = [np.arange(a, b) for a, b in topo.ranges]
-        topo.max_depth = len(topo.levels) - 1
-        return topo
-
     def _decode(self, tree):
         """Levels, parents, depths, areas, then subtree sizes and preorder numbers, following
         child indices from the root (any order of nodes)."""
@@ -513,43 +494,46 @@ def _pass_down(topo, k, target, source, extra):
     target[child + 1] = target[child]
 
 
-def _select_lifts(topo, per_depth, ref_count, params, heartbeat=None):
-    """Top-down greedy choice under the per-node and per-path limits.
+def _choose_lifts(cand, removed, on_path_of, params):
+    """One depth of the greedy choice: the candidates (node, triangle, r, first, end) whose
+    triangle was not lifted to an ancestor (its run not yet removed), by node the ones that
+    remove the most references (ties: lower triangle), as many as the node and the path allow
+    (`on_path_of(nodes)`: references on their proper ancestors). Marks the taken runs removed;
+    returns the taken (node, triangle, first), sorted by node."""
+    node, tri, r, first, end = cand
+    live = ~removed[first]
+    node, tri, r, first, end = node[live], tri[live], r[live], first[live], end[live]
+    order = np.lexsort((tri, -r, node))
+    node, tri, first, end = node[order], tri[order], first[order], end[order]
+    group = _run_starts(node)
+    rank = np.arange(len(node)) - np.repeat(group, np.diff(np.append(group, len(node))))
+    path_cap = params.refs_per_path if params.refs_per_path is not None else 1 << 30
+    cap = np.minimum(params.refs_per_node, path_cap - on_path_of(node))
+    take = rank < cap
+    removed[_ranges(first[take], end[take] - first[take])] = True
+    return node[take], tri[take], first[take]
 
-    At each node the candidates that remove the most references win. A candidate is void when
-    its triangle was already lifted to an ancestor (its whole run is then removed).
-    Returns (removed mask over sorted references, lift node, lift triangle, references per
-    node, first position of each lift's run).
-    """
+
+def _select_lifts(topo, per_depth, ref_count, params):
+    """Top-down greedy choice under the per-node and per-path limits (_choose_lifts, depth by
+    depth). Returns (removed mask over sorted references, lift node, lift triangle, references
+    per node, first position of each lift's run)."""
     removed = np.zeros(ref_count, bool)
     refs_at = np.zeros(topo.n, np.int64)
     on_path = np.zeros(topo.n, np.int64)          # references on the proper ancestors
     limited = params.refs_per_path is not None    # else on_path never matters
-    path_cap = params.refs_per_path if limited else 1 << 30
     lift_node, lift_tri, lift_first = [], [], []
     for d in range(len(topo.levels)):
         cand = per_depth[d] if d < len(per_depth) else None
         if cand is not None and len(cand[0]) and params.refs_per_node:
-            node, tri, r, first, end = cand
-            live = ~removed[first]
-            node, tri, r, first, end = node[live], tri[live], r[live], first[live], end[live]
-            order = np.lexsort((tri, -r, node))
-            node, tri, first, end = node[order], tri[order], first[order], end[order]
-            group = _run_starts(node)
-            rank = np.arange(len(node)) - np.repeat(group, np.diff(np.append(group, len(node))))
-            cap = np.minimum(params.refs_per_node, path_cap - on_path[node])
-            take = rank < cap
-            removed[_ranges(first[take], end[take] - first[take])] = True
-            taken = node[take]                             # sorted: one run per node
-            runs = _run_starts(taken)
+            taken, tri, first = _choose_lifts(cand, removed, lambda nodes: on_path[nodes], params)
+            runs = _run_starts(taken)                      # one run per node
             refs_at[taken[runs]] += np.diff(np.append(runs, len(taken)))
             lift_node.append(taken)
-            lift_tri.append(tri[take])
-            lift_first.append(first[take])
+            lift_tri.append(tri)
+            lift_first.append(first)
         if limited:
             _pass_down(topo, d, on_path, on_path, refs_at)
-        if heartbeat is not None:
-            heartbeat()
     lift_node, lift_tri, lift_first = (np.concatenate(part) if part else np.zeros(0, np.int64)
                                        for part in (lift_node, lift_tri, lift_first))
     return removed, lift_node, lift_tri, refs_at, lift_first

@@ -38,67 +38,40 @@ inline dbl cell_area(const float* lo, const float* hi)
 }
 
 /* ----------------------------------------------------------------------------------------
-   Topology (compact.py _Topology, _falls_going_up, subtree sums). Cells of one level (6 floats
-   per node, by position in the level) give the next level's. */
+   The builders' order: is node i's first child at 1 + 2 (inner nodes before i)? inner_before
+   is the exclusive prefix sum of inner_flags. */
 
-__kernel void topo_root(__global const float* restrict bounds, __global float* restrict cells,
-                        __global dbl* restrict area, __global uchar* restrict depth,
-                        __global uint* restrict parent, __global uchar* restrict stops)
+__kernel void inner_flags(__global const uint2* restrict nodes, __global uint* restrict flags, uint n)
 {
-    float lo[3], hi[3];
-    for (int a = 0; a < 3; a++) {
-        lo[a] = bounds[a];
-        hi[a] = bounds[3 + a];
-        cells[a] = lo[a];
-        cells[3 + a] = hi[a];
-    }
-    dbl A = cell_area(lo, hi);
-    area[0] = A;
-    depth[0] = 0;
-    parent[0] = NONE;
-    stops[0] = d_finite(A) && D_LT(D_ZERO, A);
+    uint i = get_global_id(0);
+    if (i < n)
+        flags[i] = !is_leaf(nodes[i]);
 }
 
-/* Per node of level [first, end): its children's cells, areas, depths, parents and whether
-   the area never shrinks from them up to the root. */
-__kernel void topo_down(__global const uint2* restrict nodes, __global const float* restrict cells,
-                        __global float* restrict next_cells, __global dbl* restrict area,
-                        __global uchar* restrict depth, __global uint* restrict parent,
-                        __global uchar* restrict stops, uint first, uint end, uint level)
+__kernel void order_check(__global const uint2* restrict nodes,
+                          __global const uint* restrict inner_before, __global uint* restrict bad,
+                          uint n)
 {
-    uint i = first + get_global_id(0);
-    if (i >= end)
-        return;
-    uint2 w = nodes[i];
-    if (is_leaf(w))
-        return;
-    uint c = KD_PLAIN_FIELD(w.x);
-    int axis = (int)KD_PLAIN_TAG(w.x);
-    float split = as_float(w.y);
-    __global const float* cell = cells + 6 * (i - first);
-    for (int side = 0; side < 2; side++) {
-        float lo[3], hi[3];
-        for (int a = 0; a < 3; a++) {
-            lo[a] = cell[a];
-            hi[a] = cell[3 + a];
-        }
-        if (side)
-            lo[axis] = split;
-        else
-            hi[axis] = split;
-        uint child = c + (uint)side;
-        __global float* out = next_cells + 6 * (child - end);
-        for (int a = 0; a < 3; a++) {
-            out[a] = lo[a];
-            out[3 + a] = hi[a];
-        }
-        dbl A = cell_area(lo, hi);
-        area[child] = A;
-        depth[child] = (uchar)(level + 1);
-        parent[child] = i;
-        stops[child] = d_finite(A) && D_LT(D_ZERO, A) && stops[i] && D_GE(area[i], A);
-    }
+    uint i = get_global_id(0);
+    if (i < n && !is_leaf(nodes[i]) && KD_PLAIN_FIELD(nodes[i].x) != 1u + 2u * inner_before[i])
+        *bad = 1u;               /* every writer writes the same value */
 }
+
+/* ----------------------------------------------------------------------------------------
+   Topology (compact.py _Topology, _falls_going_up, subtree sums), level by level: subtree
+   sizes and non-empty leaves going up, then going down the cells (6 floats per node, by
+   position in its level), areas and preorder numbers, and each node's records at its
+   preorder number p (so that climbing stays near its start: a below child follows its
+   parent directly):
+     climb[p] = (end of its preorder range, the parent's preorder number, depth, the node);
+     walk[p] = (area, the parent's preorder number, non-empty leaves below | whether the area
+                never shrinks from here up to the root << 31). */
+
+typedef struct {
+    dbl area;
+    uint parent;             /* preorder number, NONE at the root */
+    uint nonempty_stops;
+} WalkRecord;
 
 /* Per node of a level, bottom-up: subtree size and non-empty leaves below (leaves: 1 and
    count > 0). */
@@ -119,9 +92,44 @@ __kernel void topo_up(__global const uint2* restrict nodes, __global uint* restr
     }
 }
 
-/* Per node of a level, top-down: the children's preorder numbers. */
-__kernel void topo_pre(__global const uint2* restrict nodes, __global const uint* restrict size,
-                       __global uint* restrict pre, uint first, uint end)
+inline void put_records(uint x, uint p, uint parent_pre, uint depth, int parent_stops,
+                        dbl parent_area, dbl A, __global const uint* size,
+                        __global const uint* nonempty, __global uint4* climb,
+                        __global WalkRecord* walk)
+{
+    int stops = d_finite(A) && D_LT(D_ZERO, A) && parent_stops && D_GE(parent_area, A);
+    climb[p] = (uint4)(p + size[x], parent_pre, depth, x);
+    WalkRecord w;
+    w.area = A;
+    w.parent = parent_pre;
+    w.nonempty_stops = nonempty[x] | ((uint)stops << 31);
+    walk[p] = w;
+}
+
+__kernel void topo_root(__global const float* restrict bounds, __global float* restrict cells,
+                        __global const uint* restrict size, __global const uint* restrict nonempty,
+                        __global uint* restrict pre, __global uint4* restrict climb,
+                        __global WalkRecord* restrict walk)
+{
+    float lo[3], hi[3];
+    for (int a = 0; a < 3; a++) {
+        lo[a] = bounds[a];
+        hi[a] = bounds[3 + a];
+        cells[a] = lo[a];
+        cells[3 + a] = hi[a];
+    }
+    dbl A = cell_area(lo, hi);
+    pre[0] = 0u;
+    put_records(0u, 0u, NONE, 0u, 1, A, A, size, nonempty, climb, walk);
+}
+
+/* Per node of level [first, end), top-down: its children's cells (for the next level),
+   preorder numbers and records. */
+__kernel void topo_down(__global const uint2* restrict nodes, __global const float* restrict cells,
+                        __global float* restrict next_cells, __global const uint* restrict size,
+                        __global const uint* restrict nonempty, __global uint* restrict pre,
+                        __global uint4* restrict climb, __global WalkRecord* restrict walk,
+                        uint first, uint end, uint level)
 {
     uint i = first + get_global_id(0);
     if (i >= end)
@@ -130,28 +138,54 @@ __kernel void topo_pre(__global const uint2* restrict nodes, __global const uint
     if (is_leaf(w))
         return;
     uint c = KD_PLAIN_FIELD(w.x);
-    pre[c] = pre[i] + 1u;
-    pre[c + 1] = pre[i] + 1u + size[c];
+    int axis = (int)KD_PLAIN_TAG(w.x);
+    float split = as_float(w.y);
+    uint p = pre[i];
+    WalkRecord parent = walk[p];
+    int stops = parent.nonempty_stops >> 31;
+    __global const float* cell = cells + 6 * (i - first);
+    for (int side = 0; side < 2; side++) {
+        float lo[3], hi[3];
+        for (int a = 0; a < 3; a++) {
+            lo[a] = cell[a];
+            hi[a] = cell[3 + a];
+        }
+        if (side)
+            lo[axis] = split;
+        else
+            hi[axis] = split;
+        uint child = c + (uint)side;
+        __global float* out = next_cells + 6 * (child - end);
+        for (int a = 0; a < 3; a++) {
+            out[a] = lo[a];
+            out[3 + a] = hi[a];
+        }
+        uint pc = side ? p + 1u + size[c] : p + 1u;
+        pre[child] = pc;
+        put_records(child, pc, p, level + 1u, stops, parent.area, cell_area(lo, hi), size,
+                    nonempty, climb, walk);
+    }
 }
 
 /* ----------------------------------------------------------------------------------------
    References sorted by (triangle, preorder of the leaf): counted per triangle, scattered into
    their triangle's range (in any order), then each range sorted by preorder. */
 
+/* Per node (leaves only): its references scattered into their triangles' ranges. */
 __kernel void refs_scatter(__global const uint2* restrict nodes,
-                           __global const uint* restrict leaves,
                            __global const uint* restrict leaf_indices,
                            __global const uint* restrict tri_first, __global uint* restrict cursor,
                            __global const uint* restrict pre, __global uint* restrict s_leaf,
-                           __global uint* restrict s_pre, uint leaf_count)
+                           __global uint* restrict s_pre, uint n)
 {
-    uint l = get_global_id(0);
-    if (l >= leaf_count)
+    uint node = get_global_id(0);
+    if (node >= n)
         return;
-    uint node = leaves[l];
     uint2 w = nodes[node];
-    uint n = KD_PLAIN_FIELD(w.x);
-    for (uint j = 0; j < n; j++) {
+    if (!is_leaf(w))
+        return;
+    uint count = KD_PLAIN_FIELD(w.x);
+    for (uint j = 0; j < count; j++) {
         uint t = leaf_indices[w.y + j];
         uint at = tri_first[t] + atomic_inc(cursor + t);
         s_leaf[at] = node;
@@ -234,39 +268,6 @@ __kernel void refs_sort(__global const uint* restrict tri_first, __global uint* 
    Gap j lies before sorted reference j: the LCA of references j-1 and j when they hold the
    same triangle (climbing from the first until its subtree holds the second), and its depth;
    -1 between triangles and at both ends (compact.py _neighbour_lcas). */
-
-/* Per node, by its preorder number p (so that climbing stays near its start: a below child
-   follows its parent directly): the node, what climbing needs (end of its preorder range,
-   the parent's preorder number, depth) and what walking up needs (area, parent, non-empty
-   leaves below and whether the area never shrinks from there up). */
-typedef struct {
-    dbl area;
-    uint parent;             /* preorder number, NONE at the root */
-    uint nonempty_stops;     /* bits 0-30: non-empty leaves below; bit 31: stops */
-} WalkRecord;
-
-__kernel void preorder_records(__global const uint* restrict pre, __global const uint* restrict size,
-                               __global const uint* restrict parent,
-                               __global const uchar* restrict depth,
-                               __global const dbl* restrict area,
-                               __global const uint* restrict nonempty,
-                               __global const uchar* restrict stops,
-                               __global uint* restrict node_at_pre, __global uint4* restrict climb,
-                               __global WalkRecord* restrict walk, uint n)
-{
-    uint i = get_global_id(0);
-    if (i >= n)
-        return;
-    uint p = pre[i];
-    uint up = parent[i] == NONE ? NONE : pre[parent[i]];
-    node_at_pre[p] = i;
-    climb[p] = (uint4)(p + size[i], up, depth[i], i);
-    WalkRecord w;
-    w.area = area[i];
-    w.parent = up;
-    w.nonempty_stops = nonempty[i] | ((uint)stops[i] << 31);
-    walk[p] = w;
-}
 
 /* In preorder numbers: x holds b when x <= b < end(x). gap_pre: the LCA's preorder number. */
 __kernel void neighbour_lcas(__global const uint* restrict s_pre, __global const uint* restrict s_tri,
@@ -388,8 +389,7 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
                               __global const WalkRecord* restrict walk,
                               __global uint* restrict left, __global uint* restrict right,
                               __global uint* restrict stack, __global uint* restrict out,
-                              __global uint* restrict used,
-                              __global const uint* restrict node_at_pre, uint capacity,
+                              __global uint* restrict used, uint capacity,
                               uint triangle_count, uint min_refs, ulong tau_occu_bits,
                               ulong tau_freq_bits)
 {
@@ -474,7 +474,7 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
                 }
                 uint* c = block + 6 * held++;
                 c[0] = (uint)d;
-                c[1] = node_at_pre[node];
+                c[1] = climb[node].w;
                 c[2] = t;
                 c[3] = r;
                 c[4] = run_lo;
@@ -494,9 +494,39 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
 }
 
 /* ----------------------------------------------------------------------------------------
-   Distinct triangles below each node (compact.py _distinct_below: per node +1 for each kept
-   reference and lift there, -1 for the gap before each of them at its LCA, counted on the
-   host), summed over subtrees; then the collapse. */
+   Distinct triangles below each node (compact.py _distinct_below): kept references and lifts
+   count +1 at their node, the gap before each of them -1 at its LCA; then summed over
+   subtrees. Also each leaf's kept references (leaf_count). Then the collapse. */
+
+__kernel void distinct_refs(__global const uchar* restrict removed,
+                            __global const uint* restrict s_leaf,
+                            __global const uint* restrict gap_node,
+                            __global const int* restrict gap_depth, __global int* restrict per_node,
+                            __global uint* restrict leaf_count, uint ref_count)
+{
+    uint j = get_global_id(0);
+    if (j >= ref_count || removed[j])
+        return;
+    atomic_inc(per_node + s_leaf[j]);
+    atomic_inc(leaf_count + s_leaf[j]);
+    if (gap_depth[j] >= 0)
+        atomic_dec(per_node + gap_node[j]);
+}
+
+__kernel void distinct_lifts(__global const uint* restrict lift_node,
+                             __global const uint* restrict lift_first,
+                             __global const uint* restrict gap_node,
+                             __global const int* restrict gap_depth, __global int* restrict per_node,
+                             uint lift_count)
+{
+    uint j = get_global_id(0);
+    if (j >= lift_count)
+        return;
+    atomic_inc(per_node + lift_node[j]);
+    uint f = lift_first[j];
+    if (gap_depth[f] >= 0)
+        atomic_dec(per_node + gap_node[f]);
+}
 
 /* Per node of a level, bottom-up: values summed over its subtree. */
 __kernel void subtree_sums(__global const uint2* restrict nodes, __global int* restrict values,
@@ -516,7 +546,8 @@ __kernel void subtree_sums(__global const uint2* restrict nodes, __global int* r
    Collapse (compact.py _collapse), bottom-up per level in double: a subtree becomes one leaf
    when K_I distinct <= K_T + K_I refs + (A_b cost_b + A_a cost_a) / A. */
 
-__kernel void collapse(__global const uint2* restrict nodes, __global const dbl* restrict area,
+__kernel void collapse(__global const uint2* restrict nodes, __global const uint* restrict pre,
+                       __global const WalkRecord* restrict walk,
                        __global const uint* restrict leaf_count,
                        __global const uint* restrict refs_at, __global const int* restrict distinct,
                        __global dbl* restrict cost, __global uchar* restrict collapsed,
@@ -533,8 +564,8 @@ __kernel void collapse(__global const uint2* restrict nodes, __global const dbl*
         return;
     }
     uint c = KD_PLAIN_FIELD(w.x);
-    dbl below = D_ADD(D_MUL(area[c], cost[c]), D_MUL(area[c + 1], cost[c + 1]));
-    dbl sub = D_ADD(D_ADD(K_T, D_MUL(K_I, D_FROM_U(refs_at[i]))), D_DIV(below, area[i]));
+    dbl below = D_ADD(D_MUL(walk[pre[c]].area, cost[c]), D_MUL(walk[pre[c + 1]].area, cost[c + 1]));
+    dbl sub = D_ADD(D_ADD(K_T, D_MUL(K_I, D_FROM_U(refs_at[i]))), D_DIV(below, walk[pre[i]].area));
     dbl as_leaf = D_MUL(K_I, D_FROM_U((uint)distinct[i]));
     int take = D_LE(as_leaf, sub);
     collapsed[i] = (uchar)take;
@@ -858,6 +889,30 @@ __kernel void path_refs(__global const uint2* restrict nodes, __global const uch
     }
 }
 
+/* Top-down per level, the lift selection's references on the proper ancestors. */
+__kernel void pass_down(__global const uint2* restrict nodes, __global const uint* restrict refs_at,
+                        __global uint* restrict on_path, uint first, uint end)
+{
+    uint i = first + get_global_id(0);
+    if (i >= end)
+        return;
+    uint2 w = nodes[i];
+    if (!is_leaf(w)) {
+        uint c = KD_PLAIN_FIELD(w.x);
+        uint here = on_path[i] + refs_at[i];
+        on_path[c] = here;
+        on_path[c + 1] = here;
+    }
+}
+
+__kernel void gather_bytes(__global const uchar* restrict values, __global const uint* restrict at,
+                           __global uint* restrict out, uint count)
+{
+    uint j = get_global_id(0);
+    if (j < count)
+        out[j] = values[at[j]];
+}
+
 /* Small helpers: values[places[j]] = what[j] (or +=); out[j] = values[at[j]]. */
 __kernel void put_values(__global const uint* restrict places, __global const uint* restrict what,
                          __global uint* restrict values, uint count)
@@ -884,11 +939,13 @@ __kernel void gather_values(__global const uint* restrict values, __global const
 }
 
 /* Counts for the layout's stats, per block of nodes: stored leaves, empty stored leaves,
-   elided leaves, 16-bit leaves, 32-bit non-empty leaves, live inner nodes, and the largest
-   stored leaf's count. */
+   elided leaves, 16-bit leaves, 32-bit non-empty leaves, live inner nodes, the largest stored
+   leaf's count, collapsed nodes that survive. */
 __kernel void layout_stats(__global const uchar* restrict classes, __global const uchar* restrict elided,
                            __global const uint* restrict final_count,
-                           __global const uint* restrict count16, __global uint* restrict stats,
+                           __global const uint* restrict count16,
+                           __global const uchar* restrict collapsed,
+                           __global const uchar* restrict dead, __global uint* restrict stats,
                            uint n, uint block)
 {
     uint g = get_global_id(0);
@@ -896,9 +953,10 @@ __kernel void layout_stats(__global const uchar* restrict classes, __global cons
     if (first >= n)
         return;
     uint last = first + block < n ? first + block : n;
-    uint c[7] = {0u, 0u, 0u, 0u, 0u, 0u, 0u};
+    uint c[8] = {0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u};
     for (uint i = first; i < last; i++) {
         uchar cls = classes[i];
+        c[7] += collapsed[i] && !dead[i];
         c[5] += (cls >> 1) & 1u;
         c[2] += elided[i];
         if (!(cls & 1u) || elided[i])
@@ -913,6 +971,6 @@ __kernel void layout_stats(__global const uchar* restrict classes, __global cons
             c[4]++;
         c[6] = c[6] > count ? c[6] : count;
     }
-    for (int k = 0; k < 7; k++)
+    for (int k = 0; k < 8; k++)
         stats[8 * g + k] = c[k];
 }
