@@ -16,6 +16,7 @@ from . import compact as host
 
 KERNEL_FILES = ("build/fp64.cl", "build/compact.cl")
 U4 = np.uint32
+PRIVATE_GAPS = 64         # a triangle with more references keeps its lift stacks in the scratch
 
 
 def _exclusive(counts) -> np.ndarray:
@@ -25,12 +26,14 @@ def _exclusive(counts) -> np.ndarray:
 
 
 class _ByDepth:
-    """Lift candidates by depth: rows (depth, node, triangle, r, first, end) sorted by depth,
-    handed out per depth as int64 columns (node, triangle, r, first, end)."""
+    """Lift candidates, rows (depth, node, triangle, r, first, end) in any order, handed out
+    per depth as int64 columns (node, triangle, r, first, end)."""
 
     def __init__(self, found, depth_count):
         self.found = found
-        self.bounds = np.searchsorted(found[:, 0], np.arange(depth_count + 1))
+        # Rows by depth (numpy's stable sort of a uint8 key is a radix sort).
+        self.order = np.argsort(found[:, 0].astype(np.uint8), kind="stable")
+        self.bounds = _exclusive(np.bincount(found[:, 0], minlength=depth_count)[:depth_count])
 
     def __len__(self):
         return len(self.bounds) - 1
@@ -39,7 +42,7 @@ class _ByDepth:
         a, b = self.bounds[d], self.bounds[d + 1]
         if a == b:
             return None
-        part = self.found[a:b].astype(np.int64)
+        part = self.found[self.order[a:b]].astype(np.int64)
         return tuple(part[:, j] for j in range(1, 6))
 
 
@@ -51,8 +54,10 @@ class CompactorCL:
         self.b = builder
         # Many small work-items: work-groups of them (PoCL pays per work-group).
         self.local_size = local_size or (256 if builder.is_cpu else 64)
-        self.k = builder._programs.kernels(kernel_source(KERNEL_FILES),
-                                           ["-DKDTRACE_SOFT_FP64"] if builder.soft_fp64 else [])
+        options = [f"-DPRIVATE_GAPS={PRIVATE_GAPS}u"]
+        if builder.soft_fp64:
+            options.append("-DKDTRACE_SOFT_FP64")
+        self.k = builder._programs.kernels(kernel_source(KERNEL_FILES), options)
 
     # -- helpers ---------------------------------------------------------------------------
     def run(self, name, count, *args):
@@ -173,24 +178,25 @@ class CompactorCL:
                         climb, walk, R, depth_count, params) -> _ByDepth:
         """compact.py _lift_candidates, by depth."""
         b = self.b
-        scratch = [b._buffer(nbytes=4 * (R + 1)) for _ in range(3)]
+        # Triangles with more than PRIVATE_GAPS references keep their stacks in the scratch.
+        counts = np.diff(b._read(tri_first, U4, triangle_count + 1).astype(np.int64))
+        big = np.where(counts > PRIVATE_GAPS, counts, 0)
+        big_first = _exclusive(big)
+        scratch = b._buffer(nbytes=12 * max(int(big_first[-1]), 1))
         taus = (np.float64(params.tau_occu).view(np.uint64),
                 np.float64(params.tau_freq).view(np.uint64))
-        capacity = max(R, 1024)
+        capacity = max(R // 2, 1024)
         while True:
             out = b._buffer(nbytes=24 * capacity)
             used = self.zeros(4)
             self.run("lift_candidates", triangle_count, tri_first, s_pre, gap_pre, gap_depth,
-                     nodes, climb, walk, *scratch, out, used, U4(capacity), U4(triangle_count),
-                     U4(params.min_refs), *taus)
+                     nodes, climb, walk, b._buffer(big_first[:-1].astype(U4)), scratch, out,
+                     used, U4(capacity), U4(triangle_count), U4(params.min_refs), *taus)
             total = self.value_at(used, 0)
             if total <= capacity:
                 break
             capacity = total          # more candidates than room: again with room for all
-        found = b._read(out, U4, (total, 6))
-        # By depth (numpy's stable sort of a uint8 key is a radix sort).
-        return _ByDepth(found[np.argsort(found[:, 0].astype(np.uint8), kind="stable")],
-                        depth_count)
+        return _ByDepth(b._read(out, U4, (total, 6)), depth_count)
 
     def select_lifts(self, nodes, ranges, per_depth, R, n, params):
         """compact.py _select_lifts, its references on the path and per node on the device:

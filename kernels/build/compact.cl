@@ -379,6 +379,7 @@ inline dbl run_area(__global const WalkRecord* walk, __global const uint* s_pre,
 /* Candidate words (6 uints): depth, node, triangle, references, first, end; appended in
    blocks through `used` (any order: the host sorts them). */
 #define CANDIDATE_BLOCK 32
+/* PRIVATE_GAPS (-D, compact_cl.py): triangles with more references use the scratch. */
 
 __kernel void lift_candidates(__global const uint* restrict tri_first,
                               __global const uint* restrict s_pre,
@@ -387,8 +388,8 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
                               __global const uint2* restrict nodes,
                               __global const uint4* restrict climb,
                               __global const WalkRecord* restrict walk,
-                              __global uint* restrict left, __global uint* restrict right,
-                              __global uint* restrict stack, __global uint* restrict out,
+                              __global const uint* restrict big_first,
+                              __global uint* restrict scratch, __global uint* restrict out,
                               __global uint* restrict used, uint capacity,
                               uint triangle_count, uint min_refs, ulong tau_occu_bits,
                               ulong tau_freq_bits)
@@ -400,25 +401,38 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
     if (e == a)
         return;
     dbl tau_occu = D_BITS(tau_occu_bits), tau_freq = D_BITS(tau_freq_bits);
-    /* Nearest gap to the left with depth <= ours, to the right with depth < ours. */
+    /* Nearest gap to the left with depth <= ours, to the right with depth < ours (by gap
+       index relative to a; private arrays, or for a triangle with many references its
+       part of the scratch: three arrays of its reference count). */
+    uint own[3 * PRIVATE_GAPS];
+    uint span = e - a;
+    __global uint* far = scratch + 3 * (size_t)big_first[t];
+    uint* near = own;
+    int private_gaps = span <= PRIVATE_GAPS;
+#define LEFT(g) (private_gaps ? near[(g) - a] : far[(g) - a])
+#define RIGHT(g) (private_gaps ? near[PRIVATE_GAPS + (g) - a] : far[span + (g) - a])
+#define STACK(k) (private_gaps ? near[2 * PRIVATE_GAPS + (k)] : far[2 * span + (k)])
+#define SET(where, value) do { if (private_gaps) near[where] = (value); else far[where] = (value); } while (0)
     uint sp = 0;
-    __global uint* st = stack + a;
-    st[sp++] = a;
+    SET(private_gaps ? 2 * PRIVATE_GAPS : 2 * span, a);
+    sp = 1;
     for (uint g = a + 1; g < e; g++) {
         int dg = gap_depth[g];
-        while (gap_depth[st[sp - 1]] > dg)
+        while (gap_depth[STACK(sp - 1)] > dg)
             sp--;
-        left[g] = st[sp - 1];
-        st[sp++] = g;
+        SET(g - a, STACK(sp - 1));
+        SET((private_gaps ? 2 * PRIVATE_GAPS : 2 * span) + sp, g);
+        sp++;
     }
-    sp = 0;
-    st[sp++] = e;
+    SET(private_gaps ? 2 * PRIVATE_GAPS : 2 * span, e);
+    sp = 1;
     for (uint g = e - 1; g > a; g--) {
         int dg = gap_depth[g];
-        while (gap_depth[st[sp - 1]] >= dg)
+        while (gap_depth[STACK(sp - 1)] >= dg)
             sp--;
-        right[g] = st[sp - 1];
-        st[sp++] = g;
+        SET((private_gaps ? PRIVATE_GAPS : span) + g - a, STACK(sp - 1));
+        SET((private_gaps ? 2 * PRIVATE_GAPS : 2 * span) + sp, g);
+        sp++;
     }
     uint block[6 * CANDIDATE_BLOCK];
     uint held = 0u;
@@ -429,10 +443,10 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
         int run_depth;
         if (g < e) {
             int dg = gap_depth[g];
-            if (dg < 0 || !(gap_depth[left[g]] < dg))
+            if (dg < 0 || !(gap_depth[LEFT(g)] < dg))
                 continue;
-            run_lo = left[g];
-            run_hi = right[g];
+            run_lo = LEFT(g);
+            run_hi = RIGHT(g);
             node = gap_pre[g];
             run_depth = dg;
             if (is_leaf(nodes[climb[node].w])) {       /* copies of a triangle in one leaf */
