@@ -458,7 +458,15 @@ def _export_lights(depsgraph, warnings: list) -> list:
         matrix = np.array(instance.matrix_world, np.float64)
         axes = matrix[:3, :3] / np.maximum(np.linalg.norm(matrix[:3, :3], axis=0), 1e-30)
         scale = np.linalg.norm(matrix[:3, :3], axis=0)
-        light = Light(kind=data.type, color=tuple(data.color), power=float(data.energy),
+        # Blender 4.2+: Exposure scales the power by 2^exposure; Temperature tints the colour.
+        color = np.array(data.color, np.float64)
+        if getattr(data, "use_temperature", False):
+            color = color * np.array(data.temperature_color, np.float64)
+        power = float(data.energy) * 2.0 ** float(getattr(data, "exposure", 0.0))
+        if not getattr(data, "normalize", True) and problem is None and obj.name not in warned:
+            warned.add(obj.name)
+            warnings.append(f"light '{obj.name}': Normalize off is not supported (rendered as on)")
+        light = Light(kind=data.type, color=tuple(color), power=power,
                       position=tuple(matrix[:3, 3]), direction=tuple(-axes[:, 2]),
                       axis_u=tuple(axes[:, 0]), axis_v=tuple(axes[:, 1]))
         if data.type in ("POINT", "SPOT"):

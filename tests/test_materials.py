@@ -232,8 +232,9 @@ def test_rough_glossy_and_glass_converge(tracer):
 
 
 def test_albedo_tables_match_a_fresh_integration():
-    """kernels/shade/ggx_albedo.cl against its generator, re-integrated at a few entries."""
-    spec = importlib.util.spec_from_file_location("ggx_albedo", KERNEL_DIR / "shade" / "ggx_albedo.py")
+    """kernels/shade/ggx_albedo.cl against its generator (.ci/ggx_albedo.py), re-integrated at
+    a few entries."""
+    spec = importlib.util.spec_from_file_location("ggx_albedo", KERNEL_DIR.parent / ".ci" / "ggx_albedo.py")
     generator = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(generator)
     text = (KERNEL_DIR / "shade" / "ggx_albedo.cl").read_text()

@@ -785,8 +785,7 @@ inline float emitter_pdf(const Scene *sc, uint tri, float dist, float cos_l)
 {
     float3 n;
     float area = triangle_area(sc, tri, &n);
-    Material m = material_at(sc, tri, 0.0f, 0.0f);
-    float power = mean3(m.emission) * area;
+    float power = mean3(MATERIAL_EMISSION(sc->materials + MATERIAL_SIZE * sc->material_ids[tri])) * area;
     if (!(area > 0.0f) || !(cos_l > 0.0f) || !(sc->emitter_power > 0.0f))
         return 0.0f;
     return power / sc->emitter_power / area * (dist * dist / cos_l);

@@ -223,6 +223,30 @@ def build(name):
                (0.7, 0.3, 0.6))
         light("AREA", (1.6, -2.2, 3.0), (0, 0, 0.5), energy=250.0, size=1.0)
         camera((0.0, -4.0, 1.5), (0, 0.2, 0.6), lens=40)
+    elif name == "interior":
+        # A room with a window onto the HDRI sky (sun through the window) and an emissive
+        # ceiling panel: both kinds of light indoors, diffuse bounces doing the rest.
+        world(image=hdri("EQUIRECTANGULAR"), strength=1.0, rotation=(0.0, 0.0, math.radians(140)))
+        wall = material("plaster", "DIFFUSE", (0.7, 0.68, 0.62))
+        planes = [((0, 0, 0), (0, 0, 0), (4, 4)), ((0, 0, 3), (math.pi, 0, 0), (4, 4)),
+                  ((-2, 0, 1.5), (0, math.pi / 2, 0), (3, 4)), ((2, 0, 1.5), (0, -math.pi / 2, 0), (3, 4)),
+                  ((0, -2, 1.5), (-math.pi / 2, 0, 0), (4, 3)),
+                  # the window wall (+Y): a 1.6 x 1.2 opening, sill at 0.9
+                  ((-1.4, 2, 1.5), (math.pi / 2, 0, 0), (1.2, 3)), ((1.4, 2, 1.5), (math.pi / 2, 0, 0), (1.2, 3)),
+                  ((0, 2, 0.45), (math.pi / 2, 0, 0), (1.6, 0.9)), ((0, 2, 2.55), (math.pi / 2, 0, 0), (1.6, 0.9))]
+        for location, rotation, (sx, sy) in planes:
+            obj = add(bpy.ops.mesh.primitive_plane_add, wall, size=1.0, location=location,
+                      rotation=rotation)
+            obj.scale = (sx, sy, 1)
+        add(bpy.ops.mesh.primitive_plane_add, material("panel", "EMISSION", (1.0, 0.95, 0.85),
+                                                       Strength=6.0),
+            size=0.8, location=(-0.8, -0.6, 2.98), rotation=(math.pi, 0, 0))
+        add(bpy.ops.mesh.primitive_cube_add, material("table", color=(0.55, 0.35, 0.2),
+                                                      Roughness=0.6), size=0.8,
+            location=(0.7, 0.4, 0.4))
+        sphere(material("chrome", color=(0.9, 0.9, 0.9), Metallic=1.0, Roughness=0.15),
+               (-0.6, 0.6, 0.4), radius=0.4)
+        camera((-0.2, -1.9, 1.4), (0.1, 1.5, 1.1), lens=16)
     elif name == "warned":
         # Things KD Trace does not render, each to be named in a warning (export only).
         w = bpy.data.worlds.new("sky world")
@@ -251,6 +275,21 @@ def read_exr(path, width, height):
     pixels = np.array(image.pixels[:], np.float32).reshape(height, width, 4)[::-1]
     bpy.data.images.remove(image)
     return pixels
+
+
+def save_side_by_side(name, width, height):
+    """<scene>.png: Cycles left, KD Trace right, as the Standard view transform shows them."""
+    linear = np.concatenate([np.load(f"{OUT}/{name}-{who}.npy")[..., :3]
+                             for who in ("cycles", "kdtrace")], axis=1)
+    c = np.clip(linear, 0, 1)
+    srgb = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+    rgba = np.concatenate([srgb, np.ones(srgb.shape[:2] + (1,))], -1)[::-1]   # bottom row first
+    image = bpy.data.images.new(f"{name}-side-by-side", 2 * width, height)
+    image.pixels.foreach_set(rgba.astype(np.float32).ravel())
+    image.filepath_raw = f"{OUT}/{name}.png"
+    image.file_format = "PNG"
+    image.save()
+    bpy.data.images.remove(image)
 
 
 scene = bpy.context.scene
@@ -311,4 +350,6 @@ for name in args["scenes"]:
     bpy.ops.render.render(write_still=True)
     timings[f"{name}-kdtrace"] = time.perf_counter() - started
     np.save(f"{OUT}/{name}-kdtrace.npy", read_exr(f"{OUT}/{name}-kdtrace.exr", width, height))
+    if args.get("side_by_side"):
+        save_side_by_side(name, width, height)
 write_result(result_path, {"warnings": warnings, "timings": timings})
