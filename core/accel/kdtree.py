@@ -1012,6 +1012,18 @@ def _write_nodes(levels: list) -> tuple:
     return nodes, leaf_indices
 
 
+def checked_mesh(vertices, triangles):
+    """float32 (V, 3) vertices and (T, 3) triangles, or ValueError for indices out of range
+    or non-finite coordinates (both builders, core/accel/kdtree_cl.py too)."""
+    vertices = np.ascontiguousarray(vertices, np.float32).reshape(-1, 3)
+    triangles = np.asarray(triangles).reshape(-1, 3)
+    if len(triangles) and (triangles.min() < 0 or triangles.max() >= len(vertices)):
+        raise ValueError("a triangle refers to a vertex that does not exist")
+    if not np.isfinite(vertices).all():
+        raise ValueError("vertex coordinates contain NaN or infinity")
+    return vertices, triangles
+
+
 def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progress=None) -> KDTree:
     """Build an SAH kd-tree with perfect splits over triangles (see module docstring).
 
@@ -1021,12 +1033,7 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
     """
     params = params or KDTreeParams()
     started = time.perf_counter()
-    vertices = np.ascontiguousarray(vertices, np.float32).reshape(-1, 3)
-    triangles = np.asarray(triangles).reshape(-1, 3)
-    if len(triangles) and (triangles.min() < 0 or triangles.max() >= len(vertices)):
-        raise ValueError("a triangle refers to a vertex that does not exist")
-    if not np.isfinite(vertices).all():
-        raise ValueError("vertex coordinates contain NaN or infinity")
+    vertices, triangles = checked_mesh(vertices, triangles)
     triangles = triangles.astype(np.int64)
     triangle_count = len(triangles)
 

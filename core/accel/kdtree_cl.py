@@ -27,7 +27,7 @@ import time
 import numpy as np
 
 from ..layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
-from .kdtree import KDTree, KDTreeParams, _root_bounds
+from .kdtree import KDTree, KDTreeParams, _root_bounds, checked_mesh
 
 KERNEL_FILES = ("build/fp64.cl", "build/split.cl", "build/big.cl", "build/subtree.cl",
                 "build/layout.cl")
@@ -209,12 +209,7 @@ class KDTreeBuilderCL:
             profile[name] = (wall + now[0] - clock[0], cpu + now[1] - clock[1])
             clock[:] = now
 
-        vertices = np.ascontiguousarray(vertices, np.float32).reshape(-1, 3)
-        triangles = np.asarray(triangles).reshape(-1, 3)
-        if len(triangles) and (triangles.min() < 0 or triangles.max() >= len(vertices)):
-            raise ValueError("a triangle refers to a vertex that does not exist")
-        if not np.isfinite(vertices).all():
-            raise ValueError("vertex coordinates contain NaN or infinity")
+        vertices, triangles = checked_mesh(vertices, triangles)
         if len(triangles) > PLAIN_FIELD.max:
             raise ValueError("too many triangles for the 30-bit leaf reference count")
         # Coordinates below FLT_MIN are treated as 0: devices that flush float32 denormals

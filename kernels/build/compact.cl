@@ -193,18 +193,10 @@ __kernel void refs_scatter(__global const uint2* restrict nodes,
     }
 }
 
-/* Per triangle: its range sorted by preorder (insertion sort for short ranges, heap sort for
-   long ones; preorder numbers of one triangle's leaves are distinct). */
-__kernel void refs_sort(__global const uint* restrict tri_first, __global uint* restrict s_leaf,
-                        __global uint* restrict s_pre, __global uint* restrict s_tri,
-                        uint triangle_count)
+/* key[0..n) sorted ascending, val[] moved along (val may be key itself): insertion sort for
+   short ranges, heap sort for long ones. */
+inline void sort_pairs(__global uint* key, __global uint* val, uint n)
 {
-    uint t = get_global_id(0);
-    if (t >= triangle_count)
-        return;
-    uint a = tri_first[t], n = tri_first[t + 1] - a;
-    __global uint* key = s_pre + a;
-    __global uint* val = s_leaf + a;
     if (n <= 32u) {
         for (uint i = 1; i < n; i++) {
             uint k = key[i], v = val[i];
@@ -217,49 +209,50 @@ __kernel void refs_sort(__global const uint* restrict tri_first, __global uint* 
             key[j] = k;
             val[j] = v;
         }
-    } else {
-        for (uint start = n / 2; start-- > 0;) {              /* heapify (max-heap) */
-            uint r = start;
-            for (;;) {
-                uint child = 2 * r + 1;
-                if (child >= n)
-                    break;
-                if (child + 1 < n && key[child + 1] > key[child])
-                    child++;
-                if (key[r] >= key[child])
-                    break;
-                uint k = key[r], v = val[r];
-                key[r] = key[child];
-                val[r] = val[child];
-                key[child] = k;
-                val[child] = v;
-                r = child;
-            }
-        }
-        for (uint last = n - 1; last > 0; last--) {
+        return;
+    }
+    for (uint start = n / 2, last = n; last > 1;) {
+        uint r;
+        if (start > 0) {                      /* heapify (a max-heap) */
+            r = --start;
+        } else {                              /* the largest to the end */
+            last--;
             uint k = key[0], v = val[0];
             key[0] = key[last];
             val[0] = val[last];
             key[last] = k;
             val[last] = v;
-            uint r = 0;
-            for (;;) {
-                uint child = 2 * r + 1;
-                if (child >= last)
-                    break;
-                if (child + 1 < last && key[child + 1] > key[child])
-                    child++;
-                if (key[r] >= key[child])
-                    break;
-                uint kk = key[r], vv = val[r];
-                key[r] = key[child];
-                val[r] = val[child];
-                key[child] = kk;
-                val[child] = vv;
-                r = child;
-            }
+            r = 0;
+        }
+        for (;;) {                            /* sift down within [0, last) */
+            uint child = 2 * r + 1;
+            if (child >= last)
+                break;
+            if (child + 1 < last && key[child + 1] > key[child])
+                child++;
+            if (key[r] >= key[child])
+                break;
+            uint k = key[r], v = val[r];
+            key[r] = key[child];
+            val[r] = val[child];
+            key[child] = k;
+            val[child] = v;
+            r = child;
         }
     }
+}
+
+/* Per triangle: its range sorted by preorder (a triangle's leaves have distinct preorder
+   numbers). */
+__kernel void refs_sort(__global const uint* restrict tri_first, __global uint* restrict s_leaf,
+                        __global uint* restrict s_pre, __global uint* restrict s_tri,
+                        uint triangle_count)
+{
+    uint t = get_global_id(0);
+    if (t >= triangle_count)
+        return;
+    uint a = tri_first[t], n = tri_first[t + 1] - a;
+    sort_pairs(s_pre + a, s_leaf + a, n);
     for (uint i = 0; i < n; i++)
         s_tri[a + i] = t;
 }
@@ -634,7 +627,7 @@ __kernel void items_scatter(__global const uchar* restrict removed,
 
 /* Per node: its bucket [owner_first[i], owner_first[i + 1]) sorted, repeats dropped; the
    number kept. */
-__kernel void items_unique(__global const uint* restrict owner_first, __global uint* restrict items,
+__kernel void items_unique(__global const uint* restrict owner_first, __global uint* items,
                            __global uint* restrict kept, uint n)
 {
     uint i = get_global_id(0);
@@ -642,52 +635,7 @@ __kernel void items_unique(__global const uint* restrict owner_first, __global u
         return;
     uint a = owner_first[i], m = owner_first[i + 1] - a;
     __global uint* v = items + a;
-    if (m <= 32u) {
-        for (uint x = 1; x < m; x++) {
-            uint key = v[x], y = x;
-            while (y > 0 && v[y - 1] > key) {
-                v[y] = v[y - 1];
-                y--;
-            }
-            v[y] = key;
-        }
-    } else {
-        for (uint start = m / 2; start-- > 0;) {
-            uint r = start;
-            for (;;) {
-                uint child = 2 * r + 1;
-                if (child >= m)
-                    break;
-                if (child + 1 < m && v[child + 1] > v[child])
-                    child++;
-                if (v[r] >= v[child])
-                    break;
-                uint t = v[r];
-                v[r] = v[child];
-                v[child] = t;
-                r = child;
-            }
-        }
-        for (uint last = m - 1; last > 0; last--) {
-            uint t = v[0];
-            v[0] = v[last];
-            v[last] = t;
-            uint r = 0;
-            for (;;) {
-                uint child = 2 * r + 1;
-                if (child >= last)
-                    break;
-                if (child + 1 < last && v[child + 1] > v[child])
-                    child++;
-                if (v[r] >= v[child])
-                    break;
-                uint tt = v[r];
-                v[r] = v[child];
-                v[child] = tt;
-                r = child;
-            }
-        }
-    }
+    sort_pairs(v, v, m);
     uint k = 0;
     for (uint x = 0; x < m; x++)
         if (k == 0 || v[x] != v[k - 1])

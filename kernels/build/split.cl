@@ -188,6 +188,32 @@ inline void hist_add(uint* h, const BinPlanes* bp, Ref r)
     }
 }
 
+/* The binned candidates of one axis in order: the bin planes, then the cut at the tight low
+   bound and the one at the tight high bound, each with its counts below and above; returns
+   how many (bins + 1). */
+#define BINNED_SLOTS (KD_MAX_BINS + 4)       /* bin planes, tight low, tight high, padding */
+
+inline int binned_candidates(const uint* h, const BinPlanes* bp, int a, uint n,
+                             float* planes, uint* below, uint* above)
+{
+    uint nb = 0u, not_above = 0u;
+    for (int k = 0; k < bp->bins - 1; k++) {
+        nb += h[(2 * a) * KD_MAX_BINS + k];
+        not_above += h[(2 * a + 1) * KD_MAX_BINS + k];
+        planes[k] = bp->plane[a][k];
+        below[k] = nb;
+        above[k] = n - not_above;
+    }
+    int slots = bp->bins + 1;
+    planes[slots - 2] = as_float(h[HIST_BOUNDS + a]);
+    planes[slots - 1] = as_float(h[HIST_BOUNDS + 3 + a]);
+    below[slots - 2] = 0u;
+    above[slots - 2] = n;
+    below[slots - 1] = n;
+    above[slots - 1] = 0u;
+    return slots;
+}
+
 #ifndef KDTRACE_SOFT_FP64
 
 /* split_cost_d() of 4 candidates of one axis (native doubles), the same operations per lane. */
@@ -202,11 +228,8 @@ inline double4 split_cost4(const CellD* m, int axis, double4 width_below, double
     return ((nb == 0.0) | (na == 0.0)) ? cost * D_LAMBDA : cost;
 }
 
-#define BINNED_SLOTS (KD_MAX_BINS + 4)       /* bin planes, tight low, tight high, padding */
-
-/* Order of candidates: per axis the bin planes, then the cut at the tight low bound, then the
-   one at the tight high bound; the first of equal costs wins. All costs are formed four at a
-   time, then the first minimum is looked up. */
+/* The first of equal costs wins (binned_candidates' order, axis after axis). All costs are
+   formed four at a time, then the first minimum is looked up. */
 inline Choice choose_binned(const uint* h, const BinPlanes* bp, const Cell* c, uint n)
 {
     CellD m = cell_d(c);
@@ -215,31 +238,22 @@ inline Choice choose_binned(const uint* h, const BinPlanes* bp, const Cell* c, u
         double s[BINNED_SLOTS];
     } plane, nb, na, cost[3];
     float planes[3][BINNED_SLOTS];
-    int slots = bp->bins + 1;                /* bins - 1 planes and two tight cuts */
-    int blocks = (slots + 3) / 4;
+    uint below[BINNED_SLOTS], above[BINNED_SLOTS];
+    int slots = 0;
     double lowest = INFINITY;
     for (int a = 0; a < 3; a++) {
-        uint below = 0u, not_above = 0u;
-        for (int k = 0; k < bp->bins - 1; k++) {
-            below += h[(2 * a) * KD_MAX_BINS + k];
-            not_above += h[(2 * a + 1) * KD_MAX_BINS + k];
-            planes[a][k] = bp->plane[a][k];
-            nb.s[k] = (double)below;
-            na.s[k] = (double)(n - not_above);
-        }
-        planes[a][slots - 2] = as_float(h[HIST_BOUNDS + a]);
-        planes[a][slots - 1] = as_float(h[HIST_BOUNDS + 3 + a]);
-        nb.s[slots - 2] = 0.0;
-        na.s[slots - 2] = (double)n;
-        nb.s[slots - 1] = (double)n;
-        na.s[slots - 1] = 0.0;
+        slots = binned_candidates(h, bp, a, n, planes[a], below, above);
+        int blocks = (slots + 3) / 4;
         for (int k = slots; k < 4 * blocks; k++) {
             planes[a][k] = c->lo[a];             /* never inside */
-            nb.s[k] = na.s[k] = 0.0;
+            below[k] = above[k] = 0u;
         }
         double lo = (double)c->lo[a];
-        for (int k = 0; k < 4 * blocks; k++)
+        for (int k = 0; k < 4 * blocks; k++) {
             plane.s[k] = (double)planes[a][k] - lo;
+            nb.s[k] = (double)below[k];
+            na.s[k] = (double)above[k];
+        }
         for (int k = 0; k < blocks; k++)
             cost[a].v[k] = split_cost4(&m, a, plane.v[k], nb.v[k], na.v[k]);
         for (int k = 0; k < 4 * blocks; k++) {
@@ -265,41 +279,28 @@ inline Choice choose_binned(const uint* h, const BinPlanes* bp, const Cell* c, u
 
 #else
 
-inline void consider_d(Choice* best, dbl* best_cost, dbl cost, int axis, float plane)
-{
-    if (!best->valid || D_LT(cost, *best_cost)) {
-        best->valid = 1;
-        *best_cost = cost;
-        best->axis = axis;
-        best->plane = plane;
-    }
-}
-
-/* Order of candidates: per axis the bin planes, then the cut at the tight low bound, then the
-   one at the tight high bound; the first of equal costs wins. */
+/* The first of equal costs wins (binned_candidates' order, axis after axis). */
 inline Choice choose_binned(const uint* h, const BinPlanes* bp, const Cell* c, uint n)
 {
     CellD m = cell_d(c);
     Choice best = {0, 0, 0.0f};
     dbl best_cost = D_ZERO;
+    float planes[BINNED_SLOTS];
+    uint below[BINNED_SLOTS], above[BINNED_SLOTS];
     for (int a = 0; a < 3; a++) {
-        uint below = 0u, not_above = 0u;
-        for (int k = 0; k < bp->bins - 1; k++) {
-            below += h[(2 * a) * KD_MAX_BINS + k];
-            not_above += h[(2 * a + 1) * KD_MAX_BINS + k];
-            float p = bp->plane[a][k];
-            if (p > c->lo[a] && p < c->hi[a])
-                consider_d(&best, &best_cost,
-                           split_cost_d(&m, a, width_below_d(c, a, p), below, n - not_above), a, p);
+        int slots = binned_candidates(h, bp, a, n, planes, below, above);
+        for (int k = 0; k < slots; k++) {
+            float p = planes[k];
+            if (!(p > c->lo[a] && p < c->hi[a]))
+                continue;
+            dbl cost = split_cost_d(&m, a, width_below_d(c, a, p), below[k], above[k]);
+            if (!best.valid || D_LT(cost, best_cost)) {
+                best.valid = 1;
+                best_cost = cost;
+                best.axis = a;
+                best.plane = p;
+            }
         }
-        float tight_lo = as_float(h[HIST_BOUNDS + a]);
-        float tight_hi = as_float(h[HIST_BOUNDS + 3 + a]);
-        if (tight_lo > c->lo[a] && tight_lo < c->hi[a])
-            consider_d(&best, &best_cost, split_cost_d(&m, a, width_below_d(c, a, tight_lo), 0u, n),
-                       a, tight_lo);
-        if (tight_hi > c->lo[a] && tight_hi < c->hi[a])
-            consider_d(&best, &best_cost, split_cost_d(&m, a, width_below_d(c, a, tight_hi), n, 0u),
-                       a, tight_hi);
     }
     return best;
 }
