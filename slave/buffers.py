@@ -148,12 +148,21 @@ def _cos_taylor(x: np.ndarray) -> np.ndarray:
 def world_importance(geometry, world_texture):
     """The importance map of the world texture: (cdf float32, width, height), cdf = the
     marginal CDF over rows (height + 1 values) then each row's CDF (width + 1 values each).
-    A cell's weight is the mean colour of its texels times the solid angle it covers per unit
-    of uv (equirectangular: the cosine of its elevation; mirror ball: 1 inside the ball, 0
-    outside); the kernel's world_pdf divides by the same Jacobian, exactly."""
+    A cell's weight is the mean colour of its texels (each the brightest of its 3 x 3) times the
+    solid angle it covers per unit of uv (equirectangular: the cosine of its elevation; mirror
+    ball: 1 inside the ball, 0 outside); the kernel's world_pdf divides by the same Jacobian,
+    exactly."""
     offset, width, height = (int(v) for v in geometry.texture_sizes[world_texture.texture])
     texels = geometry.texels[offset:offset + width * height].astype(np.float64)
     value = np.maximum((texels[:, 0] + texels[:, 1] + texels[:, 2]) / 3.0, 0.0).reshape(height, width)
+    # A texel's area sees its neighbours through the bilinear filter: weigh it by the brightest
+    # of the 3 x 3 around it, so no direction is bright where its density is small (a sun's
+    # rim would be fireflies).
+    wide = np.pad(value, 1, mode="wrap")
+    value = wide[1:-1, 1:-1]
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            value = np.maximum(value, wide[dy:dy + height, dx:dx + width])
     block = max(1, -(-width // MAX_IMPORTANCE_WIDTH), -(-height // (MAX_IMPORTANCE_WIDTH // 2)))
     w, h = -(-width // block), -(-height // block)
     padded = np.zeros((h * block, w * block))

@@ -149,9 +149,13 @@ def test_environment_importance_map_is_a_cdf():
     marginal, rows = cdf[:h + 1], cdf[h + 1:].reshape(h, w + 1)
     for c in (marginal, *rows):
         assert c[0] == 0 and c[-1] == 1 and (np.diff(c) >= 0).all()
-    # The brightest cell (the sun) is the likeliest; weights follow colour x cos(elevation).
+    # The brightest cell (the sun) is the likeliest; weights follow colour x cos(elevation),
+    # each texel's colour the brightest of its 3 x 3 (the texture wraps both ways).
     p = np.diff(marginal)[:, None] * np.diff(rows, axis=1)
-    mean = texels[:, :3].astype(np.float16).astype(np.float64).mean(1).reshape(h, w)
+    own = texels[:, :3].astype(np.float16).astype(np.float64).mean(1).reshape(h, w)
+    mean = np.max([np.roll(own, (dy, dx), axis=(0, 1)) for dy in (-1, 0, 1) for dx in (-1, 0, 1)],
+                  axis=0)
+    assert (mean > own).any()
     weight = mean * np.cos(np.pi * ((np.arange(h) + 0.5) / h - 0.5))[:, None]
     np.testing.assert_allclose(p, weight / weight.sum(), rtol=1e-4, atol=1e-8)
     again, _, _ = world_importance(geometry, WorldTexture(0))

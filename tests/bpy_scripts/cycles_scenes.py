@@ -7,7 +7,7 @@ itself (<scene>-scene.npz, <scene>-view.json) per scene; the result lists the wa
 export and the seconds each render took.
 
 The HDRI is made here: a sky gradient with a small bright sun disc, written as a float image
-and saved as Radiance .hdr in the output folder (then loaded back from the file)."""
+and saved as OpenEXR in the output folder (then loaded back from the file)."""
 import json
 import math
 
@@ -35,11 +35,11 @@ def sky(d):
     sun = np.array([math.cos(SUN[1]) * math.cos(SUN[0]), math.cos(SUN[1]) * math.sin(SUN[0]),
                     math.sin(SUN[1])])
     disc = (d @ sun) > math.cos(math.radians(5))
-    return np.where(disc[..., None], np.array([120.0, 110.0, 90.0]), colour)
+    return np.where(disc[..., None], np.array([24.0, 22.0, 18.0]), colour)
 
 
 def hdri(projection):
-    """The sky as an image in Cycles' projection, saved to .hdr and loaded back."""
+    """The sky as an image in Cycles' projection, saved to .exr and loaded back."""
     if projection == "EQUIRECTANGULAR":
         w, h = 256, 128
         u = (np.arange(w) + 0.5) / w
@@ -61,9 +61,10 @@ def hdri(projection):
     pixels = np.concatenate([rgb, np.ones((h, w, 1))], -1).astype(np.float32)
     image = bpy.data.images.new(f"sky-{projection}", w, h, float_buffer=True)
     image.pixels.foreach_set(pixels.ravel())
-    path = f"{OUT}/sky-{projection.lower()}.hdr"
+    # OpenEXR keeps the linear values (Blender writes .hdr through the display transform).
+    path = f"{OUT}/sky-{projection.lower()}.exr"
     image.filepath_raw = path
-    image.file_format = "HDR"
+    image.file_format = "OPEN_EXR"
     image.save()
     bpy.data.images.remove(image)
     return bpy.data.images.load(path)
@@ -226,7 +227,7 @@ def build(name):
     elif name == "interior":
         # A room with a window onto the HDRI sky (sun through the window) and an emissive
         # ceiling panel: both kinds of light indoors, diffuse bounces doing the rest.
-        world(image=hdri("EQUIRECTANGULAR"), strength=1.0, rotation=(0.0, 0.0, math.radians(140)))
+        world(image=hdri("EQUIRECTANGULAR"), strength=1.0, rotation=(0.0, 0.0, math.radians(-50)))
         wall = material("plaster", "DIFFUSE", (0.7, 0.68, 0.62))
         planes = [((0, 0, 0), (0, 0, 0), (4, 4)), ((0, 0, 3), (math.pi, 0, 0), (4, 4)),
                   ((-2, 0, 1.5), (0, math.pi / 2, 0), (3, 4)), ((2, 0, 1.5), (0, -math.pi / 2, 0), (3, 4)),
