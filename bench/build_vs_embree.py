@@ -13,7 +13,10 @@ For every scene, each in a child process of its own (so that its peak memory is 
 - numpy (--numpy scenes): core.accel.kdtree.build_kdtree and compact_tree without a device,
   whose results must equal ours bit for bit (checked);
 - render (--render scenes): render_tile of the Table 3 view (bench/kdtree_tables.py) with
-  the compact trees of both builders, in turn over --rounds rounds, one PoCL thread.
+  the compact trees of both builders, in turn over --rounds rounds, one PoCL thread;
+- profile (--profile scenes): after the timed run, build and compaction again on a queue with
+  event profiling: device seconds per kernel, and wall seconds per host step (between two
+  distinct progress messages, numbers left out), so the host's share is the rest.
 The 4- and 12-dragon scenes are copies of the dragon side by side, as bench/kdtree_tables.py
 makes them. Ratios: our build (and build + compaction) over Embree's build of the same triangles.
 """
@@ -24,6 +27,7 @@ import hashlib
 import json
 import os
 import pathlib
+import re
 import resource
 import subprocess
 import sys
@@ -81,6 +85,44 @@ class ProgressGaps:
         if now - self.last > self.longest:
             self.longest, self.where = now - self.last, message
         self.last = now
+
+
+class StepTimes:
+    """Wall seconds per step: the time up to each new progress message goes to that message
+    (digits left out, so the levels of one stage add up); heartbeats repeat the last message."""
+
+    def __init__(self):
+        self.last, self.message, self.steps = time.perf_counter(), None, {}
+
+    def __call__(self, fraction, message):
+        if message == self.message:
+            return
+        now, key = time.perf_counter(), re.sub(r"\d[\d,]*", "#", message)
+        self.steps[key] = self.steps.get(key, 0.0) + now - self.last
+        self.last, self.message = now, message
+
+
+def stage_profile(name, mode):
+    """Where the time goes: kernels by device time, host steps by wall time."""
+    from core.accel.compact import compact_tree
+    from core.accel.kdtree_cl import KDTreeBuilderCL
+    vertices, triangles = load_scene(name)
+    builder = KDTreeBuilderCL("cpu", profile_kernels=True)
+    from tests.meshes import uv_sphere
+    ball = uv_sphere(16, 8)
+    compact_tree(builder.build(*ball), len(ball[1]), mode, device=builder)      # compile
+    builder.kernel_times()
+    result = {}
+    for stage, run in (("build", lambda p: builder.build(vertices, triangles, progress=p)),
+                       ("compaction", lambda p: compact_tree(tree, len(triangles), mode,
+                                                             device=builder, progress=p))):
+        steps = StepTimes()
+        value, wall, cpu = timed(lambda: run(steps))
+        if stage == "build":
+            tree = value
+        result[stage] = {"wall": wall, "cpu": cpu, "kernels": builder.kernel_times(),
+                         "steps": steps.steps}
+    return result
 
 
 def stage_ours(name, mode):
@@ -178,6 +220,8 @@ def main():
                         help="scenes also built with the numpy builder (checked identical)")
     parser.add_argument("--render", nargs="*", default=["dragon"],
                         help="scenes whose render time is compared (numpy tree vs ours)")
+    parser.add_argument("--profile", nargs="*", default=["dragon"],
+                        help="scenes built again with kernel event profiling")
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--size", type=int, default=512)
     parser.add_argument("--mode", default="ours", choices=("standard", "choi", "ours"))
@@ -187,6 +231,7 @@ def main():
         stage, name = args.child[:2]
         result = {"ours": lambda: stage_ours(name, args.mode), "embree": lambda: stage_embree(name),
                   "numpy": lambda: stage_numpy(name, args.mode),
+                  "profile": lambda: stage_profile(name, args.mode),
                   "render": lambda: stage_render(name, args.mode, args.rounds, args.size)}[stage]()
         print(json.dumps(result, default=float))
         return
@@ -240,6 +285,19 @@ def main():
               f"refs/triangle, SAH {s['sah_cost']:.3f}; compact {ours['compact_bytes'] / 1e6:.1f} MB; "
               f"kernels compiled in {ours['compile_s']:.2f} s (apart); longest Esc wait at "
               f"'{ours['longest_gap_at']}'; {ours['profile']}")
+    for name in args.profile:
+        p = child("profile", name, "--mode", args.mode)
+        print(f"\nProfile of {name} (a second run, on a profiling queue; wall / CPU s):")
+        for stage, r in p.items():
+            kernel_total = sum(t for t, _ in r["kernels"].values())
+            print(f"  {stage}: {r['wall']:.2f} / {r['cpu']:.2f} s; kernels {kernel_total:.2f} s of "
+                  f"device time, the rest ({r['wall'] - kernel_total:.2f} s) host steps and waits")
+            top = sorted(r["kernels"].items(), key=lambda kv: -kv[1][0])
+            print("    kernels (device s, launches): " + ", ".join(
+                f"{k} {t:.3f} ({n})" for k, (t, n) in top if t >= 0.005))
+            print("    steps (wall s, up to the message): " + "; ".join(
+                f"'{k}' {t:.3f}" for k, t in sorted(r["steps"].items(), key=lambda kv: -kv[1])
+                if t >= 0.005))
     env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1")
     for name in args.render:
         r = child("render", name, "--mode", args.mode, "--rounds", str(args.rounds),

@@ -88,14 +88,18 @@ class KDTreeBuilderCL:
 
     def __init__(self, device=None, subtree_refs: int | None = None,
                  chunk_refs: int | None = None, soft_fp64: bool | None = None,
-                 local_size: int | None = None):
+                 local_size: int | None = None, profile_kernels: bool = False):
         from ..opencl import Programs, ensure_pocl_cache_dir, select_device
         ensure_pocl_cache_dir()
         import pyopencl as cl
         self._cl = cl
         self.device = select_device(cl, device)
         self.context = cl.Context([self.device])
-        self.queue = cl.CommandQueue(self.context)
+        # profile_kernels: each launch's event is kept, so kernel_times() can sum device time
+        # per kernel (for the benchmark's profile; off otherwise).
+        self.queue = cl.CommandQueue(self.context, properties=(
+            cl.command_queue_properties.PROFILING_ENABLE if profile_kernels else 0))
+        self._events = [] if profile_kernels else None
         self._programs = Programs(cl, self.context, self.device)
         self.is_cpu = bool(self.device.type & cl.device_type.CPU)
         has_fp64 = "cl_khr_fp64" in self.device.extensions.split()
@@ -171,13 +175,29 @@ class KDTreeBuilderCL:
         ls = local_size or self.local_size
         count = int(count)
         if piece is None or count <= piece:
-            kernel(self.queue, (-(-count // ls) * ls,), (ls,), *args)
+            self._launched(kernel, kernel(self.queue, (-(-count // ls) * ls,), (ls,), *args))
             return
         piece = -(-int(piece) // ls) * ls
         for start in range(0, count, piece):
             size = -(-min(piece, count - start) // ls) * ls
-            kernel(self.queue, (size,), (ls,), *args, global_offset=(start,))
+            self._launched(kernel, kernel(self.queue, (size,), (ls,), *args,
+                                          global_offset=(start,)))
             self.heartbeat()
+
+    def _launched(self, kernel, event):
+        if self._events is not None:
+            self._events.append((kernel.function_name, event))
+
+    def kernel_times(self) -> dict:
+        """Device seconds and launches per kernel since the last call (profile_kernels only)."""
+        self.queue.finish()
+        times = {}
+        for name, event in self._events or ():
+            seconds, launches = times.get(name, (0.0, 0))
+            times[name] = (seconds + (event.profile.end - event.profile.start) * 1e-9, launches + 1)
+        if self._events is not None:
+            self._events.clear()
+        return times
 
     def heartbeat(self):
         """Wait for the queued kernels, then call the current progress callback with the last
