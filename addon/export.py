@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 
+from ..core.layout import VISIBILITY_CODES, VISIBLE_TO_ALL
 from ..core.scene.features import scene_features, strip_geometry
 from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
                                 MAX_MATERIALS, RenderSettings, SceneError, Shading, View,
@@ -38,8 +39,8 @@ def export_view(depsgraph) -> tuple[Geometry, View, dict]:
     geometry = _export_geometry(depsgraph, materials, warnings)
     shading = Shading(materials.colors(), _export_lights(depsgraph, warnings), world_color,
                       materials.params(), world_texture)
-    view = View(_export_camera(depsgraph), *render_size(scene), shading, render_region(scene),
-                render_settings(scene))
+    view = View(_export_camera(depsgraph, warnings), *render_size(scene), shading,
+                render_region(scene), render_settings(scene), bool(scene.render.film_transparent))
     # Only what the scene needs travels (and the kernel compiles only that).
     geometry = strip_geometry(geometry, scene_features(geometry, view))
     return geometry, view, {"warnings": warnings}
@@ -86,9 +87,22 @@ class _MaterialTable:
         self._images = {}           # image name -> texture index
         self.textures = []          # (texels (N, 4) float16, width, height)
 
-    def index(self, material, obj_name: str | None = None) -> int:
-        """The material's index; `obj_name`: the object that uses it (named in warnings)."""
+    def index(self, material, obj_name: str | None = None,
+              visibility: int = VISIBLE_TO_ALL) -> int:
+        """The material's index; `obj_name`: the object that uses it (named in warnings).
+        `visibility`: the object's ray visibility and holdout (core/layout.py VISIBILITY_CODES);
+        other than the default, the material gets a record of its own with it."""
         key = material.name_full if material is not None else None
+        if visibility != VISIBLE_TO_ALL:
+            variant = (key, visibility)
+            if variant not in self._index:
+                base = self.index(material, obj_name)
+                self._index[variant] = len(self._colors)
+                self._colors.append(self._colors[base])
+                params = list(self._params[base])
+                params[MATERIAL_PARAMS.index("visibility")] = float(visibility)
+                self._params.append(tuple(params))
+            return self._index[variant]
         if key not in self._index:
             if len(self._colors) >= MAX_MATERIALS:
                 raise SceneError(f"the scene uses more than {MAX_MATERIALS} materials")
@@ -105,7 +119,8 @@ class _MaterialTable:
 
     def uses_texture(self, material) -> bool:
         key = material.name_full if material is not None else None
-        return key in self._index and self._params[self._index[key]][-1] >= 0
+        return key in self._index and \
+            self._params[self._index[key]][MATERIAL_PARAMS.index("texture")] >= 0
 
     def texture(self, image, owner: str) -> int:
         """The index of `image` in the texture table (added on first use); `owner` names the
@@ -335,9 +350,10 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list) -> Ge
         if obj.type != "MESH" or not instance.show_self:
             continue
         mesh = obj.data
+        visibility = object_visibility(obj)
         slot_materials = np.array(
-            [materials.index(slot.material, obj.name) for slot in obj.material_slots] or [0],
-            np.uint16)
+            [materials.index(slot.material, obj.name, visibility) for slot in obj.material_slots]
+            or [materials.index(None, obj.name, visibility)], np.uint16)
         textured = any(materials.uses_texture(slot.material) for slot in obj.material_slots)
         key = (mesh.as_pointer(), textured)
         if key not in mesh_cache:
@@ -404,6 +420,41 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list) -> Ge
                     np.concatenate(parts["m"]), normals, uvs, texels, sizes)
 
 
+def object_visibility(obj) -> int:
+    """The object's ray visibility (Object > Visibility > Ray Visibility) and holdout as
+    core/layout.py VISIBILITY_CODES bits."""
+    bits = 0
+    for ray in ("camera", "diffuse", "glossy", "transmission", "shadow"):
+        if getattr(obj, f"visible_{ray}", True):
+            bits |= VISIBILITY_CODES[ray.upper()]
+    if getattr(obj, "is_holdout", False):
+        bits |= VISIBILITY_CODES["HOLDOUT"]
+    return bits
+
+
+def _motion_warnings(depsgraph, warnings: list) -> None:
+    """With motion blur on: objects that move over the shutter are named (issue 15: only the
+    camera's motion is rendered)."""
+    scene = depsgraph.scene
+    if not scene.render.use_motion_blur:
+        return
+    for obj in scene.objects:
+        if obj.type in ("MESH", "CURVE", "FONT", "SURFACE", "META", "LIGHT") and \
+                _is_animated(obj):
+            warnings.append(f"object '{obj.name}': object motion blur is not rendered "
+                            "(the object is rendered where it is at the frame)")
+
+
+def _is_animated(obj) -> bool:
+    """Whether the object's transform is animated (keyframes or drivers, its own or a parent's)."""
+    while obj is not None:
+        anim = obj.animation_data
+        if anim is not None and (anim.action is not None or len(anim.drivers)):
+            return True
+        obj = obj.parent
+    return False
+
+
 def _flat_normals(vertices, triangles, offset) -> np.ndarray:
     """Face normals repeated at each corner, for flat objects in a scene that has smooth ones."""
     corners = vertices[triangles.astype(np.int64) - offset].astype(np.float64)
@@ -412,7 +463,9 @@ def _flat_normals(vertices, triangles, offset) -> np.ndarray:
     return np.repeat(n / np.where(length > 0, length, 1.0), 3, axis=0)
 
 
-def _export_camera(depsgraph) -> Camera:
+def _export_camera(depsgraph, warnings: list) -> Camera:
+    """The scene camera: projection, thin lens (depth of field) and, with motion blur on, its
+    transform at the shutter's close. What is not rendered of it gets one warning."""
     scene = depsgraph.scene
     if scene.camera is None:
         raise SceneError("the scene has no active camera")
@@ -431,7 +484,103 @@ def _export_camera(depsgraph) -> Camera:
     else:
         raise SceneError(f"camera type {data.type} is not supported (use perspective or orthographic)")
     to_world = np.array(camera.matrix_world.normalized(), np.float64)
-    return Camera(kind, to_world, (sx, sy), offset, data.clip_start, data.clip_end)
+    problems = []
+    lens = {}
+    dof = data.dof
+    if dof.use_dof:
+        if kind != "PERSP":
+            problems.append("depth of field of an orthographic camera is not rendered")
+        else:
+            # Cycles' thin lens: radius = focal length / (2 f-stop), in metres (mm / 1000).
+            lens["aperture"] = data.lens * 1e-3 / (2.0 * max(dof.aperture_fstop, 1e-5))
+            lens["focus_distance"] = max(_focus_distance(camera, dof), 1e-6)
+            lens["blades"] = int(dof.aperture_blades) if dof.aperture_blades >= 3 else 0
+            lens["blade_rotation"] = float(dof.aperture_rotation)
+            if abs(dof.aperture_ratio - 1.0) > 1e-6:
+                problems.append(f"aperture ratio {dof.aperture_ratio:g} is rendered as 1")
+    end = None
+    if scene.render.use_motion_blur:
+        shutter, problem = _camera_over_shutter(scene, scene.camera)
+        if problem:
+            problems.append(problem)
+        if shutter is not None:
+            to_world, end = shutter
+        _motion_warnings(depsgraph, warnings)
+    if problems:
+        warnings.append(f"camera '{scene.camera.name}': " + "; ".join(problems))
+    return Camera(kind, to_world, (sx, sy), offset, data.clip_start, data.clip_end,
+                  to_world_end=end, **lens)
+
+
+def _focus_distance(camera, dof) -> float:
+    """Distance of the plane in focus along the view axis (Cycles': to the focus object's
+    origin, else the Focus Distance)."""
+    if dof.focus_object is None:
+        return float(dof.focus_distance)
+    m = camera.matrix_world.normalized()
+    view_axis = np.array(m.col[2][:3])
+    target = np.array(dof.focus_object.matrix_world.translation)
+    return float(abs(view_axis @ (np.array(m.translation) - target)))
+
+
+def _camera_over_shutter(scene, camera_object):
+    """((to_world at the shutter's open, at its close) or None when the camera does not move,
+    a problem or None). The shutter is open for Motion Blur > Shutter frames, starting at,
+    centred on or ending at the frame (Position); the camera's own keyframed location,
+    rotation and scale are evaluated at both ends (parents, constraints and drivers are not)."""
+    if not _is_animated(camera_object):
+        return None, None
+    anim = camera_object.animation_data
+    if camera_object.parent is not None or len(camera_object.constraints) or \
+            anim is None or anim.action is None or len(anim.drivers):
+        return None, "motion blur from parents, constraints or drivers is not rendered"
+    r = scene.render
+    frame = scene.frame_current + scene.frame_subframe
+    shutter = r.motion_blur_shutter
+    start = {"START": frame, "CENTER": frame - 0.5 * shutter, "END": frame - shutter}[
+        r.motion_blur_position]
+    ends = [_animated_matrix(camera_object, anim.action, t) for t in (start, start + shutter)]
+    if ends[0] is None:
+        return None, "motion blur from this camera's animation is not rendered"
+    return tuple(ends), None
+
+
+def _animated_matrix(obj, action, time):
+    """The object's matrix_world at `time` from its action's location, rotation (Euler or
+    quaternion) and scale curves and its current values for the others; None when the action
+    animates something else of the transform (delta transforms, axis-angle)."""
+    from mathutils import Euler, Matrix, Quaternion, Vector
+    values = {"location": list(obj.location), "rotation_euler": list(obj.rotation_euler),
+              "rotation_quaternion": list(obj.rotation_quaternion), "scale": list(obj.scale)}
+    for curve in _action_curves(action, obj):
+        if curve.data_path not in values:
+            if curve.data_path.startswith(("delta_", "rotation_axis_angle")):
+                return None
+            continue
+        values[curve.data_path][curve.array_index] = curve.evaluate(time)
+    if obj.rotation_mode == "QUATERNION":
+        rotation = Quaternion(values["rotation_quaternion"]).normalized().to_matrix()
+    elif obj.rotation_mode == "AXIS_ANGLE":
+        return None
+    else:
+        rotation = Euler(values["rotation_euler"], obj.rotation_mode).to_matrix()
+    matrix = Matrix.LocRotScale(Vector(values["location"]), rotation, Vector(values["scale"]))
+    return np.array(matrix.normalized(), np.float64)
+
+
+def _action_curves(action, obj):
+    """The F-curves of an action (layered actions of Blender 4.4+ too)."""
+    curves = getattr(action, "fcurves", None)
+    if curves is not None and len(curves):
+        return list(curves)
+    out = []
+    for layer in getattr(action, "layers", ()):
+        for strip in layer.strips:
+            slot = obj.animation_data.action_slot
+            bag = strip.channelbag(slot) if slot is not None else None
+            if bag is not None:
+                out += list(bag.fcurves)
+    return out
 
 
 def _export_lights(depsgraph, warnings: list) -> list:

@@ -73,6 +73,54 @@ class RENDER_PT_kdtrace_light_paths(KDTracePanel, bpy.types.Panel):
         layout.prop(settings, "filter_glossy")
 
 
+class RENDER_PT_kdtrace_film(KDTracePanel, bpy.types.Panel):
+    """As Cycles' Film panel: Transparent (the world lights the scene but is not seen)."""
+    bl_label = "Film"
+    bl_parent_id = "RENDER_PT_kdtrace"
+
+    def draw(self, context):
+        layout, _ = property_layout(self, context)
+        layout.prop(context.scene.render, "film_transparent", text="Transparent")
+
+
+class RENDER_PT_kdtrace_motion_blur(KDTracePanel, bpy.types.Panel):
+    """As Cycles' Motion Blur panel; KD Trace blurs the camera's motion (objects: issue 15)."""
+    bl_label = "Motion Blur"
+    bl_parent_id = "RENDER_PT_kdtrace"
+
+    def draw_header(self, context):
+        self.layout.prop(context.scene.render, "use_motion_blur", text="")
+
+    def draw(self, context):
+        layout, _ = property_layout(self, context)
+        render = context.scene.render
+        layout.active = render.use_motion_blur
+        layout.prop(render, "motion_blur_position", text="Position")
+        layout.prop(render, "motion_blur_shutter")
+
+
+class OBJECT_PT_kdtrace_visibility(bpy.types.Panel):
+    """As Cycles' Ray Visibility: which rays see the object, and Holdout."""
+    bl_label = "KD Trace Ray Visibility"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "object"
+    COMPAT_ENGINES = {"KDTRACE"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.engine in cls.COMPAT_ENGINES and context.object is not None
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        obj = context.object
+        col = layout.column(heading="Ray Visibility", align=True)
+        for ray in ("camera", "diffuse", "glossy", "transmission", "shadow"):
+            col.prop(obj, f"visible_{ray}", text=ray.title())
+        layout.prop(obj, "is_holdout")
+
+
 class RENDER_PT_kdtrace_kdtree(KDTracePanel, bpy.types.Panel):
     bl_label = "kd-Tree"
     bl_parent_id = "RENDER_PT_kdtrace"
@@ -192,7 +240,8 @@ def color_icon(color) -> str:
 
 
 classes = (KDTRACE_UL_hosts, RENDER_PT_kdtrace, RENDER_PT_kdtrace_sampling,
-           RENDER_PT_kdtrace_light_paths, RENDER_PT_kdtrace_kdtree, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_network,
+           RENDER_PT_kdtrace_light_paths, RENDER_PT_kdtrace_film, RENDER_PT_kdtrace_motion_blur,
+           OBJECT_PT_kdtrace_visibility, RENDER_PT_kdtrace_kdtree, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_network,
            RENDER_PT_kdtrace_legend)
 
 # Blender's own panels that show what KD Trace renders (camera, lights, material base colour,

@@ -195,12 +195,18 @@ AREA_SHAPE_CODES = {"RECTANGLE": 0, "ELLIPSE": 1}     # Blender's SQUARE / DISK 
 CAMERA_CODES = {"PERSP": 0, "ORTHO": 1}
 PROJECTION_CODES = {"EQUIRECTANGULAR": 0, "MIRROR_BALL": 1}
 INTERPOLATION_CODES = {"LINEAR": 0, "CLOSEST": 1}
+# Ray visibility of an object (Blender's Object > Visibility > Ray Visibility) and its holdout,
+# bits of MATERIAL_VISIBILITY: the exporter gives such objects records of their own.
+VISIBILITY_CODES = {"CAMERA": 1, "DIFFUSE": 2, "GLOSSY": 4, "TRANSMISSION": 8, "SHADOW": 16,
+                    "HOLDOUT": 32}
+VISIBLE_TO_ALL = 31             # every ray sees it; no holdout
 CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("LIGHT_SHAPE", "Area light shapes (LIGHT_AREA_SHAPE)", AREA_SHAPE_CODES),
          Codes("CAMERA", "Camera kinds (CAMERA_KIND)", CAMERA_CODES),
          Codes("PROJECTION", "World texture projections (WORLD_PROJECTION)", PROJECTION_CODES),
          Codes("INTERPOLATION", "World texture interpolation (WORLD_INTERPOLATION)",
-               INTERPOLATION_CODES))
+               INTERPOLATION_CODES),
+         Codes("VISIBILITY", "Ray visibility bits (MATERIAL_VISIBILITY)", VISIBILITY_CODES))
 
 LIGHT = Record("LIGHT", "A light (lights buffer, light_count records)", 6, (
     Slot("position", 0, "xyz", "position"),
@@ -227,9 +233,11 @@ MATERIAL = Record("MATERIAL", "A material (materials buffer, by triangle materia
     Slot("specular", 2, "w", "specular IOR level (0.5 = as the IOR says)"),
     Slot("texture", 3, "x", "base colour texture index, -1 = none"),
     Slot("texture_alpha", 3, "y", "1: the texture's alpha multiplies alpha, 0: it does not"),
+    Slot("visibility", 3, "z", "VISIBILITY_<RAY> bits of the rays that see it, and HOLDOUT (as a "
+         "float)"),
 ))
 
-CAMERA = Record("CAMERA", "The camera (one record)", 7, (
+CAMERA = Record("CAMERA", "The camera (one record)", 11, (
     Slot("to_world", 0, "xyzw", "rows of camera.to_world (3x4: rotation/scale, translation)",
          rows=3),
     Slot("ndc_scale", 3, "xy", "camera-space point = ndc * ndc_scale + ndc_offset"),
@@ -241,6 +249,12 @@ CAMERA = Record("CAMERA", "The camera (one record)", 7, (
     Slot("width", 5, "z", "image width in pixels"),
     Slot("height", 5, "w", "image height in pixels"),
     Slot("world_color", 6, "xyz", "world colour (what a miss sees)"),
+    Slot("aperture", 7, "x", "thin lens: aperture radius (0 = a pinhole)"),
+    Slot("focus_distance", 7, "y", "thin lens: distance of the plane in focus along the view axis"),
+    Slot("blades", 7, "z", "aperture blades (0 or fewer than 3: a disc)"),
+    Slot("blade_rotation", 7, "w", "rotation of the blades in radians"),
+    Slot("to_world_end", 8, "xyzw", "rows of camera.to_world at the shutter's close (motion "
+         "blur; the same as to_world without it)", rows=3),
 ))
 
 BOUNDS = Record("BOUNDS", "The kd-tree's root box (bounds buffer, one record)", 2, (
@@ -255,9 +269,10 @@ TRIANGLE = Record("TRIANGLE", "A triangle (tri_verts buffer, by triangle index)"
     Slot("v2", 2, "xyz", "third corner (weight v)"),
 ))
 
-ACCUM = Record("ACCUM", "A pixel's colour accumulator (accum buffer, by tile pixel)", 1, (
+ACCUM = Record("ACCUM", "A pixel's colour accumulator (accum buffer, by tile pixel)", 2, (
     Slot("color", 0, "xyz", "sum of the samples' RGB"),
     Slot("samples", 0, "w", "number of samples"),
+    Slot("alpha", 1, "x", "sum of the samples' alpha"),
 ))
 
 STATS = Record("STATS", "A pixel's error statistics (stats buffer, float2, by tile pixel)", 1, (

@@ -3,7 +3,8 @@ with undersampling of smooth regions and doubling where pixels are still noisy.
 
 The policy runs against a `tile` that traces and holds the tile's accumulators on the device:
     tile.run(pixels, first_sample, sample_count, aux)   trace (aux: also depth and normal)
-    tile.read() -> (accum (n, 4), stats (n, 2))          the accumulators, copied to the host
+    tile.read() -> (accum (n, 8), stats (n, 2))          the accumulators, copied to the host
+                                                         (accum: RGB sum, samples, alpha sum, 0 0 0)
     tile.write_accum(accum)                              write the accumulated colours back
 Seeds depend only on the global pixel and the sample number, so the pixels are the same
 whichever slave renders the tile.
@@ -47,10 +48,11 @@ def _undersample(tile, x, y, w, h, count, threshold):
     traced = np.flatnonzero(coarse.ravel()).astype(np.int32)
     tile.run(traced, 0, count, 0)
     accum, stats = tile.read()
-    colour = (accum[:, :3] / np.maximum(accum[:, 3:4], 1.0)).reshape(h, w, 3)
+    # RGB and alpha of each pixel
+    colour = (accum[:, (0, 1, 2, 4)] / np.maximum(accum[:, 3:4], 1.0)).reshape(h, w, 4)
     lum = (stats[:, 0] / count).reshape(h, w)
     error = pixel_error(stats, count, w, h).reshape(h, w)
-    sum_c = np.zeros((h, w, 3), np.float32)
+    sum_c = np.zeros((h, w, 4), np.float32)
     n_c = np.zeros((h, w), np.int32)
     lo = np.full((h, w), np.inf, np.float32)
     hi = np.full((h, w), -np.inf, np.float32)
@@ -73,9 +75,10 @@ def _undersample(tile, x, y, w, h, count, threshold):
     smooth = ~coarse & (n_c >= 2) & (hi - lo <= 4 * threshold) & (worst <= threshold)
     fill = np.flatnonzero(smooth.ravel())
     if len(fill):
-        interpolated = (sum_c / np.maximum(n_c, 1)[..., None]).reshape(-1, 3)[fill]
-        accum[fill, :3] = interpolated
+        interpolated = (sum_c / np.maximum(n_c, 1)[..., None]).reshape(-1, 4)[fill]
+        accum[fill, :3] = interpolated[:, :3]
         accum[fill, 3] = 1.0
+        accum[fill, 4] = interpolated[:, 3]
         stats[fill] = 0.0                   # converged: never refined
         tile.write_accum(accum)
     rest = np.flatnonzero((~coarse & ~smooth).ravel()).astype(np.int32)

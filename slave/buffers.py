@@ -34,7 +34,7 @@ def pack_materials(shading) -> np.ndarray:
     records = out[:n]
     MATERIAL.put(records, "base_color", shading.materials[:, :3])
     MATERIAL.put(records, "alpha", shading.materials[:, 3])
-    for name in ("metallic", "roughness", "transmission", "ior", "specular", "texture"):
+    for name in ("metallic", "roughness", "transmission", "ior", "specular", "texture", "visibility"):
         MATERIAL.put(records, name, params[:, MATERIAL_PARAMS.index(name)])
     emission = [MATERIAL_PARAMS.index(f"emission_{c}") for c in "rgb"]
     MATERIAL.put(records, "emission", params[:, emission])
@@ -61,6 +61,11 @@ def pack_camera(view: View) -> np.ndarray:
     CAMERA.put(out, "width", view.width)
     CAMERA.put(out, "height", view.height)
     CAMERA.put(out, "world_color", view.shading.world_color)
+    CAMERA.put(out, "aperture", cam.aperture)
+    CAMERA.put(out, "focus_distance", cam.focus_distance)
+    CAMERA.put(out, "blades", cam.blades)
+    CAMERA.put(out, "blade_rotation", cam.blade_rotation)
+    CAMERA.put(out, "to_world_end", (m if cam.to_world_end is None else cam.to_world_end)[:3])
     return out.astype(np.float32)
 
 

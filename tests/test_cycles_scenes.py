@@ -2,7 +2,8 @@
 add-on, local slaves) at matched settings (tests/bpy_scripts/cycles_scenes.py): the world as
 a colour (sky fill) and as an HDRI (equirectangular and mirror ball, through a Mapping node),
 a room lit only by an emissive mesh, the BSDF nodes and Principled inputs, glass under an area
-light. Compared by PSNR on Combined; each scene's kernel compiles exactly the features it
+light, Film > Transparent with a holdout, ray visibility, depth of field and camera motion
+blur. Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
 uses; what is not supported is named in warnings. docs/cycles_features.md lists the rows."""
 from __future__ import annotations
 
@@ -24,6 +25,12 @@ SCENES = {
     "materials": (16, {"AREA", "BOUNCES", "EMISSION", "SMOOTH", "SPECULAR", "TRANSMISSION",
                        "WORLD"}),
     "glass": (20, {"AREA", "BOUNCES", "SMOOTH", "SPECULAR", "TRANSMISSION", "WORLD"}),
+    "film_holdout": (12, {"ALPHA", "AREA", "BOUNCES", "HOLDOUT", "SMOOTH", "SPECULAR",
+                          "TRANSPARENT_FILM", "WORLD"}),
+    "ray_visibility": (12, {"BOUNCES", "SMOOTH", "SOFT_LIGHTS", "SPECULAR", "SUN", "VISIBILITY",
+                            "WORLD"}),
+    "depth_of_field": (16, {"AREA", "BOUNCES", "DOF", "SMOOTH", "WORLD"}),
+    "camera_motion": (12, {"BOUNCES", "CAMERA_MOTION", "SMOOTH", "SOFT_LIGHTS", "SUN", "WORLD"}),
 }
 # Cycles' Light Paths defaults (also ours), uniform sampling, the samples of each scene.
 MATCHED = {name: value for name, value in RenderSettings().to_dict().items()
@@ -32,8 +39,8 @@ MATCHED = {name: value for name, value in RenderSettings().to_dict().items()
 MATCHED.update(adaptive=False, light_samples_per_axis=1)
 
 
-def psnr(image, reference) -> float:
-    a, b = np.clip(image[..., :3], 0, 1), np.clip(reference[..., :3], 0, 1)
+def psnr(image, reference, channels=slice(0, 3)) -> float:
+    a, b = np.clip(image[..., channels], 0, 1), np.clip(reference[..., channels], 0, 1)
     return float(10 * np.log10(1.0 / np.mean((a - b) ** 2)))
 
 
@@ -67,6 +74,17 @@ def test_features_a_scene_does_not_use_are_off(renders, name):
     assert set(json.loads((work / f"{name}-features.json").read_text())) == SCENES[name][1]
 
 
+def test_transparent_film_and_holdout_alpha_match_cycles(renders):
+    """Film > Transparent and a holdout cube (behind a cut-out leaf, and in a mirror ball):
+    alpha as Cycles' (the colours: test_scene_matches_cycles)."""
+    work, _ = renders
+    cycles, ours = (np.load(work / f"film_holdout-{who}.npy") for who in ("cycles", "kdtrace"))
+    assert (cycles[..., 3] < 0.01).mean() > 0.1 and ((cycles[..., 3] > 0.2) & (cycles[..., 3] < 0.8)).any()
+    value = psnr(ours, cycles, 3)
+    print(f"film_holdout alpha: PSNR {value:.2f} dB")
+    assert value >= 30.0
+
+
 def test_glass_shows_the_area_lights_highlight(renders):
     """The area light's reflection in the glass spheres: the brightest pixels of both renders
     (beyond the display range) lie at the same place, and are as bright."""
@@ -91,4 +109,5 @@ def test_unsupported_things_are_named(renders):
     one("material 'coated'", "object 'coated ball'", "Coat Weight", "Normal")
     one("material 'toon'", "object 'toon floor'", "Toon")
     one("light 'narrow area'", "spread")
-    assert len(warnings) == 4, warnings
+    one("object 'moving box'", "motion blur")
+    assert len(warnings) == 5, warnings

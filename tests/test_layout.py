@@ -308,7 +308,7 @@ def test_camera_as_camera_ray_reads_it(device, camera):
         "__kernel void rays(__global float *out, __global const float4 *cam,\n"
         "                   __global const float *pixels)\n{\n"
         f"    for (int i = 0; i < {len(pixels)}; ++i) {{\n        float3 o, d;\n"
-        "        camera_ray(cam, pixels[2 * i], pixels[2 * i + 1], &o, &d);\n"
+        "        camera_ray(cam, pixels[2 * i], pixels[2 * i + 1], (float2)(0.0f, 0.0f), 0.5f, &o, &d);\n"
         "        vstore3(o, 2 * i, out);\n        vstore3(d, 2 * i + 1, out);\n    }\n}\n")
     cl, context, queue, programs = device
     kernel = programs.kernels(source, ["-DKD_STACK_SIZE=32"])["rays"]

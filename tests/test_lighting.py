@@ -11,8 +11,9 @@ import pytest
 
 from core.accel.kdtree import build_kdtree
 from core.scene.features import ALL_FEATURES, scene_features
-from core.scene.model import (Camera, Geometry, Light, RenderSettings, Shading, View, WorldTexture,
-                              default_material_params)
+from core.layout import VISIBILITY_CODES, VISIBLE_TO_ALL
+from core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings, Shading,
+                              View, WorldTexture, default_material_params)
 from core.scene.scene import Scene
 from slave.buffers import alias_table, emitter_powers, world_importance
 from slave.tracer import Tracer, kernel_options
@@ -264,3 +265,155 @@ def test_unused_emissive_and_world_textures_compile_nothing():
                       [Light("POINT", (1, 1, 1), 10.0, (0, 0, 2))], (0, 0, 0), params,
                       WorldTexture(0))
     assert scene_features(geometry, feature_view(shading, max_bounces=0)) == {"POINT"}
+
+
+# -- Film > Transparent, holdout, ray visibility, depth of field, camera motion -------------------
+
+def sphere_on_floor():
+    """A unit sphere (material 1) on a floor (material 0), seen from above at an angle."""
+    from tests.meshes import look_at, uv_sphere
+    sphere = uv_sphere(24, 12, 1.0, (0, 0, 1))
+    vertices, triangles = merge(sphere, grid_plane(8.0, 2, 0.0))
+    ids = np.zeros(len(triangles), np.uint16)
+    ids[:len(sphere[1])] = 1
+    camera = Camera("PERSP", look_at((0.0, -7.0, 5.0), (0.0, 0.0, 0.5)), (0.45, 0.34), (0, 0),
+                    0.1, 100.0)
+    return vertices, triangles, ids, camera
+
+
+def two_materials(visibility=VISIBLE_TO_ALL):
+    params = default_material_params(2)
+    params[1, MATERIAL_PARAMS.index("visibility")] = visibility
+    return Shading(np.array([[ALBEDO] * 3 + [1], [0.8, 0.3, 0.2, 1]], np.float32),
+                   [Light("SUN", (1, 1, 1), 3.0, direction=(0.4, 0.3, -1.0))], (0.2, 0.25, 0.3),
+                   params)
+
+
+def test_transparent_film_and_holdout_give_alpha_where_camera_rays_do():
+    """Alpha 0 exactly where the pixel's camera ray misses (Film > Transparent) or hits a
+    holdout (then black too), checked against intersect() of the same rays; elsewhere alpha 1
+    and the colours of an opaque film."""
+    tracer = Tracer()
+    vertices, triangles, ids, camera = sphere_on_floor()
+    load(tracer, vertices, triangles, ids)
+    w, h = 40, 30
+    opaque = View(camera, w, h, two_materials(), settings=settings(1, max_bounces=0))
+    film = View(camera, w, h, two_materials(), settings=settings(1, max_bounces=0),
+                film_transparent=True)
+    held = View(camera, w, h, two_materials(VISIBLE_TO_ALL | VISIBILITY_CODES["HOLDOUT"]),
+                settings=settings(1, max_bounces=0), film_transparent=True)
+    base = tracer.render_tile(opaque, 0, 0, w, h)["combined"]
+    transparent = tracer.render_tile(film, 0, 0, w, h)["combined"]
+    assert "TRANSPARENT_FILM" in tracer.last_render["features"]
+    holdout = tracer.render_tile(held, 0, 0, w, h)["combined"]
+    assert {"HOLDOUT", "TRANSPARENT_FILM"} <= set(tracer.last_render["features"])
+    # The pixel-centre rays, made here.
+    ys, xs = np.mgrid[0:h, 0:w] + 0.5
+    ndc = np.stack([(xs / w * 2 - 1) * 0.45, (1 - ys / h * 2) * 0.34, -np.ones_like(xs)], -1)
+    directions = ndc.reshape(-1, 3) @ camera.to_world[:3, :3].T
+    origins = np.broadcast_to(camera.to_world[:3, 3], directions.shape)
+    hits = tracer.intersect(origins, directions)
+    missed = (hits.triangle < 0).reshape(h, w)
+    on_sphere = (hits.triangle >= 0).reshape(h, w) & (ids[np.maximum(hits.triangle, 0)] == 1).reshape(h, w)
+    assert missed.any() and on_sphere.any() and not (missed & on_sphere).any()
+    assert (base[..., 3] == 1).all()
+    np.testing.assert_array_equal(transparent[..., 3], np.where(missed, 0.0, 1.0))
+    np.testing.assert_array_equal(transparent[missed, :3], 0.0)
+    np.testing.assert_array_equal(transparent[~missed], base[~missed])
+    np.testing.assert_array_equal(holdout[..., 3], np.where(missed | on_sphere, 0.0, 1.0))
+    np.testing.assert_array_equal(holdout[on_sphere, :3], 0.0)
+
+
+def grow(mask):
+    """The mask and its 8 neighbours."""
+    out = mask.copy()
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            out |= np.roll(mask, (dy, dx), axis=(0, 1))
+    return out
+
+
+def test_an_object_no_ray_sees_is_not_rendered():
+    """A sphere with every ray visibility off renders as the floor without it; with Camera
+    off the floor shows where it was, its shadows stay; with Shadow off it is seen and casts
+    none (no bounces, so every difference is the sphere's or its shadow's)."""
+    tracer = Tracer()
+    vertices, triangles, ids, camera = sphere_on_floor()
+    floor_only = slice(int((ids == 1).sum()), None)
+    w, h = 40, 30
+
+    def image(visibility, n=4, bounces=0):
+        view = View(camera, w, h, two_materials(visibility), settings=settings(n, max_bounces=bounces))
+        return tracer.render_tile(view, 0, 0, w, h)
+    load(tracer, vertices, triangles[floor_only], ids[floor_only])
+    alone, alone_bounced = image(VISIBLE_TO_ALL), image(VISIBLE_TO_ALL, bounces=4)
+    load(tracer, vertices, triangles, ids)
+    ghost = image(0, bounces=4)["combined"]
+    assert "VISIBILITY" in tracer.last_render["features"]
+    np.testing.assert_allclose(ghost, alone_bounced["combined"], atol=2e-3)
+    full = image(VISIBLE_TO_ALL)
+    no_camera = image(VISIBLE_TO_ALL & ~VISIBILITY_CODES["CAMERA"])
+    no_shadow = image(VISIBLE_TO_ALL & ~VISIBILITY_CODES["SHADOW"])
+    sphere = np.abs(full["depth"] - alone["depth"]) > 1e-3 * np.minimum(full["depth"], 100.0)
+    inside, near = sphere & ~grow(~sphere), grow(sphere)
+    shadowed = ~near & (np.abs(full["combined"] - alone["combined"]).max(-1) > 0.05)
+    assert inside.sum() > 10 and shadowed.sum() > 10
+    np.testing.assert_allclose(no_camera["depth"], alone["depth"], rtol=1e-5)
+    np.testing.assert_allclose(no_camera["combined"][~near], full["combined"][~near], atol=2e-3)
+    assert np.abs(no_camera["combined"][inside] - full["combined"][inside]).max() > 0.1
+    np.testing.assert_allclose(no_shadow["combined"][inside], full["combined"][inside], atol=2e-3)
+    # (BSDF rays from the floor still meet the sphere: only the shadows of light samples go.)
+    lit = np.abs(no_shadow["combined"] - alone["combined"])[shadowed].mean()
+    assert lit < 0.25 * np.abs(full["combined"] - alone["combined"])[shadowed].mean()
+
+
+def test_thin_lens_keeps_the_plane_in_focus_sharp():
+    """Every lens sample of a pixel meets the plane in focus at the same point: a diffuse
+    plane there renders as with a pinhole; another plane is blurred."""
+    tracer = Tracer()
+    vertices, triangles = grid_plane(20.0, 10, 0.0)
+    ids = (np.arange(len(triangles)) // 2 % 2 + np.arange(len(triangles)) // 20 % 2) % 2
+    load(tracer, vertices, triangles, ids.astype(np.uint16))
+    shading = two_materials()
+    shading.world_color = (0.0, 0.0, 0.0)
+    m = np.eye(4)
+    m[2, 3] = 5.0
+    w = h = 32
+    def image(**lens):
+        camera = Camera("PERSP", m, (0.6, 0.6), (0, 0), 0.1, 100.0, **lens)
+        return render(tracer, View(camera, w, h, shading, settings=settings(4, max_bounces=0)))
+    pinhole = image()
+    focused = image(aperture=0.4, focus_distance=5.0, blades=6, blade_rotation=0.3)
+    assert "DOF" in tracer.last_render["features"]
+    np.testing.assert_allclose(focused, pinhole, atol=1e-4)
+    # In focus 2.5 in front of the plane: a circle of confusion of 2 x 1.0 x 2.5 / 2.5 = 2
+    # units on it, the checker's cells are 2: its contrast (grey against red) fades.
+    blurred = image(aperture=1.0, focus_distance=2.5)
+    assert blurred[..., 2].std() < 0.6 * pinhole[..., 2].std()
+    np.testing.assert_allclose(blurred.mean(), pinhole.mean(), rtol=0.05)
+
+
+def test_camera_motion_averages_the_shutter():
+    """A camera moving over the shutter renders the mean of the cameras along its path."""
+    tracer = Tracer()
+    vertices, triangles, ids, camera = sphere_on_floor()
+    load(tracer, vertices, triangles, ids)
+    w, h = 32, 24
+    end = camera.to_world.copy()
+    end[0, 3] += 1.0
+    moving = Camera(camera.kind, camera.to_world, camera.ndc_scale, camera.ndc_offset,
+                    camera.clip_start, camera.clip_end, to_world_end=end)
+    blurred = render(tracer, View(moving, w, h, two_materials(), settings=settings(16, max_bounces=0)))
+    assert "CAMERA_MOTION" in tracer.last_render["features"]
+    steps = []
+    for t in (np.arange(16) + 0.5) / 16:
+        m = camera.to_world.copy()
+        m[0, 3] += t
+        fixed = Camera(camera.kind, m, camera.ndc_scale, camera.ndc_offset, camera.clip_start,
+                       camera.clip_end)
+        steps.append(render(tracer, View(fixed, w, h, two_materials(), settings=settings(4, max_bounces=0))))
+    reference = np.mean(steps, axis=0)
+    mse = np.mean((np.clip(blurred, 0, 1) - np.clip(reference, 0, 1)) ** 2)
+    assert 10 * np.log10(1 / mse) > 30
+    still = render(tracer, View(camera, w, h, two_materials(), settings=settings(4, max_bounces=0)))
+    assert np.mean((still - reference) ** 2) > 4 * mse

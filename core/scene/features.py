@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..layout import VISIBILITY_CODES, VISIBLE_TO_ALL
 from .model import MATERIAL_PARAMS, Geometry, View
 
 # Every feature, and the geometry arrays each one needs (beyond vertices/triangles/material_ids).
@@ -24,6 +25,11 @@ FEATURES = {
     "WORLD": (),              # the world lights the scene (a colour that is not black)
     "WORLD_TEXTURE": ("texels", "texture_sizes"),   # an Environment Texture, importance-sampled
     "BOUNCES": (),            # BSDF rays: bounces, or lights that a BSDF ray can hit (MIS)
+    "TRANSPARENT_FILM": (),   # Film > Transparent: camera rays that miss give alpha 0
+    "HOLDOUT": (),            # holdout objects: black (and alpha 0 with a transparent film)
+    "VISIBILITY": (),         # objects that some kinds of rays do not see (ray visibility)
+    "DOF": (),                # depth of field: a thin lens with an aperture
+    "CAMERA_MOTION": (),      # camera motion blur: the camera moves while the shutter is open
 }
 ALL_FEATURES = frozenset(FEATURES)
 
@@ -63,6 +69,18 @@ def scene_features(geometry: Geometry, view: View, used_materials=None) -> froze
         np.zeros((0, 3))
     if (emission > 0).any():
         features.add("EMISSION")
+    visibility = column("visibility").astype(np.int64)
+    if (visibility & VISIBILITY_CODES["HOLDOUT"]).any():
+        features.add("HOLDOUT")
+    if ((visibility & VISIBLE_TO_ALL) != VISIBLE_TO_ALL).any():
+        features.add("VISIBILITY")
+    if view.film_transparent:
+        features.add("TRANSPARENT_FILM")
+    camera = view.camera
+    if camera.kind == "PERSP" and camera.aperture > 0:
+        features.add("DOF")
+    if camera.to_world_end is not None and not np.array_equal(camera.to_world_end, camera.to_world):
+        features.add("CAMERA_MOTION")
     if shading.world_lights:
         features.add("WORLD")
         if shading.world_texture is not None:

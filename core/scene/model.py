@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..layout import VISIBLE_TO_ALL
+
 SCENE_FORMAT_VERSION = 1
 
 # Dtypes of the geometry arrays, fixed so both sides agree on the wire and in the kernel.
@@ -170,6 +172,12 @@ class Camera:
     on the plane z = -1 (perspective: the ray goes from the origin through it) or z = 0
     (orthographic: the ray starts there and goes along -Z). Sensor fit, shift and aspect are
     folded into these four numbers by the exporter.
+
+    Depth of field (Cycles' thin lens): `aperture` is the lens radius in world units (0: a
+    pinhole), `focus_distance` the distance along the view axis that is sharp, `blades` the
+    aperture's polygon (fewer than 3: a disc) turned by `blade_rotation` radians. Motion blur:
+    `to_world_end` is the transform at the shutter's close (to_world at its open); a camera
+    sample at time t in [0, 1) uses their blend (None: no motion).
     """
 
     kind: str                           # "PERSP" or "ORTHO"
@@ -178,14 +186,25 @@ class Camera:
     ndc_offset: tuple = (0.0, 0.0)
     clip_start: float = 0.0
     clip_end: float = 1e30
+    aperture: float = 0.0
+    focus_distance: float = 10.0
+    blades: int = 0
+    blade_rotation: float = 0.0
+    to_world_end: np.ndarray | None = None
 
     def __post_init__(self):
         self.to_world = np.asarray(self.to_world, dtype=np.float64).reshape(4, 4)
+        if self.to_world_end is not None:
+            self.to_world_end = np.asarray(self.to_world_end, dtype=np.float64).reshape(4, 4)
 
     def to_dict(self) -> dict:
         return {"kind": self.kind, "to_world": self.to_world.reshape(-1).tolist(),
                 "ndc_scale": list(self.ndc_scale), "ndc_offset": list(self.ndc_offset),
-                "clip_start": self.clip_start, "clip_end": self.clip_end}
+                "clip_start": self.clip_start, "clip_end": self.clip_end,
+                "aperture": self.aperture, "focus_distance": self.focus_distance,
+                "blades": self.blades, "blade_rotation": self.blade_rotation,
+                "to_world_end": None if self.to_world_end is None
+                else self.to_world_end.reshape(-1).tolist()}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Camera":
@@ -199,9 +218,15 @@ class Camera:
         scale = _finite_floats(d.get("ndc_scale"), 2, "camera ndc_scale")
         if scale[0] == 0.0 or scale[1] == 0.0:
             raise SceneError("camera ndc_scale must not be zero")
+        end = d.get("to_world_end")
         return cls(kind, np.array(_finite_floats(d.get("to_world"), 16, "camera to_world")),
                    scale, _finite_floats(d.get("ndc_offset"), 2, "camera ndc_offset"),
-                   clip_start, clip_end)
+                   clip_start, clip_end,
+                   _finite_float(d.get("aperture", 0.0), "camera aperture", 0.0, 1e6),
+                   _finite_float(d.get("focus_distance", 10.0), "camera focus distance", 1e-6),
+                   _int(d.get("blades", 0), "camera blades", 0, 100),
+                   _finite_float(d.get("blade_rotation", 0.0), "camera blade rotation"),
+                   None if end is None else np.array(_finite_floats(end, 16, "camera to_world_end")))
 
 
 LIGHT_KINDS = ("POINT", "SUN", "SPOT", "AREA")
@@ -261,14 +286,16 @@ class Light:
 
 
 # Per-material surface parameters beside the base colour (Shading.material_params columns).
+# visibility: the VISIBILITY_<RAY> bits (core/layout.py) of the rays that see the surface, and
+# VISIBILITY_HOLDOUT; the exporter gives an object with other than the default its own records.
 MATERIAL_PARAMS = ("metallic", "roughness", "transmission", "ior", "emission_r", "emission_g",
-                   "emission_b", "specular", "texture")
-DEFAULT_MATERIAL_PARAMS = (0.0, 0.5, 0.0, 1.5, 0.0, 0.0, 0.0, 0.0, -1.0)
+                   "emission_b", "specular", "texture", "visibility")
+DEFAULT_MATERIAL_PARAMS = (0.0, 0.5, 0.0, 1.5, 0.0, 0.0, 0.0, 0.0, -1.0, float(VISIBLE_TO_ALL))
 # name -> (low, high) accepted from the network; texture is an index, -1 = none.
 _PARAM_RANGES = {"metallic": (0.0, 1.0), "roughness": (0.0, 1.0), "transmission": (0.0, 1.0),
                  "ior": (0.01, 100.0), "emission_r": (0.0, 1e30), "emission_g": (0.0, 1e30),
                  "emission_b": (0.0, 1e30), "specular": (0.0, 1000.0),
-                 "texture": (-1.0, MAX_TEXTURES - 1.0)}
+                 "texture": (-1.0, MAX_TEXTURES - 1.0), "visibility": (0.0, 63.0)}
 
 
 def default_material_params(count: int) -> np.ndarray:
@@ -383,6 +410,8 @@ class Shading:
                     low, high = _PARAM_RANGES[name]
                     if not low <= value <= high:
                         raise SceneError(f"material {name} must be in [{low}, {high}], got {value}")
+                    if name == "visibility" and value != round(value):
+                        raise SceneError(f"material visibility must be a whole number, got {value}")
                 rows.append(row)
             params = np.array(rows, np.float32)
         world = _finite_floats(d.get("world_color"), 3, "world colour")
@@ -481,7 +510,9 @@ class View:
     """One frame to render: camera, image size, the region to render, and the shading.
 
     `region` is (x0, y0, x1, y1) in pixels of the full image, top-left origin, x1/y1 exclusive;
-    it is the render border, or the whole image.
+    it is the render border, or the whole image. `film_transparent` (Blender's Film >
+    Transparent): camera rays that leave the scene, or reach a holdout, give alpha 0 and no
+    colour (the world still lights the scene).
     """
 
     camera: Camera
@@ -490,6 +521,7 @@ class View:
     shading: Shading
     region: tuple = None
     settings: RenderSettings = field(default_factory=RenderSettings)
+    film_transparent: bool = False
 
     def __post_init__(self):
         if self.region is None:
@@ -499,7 +531,7 @@ class View:
     def to_dict(self) -> dict:
         return {"camera": self.camera.to_dict(), "width": self.width, "height": self.height,
                 "region": list(self.region), "shading": self.shading.to_dict(),
-                "settings": self.settings.to_dict()}
+                "settings": self.settings.to_dict(), "film_transparent": self.film_transparent}
 
     @classmethod
     def from_dict(cls, d: dict) -> "View":
@@ -514,6 +546,9 @@ class View:
         y0 = _int(region[1], "region y0", 0, height - 1)
         x1 = _int(region[2], "region x1", x0 + 1, width)
         y1 = _int(region[3], "region y1", y0 + 1, height)
+        transparent = d.get("film_transparent", False)
+        if not isinstance(transparent, bool):
+            raise SceneError("film_transparent must be true or false")
         return cls(Camera.from_dict(d.get("camera")), width, height,
                    Shading.from_dict(d.get("shading")), (x0, y0, x1, y1),
-                   RenderSettings.from_dict(d.get("settings")))
+                   RenderSettings.from_dict(d.get("settings")), transparent)

@@ -17,24 +17,63 @@ inline float3 transform_vector(__global const float4 *m, float3 v)
     return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
 }
 
+#ifdef HAS_DOF
+// A point of the aperture (radius 1) for u in [0, 1)^2, as Cycles samples it: a disc, or the
+// regular polygon of `blades` corners turned by `rotation`.
+inline float2 aperture_sample(__global const float4 *cam, float u1, float u2)
+{
+    int blades = (int)CAMERA_BLADES(cam);
+    if (blades < 3)
+        return concentric_disk(u1, u2);
+    float corner = floor(u1 * (float)blades);
+    float u = sqrt(u1 * (float)blades - corner);
+    float v = u2 * u;
+    u = 1.0f - u;
+    float2 half_angle = sincos_poly(M_PI_F / (float)blades);
+    float2 p = (float2)((u + v) * half_angle.y, (u - v) * half_angle.x);
+    float turn = CAMERA_BLADE_ROTATION(cam) + corner * (2.0f * M_PI_F / (float)blades);
+    turn -= 2.0f * M_PI_F * floor(turn * (0.5f * M_1_PI_F));
+    float2 r = sincos_poly(turn);
+    return (float2)(r.y * p.x - r.x * p.y, r.x * p.x + r.y * p.y);
+}
+#endif
+
 // The camera ray through image position (fx, fy) in pixels of the full image (top-left
 // origin; pixel centres at +0.5). The direction is not normalised: t is then proportional to
 // the distance along the view axis, which both clipping and the depth pass measure.
-inline void camera_ray(__global const float4 *cam, float fx, float fy, float3 *o, float3 *d)
+// `lens`: the point of the aperture (radius 1; thin lens, perspective cameras with HAS_DOF);
+// `time`: the moment in the shutter interval [0, 1) (HAS_CAMERA_MOTION).
+inline void camera_ray(__global const float4 *cam, float fx, float fy, float2 lens, float time,
+                       float3 *o, float3 *d)
 {
     float width = CAMERA_WIDTH(cam), height = CAMERA_HEIGHT(cam);
     float ndc_x = fx / width * 2.0f - 1.0f;
     float ndc_y = 1.0f - fy / height * 2.0f;
     float2 scale = CAMERA_NDC_SCALE(cam), offset = CAMERA_NDC_OFFSET(cam);
     float2 p = (float2)(ndc_x * scale.x + offset.x, ndc_y * scale.y + offset.y);
-    __global const float4 *to_world = CAMERA_TO_WORLD(cam);
-    if (CAMERA_KIND(cam) == CAMERA_PERSP) {
-        *o = transform_point(to_world, (float3)(0.0f, 0.0f, 0.0f));
-        *d = transform_vector(to_world, (float3)(p, -1.0f));
-    } else {
-        *o = transform_point(to_world, (float3)(p, 0.0f));
-        *d = transform_vector(to_world, (float3)(0.0f, 0.0f, -1.0f));
+    float3 origin = (float3)(0.0f, 0.0f, 0.0f), direction = (float3)(p, -1.0f);
+    if (CAMERA_KIND(cam) != CAMERA_PERSP) {
+        origin = (float3)(p, 0.0f);
+        direction = (float3)(0.0f, 0.0f, -1.0f);
     }
+#ifdef HAS_DOF
+    else {
+        // Thin lens: from a point of the aperture towards where the pinhole ray meets the
+        // plane in focus (z = -focus distance); z stays -1, so t still measures the view axis.
+        float2 l = lens * CAMERA_APERTURE(cam);
+        origin = (float3)(l, 0.0f);
+        direction = (float3)(p - l * (1.0f / CAMERA_FOCUS_DISTANCE(cam)), -1.0f);
+    }
+#endif
+    __global const float4 *to_world = CAMERA_TO_WORLD(cam);
+    *o = transform_point(to_world, origin);
+    *d = transform_vector(to_world, direction);
+#ifdef HAS_CAMERA_MOTION
+    // The transform blends linearly from the shutter's open to its close.
+    __global const float4 *to_world_end = CAMERA_TO_WORLD_END(cam);
+    *o = (1.0f - time) * *o + time * transform_point(to_world_end, origin);
+    *d = (1.0f - time) * *d + time * transform_vector(to_world_end, direction);
+#endif
 }
 
 // The bounce limits of a path (RenderSettings' Light Paths) and its clamping.
@@ -50,7 +89,8 @@ typedef struct {
 // continue. A path that reaches a bounce limit still traces its last BSDF ray to collect the
 // light it hits (as Cycles), so direct light is complete with any limit.
 inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, float3 d,
-                         Rng *rng, const PathLimits *limits, float *depth, float3 *normal)
+                         Rng *rng, const PathLimits *limits, float *depth, float3 *normal,
+                         float *alpha)
 {
     float3 radiance = (float3)(0.0f, 0.0f, 0.0f), beta = (float3)(1.0f, 1.0f, 1.0f);
     float along = dot(d, CAMERA_VIEW_AXIS(cam));     // view-axis distance per unit of t
@@ -63,8 +103,13 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
     float min_pdf = INFINITY;    // the least density of the path's BSDF samples (Filter Glossy)
     int bounces = 0, diffuse = 0, glossy = 0, transmission = 0, transparent = 0;
     float n_light = (float)(sc->light_n * sc->light_n);
+#ifdef HAS_VISIBILITY
+    uint ray_kind = VISIBILITY_CAMERA;     // the kind of ray, as objects' ray visibility names it
+    int unseen = 0;                        // surfaces passed because the ray does not see them
+#endif
     *depth = 1e10f;
     *normal = (float3)(0.0f, 0.0f, 0.0f);
+    *alpha = 1.0f;
     while (true) {
         // Clamping as Cycles: light that a ray finds counts for the surface that sent it
         // (direct light when that is the first surface), direct light of this surface for it.
@@ -86,6 +131,12 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         }
 #endif
         if (!hit) {
+#ifdef HAS_TRANSPARENT_FILM
+            if (primary) {          // Film > Transparent: the camera sees no world
+                *alpha = 0.0f;
+                break;
+            }
+#endif
             d = normalize(d);
             float3 Le = world_radiance(sc, d);
 #ifdef HAS_WORLD
@@ -100,6 +151,36 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
             break;
         }
         Surface s = surface_at(sc, &h, d);
+#if defined(HAS_VISIBILITY) || defined(HAS_HOLDOUT)
+        uint visibility = material_visibility(sc, h.tri);
+#endif
+#ifdef HAS_VISIBILITY
+        // An object this kind of ray does not see: the ray goes on behind it (not a bounce).
+        if (!(visibility & ray_kind)) {
+            if (++unseen > MAX_UNSEEN_SURFACES)
+                break;
+            o = spawn(&s, d);
+            ignore = h.tri;
+            if (primary) {
+                t_before += h.t;
+                tmin = fmax(tmin - h.t, 0.0f);
+                tmax = tmax - h.t;
+            }
+            continue;
+        }
+#endif
+#ifdef HAS_HOLDOUT
+        // A holdout seen by the camera ray (through cut-outs too): black, and with Film >
+        // Transparent a hole in alpha, as Cycles.
+        if (primary && (visibility & VISIBILITY_HOLDOUT)) {
+            *depth = (t_before + h.t) * along;
+            *normal = s.ns;
+#ifdef HAS_TRANSPARENT_FILM
+            *alpha = 0.0f;
+#endif
+            break;
+        }
+#endif
         Material m = material_at(sc, h.tri, h.u, h.v);
 #ifdef HAS_ALPHA
         // Cut-out: the path goes on through with probability 1 - alpha (Cycles' stochastic
@@ -168,6 +249,10 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
             last = last || ++glossy > limits->glossy;
         else
             last = last || ++transmission > limits->transmission;
+#ifdef HAS_VISIBILITY
+        ray_kind = kind == LOBE_DIFFUSE ? VISIBILITY_DIFFUSE
+                   : kind == LOBE_GLOSSY ? VISIBILITY_GLOSSY : VISIBILITY_TRANSMISSION;
+#endif
         beta *= weight;
         if (!all(isfinite(beta)) || all(beta == 0.0f))
             break;
@@ -241,7 +326,9 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     PathLimits limits = {bounce_limits.x, bounce_limits.y, bounce_limits.z, bounce_limits.w,
                          transparent_bounces, clamps.x, clamps.y, clamps.z};
 
-    float4 sum = accum[here];       // this pixel's ACCUM and STATS records, kept in registers
+    float4 sum[ACCUM_SIZE];         // this pixel's ACCUM and STATS records, kept in registers
+    for (int k = 0; k < ACCUM_SIZE; ++k)
+        sum[k] = accum[ACCUM_SIZE * here + k];
     float2 st = stats[here];
     float depth;
     float3 normal;
@@ -254,9 +341,18 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
             jx = ((float)cell.x + rng_next(&rng)) / (float)strata;
             jy = ((float)cell.y + rng_next(&rng)) / (float)strata;
         }
+        float2 lens = (float2)(0.0f, 0.0f);
+        float time = 0.5f;
+#ifdef HAS_DOF
+        lens = aperture_sample(cam, rng_next(&rng), rng_next(&rng));
+#endif
+#ifdef HAS_CAMERA_MOTION
+        time = rng_next(&rng);
+#endif
         float3 o, d;
-        camera_ray(cam, (float)px + jx, (float)py + jy, &o, &d);
-        float3 c = trace_path(&sc, cam, o, d, &rng, &limits, &depth, &normal);
+        camera_ray(cam, (float)px + jx, (float)py + jy, lens, time, &o, &d);
+        float alpha;
+        float3 c = trace_path(&sc, cam, o, d, &rng, &limits, &depth, &normal, &alpha);
         if (!all(isfinite(c)))
             c = (float3)(0.0f, 0.0f, 0.0f);                 // never let NaN/inf reach a pixel
         if (write_aux && strata == 0 && k == 0) {
@@ -264,26 +360,43 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
             vstore3(normal, here, out_normal);
         }
         float lum = fmin(0.2126f * c.x + 0.7152f * c.y + 0.0722f * c.z, 1.0f);
-        ACCUM_COLOR(&sum) += c;
-        ACCUM_SAMPLES(&sum) += 1.0f;
+        ACCUM_COLOR(sum) += c;
+        ACCUM_SAMPLES(sum) += 1.0f;
+        ACCUM_ALPHA(sum) += alpha;
         STATS_SUM(&st) += lum;
         STATS_SUM_SQUARES(&st) += lum * lum;
     }
-    accum[here] = sum;
+    for (int k = 0; k < ACCUM_SIZE; ++k)
+        accum[ACCUM_SIZE * here + k] = sum[k];
     stats[here] = st;
     if (write_aux && strata > 0) {
         // Depth and normal from the pixel centre, as with one sample.
         float3 o, d;
-        camera_ray(cam, (float)px + 0.5f, (float)py + 0.5f, &o, &d);
+        camera_ray(cam, (float)px + 0.5f, (float)py + 0.5f, (float2)(0.0f, 0.0f), 0.5f, &o, &d);
         float along = dot(d, CAMERA_VIEW_AXIS(cam));
+        float tmin = CAMERA_CLIP_START(cam) / along, tmax = CAMERA_CLIP_END(cam) / along;
+        float t_before = 0.0f;
+        uint ignore = NO_HIT;
         Hit h;
         depth = 1e10f;
         normal = (float3)(0.0f, 0.0f, 0.0f);
-        if (trace(&sc, o, d, CAMERA_CLIP_START(cam) / along, CAMERA_CLIP_END(cam) / along, false,
-                  NO_HIT, &h)) {
+        for (int k = 0; k <= MAX_UNSEEN_SURFACES; ++k) {
+            if (!trace(&sc, o, d, tmin, tmax, false, ignore, &h))
+                break;
             Surface s = surface_at(&sc, &h, d);
-            depth = h.t * along;
+#ifdef HAS_VISIBILITY
+            if (!(material_visibility(&sc, h.tri) & VISIBILITY_CAMERA)) {   // not seen: behind
+                o = spawn(&s, d);
+                ignore = h.tri;
+                t_before += h.t;
+                tmin = fmax(tmin - h.t, 0.0f);
+                tmax -= h.t;
+                continue;
+            }
+#endif
+            depth = (t_before + h.t) * along;
             normal = s.ns;
+            break;
         }
         out_depth[here] = depth;
         vstore3(normal, here, out_normal);

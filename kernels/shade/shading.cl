@@ -9,6 +9,8 @@
 // its names.
 
 #define MAX_SHADOW_SURFACES 16
+// Surfaces a ray passes because its kind of ray does not see them (ray visibility).
+#define MAX_UNSEEN_SURFACES 64
 // pbrt's gamma(7): relative error bound of a hit point from barycentrics (pbrt-v3 3.9.2), doubled.
 #define HIT_ERROR (2.0f * 7.0f * 0x1.0p-24f / (1.0f - 7.0f * 0x1.0p-24f))
 // GGX lobes with alpha^2 below this are perfect mirrors (Cycles' singular threshold).
@@ -239,6 +241,12 @@ inline Material material_at(const Scene *sc, uint tri, float u, float v)
     }
 #endif
     return m;
+}
+
+// The VISIBILITY_<RAY> bits of the rays that see the triangle, and VISIBILITY_HOLDOUT.
+inline uint material_visibility(const Scene *sc, uint tri)
+{
+    return (uint)MATERIAL_VISIBILITY(sc->materials + MATERIAL_SIZE * sc->material_ids[tri]);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -982,20 +990,31 @@ inline float3 sun_disks(const Scene *sc, float3 d, float pdf_bsdf, float n_light
 // Shadow rays and direct light
 
 // Visibility (0..1 per channel) from o along unit w up to `target` (or forever): opaque
-// surfaces (glass too, as in Cycles) block; alpha cut-outs let 1 - alpha through.
+// surfaces (glass too, as in Cycles) block; alpha cut-outs let 1 - alpha through; objects
+// with Shadow ray visibility off let everything through.
 inline float3 shadow(const Scene *sc, float3 o, float3 w, float dist, float3 target, uint ignore)
 {
-#ifdef HAS_ALPHA
+#if defined(HAS_ALPHA) || defined(HAS_VISIBILITY)
     float3 T = (float3)(1.0f, 1.0f, 1.0f);
     for (int k = 0; k < MAX_SHADOW_SURFACES; ++k) {
         float tmax = isinf(dist) ? INFINITY : dist * (1.0f - 0x1.0p-12f);
         Hit h;
         if (!trace(sc, o, w, 0.0f, tmax, false, ignore, &h))
             return T;
-        Material m = material_at(sc, h.tri, h.u, h.v);
-        T *= 1.0f - clamp(m.alpha, 0.0f, 1.0f);
-        if (all(T == 0.0f))
-            return T;
+#ifdef HAS_VISIBILITY
+        if (material_visibility(sc, h.tri) & VISIBILITY_SHADOW) {
+#endif
+#ifdef HAS_ALPHA
+            Material m = material_at(sc, h.tri, h.u, h.v);
+            T *= 1.0f - clamp(m.alpha, 0.0f, 1.0f);
+            if (all(T == 0.0f))
+                return T;
+#else
+            return (float3)(0.0f, 0.0f, 0.0f);
+#endif
+#ifdef HAS_VISIBILITY
+        }
+#endif
         Surface s = surface_at(sc, &h, w);
         o = spawn(&s, w);
         ignore = h.tri;

@@ -158,8 +158,20 @@ def floor(mat=None, size=12.0):
                size=size)
 
 
+def keyframes(obj, path, values):
+    """Linear keyframes of obj.<path> at the given {frame: value}."""
+    bpy.context.preferences.edit.keyframe_new_interpolation_type = "LINEAR"
+    for frame, value in values.items():
+        setattr(obj, path, value)
+        obj.keyframe_insert(path, frame=frame)
+
+
 def build(name):
     clear()
+    scene = bpy.context.scene
+    scene.render.film_transparent = False
+    scene.render.use_motion_blur = False
+    scene.frame_set(1)
     if name == "world_color":
         # Sky fill: a sun's shadows are lit by the world colour.
         world((0.35, 0.45, 0.6))
@@ -248,6 +260,73 @@ def build(name):
         sphere(material("chrome", color=(0.9, 0.9, 0.9), Metallic=1.0, Roughness=0.15),
                (-0.6, 0.6, 0.4), radius=0.4)
         camera((-0.2, -1.9, 1.4), (0.1, 1.5, 1.1), lens=16)
+    elif name == "film_holdout":
+        # Film > Transparent: the world lights but is not seen; a holdout cube punches a hole
+        # (also through a cut-out), seen normally in the mirror ball.
+        scene.render.film_transparent = True
+        world((0.3, 0.35, 0.45))
+        floor(material("floor", "DIFFUSE", (0.6, 0.6, 0.6)), size=3.0)
+        sphere(material("mirror", color=(0.9, 0.9, 0.9), Metallic=1.0, Roughness=0.05),
+               (-0.7, 0.4, 0.6))
+        holdout = add(bpy.ops.mesh.primitive_cube_add, material("grey", color=(0.7, 0.7, 0.7)),
+                      size=0.8, location=(0.6, 0.0, 0.4))
+        holdout.is_holdout = True
+        leaf = material("leaf", color=(0.2, 0.7, 0.2), Alpha=0.5)
+        add(bpy.ops.mesh.primitive_plane_add, leaf, size=0.6, location=(0.5, -1.0, 0.5),
+            rotation=(math.radians(90), 0, 0))
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=120.0, size=1.0)
+        camera((0.0, -4.0, 1.8), (0, 0.2, 0.4), lens=35)
+    elif name == "ray_visibility":
+        # Each object hidden from one kind of ray (Object > Visibility > Ray Visibility).
+        world((0.2, 0.22, 0.25))
+        floor(material("floor", "DIFFUSE", (0.6, 0.6, 0.6)))
+        ghost = sphere(material("ghost", "DIFFUSE", (0.8, 0.3, 0.2)), (-1.2, 0.2, 0.5), radius=0.45)
+        ghost.visible_camera = False            # unseen, but casts its shadow
+        no_shadow = add(bpy.ops.mesh.primitive_cube_add, material("no shadow", color=(0.3, 0.5, 0.8)),
+                        size=0.7, location=(0.0, -0.2, 0.35))
+        no_shadow.visible_shadow = False
+        sphere(material("mirror", color=(0.9, 0.9, 0.9), Metallic=1.0, Roughness=0.0),
+               (1.1, 0.6, 0.6), radius=0.55)
+        vampire = add(bpy.ops.mesh.primitive_cube_add, material("vampire", color=(0.8, 0.7, 0.2)),
+                      size=0.5, location=(1.2, -0.6, 0.25))
+        vampire.visible_glossy = False          # not in the mirror
+        wall = add(bpy.ops.mesh.primitive_plane_add, material("wall", "DIFFUSE", (0.9, 0.9, 0.9)),
+                   size=2.0, location=(-0.6, 1.6, 1.0), rotation=(math.radians(90), 0, 0))
+        wall.visible_diffuse = False            # lights no bounce, but is seen
+        light("SUN", (0, 0, 5), (0.8, 1.2, 0), energy=3.0, angle=math.radians(2))
+        camera((0.0, -4.5, 2.2), (0, 0.3, 0.4), lens=35)
+    elif name == "depth_of_field":
+        # A thin lens focused on the middle sphere (focus object), hexagonal aperture.
+        world((0.25, 0.28, 0.32))
+        floor(material("floor", "DIFFUSE", (0.55, 0.55, 0.55)))
+        colours = [(0.8, 0.2, 0.2), (0.2, 0.7, 0.3), (0.2, 0.3, 0.8)]
+        for k, (y, colour) in enumerate(zip((-1.2, 0.4, 2.4), colours)):
+            target = sphere(material(f"ball {k}", "DIFFUSE", colour), (-0.8 + 0.8 * k, y, 0.4),
+                            radius=0.4)
+            if k == 1:
+                focus = target
+        light("AREA", (1.5, -2.0, 3.0), (0, 0, 0), energy=200.0, size=1.0)
+        camera((0.0, -4.0, 1.2), (0, 0.6, 0.4), lens=50)
+        data = bpy.context.scene.camera.data
+        data.dof.use_dof = True
+        data.dof.focus_object = focus
+        data.dof.aperture_fstop = 0.35
+        data.dof.aperture_blades = 6
+        data.dof.aperture_rotation = math.radians(20)
+    elif name == "camera_motion":
+        # The camera moves sideways while the shutter is open (half a frame, centred).
+        world((0.25, 0.28, 0.32))
+        floor(material("floor", "DIFFUSE", (0.55, 0.55, 0.55)))
+        sphere(material("ball", "DIFFUSE", (0.8, 0.3, 0.2)), (-0.5, 0.2, 0.5), radius=0.5)
+        add(bpy.ops.mesh.primitive_cube_add, material("box", "DIFFUSE", (0.2, 0.5, 0.8)),
+            size=0.8, location=(0.8, 0.4, 0.4))
+        light("SUN", (0, 0, 5), (0.8, 1.2, 0), energy=3.0, angle=math.radians(2))
+        camera((0.0, -4.0, 1.8), (0, 0.3, 0.4), lens=35)
+        keyframes(bpy.context.scene.camera, "location", {0: (-0.8, -4.0, 1.8), 2: (0.8, -4.0, 1.8)})
+        scene.render.use_motion_blur = True
+        scene.render.motion_blur_shutter = 0.5
+        scene.render.motion_blur_position = "CENTER"
+        scene.frame_set(1)
     elif name == "warned":
         # Things KD Trace does not render, each to be named in a warning (export only).
         w = bpy.data.worlds.new("sky world")
@@ -267,6 +346,13 @@ def build(name):
         floor(toon).name = "toon floor"
         light("AREA", (0, 0, 3), (0, 0, 0), energy=100.0, size=1.0, spread=math.radians(60))
         bpy.data.objects["area"].name = "narrow area"
+        # Object motion blur (issue 15) is named, not rendered.
+        mover = add(bpy.ops.mesh.primitive_cube_add, material("box"), size=0.5,
+                    location=(1.5, 0.0, 0.25))
+        mover.name = "moving box"
+        keyframes(mover, "location", {0: (1.5, 0.0, 0.25), 2: (1.5, 1.0, 0.25)})
+        scene.render.use_motion_blur = True
+        scene.frame_set(1)
         camera((0.0, -4.0, 1.5), (0, 0, 0.5))
     bpy.context.view_layer.update()
 
