@@ -16,6 +16,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from core.layout import ACCUM
 from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
 from core.scene.features import ALL_FEATURES, needed_arrays
 from core.scene.model import SceneError, View
@@ -220,7 +221,7 @@ class Tracer:
 
         settings = view.settings
         n = w * h
-        accum = np.zeros((n, 4), np.float32)
+        accum = np.zeros((n, 4 * ACCUM.size), np.float32)
         stats = np.zeros((n, 2), np.float32)
         depth = np.empty((h, w), np.float32)
         normal = np.empty((h, w, 3), np.float32)
@@ -247,7 +248,7 @@ class Tracer:
         self.queue.finish()
         combined = np.empty((n, 4), np.float32)
         combined[:, :3] = accum[:, :3] / np.maximum(accum[:, 3:4], 1.0)
-        combined[:, 3] = 1.0
+        combined[:, 3] = accum[:, 4] / np.maximum(accum[:, 3], 1.0)
         self.last_render = {"kernel_seconds": time.perf_counter() - started,
                             "samples": tile.traced, "features": sorted(flags)}
         return {"combined": combined.reshape(h, w, 4), "depth": depth, "normal": normal}
