@@ -200,13 +200,36 @@ INTERPOLATION_CODES = {"LINEAR": 0, "CLOSEST": 1}
 VISIBILITY_CODES = {"CAMERA": 1, "DIFFUSE": 2, "GLOSSY": 4, "TRANSMISSION": 8, "SHADOW": 16,
                     "HOLDOUT": 32}
 VISIBLE_TO_ALL = 31             # every ray sees it; no holdout
+# Shader node programs (core/scene/model.py NodeProgram; evaluated by shading.cl run_nodes):
+# instructions of two float4 rows, (op, dst, a, b) and (c, p0, p1, p2); a, b, c are operand
+# references register * NODE_REF_REGISTER + lane (0-3: that lane in all four, 4: the whole
+# register). CONST loads its second row; OUT stores operand a into a BSDF input.
+NODE_OP_CODES = {"END": 0, "CONST": 1, "UV": 2, "IMAGE": 3, "COMBINE": 4, "MIX": 5, "MATH": 6,
+                 "INVERT": 7, "CHECKER": 8, "RAMP": 9, "OUT": 10, "DOT": 11}
+NODE_MIX_CODES = {"MIX": 0, "ADD": 1, "MULTIPLY": 2, "SUBTRACT": 3, "SCREEN": 4,
+                  "DIFFERENCE": 5, "DARKEN": 6, "LIGHTEN": 7}
+NODE_MATH_CODES = {"ADD": 0, "SUBTRACT": 1, "MULTIPLY": 2, "DIVIDE": 3, "MULTIPLY_ADD": 4,
+                   "POWER": 5, "MINIMUM": 6, "MAXIMUM": 7, "LESS_THAN": 8, "GREATER_THAN": 9,
+                   "ABSOLUTE": 10, "SQRT": 11}
+NODE_OUT_CODES = {"BASE_COLOR": 0, "ALPHA": 1, "METALLIC": 2, "ROUGHNESS": 3,
+                  "TRANSMISSION": 4, "IOR": 5, "SPECULAR": 6}
+NODE_REGISTERS = 16
+NODE_REF_REGISTER = 8           # operand = register * 8 + lane
+NODE_RAMP_SIZE = 256            # colour ramps as tables of this many RGBA rows (as Cycles)
 CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("LIGHT_SHAPE", "Area light shapes (LIGHT_AREA_SHAPE)", AREA_SHAPE_CODES),
          Codes("CAMERA", "Camera kinds (CAMERA_KIND)", CAMERA_CODES),
          Codes("PROJECTION", "World texture projections (WORLD_PROJECTION)", PROJECTION_CODES),
          Codes("INTERPOLATION", "World texture interpolation (WORLD_INTERPOLATION)",
                INTERPOLATION_CODES),
-         Codes("VISIBILITY", "Ray visibility bits (MATERIAL_VISIBILITY)", VISIBILITY_CODES))
+         Codes("VISIBILITY", "Ray visibility bits (MATERIAL_VISIBILITY)", VISIBILITY_CODES),
+         Codes("NODE_OP", "Shader node program operations", NODE_OP_CODES),
+         Codes("NODE_MIX", "Mix node blend types (MIX p0)", NODE_MIX_CODES),
+         Codes("NODE_MATH", "Math node operations (MATH p0)", NODE_MATH_CODES),
+         Codes("NODE_OUT", "BSDF inputs a program sets (OUT p0)", NODE_OUT_CODES),
+         Codes("NODE", "Shader node program sizes",
+               {"REGISTERS": NODE_REGISTERS, "REF_REGISTER": NODE_REF_REGISTER,
+                "RAMP_SIZE": NODE_RAMP_SIZE}))
 
 LIGHT = Record("LIGHT", "A light (lights buffer, light_count records)", 6, (
     Slot("position", 0, "xyz", "position"),
@@ -235,6 +258,7 @@ MATERIAL = Record("MATERIAL", "A material (materials buffer, by triangle materia
     Slot("texture_alpha", 3, "y", "1: the texture's alpha multiplies alpha, 0: it does not"),
     Slot("visibility", 3, "z", "VISIBILITY_<RAY> bits of the rays that see it, and HOLDOUT (as a "
          "float)"),
+    Slot("program", 3, "w", "row of its shader node program in the materials buffer, -1 = none"),
 ))
 
 CAMERA = Record("CAMERA", "The camera (one record)", 11, (

@@ -39,7 +39,10 @@ def pack_materials(shading) -> np.ndarray:
     emission = [MATERIAL_PARAMS.index(f"emission_{c}") for c in "rgb"]
     MATERIAL.put(records, "emission", params[:, emission])
     MATERIAL.put(records, "texture_alpha", 1.0)
-    return out.reshape(-1, 4)
+    # The node programs follow the records; a material's program slot is its absolute row.
+    program = params[:, MATERIAL_PARAMS.index("program")]
+    MATERIAL.put(records, "program", np.where(program >= 0, program + len(out) * MATERIAL.size, -1.0))
+    return np.concatenate([out.reshape(-1, 4), shading.node_program.astype(np.float32)])
 
 
 def pack_camera(view: View) -> np.ndarray:

@@ -31,6 +31,7 @@ SCENES = {
                             "WORLD"}),
     "depth_of_field": (16, {"AREA", "BOUNCES", "DOF", "SMOOTH", "WORLD"}),
     "camera_motion": (12, {"BOUNCES", "CAMERA_MOTION", "SMOOTH", "SOFT_LIGHTS", "SUN", "WORLD"}),
+    "nodes": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
 }
 # Cycles' Light Paths defaults (also ours), uniform sampling, the samples of each scene.
 MATCHED = {name: value for name, value in RenderSettings().to_dict().items()
@@ -110,4 +111,5 @@ def test_unsupported_things_are_named(renders):
     one("material 'toon'", "object 'toon floor'", "Toon")
     one("light 'narrow area'", "spread")
     one("object 'moving box'", "motion blur")
-    assert len(warnings) == 5, warnings
+    one("material 'noisy'", "object 'noisy cube'", "Noise Texture")
+    assert len(warnings) == 6, warnings

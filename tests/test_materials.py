@@ -257,3 +257,81 @@ def test_albedo_tables_match_a_fresh_integration():
         assert abs(specular[i, r, m] - reflection) < 3e-3
         assert abs(glass[i, r, m] - total) < 3e-3
         assert abs(leave[i, r, m] - generator.dielectric_albedo(mu, rough, 1 / ior, 64)[1]) < 3e-3
+
+
+def test_node_program_evaluates_per_hit_as_numpy_does(tracer):
+    """A shader node program (checker on the UVs, math, colour ramp, multiply mix) sets the base
+    colour per hit: under a sun straight down (one sample at each pixel centre, no specular)
+    each pixel is that colour x E / pi, against the same nodes evaluated here in numpy."""
+    from core.layout import NODE_MATH_CODES, NODE_MIX_CODES, NODE_OP_CODES as OP, NODE_OUT_CODES
+    from core.layout import NODE_RAMP_SIZE, NODE_REF_REGISTER as R
+    from core.scene.model import MATERIAL_PARAMS, check_node_program, default_material_params
+    vertices, triangles = grid_plane(2.0, 1, 0.0)
+    uvs = (vertices[triangles.reshape(-1)][:, :2] + 1.0) / 2.0          # u, v = (x, y + 1) / 2
+    geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16),
+                        uvs=uvs.astype(np.float32))
+    tracer.load(Scene.from_parts(geometry, build_kdtree(vertices, triangles)))
+    ramp = np.stack([np.linspace(0, 1, NODE_RAMP_SIZE), np.linspace(1, 0.2, NODE_RAMP_SIZE),
+                     np.full(NODE_RAMP_SIZE, 0.5), np.ones(NODE_RAMP_SIZE)], 1)
+    whole, lane = (lambda r: r * R + 4), (lambda r, k: r * R + k)
+    code = [
+        (OP["UV"], 0, 0, 0), (0, 0, 0, 0),
+        (OP["CONST"], 2, 0, 0), (0.9, 0.2, 0.1, 1.0),
+        (OP["CONST"], 3, 0, 0), (0.2, 0.3, 0.9, 1.0),
+        (OP["CHECKER"], 1, whole(0), whole(2)), (whole(3), 3.0, 0, 0),
+        (OP["CONST"], 5, 0, 0), (0.5, 0.5, 0.5, 0.5),
+        (OP["MATH"], 4, lane(0, 0), lane(5, 0)), (lane(1, 3), NODE_MATH_CODES["MULTIPLY_ADD"], 1, 0),
+        (OP["RAMP"], 6, lane(4, 0), 0), (0, 0, 1, 0),      # table offset set below
+        (OP["MIX"], 7, lane(5, 0), whole(1)), (whole(6), NODE_MIX_CODES["MULTIPLY"], 0, 0),
+        (OP["OUT"], 0, whole(7), 0), (0, NODE_OUT_CODES["BASE_COLOR"], 0, 0),
+        (OP["END"], 0, 0, 0), (0, 0, 0, 0)]
+    code[13] = (0, len(code) - 12, 1, 0)                      # the table follows END
+    rows = np.array(code + [tuple(r) for r in ramp], np.float32)
+    params = default_material_params(1)
+    params[0, MATERIAL_PARAMS.index("specular")] = 0.0
+    params[0, MATERIAL_PARAMS.index("program")] = 0
+    check_node_program(rows.tolist(), params[:, MATERIAL_PARAMS.index("program")])
+    shading = Shading(np.array([[1, 1, 1, 1]], np.float32),
+                      [Light("SUN", (1, 1, 1), 2.0, direction=(0, 0, -1))], (0, 0, 0), params,
+                      node_program=rows)
+    m = np.eye(4)
+    m[2, 3] = 1.0
+    size = 24
+    view = View(Camera("ORTHO", m, (1.0, 1.0), (0, 0), 0.01, 10.0), size, size, shading,
+                settings=RenderSettings(samples_per_axis=1, adaptive=False, max_bounces=0))
+    image = tracer.render_tile(view, 0, 0, size, size)["combined"][..., :3]
+    assert {"NODES"} <= set(tracer.last_render["features"])
+    # numpy: the same nodes at the pixel centres (x right, y up)
+    centres = (np.arange(size) + 0.5) / size
+    u, v = np.meshgrid(centres, centres[::-1])
+    p = (np.stack([u * 3, v * 3, np.zeros_like(u)], -1) + 1e-6) * 0.999999
+    cell = np.abs(np.floor(p)).astype(int) % 2
+    fac = ((cell[..., 0] == cell[..., 1]) == cell[..., 2]).astype(float)
+    checker = np.where(fac[..., None] == 1, [0.9, 0.2, 0.1], [0.2, 0.3, 0.9])
+    f = np.clip(np.clip(u * 0.5 + fac, 0, 1), 0, 1) * (NODE_RAMP_SIZE - 1)
+    i = np.minimum(f.astype(int), NODE_RAMP_SIZE - 1)
+    t = (f - i)[..., None]
+    ramped = np.where(t > 0, (1 - t) * ramp[i, :3] + t * ramp[np.minimum(i + 1, NODE_RAMP_SIZE - 1), :3],
+                      ramp[i, :3])
+    base = 0.5 * checker + 0.5 * checker * ramped
+    np.testing.assert_allclose(image, base * 2.0 / np.pi, rtol=2e-3, atol=1e-4)
+    assert fac.min() == 0 and fac.max() == 1
+
+
+@pytest.mark.parametrize("bad", [
+    lambda rows: rows.__setitem__(0, [99, 0, 0, 0]),                  # unknown operation
+    lambda rows: rows.__setitem__(10, [6, 4, 8 * 40, 1]),             # register out of range
+    lambda rows: rows.__setitem__(13, [0, 5000, 1, 0]),               # ramp table outside
+    lambda rows: rows.__setitem__(16, [1, 0, 0, 0]),                  # no END
+])
+def test_bad_node_programs_are_refused(bad):
+    from core.scene.model import SceneError, check_node_program
+    from core.layout import NODE_RAMP_SIZE
+    # six UV instructions, a RAMP (its table 6 rows on: after the END), OUT, END, the table
+    rows = [[2, 0, 0, 0], [0, 0, 0, 0]] * 6 + [[9, 6, 4 * 8, 0], [0, 6, 1, 0], [10, 0, 4, 0],
+                                               [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]] \
+        + [[0, 0, 0, 1]] * NODE_RAMP_SIZE
+    check_node_program(rows, [0])
+    bad(rows)
+    with pytest.raises(SceneError):
+        check_node_program(rows, [0])

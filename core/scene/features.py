@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..layout import VISIBILITY_CODES, VISIBLE_TO_ALL
+from ..layout import NODE_OP_CODES, VISIBILITY_CODES, VISIBLE_TO_ALL
 from .model import MATERIAL_PARAMS, Geometry, View
 
 # Every feature, and the geometry arrays each one needs (beyond vertices/triangles/material_ids).
@@ -30,6 +30,7 @@ FEATURES = {
     "VISIBILITY": (),         # objects that some kinds of rays do not see (ray visibility)
     "DOF": (),                # depth of field: a thin lens with an aperture
     "CAMERA_MOTION": (),      # camera motion blur: the camera moves while the shutter is open
+    "NODES": ("uvs",),        # shader node programs compute BSDF inputs per hit
 }
 ALL_FEATURES = frozenset(FEATURES)
 
@@ -55,7 +56,11 @@ def scene_features(geometry: Geometry, view: View, used_materials=None) -> froze
 
     if geometry.normals is not None:
         features.add("SMOOTH")
-    if geometry.texture_count and (column("texture") >= 0).any():
+    programs = column("program")
+    if (programs >= 0).any():
+        features.add("NODES")
+    if geometry.texture_count and ((column("texture") >= 0).any() or
+                                   program_uses_images(shading.node_program, programs)):
         features.add("TEXTURES")
     specular = (column("metallic") > 0) | (column("specular") > 0)
     if specular.any():
@@ -99,6 +104,16 @@ def scene_features(geometry: Geometry, view: View, used_materials=None) -> froze
     if len(params) and (bounces or hittable):
         features.add("BOUNCES")
     return frozenset(features)
+
+
+def program_uses_images(program: np.ndarray, starts) -> bool:
+    """Whether the node programs starting at `starts` (rows, -1 none) read an image."""
+    for start in (int(v) for v in starts if v >= 0):
+        ops = program[start::2, 0]
+        end = np.flatnonzero(ops == NODE_OP_CODES["END"])
+        if (ops[:end[0] if len(end) else len(ops)] == NODE_OP_CODES["IMAGE"]).any():
+            return True
+    return False
 
 
 def needed_arrays(features) -> set:

@@ -288,14 +288,18 @@ class Light:
 # Per-material surface parameters beside the base colour (Shading.material_params columns).
 # visibility: the VISIBILITY_<RAY> bits (core/layout.py) of the rays that see the surface, and
 # VISIBILITY_HOLDOUT; the exporter gives an object with other than the default its own records.
+# program: the row of the material's shader node program in Shading.node_program, -1 = none.
 MATERIAL_PARAMS = ("metallic", "roughness", "transmission", "ior", "emission_r", "emission_g",
-                   "emission_b", "specular", "texture", "visibility")
-DEFAULT_MATERIAL_PARAMS = (0.0, 0.5, 0.0, 1.5, 0.0, 0.0, 0.0, 0.0, -1.0, float(VISIBLE_TO_ALL))
+                   "emission_b", "specular", "texture", "visibility", "program")
+DEFAULT_MATERIAL_PARAMS = (0.0, 0.5, 0.0, 1.5, 0.0, 0.0, 0.0, 0.0, -1.0, float(VISIBLE_TO_ALL),
+                           -1.0)
+MAX_NODE_ROWS = 1 << 20
 # name -> (low, high) accepted from the network; texture is an index, -1 = none.
 _PARAM_RANGES = {"metallic": (0.0, 1.0), "roughness": (0.0, 1.0), "transmission": (0.0, 1.0),
                  "ior": (0.01, 100.0), "emission_r": (0.0, 1e30), "emission_g": (0.0, 1e30),
                  "emission_b": (0.0, 1e30), "specular": (0.0, 1000.0),
-                 "texture": (-1.0, MAX_TEXTURES - 1.0), "visibility": (0.0, 63.0)}
+                 "texture": (-1.0, MAX_TEXTURES - 1.0), "visibility": (0.0, 63.0),
+                 "program": (-1.0, MAX_NODE_ROWS - 1.0)}
 
 
 def default_material_params(count: int) -> np.ndarray:
@@ -364,6 +368,7 @@ class Shading:
     world_color: tuple = (0.05, 0.05, 0.05)
     material_params: np.ndarray | None = None
     world_texture: WorldTexture | None = None
+    node_program: np.ndarray | None = None      # (P, 4) float32 rows of the node programs
 
     def __post_init__(self):
         self.materials = np.ascontiguousarray(self.materials, dtype=np.float32).reshape(-1, 4)
@@ -374,6 +379,9 @@ class Shading:
         if len(self.material_params) != len(self.materials):
             raise SceneError(f"{len(self.material_params)} material parameter rows for "
                              f"{len(self.materials)} materials")
+        self.node_program = np.ascontiguousarray(
+            np.zeros((0, 4)) if self.node_program is None else self.node_program,
+            dtype=np.float32).reshape(-1, 4)
 
     def param(self, name: str) -> np.ndarray:
         return self.material_params[:, MATERIAL_PARAMS.index(name)]
@@ -387,7 +395,8 @@ class Shading:
         return {"materials": self.materials.tolist(), "lights": [l.to_dict() for l in self.lights],
                 "world_color": list(self.world_color),
                 "material_params": self.material_params.tolist(),
-                "world_texture": None if self.world_texture is None else self.world_texture.to_dict()}
+                "world_texture": None if self.world_texture is None else self.world_texture.to_dict(),
+                "node_program": self.node_program.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Shading":
@@ -410,16 +419,64 @@ class Shading:
                     low, high = _PARAM_RANGES[name]
                     if not low <= value <= high:
                         raise SceneError(f"material {name} must be in [{low}, {high}], got {value}")
-                    if name == "visibility" and value != round(value):
-                        raise SceneError(f"material visibility must be a whole number, got {value}")
+                    if name in ("visibility", "program") and value != round(value):
+                        raise SceneError(f"material {name} must be a whole number, got {value}")
                 rows.append(row)
             params = np.array(rows, np.float32)
         world = _finite_floats(d.get("world_color"), 3, "world colour")
         if min(world) < 0 or max(world) > MAX_RADIANCE:
             raise SceneError(f"world colour must be in [0, {MAX_RADIANCE}], got {world}")
         texture = d.get("world_texture")
+        starts = [] if params is None else params[:, MATERIAL_PARAMS.index("program")]
+        program = check_node_program(d.get("node_program") or [], starts)
         return cls(np.array(colours, np.float32), [Light.from_dict(l) for l in lights], world,
-                   params, None if texture is None else WorldTexture.from_dict(texture))
+                   params, None if texture is None else WorldTexture.from_dict(texture), program)
+
+
+def check_node_program(rows, starts) -> np.ndarray:
+    """The node program rows from the network, checked: whole-number operations, registers
+    and operands in range, every ramp table inside the rows, and from each start in `starts`
+    (>= 0) instructions up to an END (the kernel runs them so). A program's ramp tables
+    follow its END (addon/export.py compiles them)."""
+    from ..layout import (NODE_OP_CODES, NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER,
+                          NODE_REGISTERS)
+    if not isinstance(rows, list) or len(rows) > MAX_NODE_ROWS or len(rows) % 2:
+        raise SceneError("node_program must be an even number of rows")
+    program = np.array([_finite_floats(r, 4, "node program row") for r in rows], np.float32) \
+        if rows else np.zeros((0, 4), np.float32)
+    n = len(program)
+    pc, ramps, instructions = 0, [], {}
+    while pc < n:
+        instructions[pc] = int(program[pc, 0])
+        w0, w1 = program[pc], program[pc + 1]
+        op = int(w0[0])
+        if op != w0[0] or op not in NODE_OP_CODES.values():
+            raise SceneError(f"node program row {pc}: unknown operation {w0[0]}")
+        if op == NODE_OP_CODES["RAMP"]:
+            start = int(w1[1])
+            if start != w1[1] or not 0 <= pc + start <= n - NODE_RAMP_SIZE:
+                raise SceneError(f"node program row {pc}: ramp table outside the program")
+            ramps.append((pc + start, pc + start + NODE_RAMP_SIZE))
+        if op not in (NODE_OP_CODES["CONST"], NODE_OP_CODES["END"]):
+            refs = (w0[2], w0[3], w1[0])
+            if any(r != int(r) or not 0 <= r < NODE_REGISTERS * NODE_REF_REGISTER for r in refs) \
+                    or not 0 <= w0[1] < NODE_REGISTERS:
+                raise SceneError(f"node program row {pc}: register out of range")
+        if op == NODE_OP_CODES["OUT"] and w1[1] not in NODE_OUT_CODES.values():
+            raise SceneError(f"node program row {pc}: unknown BSDF input {w1[1]}")
+        if op == NODE_OP_CODES["IMAGE"] and not (w1[1] == int(w1[1]) and 0 <= w1[1] < MAX_TEXTURES):
+            raise SceneError(f"node program row {pc}: bad texture {w1[1]}")
+        pc += 2
+        for lo, hi in ramps:            # a ramp table after an END
+            if pc == lo:
+                pc = hi
+    for start in (int(v) for v in starts if v >= 0):
+        pc = start
+        while instructions.get(pc, -1) > 0 and pc < 2 * 1024 + start:
+            pc += 2
+        if instructions.get(pc) != NODE_OP_CODES["END"]:
+            raise SceneError(f"the node program at row {start} does not end (with END) in its rows")
+    return program
 
 
 @dataclass

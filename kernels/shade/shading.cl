@@ -216,6 +216,143 @@ inline float4 texture_lookup(const Scene *sc, int tex, float2 uv, bool closest)
 }
 #endif
 
+#ifdef HAS_NODES
+// ---------------------------------------------------------------------------------------------
+// Shader node programs (core/layout.py NODE_OP_CODES; compiled by addon/export.py): a few
+// registers, one instruction per node, then OUT instructions that set the BSDF inputs.
+
+inline float4 node_operand(const float4 *regs, float ref)
+{
+    int r = (int)ref, lane = r % NODE_REF_REGISTER;
+    float4 v = regs[min(r / NODE_REF_REGISTER, NODE_REGISTERS - 1)];
+    return lane == 0 ? v.xxxx : lane == 1 ? v.yyyy : lane == 2 ? v.zzzz : lane == 3 ? v.wwww : v;
+}
+
+inline float4 node_mix(int mode, float t, float4 a, float4 b)
+{
+    float4 c = b;
+    if (mode == NODE_MIX_ADD)
+        c = a + b;
+    else if (mode == NODE_MIX_MULTIPLY)
+        c = a * b;
+    else if (mode == NODE_MIX_SUBTRACT)
+        c = a - b;
+    else if (mode == NODE_MIX_SCREEN)
+        return 1.0f - ((1.0f - t) + t * (1.0f - b)) * (1.0f - a);
+    else if (mode == NODE_MIX_DIFFERENCE)
+        c = fabs(a - b);
+    else if (mode == NODE_MIX_DARKEN)
+        c = fmin(a, b);
+    else if (mode == NODE_MIX_LIGHTEN)
+        c = fmax(a, b);
+    return (1.0f - t) * a + t * c;
+}
+
+// Cycles' math node, with its safe division, power and square root.
+inline float node_math(int op, float a, float b, float c)
+{
+    switch (op) {
+    case NODE_MATH_ADD: return a + b;
+    case NODE_MATH_SUBTRACT: return a - b;
+    case NODE_MATH_MULTIPLY: return a * b;
+    case NODE_MATH_DIVIDE: return b != 0.0f ? a / b : 0.0f;
+    case NODE_MATH_MULTIPLY_ADD: return a * b + c;
+    case NODE_MATH_POWER:
+        if (a < 0.0f && b != floor(b))
+            return 0.0f;
+        return a < 0.0f ? ((int)b % 2 ? -1.0f : 1.0f) * pow(-a, b) : pow(a, b);
+    case NODE_MATH_MINIMUM: return fmin(a, b);
+    case NODE_MATH_MAXIMUM: return fmax(a, b);
+    case NODE_MATH_LESS_THAN: return a < b ? 1.0f : 0.0f;
+    case NODE_MATH_GREATER_THAN: return a > b ? 1.0f : 0.0f;
+    case NODE_MATH_ABSOLUTE: return fabs(a);
+    case NODE_MATH_SQRT: return sqrt(fmax(a, 0.0f));
+    }
+    return 0.0f;
+}
+
+// Cycles' checker: 1 where the parities of the cells' x, y and z say so.
+inline float node_checker(float4 p)
+{
+    p = (p + 0.000001f) * 0.999999f;
+    int x = abs((int)floor(p.x)), y = abs((int)floor(p.y)), z = abs((int)floor(p.z));
+    return ((x % 2 == y % 2) == (z % 2)) ? 1.0f : 0.0f;
+}
+
+// Runs the program at row `at` of the materials buffer for the hit (uv: its texture
+// coordinates) and sets the BSDF inputs it computes.
+inline void run_nodes(const Scene *sc, int at, float2 uv, Material *m)
+{
+    float4 regs[NODE_REGISTERS];
+    __global const float4 *code = sc->materials + at;
+    for (int k = 0; k < NODE_REGISTERS; ++k)
+        regs[k] = (float4)(0.0f, 0.0f, 0.0f, 0.0f);
+    for (int pc = 0; pc < 2 * 1024; pc += 2) {
+        float4 w0 = code[pc], w1 = code[pc + 1];
+        int op = (int)w0.x, dst = min((int)w0.y, NODE_REGISTERS - 1);
+        if (op == NODE_OP_END)
+            break;
+        float4 a = node_operand(regs, w0.z), b = node_operand(regs, w0.w);
+        float4 c = node_operand(regs, w1.x);
+        float4 out = w1;
+        if (op == NODE_OP_UV) {
+            out = (float4)(uv, 0.0f, 0.0f);
+        }
+#ifdef HAS_TEXTURES
+        else if (op == NODE_OP_IMAGE) {
+            out = texture_lookup(sc, (int)w1.y, a.xy, w1.z > 0.0f);
+        }
+#endif
+        else if (op == NODE_OP_COMBINE) {
+            out = (float4)(a.x, b.x, c.x, 1.0f);
+        } else if (op == NODE_OP_MIX) {
+            out = node_mix((int)w1.y, clamp(a.x, 0.0f, 1.0f), b, c);
+            if (w1.z > 0.0f)
+                out = clamp(out, 0.0f, 1.0f);
+        } else if (op == NODE_OP_MATH) {
+            float r = node_math((int)w1.y, a.x, b.x, c.x);
+            out = (float4)(w1.z > 0.0f ? clamp(r, 0.0f, 1.0f) : r);
+        } else if (op == NODE_OP_INVERT) {
+            float t = a.x;
+            out = (float4)((1.0f - t) * b.xyz + t * (1.0f - b.xyz), b.w);
+        } else if (op == NODE_OP_CHECKER) {
+            float f = node_checker(a * w1.y);
+            out = f == 1.0f ? b : c;
+            out.w = f;
+        } else if (op == NODE_OP_RAMP) {
+            // Cycles' ramp table lookup: linear between its rows unless constant.
+            float f = clamp(a.x, 0.0f, 1.0f) * (float)(NODE_RAMP_SIZE - 1);
+            int i = clamp((int)f, 0, NODE_RAMP_SIZE - 1);
+            float t = f - (float)i;
+            __global const float4 *table = code + pc + (int)w1.y;   // after the END
+            out = table[i];
+            if (w1.z > 0.0f && t > 0.0f)
+                out = (1.0f - t) * out + t * table[i + 1];
+        } else if (op == NODE_OP_DOT) {        // colour or vector to a value
+            out = (float4)(dot(a.xyz, w1.yzw));
+        } else if (op == NODE_OP_OUT) {
+            int field = (int)w1.y;
+            if (field == NODE_OUT_BASE_COLOR)
+                m->base = fmax(a.xyz, 0.0f);
+            else if (field == NODE_OUT_ALPHA)
+                m->alpha = clamp(a.x, 0.0f, 1.0f);
+            else if (field == NODE_OUT_METALLIC)
+                m->metallic = clamp(a.x, 0.0f, 1.0f);
+            else if (field == NODE_OUT_ROUGHNESS)
+                m->roughness = clamp(a.x, 0.0f, 1.0f);
+            else if (field == NODE_OUT_TRANSMISSION)
+                m->transmission = clamp(a.x, 0.0f, 1.0f);
+            else if (field == NODE_OUT_IOR)
+                m->ior = clamp(a.x, 0.01f, 100.0f);
+            else if (field == NODE_OUT_SPECULAR)
+                m->specular = fmax(a.x, 0.0f);
+            continue;
+        }
+        regs[dst] = out;
+    }
+}
+#endif
+
 inline Material material_at(const Scene *sc, uint tri, float u, float v)
 {
     uint id = sc->material_ids[tri];
@@ -238,6 +375,14 @@ inline Material material_at(const Scene *sc, uint tri, float u, float v)
         m.base *= c.xyz;
         if (MATERIAL_TEXTURE_ALPHA(M) > 0.0f)
             m.alpha *= c.w;
+    }
+#endif
+#ifdef HAS_NODES
+    int program = (int)MATERIAL_PROGRAM(M);
+    if (program >= 0) {
+        float2 uv = (1.0f - u - v) * vload2(3 * tri, sc->uvs) + u * vload2(3 * tri + 1, sc->uvs)
+                    + v * vload2(3 * tri + 2, sc->uvs);
+        run_nodes(sc, program, uv, &m);
     }
 #endif
     return m;

@@ -70,6 +70,33 @@ def hdri(projection):
     return bpy.data.images.load(path)
 
 
+def data_image():
+    """A 64 x 64 Non-Color image: red = u, green = v, blue = a 4 x 4 checker; saved as PNG and
+    loaded back."""
+    n = 64
+    u, v = np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) / n)
+    checker = ((np.floor(4 * u) + np.floor(4 * v)) % 2)
+    pixels = np.stack([u, v, checker, np.ones_like(u)], -1).astype(np.float32)
+    image = bpy.data.images.new("data", n, n)
+    image.pixels.foreach_set(pixels.ravel())
+    path = f"{OUT}/data.png"
+    image.filepath_raw = path
+    image.file_format = "PNG"
+    image.save()
+    bpy.data.images.remove(image)
+    image = bpy.data.images.load(path)
+    image.colorspace_settings.name = "Non-Color"
+    return image
+
+
+def node_material(name):
+    """A Principled material and its node tree's (nodes, links, principled)."""
+    m = bpy.data.materials.new(name)
+    m.use_nodes = True
+    nodes, links = m.node_tree.nodes, m.node_tree.links
+    return m, nodes, links, nodes["Principled BSDF"]
+
+
 def clear():
     for collection in (bpy.data.objects, bpy.data.meshes, bpy.data.materials, bpy.data.lights,
                        bpy.data.cameras, bpy.data.worlds, bpy.data.images):
@@ -327,6 +354,68 @@ def build(name):
         scene.render.motion_blur_shutter = 0.5
         scene.render.motion_blur_position = "CENTER"
         scene.frame_set(1)
+    elif name == "nodes":
+        # Shader nodes evaluated per hit: Checker through a Mix (Multiply) on the floor; an
+        # image's channels (Separate Color) as Roughness and, through Math, Metallic, its red
+        # through a Color Ramp as the base colour; Invert and Combine Color on the third.
+        world((0.3, 0.32, 0.36))
+        data = data_image()
+        m, nodes, links, bsdf = node_material("checker floor")
+        uv = nodes.new("ShaderNodeTexCoord")
+        checker = nodes.new("ShaderNodeTexChecker")
+        checker.inputs["Scale"].default_value = 6.0
+        checker.inputs["Color1"].default_value = (0.8, 0.2, 0.15, 1)
+        checker.inputs["Color2"].default_value = (0.9, 0.9, 0.9, 1)
+        links.new(uv.outputs["UV"], checker.inputs["Vector"])
+        mix = nodes.new("ShaderNodeMix")
+        mix.data_type = "RGBA"
+        mix.blend_type = "MULTIPLY"
+        mix.inputs["Factor"].default_value = 0.7
+        links.new(checker.outputs["Color"], mix.inputs[6])
+        mix.inputs[7].default_value = (0.9, 0.8, 0.6, 1)
+        links.new(mix.outputs[2], bsdf.inputs["Base Color"])
+        links.new(checker.outputs["Fac"], bsdf.inputs["Roughness"])
+        floor(m, size=6.0)
+        m, nodes, links, bsdf = node_material("image channels")
+        image = nodes.new("ShaderNodeTexImage")
+        image.image = data
+        separate = nodes.new("ShaderNodeSeparateColor")
+        links.new(image.outputs["Color"], separate.inputs["Color"])
+        links.new(separate.outputs["Green"], bsdf.inputs["Roughness"])
+        math_node = nodes.new("ShaderNodeMath")
+        math_node.operation = "MULTIPLY"
+        math_node.inputs[1].default_value = 0.9
+        links.new(separate.outputs["Blue"], math_node.inputs[0])
+        links.new(math_node.outputs[0], bsdf.inputs["Metallic"])
+        ramp = nodes.new("ShaderNodeValToRGB")
+        ramp.color_ramp.elements[0].color = (0.1, 0.2, 0.8, 1)
+        ramp.color_ramp.elements[1].color = (0.9, 0.7, 0.2, 1)
+        middle = ramp.color_ramp.elements.new(0.5)
+        middle.color = (0.2, 0.8, 0.3, 1)
+        links.new(separate.outputs["Red"], ramp.inputs["Fac"])
+        links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
+        sphere(m, (-0.8, 0.3, 0.6))
+        m, nodes, links, bsdf = node_material("inverted")
+        image = nodes.new("ShaderNodeTexImage")
+        image.image = data
+        invert = nodes.new("ShaderNodeInvert")
+        invert.inputs["Fac"].default_value = 0.8
+        links.new(image.outputs["Color"], invert.inputs["Color"])
+        combine = nodes.new("ShaderNodeCombineColor")
+        separate = nodes.new("ShaderNodeSeparateColor")
+        links.new(invert.outputs["Color"], separate.inputs["Color"])
+        links.new(separate.outputs["Blue"], combine.inputs["Red"])
+        links.new(separate.outputs["Red"], combine.inputs["Green"])
+        power = nodes.new("ShaderNodeMath")
+        power.operation = "POWER"
+        power.inputs[1].default_value = 2.0
+        links.new(separate.outputs["Green"], power.inputs[0])
+        links.new(power.outputs[0], combine.inputs["Blue"])
+        links.new(combine.outputs["Color"], bsdf.inputs["Base Color"])
+        bsdf.inputs["Roughness"].default_value = 0.4
+        sphere(m, (0.8, 0.3, 0.6))
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "warned":
         # Things KD Trace does not render, each to be named in a warning (export only).
         w = bpy.data.worlds.new("sky world")
@@ -344,6 +433,10 @@ def build(name):
         node = toon.node_tree.nodes.new("ShaderNodeBsdfToon")
         toon.node_tree.links.new(node.outputs[0], toon.node_tree.nodes["Material Output"].inputs["Surface"])
         floor(toon).name = "toon floor"
+        noisy, nodes, links, bsdf = node_material("noisy")
+        noise = nodes.new("ShaderNodeTexNoise")
+        links.new(noise.outputs["Color"], bsdf.inputs["Base Color"])
+        add(bpy.ops.mesh.primitive_cube_add, noisy, size=0.4, location=(-1.5, 0.0, 0.2)).name = "noisy cube"
         light("AREA", (0, 0, 3), (0, 0, 0), energy=100.0, size=1.0, spread=math.radians(60))
         bpy.data.objects["area"].name = "narrow area"
         # Object motion blur (issue 15) is named, not rendered.
