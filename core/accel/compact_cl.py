@@ -14,7 +14,7 @@ import numpy as np
 
 from . import compact as host
 
-KERNEL_FILES = ("build/fp64.cl", "build/compact.cl")
+KERNEL_FILES = ("build/fp64.cl", "build/common.cl", "build/compact.cl")
 U4 = np.uint32
 PRIVATE_GAPS = 64         # a triangle with more references keeps its lift stacks in the scratch
 

@@ -29,8 +29,8 @@ import numpy as np
 from ..layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
 from .kdtree import KDTree, KDTreeParams, _root_bounds, checked_mesh
 
-KERNEL_FILES = ("build/fp64.cl", "build/split.cl", "build/big.cl", "build/subtree.cl",
-                "build/layout.cl")
+KERNEL_FILES = ("build/fp64.cl", "build/common.cl", "build/split.cl", "build/big.cl",
+                "build/subtree.cl", "build/layout.cl")
 EXACT_MAX = 16          # nodes with up to this many references get exact SAH (as kdtree.py)
 ROOT_WORDS = 18         # subtree.cl's root record
 MAX_STACK = 64          # subtree.cl's KD_STACK: a subtree spans fewer levels than this

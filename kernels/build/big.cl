@@ -83,15 +83,10 @@ __kernel void big_recount(__global const Ref* restrict refs, __global const uint
     uint4 k = choice[ch.x];
     int axis = (int)k.y;
     float plane = as_float(k.z);
-    uint nb = 0u, na = 0u, np = 0u;
-    for (uint i = ch.y; i < ch.y + ch.z; i++) {
-        Ref r = refs[i];
-        float lo = axis_of(r.lo, axis), hi = axis_of(r.hi, axis);
-        nb += lo < plane;
-        na += hi > plane;
-        np += (lo == plane) & (hi == plane);
-    }
-    counts[c] = (uint4)(nb, na, np, 0u);
+    uint n[3] = {0u, 0u, 0u};
+    for (uint i = ch.y; i < ch.y + ch.z; i++)
+        count_at_plane(refs[i], axis, plane, n);
+    counts[c] = (uint4)(n[0], n[1], n[2], 0u);
 }
 
 /* Per node: leaf or split. decision = (bit 0 leaf, bit 1 planar below; bad refines; axis;
@@ -122,7 +117,42 @@ __kernel void big_decide(__global const uint2* restrict node_chunks,
     sah[j] = d.leaf ? 0 : sah_fixed(&cell, pow2, inv_root_half_area, KD_KT);
 }
 
-/* Per chunk: how many of its references each child receives (a leaf's: all, "below"). */
+/* A chunk's references split at its node's decision d, counted or, where below_to and
+   above_to are given, also written there in order; returns (below, above) counts. A leaf's
+   references all go "below", as they are. */
+inline uint2 split_chunk(__global const Ref* refs, uint4 ch, uint4 d,
+                         __global const float* cells, __global const float* corners,
+                         __global Ref* below_to, __global Ref* above_to)
+{
+    if (d.x & 1u) {
+        if (below_to)
+            for (uint i = 0; i < ch.z; i++)
+                below_to[i] = refs[ch.y + i];
+        return (uint2)(ch.z, 0u);
+    }
+    Cell cell = load_cell(cells, ch.x);
+    int axis = (int)d.z;
+    float plane = as_float(d.w);
+    uint nb = 0u, na = 0u;
+    for (uint i = ch.y; i < ch.y + ch.z; i++) {
+        Ref below, above;
+        int sides = ref_children(corners, refs[i], &cell, axis, plane, (d.x >> 1) & 1u, &below,
+                                 &above);
+        if (sides & 1) {
+            if (below_to)
+                below_to[nb] = below;
+            nb++;
+        }
+        if (sides & 2) {
+            if (above_to)
+                above_to[na] = above;
+            na++;
+        }
+    }
+    return (uint2)(nb, na);
+}
+
+/* Per chunk: how many of its references each child receives. */
 __kernel void big_classify(__global const Ref* restrict refs, __global const uint4* restrict chunks,
                            __global const uint4* restrict decision,
                            __global const float* restrict cells,
@@ -130,32 +160,12 @@ __kernel void big_classify(__global const Ref* restrict refs, __global const uin
                            uint chunk_count)
 {
     uint c = get_global_id(0);
-    if (c >= chunk_count)
-        return;
-    uint4 ch = chunks[c];
-    uint4 d = decision[ch.x];
-    if (d.x & 1u) {
-        out[c] = (uint2)(ch.z, 0u);
-        return;
-    }
-    Cell cell = load_cell(cells, ch.x);
-    int axis = (int)d.z;
-    float plane = as_float(d.w);
-    uint nb = 0u, na = 0u;
-    for (uint i = ch.y; i < ch.y + ch.z; i++) {
-        Ref r = refs[i], below, above;
-        int sides = ref_sides(r, axis, plane, (d.x >> 1) & 1u);
-        if (sides == 3)
-            sides = clip_straddler(corners, ref_triangle(r), &cell, axis, plane, &below,
-                                   &above);
-        nb += sides & 1;
-        na += (sides >> 1) & 1;
-    }
-    out[c] = (uint2)(nb, na);
+    if (c < chunk_count)
+        out[c] = split_chunk(refs, chunks[c], decision[chunks[c].x], cells, corners, 0, 0);
 }
 
-/* dest per chunk: (below goes to the queue?, first below place, above to the queue?, first
-   above place). */
+/* Per chunk, its references written to their children's places; dest per chunk: (below goes
+   to the queue?, first below place, above to the queue?, first above place). */
 __kernel void big_scatter(__global const Ref* restrict refs, __global const uint4* restrict chunks,
                           __global const uint4* restrict decision,
                           __global const float* restrict cells,
@@ -166,31 +176,9 @@ __kernel void big_scatter(__global const Ref* restrict refs, __global const uint
     uint c = get_global_id(0);
     if (c >= chunk_count)
         return;
-    uint4 ch = chunks[c];
-    uint4 d = decision[ch.x];
     uint4 to = dest[c];
-    __global Ref* below_to = to.x ? queue : next;
-    __global Ref* above_to = to.z ? queue : next;
-    if (d.x & 1u) {
-        for (uint i = 0; i < ch.z; i++)
-            below_to[to.y + i] = refs[ch.y + i];
-        return;
-    }
-    Cell cell = load_cell(cells, ch.x);
-    int axis = (int)d.z;
-    float plane = as_float(d.w);
-    uint nb = 0u, na = 0u;
-    for (uint i = ch.y; i < ch.y + ch.z; i++) {
-        Ref r = refs[i], below = r, above = r;
-        int sides = ref_sides(r, axis, plane, (d.x >> 1) & 1u);
-        if (sides == 3)
-            sides = clip_straddler(corners, ref_triangle(r), &cell, axis, plane, &below,
-                                   &above);
-        if (sides & 1)
-            below_to[to.y + nb++] = below;
-        if (sides & 2)
-            above_to[to.w + na++] = above;
-    }
+    split_chunk(refs, chunks[c], decision[chunks[c].x], cells, corners,
+                (to.x ? queue : next) + to.y, (to.z ? queue : next) + to.w);
 }
 
 /* The first references: box of every triangle and whether it is kept (its cross product in
@@ -248,11 +236,9 @@ __kernel void compact_refs(__global const Ref* restrict refs, __global const uch
 __kernel void chunk_bounds(__global const Ref* restrict refs, __global float* restrict out,
                            uint ref_count, uint chunk)
 {
-    uint c = get_global_id(0);
-    uint first = c * chunk;
-    if (first >= ref_count)
+    uint c = get_global_id(0), first, last;
+    if (!item_block(chunk, ref_count, &first, &last))
         return;
-    uint last = first + chunk < ref_count ? first + chunk : ref_count;
     float4 lo = (float4)(INFINITY), hi = (float4)(-INFINITY);
     for (uint i = first; i < last; i++) {
         Ref r = refs[i];

@@ -8,13 +8,6 @@
 
 #pragma OPENCL FP_CONTRACT OFF
 
-#define NONE 0xFFFFFFFFu
-
-inline int is_leaf(uint2 w)
-{
-    return KD_PLAIN_TAG(w.x) == KD_LEAF_TAG;
-}
-
 /* Double compare helpers (fp64.cl has no isfinite). */
 #ifndef KDTRACE_SOFT_FP64
 inline int d_finite(double x)
@@ -78,8 +71,8 @@ typedef struct {
 __kernel void topo_up(__global const uint2* restrict nodes, __global uint* restrict size,
                       __global uint* restrict nonempty, uint first, uint end)
 {
-    uint i = first + get_global_id(0);
-    if (i >= end)
+    uint i;
+    if (!level_node(first, end, &i))
         return;
     uint2 w = nodes[i];
     if (is_leaf(w)) {
@@ -131,13 +124,11 @@ __kernel void topo_down(__global const uint2* restrict nodes, __global const flo
                         __global uint4* restrict climb, __global WalkRecord* restrict walk,
                         uint first, uint end, uint level)
 {
-    uint i = first + get_global_id(0);
-    if (i >= end)
+    uint i;
+    uint2 w;
+    uint c = level_inner(nodes, first, end, &i, &w);
+    if (c == NONE)
         return;
-    uint2 w = nodes[i];
-    if (is_leaf(w))
-        return;
-    uint c = KD_PLAIN_FIELD(w.x);
     int axis = (int)KD_PLAIN_TAG(w.x);
     float split = as_float(w.y);
     uint p = pre[i];
@@ -539,14 +530,11 @@ __kernel void distinct_lifts(__global const uint* restrict lift_node,
 __kernel void subtree_sums(__global const uint2* restrict nodes, __global int* restrict values,
                            uint first, uint end)
 {
-    uint i = first + get_global_id(0);
-    if (i >= end)
-        return;
-    uint2 w = nodes[i];
-    if (!is_leaf(w)) {
-        uint c = KD_PLAIN_FIELD(w.x);
+    uint i;
+    uint2 w;
+    uint c = level_inner(nodes, first, end, &i, &w);
+    if (c != NONE)
         values[i] += values[c] + values[c + 1];
-    }
 }
 
 /* ----------------------------------------------------------------------------------------
@@ -560,8 +548,8 @@ __kernel void collapse(__global const uint2* restrict nodes, __global const uint
                        __global dbl* restrict cost, __global uchar* restrict collapsed,
                        uint first, uint end, ulong kt_bits, ulong ki_bits)
 {
-    uint i = first + get_global_id(0);
-    if (i >= end)
+    uint i;
+    if (!level_node(first, end, &i))
         return;
     uint2 w = nodes[i];
     dbl K_T = D_BITS(kt_bits), K_I = D_BITS(ki_bits);
@@ -585,13 +573,11 @@ __kernel void owners(__global const uint2* restrict nodes, __global const uchar*
                      __global uchar* restrict dead, __global uint* restrict owner, uint first,
                      uint end)
 {
-    uint i = first + get_global_id(0);
-    if (i >= end)
+    uint i;
+    uint2 w;
+    uint c = level_inner(nodes, first, end, &i, &w);
+    if (c == NONE)
         return;
-    uint2 w = nodes[i];
-    if (is_leaf(w))
-        return;
-    uint c = KD_PLAIN_FIELD(w.x);
     int gone = dead[i] || collapsed[i];
     for (uint k = c; k < c + 2; k++) {
         dead[k] = (uchar)gone;
@@ -662,11 +648,9 @@ __kernel void close_buckets(__global const uint* restrict owner_first, __global 
 __kernel void block_sums(__global const uint* restrict values, __global ulong* restrict sums,
                          uint n, uint block)
 {
-    uint g = get_global_id(0);
-    uint first = g * block;
-    if (first >= n)
+    uint g = get_global_id(0), first, last;
+    if (!item_block(block, n, &first, &last))
         return;
-    uint last = first + block < n ? first + block : n;
     ulong s = 0;
     for (uint i = first; i < last; i++)
         s += values[i];
@@ -676,11 +660,9 @@ __kernel void block_sums(__global const uint* restrict values, __global ulong* r
 __kernel void block_scan(__global const uint* values, __global const ulong* restrict offsets,
                          __global uint* out, uint n, uint block)
 {
-    uint g = get_global_id(0);
-    uint first = g * block;
-    if (first >= n)
+    uint g = get_global_id(0), first, last;
+    if (!item_block(block, n, &first, &last))
         return;
-    uint last = first + block < n ? first + block : n;
     ulong running = offsets[g];
     for (uint i = first; i < last; i++) {
         uint v = values[i];
@@ -837,15 +819,14 @@ __kernel void path_refs(__global const uint2* restrict nodes, __global const uch
                         __global const uint* restrict refs_at, __global uint* restrict on_path,
                         __global uint* restrict most, uint first, uint end)
 {
-    uint i = first + get_global_id(0);
-    if (i >= end)
+    uint i;
+    if (!level_node(first, end, &i))
         return;
     uint here = on_path[i] + refs_at[i];
     if (!dead[i])
         atomic_max(most, here);
-    uint2 w = nodes[i];
-    if (!is_leaf(w)) {
-        uint c = KD_PLAIN_FIELD(w.x);
+    uint c = first_child(nodes[i]);
+    if (c != NONE) {
         on_path[c] = here;
         on_path[c + 1] = here;
     }
@@ -855,12 +836,10 @@ __kernel void path_refs(__global const uint2* restrict nodes, __global const uch
 __kernel void pass_down(__global const uint2* restrict nodes, __global const uint* restrict refs_at,
                         __global uint* restrict on_path, uint first, uint end)
 {
-    uint i = first + get_global_id(0);
-    if (i >= end)
-        return;
-    uint2 w = nodes[i];
-    if (!is_leaf(w)) {
-        uint c = KD_PLAIN_FIELD(w.x);
+    uint i;
+    uint2 w;
+    uint c = level_inner(nodes, first, end, &i, &w);
+    if (c != NONE) {
         uint here = on_path[i] + refs_at[i];
         on_path[c] = here;
         on_path[c + 1] = here;
@@ -910,11 +889,9 @@ __kernel void layout_stats(__global const uchar* restrict classes, __global cons
                            __global const uchar* restrict dead, __global uint* restrict stats,
                            uint n, uint block)
 {
-    uint g = get_global_id(0);
-    uint first = g * block;
-    if (first >= n)
+    uint g = get_global_id(0), first, last;
+    if (!item_block(block, n, &first, &last))
         return;
-    uint last = first + block < n ? first + block : n;
     uint c[8] = {0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u};
     for (uint i = first; i < last; i++) {
         uchar cls = classes[i];

@@ -43,7 +43,7 @@ __kernel void place_subtrees(__global const uint2* restrict store_words,
         uint meta = store_meta[r];
         uint2 base = bases[p.w + (meta & 63u)];
         uint at = base.x + (meta >> 6);
-        if (KD_PLAIN_TAG(w.x) == KD_LEAF_TAG) {
+        if (is_leaf(w)) {
             uint count = KD_PLAIN_FIELD(w.x), offset = base.y + w.y;
             nodes[at] = (uint2)(w.x, offset);
             for (uint j = 0; j < count; j++)

@@ -474,6 +474,15 @@ inline Decision decide(uint n, uint level, uint depth_cap, uint bad, Choice ch, 
     return d;
 }
 
+/* One reference counted below, above and planar at a plane (counts[0..2]). */
+inline void count_at_plane(Ref r, int axis, float plane, uint* counts)
+{
+    float lo = axis_of(r.lo, axis), hi = axis_of(r.hi, axis);
+    counts[0] += lo < plane;
+    counts[1] += hi > plane;
+    counts[2] += (lo == plane) & (hi == plane);
+}
+
 /* Bit 1: the reference goes below; bit 2: above (both: it straddles and is clipped). */
 inline int ref_sides(Ref r, int axis, float plane, int planar_below)
 {
@@ -627,4 +636,17 @@ inline int clip_straddler(__global const float* corners, uint tri, const Cell* c
         out->hi = (float4)(box[3], box[4], box[5], 0.0f);
     }
     return kept;
+}
+
+/* The children a reference goes to (bit 1 below, bit 2 above) and its box in each: a
+   straddler's clipped halves, otherwise the reference as it is. */
+inline int ref_children(__global const float* corners, Ref r, const Cell* c, int axis,
+                        float plane, int planar_below, Ref* below, Ref* above)
+{
+    *below = r;
+    *above = r;
+    int sides = ref_sides(r, axis, plane, planar_below);
+    if (sides == 3)
+        sides = clip_straddler(corners, ref_triangle(r), c, axis, plane, below, above);
+    return sides;
 }

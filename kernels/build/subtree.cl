@@ -121,13 +121,8 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
                     hist_add(h, &bp, scr[e.start + i]);
                 ch = choose_binned(h, &bp, &e.cell, e.count);
                 if (ch.valid)
-                    for (uint i = 0; i < e.count; i++) {
-                        Ref r = scr[e.start + i];
-                        float lo = axis_of(r.lo, ch.axis), hi = axis_of(r.hi, ch.axis);
-                        counts[0] += lo < ch.plane;
-                        counts[1] += hi > ch.plane;
-                        counts[2] += (lo == ch.plane) & (hi == ch.plane);
-                    }
+                    for (uint i = 0; i < e.count; i++)
+                        count_at_plane(scr[e.start + i], ch.axis, ch.plane, counts);
             }
             if (ch.valid)
                 d = decide(e.count, level, depth_cap, e.bad, ch, counts[0], counts[1], counts[2],
@@ -196,12 +191,9 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
         }
         uint ka = 0u, kb = 0u;
         for (uint i = 0; i < e.count; i++) {
-            Ref r = scr[e.start + i];
-            Ref below = r, above = r;
-            int sides = ref_sides(r, ch.axis, ch.plane, d.planar_below);
-            if (sides == 3)
-                sides = clip_straddler(corners, ref_triangle(r), &e.cell, ch.axis, ch.plane,
-                                       &below, &above);
+            Ref below, above;
+            int sides = ref_children(corners, scr[e.start + i], &e.cell, ch.axis, ch.plane,
+                                     d.planar_below, &below, &above);
             if (sides & 1) {
                 if (top + kb >= scr_cap) {
                     status = SUBTREE_SCRATCH;
