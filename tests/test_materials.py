@@ -335,3 +335,18 @@ def test_bad_node_programs_are_refused(bad):
     bad(rows)
     with pytest.raises(SceneError):
         check_node_program(rows, [0])
+
+
+def test_a_node_program_reading_a_missing_texture_is_refused():
+    """Scene.check_view refuses a program whose Image Texture is not in the geometry."""
+    from core.scene.model import MATERIAL_PARAMS, SceneError, default_material_params
+    vertices, triangles = grid_plane(2.0, 1, 0.0)
+    scene = Scene.from_parts(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)),
+                             build_kdtree(vertices, triangles))
+    params = default_material_params(1)
+    params[0, MATERIAL_PARAMS.index("program")] = 0
+    rows = np.array([[3, 0, 4, 0], [0, 2, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]], np.float32)
+    view = View(Camera("ORTHO", np.eye(4)), 4, 4,
+                Shading(np.ones((1, 4), np.float32), [], (0, 0, 0), params, node_program=rows))
+    with pytest.raises(SceneError, match="reads texture 2"):
+        scene.check_view(view)

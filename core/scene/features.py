@@ -60,7 +60,7 @@ def scene_features(geometry: Geometry, view: View, used_materials=None) -> froze
     if (programs >= 0).any():
         features.add("NODES")
     if geometry.texture_count and ((column("texture") >= 0).any() or
-                                   program_uses_images(shading.node_program, programs)):
+                                   program_textures(shading.node_program, programs[programs >= 0])):
         features.add("TEXTURES")
     specular = (column("metallic") > 0) | (column("specular") > 0)
     if specular.any():
@@ -106,14 +106,15 @@ def scene_features(geometry: Geometry, view: View, used_materials=None) -> froze
     return frozenset(features)
 
 
-def program_uses_images(program: np.ndarray, starts) -> bool:
-    """Whether the node programs starting at `starts` (rows, -1 none) read an image."""
-    for start in (int(v) for v in starts if v >= 0):
+def program_textures(program: np.ndarray, starts) -> set:
+    """The texture indices that the node programs starting at `starts` (rows, -1 none) read."""
+    out = set()
+    for start in sorted({int(v) for v in starts if v >= 0}):
         ops = program[start::2, 0]
         end = np.flatnonzero(ops == NODE_OP_CODES["END"])
-        if (ops[:end[0] if len(end) else len(ops)] == NODE_OP_CODES["IMAGE"]).any():
-            return True
-    return False
+        images = np.flatnonzero(ops[:end[0] if len(end) else len(ops)] == NODE_OP_CODES["IMAGE"])
+        out.update(int(program[start + 2 * i + 1, 1]) for i in images)
+    return out
 
 
 def needed_arrays(features) -> set:

@@ -16,7 +16,7 @@ import numpy as np
 from ..accel.compact import CompactTree, compact_tree
 from ..accel.kdtree import KDTree
 from ..accel.validate import validate_compact
-from .features import needed_arrays, scene_features
+from .features import needed_arrays, program_textures, scene_features
 from .model import (INDEX_DTYPE, MATERIAL_ID_DTYPE, MAX_LIGHTS, VERTEX_DTYPE, Geometry,
                     SceneError, View)
 
@@ -115,6 +115,10 @@ class Scene:
         if len(textures) and (textures.min() < -1 or textures.max() >= self.geometry.texture_count):
             bad = textures.max() if textures.max() >= self.geometry.texture_count else textures.min()
             raise SceneError(f"a material uses texture {int(bad)}, the geometry has "
+                             f"{self.geometry.texture_count}")
+        images = program_textures(view.shading.node_program, view.shading.param("program"))
+        if images and max(images) >= self.geometry.texture_count:
+            raise SceneError(f"a node program reads texture {max(images)}, the geometry has "
                              f"{self.geometry.texture_count}")
         world = view.shading.world_texture
         if world is not None and world.texture >= self.geometry.texture_count:
