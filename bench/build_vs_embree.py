@@ -14,6 +14,8 @@ For every scene, each in a child process of its own (so that its peak memory is 
   whose results must equal ours bit for bit (checked);
 - render (--render scenes): render_tile of the Table 3 view (bench/kdtree_tables.py) with
   the compact trees of both builders, in turn over --rounds rounds, one PoCL thread;
+- tune (--tune scene, --subtree-refs sizes): the build with each subtree threshold in turn over
+  --rounds rounds in one process (the trees must be the same bits), medians;
 - profile (--profile scenes): after the timed run, build and compaction again on a queue with
   event profiling: device seconds per kernel, and wall seconds per host step (between two
   distinct progress messages, numbers left out), so the host's share is the rest.
@@ -125,6 +127,26 @@ def stage_profile(name, mode):
     return result
 
 
+def stage_tune(name, sizes, rounds):
+    """The build with each subtree threshold in turn (same process, same trees)."""
+    from core.accel.kdtree_cl import KDTreeBuilderCL
+    from tests.meshes import uv_sphere
+    vertices, triangles = load_scene(name)
+    builders = {size: KDTreeBuilderCL("cpu", subtree_refs=size) for size in sizes}
+    for b in builders.values():
+        b.build(*uv_sphere(16, 8))                                     # compile
+    times, trees = {size: [] for size in sizes}, set()
+    for _ in range(rounds):
+        for size, b in builders.items():
+            tree, wall, cpu = timed(lambda: b.build(vertices, triangles))
+            times[size].append((wall, cpu))
+            trees.add(digest(tree.nodes, tree.leaf_indices))
+            del tree
+    return {"same_trees": len(trees) == 1, "times": {
+        str(size): [float(np.median([w for w, _ in t])), float(np.median([c for _, c in t]))]
+        for size, t in times.items()}}
+
+
 def stage_ours(name, mode):
     from core.accel.compact import compact_tree
     from core.accel.kdtree_cl import KDTreeBuilderCL
@@ -222,6 +244,9 @@ def main():
                         help="scenes whose render time is compared (numpy tree vs ours)")
     parser.add_argument("--profile", nargs="*", default=["dragon"],
                         help="scenes built again with kernel event profiling")
+    parser.add_argument("--tune", nargs="*", default=[],
+                        help="scenes built with each --subtree-refs threshold in turn")
+    parser.add_argument("--subtree-refs", nargs="+", type=int, default=[512, 2048, 8192])
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--size", type=int, default=512)
     parser.add_argument("--mode", default="ours", choices=("standard", "choi", "ours"))
@@ -232,6 +257,7 @@ def main():
         result = {"ours": lambda: stage_ours(name, args.mode), "embree": lambda: stage_embree(name),
                   "numpy": lambda: stage_numpy(name, args.mode),
                   "profile": lambda: stage_profile(name, args.mode),
+                  "tune": lambda: stage_tune(name, args.subtree_refs, args.rounds),
                   "render": lambda: stage_render(name, args.mode, args.rounds, args.size)}[stage]()
         print(json.dumps(result, default=float))
         return
@@ -298,6 +324,12 @@ def main():
             print("    steps (wall s, up to the message): " + "; ".join(
                 f"'{k}' {t:.3f}" for k, t in sorted(r["steps"].items(), key=lambda kv: -kv[1])
                 if t >= 0.005))
+    for name in args.tune:
+        r = child("tune", name, "--subtree-refs", *map(str, args.subtree_refs),
+                  "--rounds", str(args.rounds))
+        print(f"\nBuild of {name} by subtree threshold ({args.rounds} rounds in turn, median wall / "
+              f"CPU s; same trees: {r['same_trees']}): " + ", ".join(
+                  f"{k}: {w:.2f} / {c:.2f}" for k, (w, c) in r["times"].items()))
     env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1")
     for name in args.render:
         r = child("render", name, "--mode", args.mode, "--rounds", str(args.rounds),
