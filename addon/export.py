@@ -16,9 +16,9 @@ import math
 
 import numpy as np
 
-from ..core.layout import (NODE_MATH_CODES, NODE_MIX_CODES, NODE_OP_CODES, NODE_OUT_CODES,
-                           NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS, VISIBILITY_CODES,
-                           VISIBLE_TO_ALL)
+from ..core.layout import (NODE_GRADIENT_CODES, NODE_MATH_CODES, NODE_MIX_CODES, NODE_OP_CODES,
+                           NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS,
+                           NODE_VECTOR_MATH_CODES, VISIBILITY_CODES, VISIBLE_TO_ALL)
 from ..core.scene.features import scene_features, strip_geometry
 from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
                                 MAX_MATERIALS, RenderSettings, SceneError, Shading, View,
@@ -405,7 +405,47 @@ class NodeProgram:
             self._emit("RAMP", register, fac,
                        params=(0.0, float(ramp.interpolation != "CONSTANT")))
             return self._lane(register, 3) if name == "Alpha" else self._whole(register)
+        if kind == "MAP_RANGE" and node.data_type == "FLOAT" and node.interpolation_type == "LINEAR":
+            value, lo, hi, to_lo, to_hi = (self._input(node, k) for k in
+                                           ("Value", "From Min", "From Max", "To Min", "To Max"))
+            ranges = self._register()
+            self._emit("COMBINE", ranges, lo, hi, to_lo)
+            register = self._register()
+            self._emit("MAP_RANGE", register, value, self._whole(ranges), to_hi,
+                       params=(0.0, float(node.clamp)))
+            return self._lane(register, 0)
+        if kind == "VECT_MATH" and node.operation in NODE_VECTOR_MATH_CODES:
+            a, b = self._enabled_input(node, "Vector"), self._second_vector(node)
+            scale = self._enabled_input(node, "Scale") if node.operation == "SCALE" else 0
+            register = self._register()
+            self._emit("VECTOR_MATH", register, a, b, scale,
+                       params=(NODE_VECTOR_MATH_CODES[node.operation],))
+            return self._lane(register, 3) if out.type == "VALUE" else self._whole(register)
+        if kind == "HUE_SAT":
+            hue, saturation, value, fac, color = (self._input(node, k) for k in
+                                                  ("Hue", "Saturation", "Value", "Fac", "Color"))
+            hsv = self._register()
+            self._emit("COMBINE", hsv, hue, saturation, value)
+            register = self._register()
+            self._emit("HSV", register, fac, color, self._whole(hsv))
+            return self._whole(register)
+        if kind == "TEX_GRADIENT" and node.gradient_type in NODE_GRADIENT_CODES:
+            if not node.inputs["Vector"].is_linked:
+                raise _Unsupported(f"node '{node.name}' (Gradient Texture) needs a linked Vector "
+                                   "(Generated coordinates are not evaluated)")
+            register = self._register()
+            self._emit("GRADIENT", register, self._input(node, "Vector"),
+                       params=(NODE_GRADIENT_CODES[node.gradient_type],))
+            return self._lane(register, 0) if name == "Fac" else self._whole(register)
         raise _Unsupported(f"node '{node.name}' ({node.bl_idname}) is not evaluated")
+
+    def _second_vector(self, node):
+        """Vector Math's second vector input (the node has three called Vector)."""
+        vectors = [s for s in node.inputs if s.name == "Vector" and s.enabled]
+        if len(vectors) < 2:
+            return 0
+        socket = vectors[1]
+        return self._linked(socket) if socket.is_linked else self._constant(_plain(socket))
 
 
 def _surface_node(material):

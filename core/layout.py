@@ -205,12 +205,18 @@ VISIBLE_TO_ALL = 31             # every ray sees it; no holdout
 # references register * NODE_REF_REGISTER + lane (0-3: that lane in all four, 4: the whole
 # register). CONST loads its second row; OUT stores operand a into a BSDF input.
 NODE_OP_CODES = {"END": 0, "CONST": 1, "UV": 2, "IMAGE": 3, "COMBINE": 4, "MIX": 5, "MATH": 6,
-                 "INVERT": 7, "CHECKER": 8, "RAMP": 9, "OUT": 10, "DOT": 11}
+                 "INVERT": 7, "CHECKER": 8, "RAMP": 9, "OUT": 10, "DOT": 11, "MAP_RANGE": 12,
+                 "VECTOR_MATH": 13, "HSV": 14, "GRADIENT": 15}
 NODE_MIX_CODES = {"MIX": 0, "ADD": 1, "MULTIPLY": 2, "SUBTRACT": 3, "SCREEN": 4,
                   "DIFFERENCE": 5, "DARKEN": 6, "LIGHTEN": 7}
 NODE_MATH_CODES = {"ADD": 0, "SUBTRACT": 1, "MULTIPLY": 2, "DIVIDE": 3, "MULTIPLY_ADD": 4,
                    "POWER": 5, "MINIMUM": 6, "MAXIMUM": 7, "LESS_THAN": 8, "GREATER_THAN": 9,
                    "ABSOLUTE": 10, "SQRT": 11}
+NODE_VECTOR_MATH_CODES = {"ADD": 0, "SUBTRACT": 1, "MULTIPLY": 2, "DIVIDE": 3, "SCALE": 4,
+                          "DOT_PRODUCT": 5, "CROSS_PRODUCT": 6, "LENGTH": 7, "NORMALIZE": 8,
+                          "ABSOLUTE": 9, "MINIMUM": 10, "MAXIMUM": 11}
+NODE_GRADIENT_CODES = {"LINEAR": 0, "QUADRATIC": 1, "EASING": 2, "DIAGONAL": 3, "RADIAL": 4,
+                       "QUADRATIC_SPHERE": 5, "SPHERICAL": 6}
 NODE_OUT_CODES = {"BASE_COLOR": 0, "ALPHA": 1, "METALLIC": 2, "ROUGHNESS": 3,
                   "TRANSMISSION": 4, "IOR": 5, "SPECULAR": 6}
 NODE_REGISTERS = 16
@@ -227,6 +233,9 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("NODE_MIX", "Mix node blend types (MIX p0)", NODE_MIX_CODES),
          Codes("NODE_MATH", "Math node operations (MATH p0)", NODE_MATH_CODES),
          Codes("NODE_OUT", "BSDF inputs a program sets (OUT p0)", NODE_OUT_CODES),
+         Codes("NODE_VECTOR_MATH", "Vector Math operations (VECTOR_MATH p0)",
+               NODE_VECTOR_MATH_CODES),
+         Codes("NODE_GRADIENT", "Gradient Texture types (GRADIENT p0)", NODE_GRADIENT_CODES),
          Codes("NODE", "Shader node program sizes",
                {"REGISTERS": NODE_REGISTERS, "REF_REGISTER": NODE_REF_REGISTER,
                 "RAMP_SIZE": NODE_RAMP_SIZE}))

@@ -279,6 +279,89 @@ inline float node_checker(float4 p)
     return ((x % 2 == y % 2) == (z % 2)) ? 1.0f : 0.0f;
 }
 
+// Cycles' Vector Math: the vector in xyz, the value output (Dot Product, Length) in w.
+inline float4 node_vector_math(int op, float4 a, float4 b, float s)
+{
+    float3 x = a.xyz, y = b.xyz, r = (float3)(0.0f, 0.0f, 0.0f);
+    float value = 0.0f;
+    if (op == NODE_VECTOR_MATH_ADD) r = x + y;
+    else if (op == NODE_VECTOR_MATH_SUBTRACT) r = x - y;
+    else if (op == NODE_VECTOR_MATH_MULTIPLY) r = x * y;
+    else if (op == NODE_VECTOR_MATH_DIVIDE)
+        r = (float3)(y.x != 0.0f ? x.x / y.x : 0.0f, y.y != 0.0f ? x.y / y.y : 0.0f,
+                     y.z != 0.0f ? x.z / y.z : 0.0f);
+    else if (op == NODE_VECTOR_MATH_SCALE) r = x * s;
+    else if (op == NODE_VECTOR_MATH_DOT_PRODUCT) value = dot(x, y);
+    else if (op == NODE_VECTOR_MATH_CROSS_PRODUCT) r = cross(x, y);
+    else if (op == NODE_VECTOR_MATH_LENGTH) value = length(x);
+    else if (op == NODE_VECTOR_MATH_NORMALIZE) {
+        float l = length(x);
+        r = l != 0.0f ? x / l : (float3)(0.0f, 0.0f, 0.0f);
+    }
+    else if (op == NODE_VECTOR_MATH_ABSOLUTE) r = fabs(x);
+    else if (op == NODE_VECTOR_MATH_MINIMUM) r = fmin(x, y);
+    else if (op == NODE_VECTOR_MATH_MAXIMUM) r = fmax(x, y);
+    return (float4)(r, value);
+}
+
+// Cycles' rgb_to_hsv and hsv_to_rgb.
+inline float3 rgb_to_hsv(float3 c)
+{
+    float cmax = fmax(c.x, fmax(c.y, c.z)), cmin = fmin(c.x, fmin(c.y, c.z));
+    float delta = cmax - cmin, h = 0.0f, s = cmax != 0.0f ? delta / cmax : 0.0f;
+    if (s != 0.0f) {
+        float3 d = ((float3)(cmax, cmax, cmax) - c) / delta;
+        h = c.x == cmax ? d.z - d.y : c.y == cmax ? 2.0f + d.x - d.z : 4.0f + d.y - d.x;
+        h *= 1.0f / 6.0f;
+        if (h < 0.0f)
+            h += 1.0f;
+    }
+    return (float3)(h, s, cmax);
+}
+
+inline float3 hsv_to_rgb(float3 hsv)
+{
+    float h = hsv.x, s = hsv.y, v = hsv.z;
+    if (s == 0.0f)
+        return (float3)(v, v, v);
+    if (h == 1.0f)
+        h = 0.0f;
+    h *= 6.0f;
+    float i = floor(h), f = h - i;
+    float p = v * (1.0f - s), q = v * (1.0f - s * f), t = v * (1.0f - s * (1.0f - f));
+    if (i == 0.0f) return (float3)(v, t, p);
+    if (i == 1.0f) return (float3)(q, v, p);
+    if (i == 2.0f) return (float3)(p, v, t);
+    if (i == 3.0f) return (float3)(p, q, v);
+    if (i == 4.0f) return (float3)(t, p, v);
+    return (float3)(v, p, q);
+}
+
+// Cycles' gradient texture value at p.
+inline float node_gradient(int kind, float4 p)
+{
+    float r;
+    if (kind == NODE_GRADIENT_QUADRATIC) {
+        r = fmax(p.x, 0.0f);
+        r = r * r;
+    } else if (kind == NODE_GRADIENT_EASING) {
+        r = fmin(fmax(p.x, 0.0f), 1.0f);
+        float t = r * r;
+        r = 3.0f * t - 2.0f * t * r;
+    } else if (kind == NODE_GRADIENT_DIAGONAL) {
+        r = (p.x + p.y) * 0.5f;
+    } else if (kind == NODE_GRADIENT_RADIAL) {
+        r = atan2_poly(p.y, p.x) * (0.5f * M_1_PI_F) + 0.5f;
+    } else if (kind == NODE_GRADIENT_QUADRATIC_SPHERE || kind == NODE_GRADIENT_SPHERICAL) {
+        r = fmax(0.999999f - sqrt(p.x * p.x + p.y * p.y + p.z * p.z), 0.0f);
+        if (kind == NODE_GRADIENT_QUADRATIC_SPHERE)
+            r = r * r;
+    } else {
+        r = p.x;
+    }
+    return clamp(r, 0.0f, 1.0f);
+}
+
 // Runs the program at row `at` of the materials buffer for the hit (uv: its texture
 // coordinates) and sets the BSDF inputs it computes.
 inline void run_nodes(const Scene *sc, int at, float2 uv, Material *m)
@@ -328,6 +411,26 @@ inline void run_nodes(const Scene *sc, int at, float2 uv, Material *m)
             out = table[i];
             if (w1.z > 0.0f && t > 0.0f)
                 out = (1.0f - t) * out + t * table[i + 1];
+        } else if (op == NODE_OP_MAP_RANGE) {  // a: value; b: from min, from max, to min; c: to max
+            float span = b.y - b.x;
+            float f = span != 0.0f ? (a.x - b.x) / span : 0.0f;
+            float r = b.z + f * (c.x - b.z);
+            if (w1.z > 0.0f)
+                r = clamp(r, fmin(b.z, c.x), fmax(b.z, c.x));
+            out = (float4)(r);
+        } else if (op == NODE_OP_VECTOR_MATH) {   // c: the Scale input
+            out = node_vector_math((int)w1.y, a, b, c.x);
+        } else if (op == NODE_OP_HSV) {        // a: fac; b: colour; c: hue, saturation, value
+            float3 hsv = rgb_to_hsv(b.xyz);
+            hsv.x = hsv.x + c.x + 0.5f;
+            hsv.x -= floor(hsv.x);
+            hsv.y = clamp(hsv.y * c.y, 0.0f, 1.0f);
+            hsv.z *= c.z;
+            float3 rgb = a.x * hsv_to_rgb(hsv) + (1.0f - a.x) * b.xyz;
+            out = (float4)(fmax(rgb, 0.0f), b.w);
+        } else if (op == NODE_OP_GRADIENT) {
+            float f = node_gradient((int)w1.y, a);
+            out = (float4)(f, f, f, f);
         } else if (op == NODE_OP_DOT) {        // colour or vector to a value
             out = (float4)(dot(a.xyz, w1.yzw));
         } else if (op == NODE_OP_OUT) {

@@ -416,6 +416,67 @@ def build(name):
         sphere(m, (0.8, 0.3, 0.6))
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
+    elif name == "nodes_more":
+        # Vector Math, Gradient, Map Range, Hue/Saturation and the legacy MixRGB.
+        world((0.3, 0.32, 0.36))
+        data = data_image()
+        m, nodes, links, bsdf = node_material("radial floor")
+        uv = nodes.new("ShaderNodeTexCoord")
+        centre = nodes.new("ShaderNodeVectorMath")
+        centre.operation = "SUBTRACT"
+        centre.inputs[1].default_value = (0.5, 0.5, 0.0)
+        links.new(uv.outputs["UV"], centre.inputs[0])
+        radial = nodes.new("ShaderNodeTexGradient")
+        radial.gradient_type = "RADIAL"
+        links.new(centre.outputs["Vector"], radial.inputs["Vector"])
+        remap = nodes.new("ShaderNodeMapRange")
+        remap.inputs["From Min"].default_value = 0.2
+        remap.inputs["From Max"].default_value = 0.8
+        remap.inputs["To Min"].default_value = 0.1
+        remap.inputs["To Max"].default_value = 0.9
+        links.new(radial.outputs["Fac"], remap.inputs["Value"])
+        ramp = nodes.new("ShaderNodeValToRGB")
+        ramp.color_ramp.elements[0].color = (0.8, 0.3, 0.1, 1)
+        ramp.color_ramp.elements[1].color = (0.2, 0.5, 0.9, 1)
+        links.new(remap.outputs["Result"], ramp.inputs["Fac"])
+        links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
+        distance = nodes.new("ShaderNodeVectorMath")
+        distance.operation = "LENGTH"
+        links.new(centre.outputs["Vector"], distance.inputs[0])
+        links.new(distance.outputs["Value"], bsdf.inputs["Roughness"])
+        floor(m, size=6.0)
+        m, nodes, links, bsdf = node_material("hue shifted")
+        image = nodes.new("ShaderNodeTexImage")
+        image.image = data
+        hsv = nodes.new("ShaderNodeHueSaturation")
+        hsv.inputs["Hue"].default_value = 0.3
+        hsv.inputs["Saturation"].default_value = 1.5
+        hsv.inputs["Value"].default_value = 0.9
+        links.new(image.outputs["Color"], hsv.inputs["Color"])
+        links.new(hsv.outputs["Color"], bsdf.inputs["Base Color"])
+        sphere(m, (-0.8, 0.3, 0.6))
+        m, nodes, links, bsdf = node_material("spherical")
+        uv = nodes.new("ShaderNodeTexCoord")
+        scale = nodes.new("ShaderNodeVectorMath")
+        scale.operation = "SCALE"
+        scale.inputs["Scale"].default_value = 2.0
+        links.new(uv.outputs["UV"], scale.inputs[0])
+        shift = nodes.new("ShaderNodeVectorMath")
+        shift.operation = "SUBTRACT"
+        shift.inputs[1].default_value = (1.0, 1.0, 0.0)
+        links.new(scale.outputs["Vector"], shift.inputs[0])
+        ball = nodes.new("ShaderNodeTexGradient")
+        ball.gradient_type = "SPHERICAL"
+        links.new(shift.outputs["Vector"], ball.inputs["Vector"])
+        lighten = nodes.new("ShaderNodeMixRGB")
+        lighten.blend_type = "LIGHTEN"
+        lighten.inputs["Fac"].default_value = 0.9
+        lighten.inputs["Color1"].default_value = (0.3, 0.1, 0.4, 1)
+        links.new(ball.outputs["Color"], lighten.inputs["Color2"])
+        links.new(lighten.outputs["Color"], bsdf.inputs["Base Color"])
+        sphere(m, (0.8, 0.3, 0.6))
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "warned":
         # Things KD Trace does not render, each to be named in a warning (export only).
         w = bpy.data.worlds.new("sky world")
