@@ -47,7 +47,10 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         name="Tile Format", description="How finished tiles travel back",
         items=[("F32", "Float 32", "Exact", 0),
                ("F16", "Float 16", "Half the bytes; colour error below 1e-3", 1),
-               ("F16_ZLIB", "Float 16, Compressed", "Smallest; for slow networks", 2)],
+               ("F16_ZLIB", "Float 16, Compressed", "Half the bytes or fewer; for slow networks", 2),
+               ("U8", "8-bit Preview", "sRGB 8 bits per channel: a quarter of the bytes, for "
+                "interactive previews (colour exact to its 8-bit code)", 3),
+               ("U8_ZLIB", "8-bit Preview, Compressed", "The smallest; for shared Wi-Fi", 4)],
         default="F32")
     interaction: EnumProperty(
         name="Interaction", description="How the master talks to each slave (the paper's Fig. 3)",

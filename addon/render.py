@@ -112,13 +112,16 @@ def join_new_lan_slaves(master) -> None:
             master.join(*endpoint)
 
 
-def job_options(settings) -> dict:
-    """The panel's tile and network settings as Master.render() arguments."""
+def job_options(settings, view_layer) -> dict:
+    """The panel's tile and network settings as Master.render() arguments; only the passes the
+    view layer shows travel (Combined always, Depth and Normal where enabled)."""
+    passes = ["combined"] + (["depth"] if view_layer.use_pass_z else []) \
+        + (["normal"] if view_layer.use_pass_normal else [])
     return {"tile_size": settings.tile_size, "tiles_in_flight": settings.tiles_in_flight,
             "partition": None if settings.tile_partition == "SIZE" else int(settings.tile_partition),
             "model": settings.interaction,
-            "payload": "f16" if settings.payload.startswith("F16") else "f32",
-            "compress": settings.payload.endswith("ZLIB")}
+            "payload": settings.payload.split("_")[0].lower(),
+            "compress": settings.payload.endswith("ZLIB"), "passes": passes}
 
 
 def render(engine, depsgraph):
@@ -161,9 +164,9 @@ def render(engine, depsgraph):
             master.load_scene(scene)
             for problem in master.errors:
                 engine.report({"WARNING"}, f"KD Trace: {problem}")
-            job = master.render(view, **job_options(settings),
+            job = master.render(view, **job_options(settings, depsgraph.view_layer),
                                 hold_when_stranded=bool(settings.local_slaves))
-            canvas = TileCanvas(engine, view, depsgraph.view_layer)
+            canvas = TileCanvas(engine, job)
             try:
                 _receive_tiles(engine, job, canvas, legend, master,
                                local_takeover(engine, settings, prefs, secret, master))
@@ -251,33 +254,26 @@ def _receive_tiles(engine, job, canvas, legend, master, take_over):
 class TileCanvas:
     """The rendered region, filled tile by tile.
 
-    While rendering, each tile is shown with a frame in its slave's colour; when the frame is over
-    the clean image (and the Slave pass, each tile filled with its slave's colour) is written in
-    one go, so the final Combined pass carries no frames.
+    The master writes each tile's passes straight into the job's frame (job.image); the canvas
+    adds the Slave pass and, while rendering, shows each tile with a frame in its slave's
+    colour. When the frame is over the clean image (and the Slave pass, each tile filled with
+    its slave's colour) is written in one go, so the final Combined pass carries no frames.
     """
 
-    def __init__(self, engine, view, view_layer):
-        x0, y0, x1, y1 = view.region
+    BLENDER_PASSES = {"combined": "Combined", "depth": "Depth", "normal": "Normal"}
+
+    def __init__(self, engine, job):
+        x0, y0, x1, y1 = job.view.region
         self.engine, self.origin = engine, (x0, y0)
         self.width, self.height = x1 - x0, y1 - y0
-        self.passes = {"Combined": np.zeros((self.height, self.width, 4), np.float32),
-                       "Slave": np.zeros((self.height, self.width, 4), np.float32)}
-        if view_layer.use_pass_z:
-            self.passes["Depth"] = np.full((self.height, self.width), 1e10, np.float32)
-        if view_layer.use_pass_normal:
-            self.passes["Normal"] = np.zeros((self.height, self.width, 3), np.float32)
+        self.passes = {self.BLENDER_PASSES[name]: image for name, image in job.image.items()}
+        self.passes["Slave"] = np.zeros((self.height, self.width, 4), np.float32)
         self.received = 0
 
     def add(self, tile):
         left, top = tile.x - self.origin[0], tile.y - self.origin[1]
-        window = np.s_[top:top + tile.h, left:left + tile.w]
         color = (*slave_color(tile.slave_name), 1.0)
-        self.passes["Combined"][window] = tile.passes["combined"]
-        self.passes["Slave"][window] = color
-        if "Depth" in self.passes:
-            self.passes["Depth"][window] = tile.passes["depth"]
-        if "Normal" in self.passes:
-            self.passes["Normal"][window] = tile.passes["normal"]
+        self.passes["Slave"][top:top + tile.h, left:left + tile.w] = color
         framed = tile.passes["combined"].copy()
         f = min(FRAME_PIXELS, tile.w // 4, tile.h // 4)
         for edge in (np.s_[:f], np.s_[-f:]) if f else ():

@@ -115,38 +115,49 @@ def timed(session, view, reps, **options):
 
 
 def simulate(tile_ms, tile_bytes, slaves, link_latency_s, bandwidth_bps, in_flight=2,
-             master_ms_per_mib=0.0, shared_bps=None):
-    """Event model of model 3b: tiles handed out in index order to the first slave with a free
-    slot; per slave the device renders its tiles back to back; a finished tile goes out over the
-    slave's own link (serialised per link) while the next renders; a request costs one latency;
-    the master handles tiles one at a time (master_ms_per_mib); shared_bps: one medium shared by
-    all slaves instead of a link each. Returns the frame time in seconds."""
+             master_ms_per_mib=0.0, shared_bps=None, cheap_prefetch=False):
+    """Event model of model 3b: tiles handed out in the given order to the slave whose request
+    arrives first (each slave keeps `in_flight` requests outstanding; with `cheap_prefetch`, as
+    the master does when it knows the tiles' costs and gets them most expensive first, a
+    request that reaches a busy slave takes the last tile of the order instead); per slave the device
+    renders its tiles back to back; a finished tile goes out over the slave's own link
+    (serialised per link) while the next renders; a request costs one latency; the master
+    handles tiles one at a time in arrival order (master_ms_per_mib); shared_bps: one medium
+    shared by all slaves instead of a link each, serialised in time order. Events are
+    processed in time order. Returns the frame time in seconds."""
     import heapq
     n = len(tile_ms)
     device_free = [0.0] * slaves
     link_free = [0.0] * slaves
-    medium_free = 0.0
-    master_free = 0.0
-    slots = [(link_latency_s, s) for s in range(slaves) for _ in range(in_flight)]  # request arrival
-    heapq.heapify(slots)
-    finish = 0.0
-    for index in range(n):
-        arrival, s = heapq.heappop(slots)
-        start = max(arrival, device_free[s])
-        done = start + tile_ms[index] / 1000.0
-        device_free[s] = done
-        seconds = tile_bytes[index] * 8.0 / (shared_bps or bandwidth_bps or math.inf)
-        if shared_bps:
-            sent = max(done, medium_free) + seconds
-            medium_free = sent
+    medium_free = master_free = finish = 0.0
+    # (time, kind, slave, tile): kind 0 = a request reaches the slave, 1 = its device is done
+    # with the tile, 2 = the tile has reached the master
+    events = [(link_latency_s, 0, s, -1) for s in range(slaves) for _ in range(in_flight)]
+    heapq.heapify(events)
+    first, last = 0, n     # tiles first..last-1 of the order are pending
+    while events:
+        t, kind, s, index = heapq.heappop(events)
+        if kind == 0:
+            if first == last:
+                continue
+            if cheap_prefetch and device_free[s] > t:
+                last -= 1
+                index = last
+            else:
+                index, first = first, first + 1
+            device_free[s] = max(t, device_free[s]) + tile_ms[index] / 1000.0
+            heapq.heappush(events, (device_free[s], 1, s, index))
+        elif kind == 1:
+            seconds = tile_bytes[index] * 8.0 / (shared_bps or bandwidth_bps or math.inf)
+            if shared_bps:
+                medium_free = sent = max(t, medium_free) + seconds
+            else:
+                link_free[s] = sent = max(t, link_free[s]) + seconds
+            heapq.heappush(events, (sent + link_latency_s, 2, s, index))
         else:
-            sent = max(done, link_free[s]) + seconds
-            link_free[s] = sent
-        received = sent + link_latency_s
-        handled = max(received, master_free) + master_ms_per_mib * tile_bytes[index] / 2 ** 20 / 1000
-        master_free = handled
-        finish = max(finish, handled)
-        heapq.heappush(slots, (handled + link_latency_s, s))  # next request reaches the slave
+            master_free = max(t, master_free) + master_ms_per_mib * tile_bytes[index] / 2 ** 20 / 1000
+            finish = max(finish, master_free)
+            heapq.heappush(events, (master_free + link_latency_s, 0, s, -1))  # the next request
     return finish
 
 

@@ -62,6 +62,7 @@ class Frame:
     model: str = protocol.DEFAULT_MODEL   # "3a": the render thread sends each tile itself
     payload: str = "f32"
     compress: bool = False
+    passes: tuple = protocol.ALL_PASSES   # only these travel back
     cancelled: bool = False
 
 
@@ -462,7 +463,8 @@ class MasterConnection:
         if item[0] == "tile":  # encoding (float16, zlib) happens here, off the render thread in 3b
             _, frame, index, header, passes = item
             self.work.done(frame, index)   # before the master can see it and ask for the next
-            fields, arrays = protocol.encode_tile(passes, frame.payload, frame.compress)
+            fields, arrays = protocol.encode_tile(passes, frame.payload, frame.compress,
+                                                  frame.passes)
             item = (MsgType.TILE_RESULT, {**header, **fields}, arrays)
             self.server.activity.sent(self.peer, frame.frame_id,
                                       sum(a.nbytes for a in arrays.values()))
@@ -562,11 +564,15 @@ class MasterConnection:
             if model not in protocol.MODELS or payload not in protocol.PAYLOADS \
                     or not isinstance(compress, bool):
                 raise ProtocolError("bad model, payload or compress field")
+            try:
+                passes = protocol.check_passes(h.get("passes", list(protocol.ALL_PASSES)))
+            except ValueError as exc:
+                raise ProtocolError(str(exc)) from None
         except (SceneError, ProtocolError) as exc:
             log.warning("master %s: frame %d refused: %s", self.peer, frame_id, exc)
             self.outbox.put((MsgType.ERROR, {"frame_id": frame_id, "message": str(exc)}, None))
             return
-        self.frame = Frame(frame_id, scene, view, tiles, model, payload, compress)
+        self.frame = Frame(frame_id, scene, view, tiles, model, payload, compress, passes)
         self.server.activity.frame_started(self.peer, frame_id, scene_hash, len(tiles))
 
 

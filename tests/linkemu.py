@@ -8,6 +8,15 @@ Each direction of each connection is a link of its own: a chunk read at time t l
 link's serialiser at free = max(t, free) + bytes * 8 / bandwidth and is delivered latency_s
 later (store and forward, in chunks of at most `chunk` bytes so a large tile streams).
 bandwidth_bps=None and latency_s=0 forward unchanged ("loopback, unlimited").
+
+A shared medium (real Wi-Fi: one channel for every station, both directions) is one
+serialiser for all the traffic of every link given it:
+
+    air = SharedMedium(300e6)
+    links = [LinkEmulator(ep, latency_s=0.003, medium=air) for ep in endpoints]
+
+A chunk then leaves at free = max(t, air.free) + bytes * 8 / air.bandwidth, whichever link and
+direction it belongs to.
 Used by the benchmarks and tests only; nothing here parses the bytes it forwards.
 """
 from __future__ import annotations
@@ -18,11 +27,29 @@ import threading
 import time
 
 
+class SharedMedium:
+    """One serialiser shared by several links (see the module's docstring)."""
+
+    def __init__(self, bandwidth_bps: float):
+        self.bandwidth_bps = float(bandwidth_bps)
+        self.free = 0.0
+        self.bytes = 0
+        self._lock = threading.Lock()
+
+    def reserve(self, now: float, nbytes: int) -> float:
+        """When `nbytes` read at `now` have crossed the medium."""
+        with self._lock:
+            self.free = max(now, self.free) + nbytes * 8.0 / self.bandwidth_bps
+            self.bytes += nbytes
+            return self.free
+
+
 class _Direction:
     def __init__(self, source: socket.socket, sink: socket.socket, latency_s: float,
-                 bandwidth_bps: float | None, chunk: int):
+                 bandwidth_bps: float | None, chunk: int, medium: SharedMedium | None = None):
         self.source, self.sink = source, sink
         self.latency_s, self.bandwidth_bps, self.chunk = latency_s, bandwidth_bps, chunk
+        self.medium = medium
         self.queue = collections.deque()
         self.ready = threading.Condition()
         self.eof = False
@@ -36,7 +63,9 @@ class _Direction:
                 if not data:
                     break
                 now = time.monotonic()
-                if self.bandwidth_bps:
+                if self.medium is not None:
+                    free = self.medium.reserve(now, len(data))
+                elif self.bandwidth_bps:
                     free = max(now, free) + len(data) * 8.0 / self.bandwidth_bps
                 else:
                     free = now
@@ -74,9 +103,12 @@ class _Direction:
 
 class LinkEmulator:
     def __init__(self, target, latency_s: float = 0.0, bandwidth_bps: float | None = None,
-                 listen_host: str = "127.0.0.1", chunk: int = 16384):
+                 listen_host: str = "127.0.0.1", chunk: int = 16384,
+                 medium: SharedMedium | None = None):
+        """`medium`: share that serialiser with other links instead of a bandwidth of its own."""
         self.target = (str(target[0]), int(target[1]))
         self.latency_s, self.bandwidth_bps, self.chunk = float(latency_s), bandwidth_bps, chunk
+        self.medium = medium
         self._listener = socket.create_server((listen_host, 0))
         self.endpoint = self._listener.getsockname()[:2]
         self._sockets: list = []
@@ -104,7 +136,8 @@ class LinkEmulator:
             with self._lock:
                 self._sockets += [client, server]
             for source, sink in ((client, server), (server, client)):
-                direction = _Direction(source, sink, self.latency_s, self.bandwidth_bps, self.chunk)
+                direction = _Direction(source, sink, self.latency_s, self.bandwidth_bps,
+                                       self.chunk, self.medium)
                 self.directions.append(direction)
                 threading.Thread(target=direction.read_loop, daemon=True).start()
                 threading.Thread(target=direction.write_loop, daemon=True).start()

@@ -29,6 +29,8 @@ import time
 import uuid
 from dataclasses import dataclass
 
+import numpy as np
+
 from . import protocol
 from .protocol import MsgType, ProtocolError
 from ..scene.model import SCENE_FORMAT_VERSION, SceneError, View
@@ -39,7 +41,31 @@ POLL_S = 0.2             # how often worker threads look at the job's state
 DEFAULT_TILE_SIZE = 64
 DEFAULT_TILES_IN_FLIGHT = 2
 MAX_TILES_IN_FLIGHT = protocol.MAX_TILES_IN_FLIGHT
+# tiles_in_flight="auto": a slave of the median speed keeps AUTO_IN_FLIGHT tiles requested, a
+# faster one proportionally more (up to AUTO_MAX_IN_FLIGHT), a slower one fewer (at least 1),
+# so fast slaves never wait for a request and slow ones do not hoard the last tiles.
+AUTO_IN_FLIGHT = 2
+AUTO_MAX_IN_FLIGHT = 8
+AUTO_REFRESH_S = 0.1
+# tile_size="auto": the largest of these edges that gives each slave about
+# AUTO_TILES_PER_SLAVE tiles (AUTO_SLACK: 64 slaves on 1024 x 1024 get 64-pixel tiles).
+AUTO_TILE_EDGES = (32, 64, 128, 256)
+AUTO_TILES_PER_SLAVE = 4
+AUTO_SLACK = 1.25
+DEPTH_MISS = 1e10        # the tracer's depth where a pixel sees nothing (kernels/shade/render.cl)
 RETRY_DELAYS_S = (0.5, 1.0, 2.0, 4.0, 8.0)   # reconnecting to a lost (or busy) slave
+
+
+def auto_tile_size(region, slaves: int) -> tuple:
+    """tile_size="auto": square tiles as large as possible while each of `slaves` still gets
+    about AUTO_TILES_PER_SLAVE of them. By count, not by measured speed: a slave's pixels per
+    second depend as much on which tiles it drew (background or the model: 100 x apart here)
+    as on the slave; per-slave speed sets its tiles in flight instead."""
+    x0, y0, x1, y1 = region
+    share = (x1 - x0) * (y1 - y0) / max(1, slaves)
+    fitting = [e for e in AUTO_TILE_EDGES if e * e * AUTO_TILES_PER_SLAVE <= share * AUTO_SLACK]
+    edge = max(fitting) if fitting else AUTO_TILE_EDGES[0]
+    return (edge, edge)
 
 
 class MasterError(Exception):
@@ -75,7 +101,8 @@ class TileResult:
     y: int
     w: int
     h: int
-    passes: dict            # "combined" (h,w,4), "depth" (h,w), "normal" (h,w,3); float32, top row first
+    passes: dict            # the frame's passes ("combined" (h,w,4), "depth" (h,w), "normal" (h,w,3)):
+                            # float32 windows of job.image, top row first
     slave_name: str
     slave_id: str
     render_ms: float
@@ -277,6 +304,7 @@ class Master:
         self._job: RenderJob | None = None
         self._states: dict = {}          # endpoint -> SlaveState
         self._joining: set = set()       # endpoints a thread is connecting to
+        self._tile_ms: dict = {}         # (region, tile dims) -> render ms per tile, last frame
         self._lock = threading.RLock()
         self._closed = False
 
@@ -485,15 +513,20 @@ class Master:
     def render(self, view: View, tile_size=DEFAULT_TILE_SIZE,
                tiles_in_flight: int = DEFAULT_TILES_IN_FLIGHT, *, partition: int | None = None,
                model: str = protocol.DEFAULT_MODEL, payload: str = "f32",
-               compress: bool = False, duplicates: bool = True,
+               compress: bool = False, passes=protocol.ALL_PASSES, duplicates: bool = True,
                hold_when_stranded: bool = False) -> "RenderJob":
         """Start rendering `view` on every connected slave; returns at once with the job.
 
-        tile_size: pixels (int, square tiles, or a (w, h) pair); partition=N instead cuts the
+        tile_size: pixels (int, square tiles, or a (w, h) pair), or "auto" (auto_tile_size:
+        about AUTO_TILES_PER_SLAVE tiles per slave); partition=N instead cuts the
         render region into N x N tiles (Table 5b). tiles_in_flight: requests outstanding per
-        slave (model 3b). model: "3b" (sender + receiver thread per slave, the default) or "3a"
+        slave (model 3b), or "auto": per slave, in proportion to its speed (AUTO_IN_FLIGHT).
+        model: "3b" (sender + receiver thread per slave, the default) or "3a"
         (one thread per slave that asks for a tile and waits for it: for comparison).
-        payload: "f32" or "f16" (combined and normal as float16); compress: zlib when it pays.
+        payload: "f32", "f16" (combined and normal as float16) or "u8" (an 8-bit preview:
+        sRGB colour, see protocol); compress: zlib when it pays. passes: the passes the frame
+        needs (combined, plus depth and/or normal); only those travel. The tiles are written
+        into job.image (name -> float32 array of the render region) as they arrive.
         duplicates: near the end idle slaves take copies of tiles still outstanding elsewhere.
         hold_when_stranded: when every slave is lost and no reconnection is left, the job waits
         (job.stranded) for the caller to join() more slaves or give_up(), instead of failing.
@@ -502,13 +535,20 @@ class Master:
             raise MasterError("no scene loaded: call load_scene first")
         if model not in protocol.MODELS:
             raise MasterError(f"model must be one of {protocol.MODELS}, got {model!r}")
-        if not 1 <= tiles_in_flight <= MAX_TILES_IN_FLIGHT:
-            raise MasterError(f"tiles in flight must be 1 to {MAX_TILES_IN_FLIGHT}, "
-                              f"got {tiles_in_flight}")
+        if tiles_in_flight != "auto" and not (isinstance(tiles_in_flight, int)
+                                              and 1 <= tiles_in_flight <= MAX_TILES_IN_FLIGHT):
+            raise MasterError(f"tiles in flight must be 1 to {MAX_TILES_IN_FLIGHT} or 'auto', "
+                              f"got {tiles_in_flight!r}")
         if payload not in protocol.PAYLOADS:
             raise MasterError(f"payload must be one of {protocol.PAYLOADS}, got {payload!r}")
         try:
-            dims = partition_tile_size(view.region, partition) if partition else tile_dims(tile_size)
+            passes = protocol.check_passes(passes)
+            if partition:
+                dims = partition_tile_size(view.region, partition)
+            elif tile_size == "auto":
+                dims = self._auto_tile_size(view)
+            else:
+                dims = tile_dims(tile_size)
         except ValueError as exc:
             raise MasterError(str(exc)) from None
         if not all(1 <= d <= protocol.MAX_TILE_SIZE for d in dims):
@@ -528,14 +568,24 @@ class Master:
             slaves = [c for c in self.slaves if c.scene_hash == self.scene.hash]
         if not slaves:
             raise MasterError("no slaves connected: " + ("; ".join(problems) or "none given"))
-        job = RenderJob(slaves, view, tiles, int(tiles_in_flight), self.scene.hash, master=self,
-                        model=model, payload=payload, compress=bool(compress),
+        # The most expensive tiles of the last frame of this grid first: no long tile starts
+        # last and holds up the end of the frame.
+        costs = self._tile_ms.get((tuple(view.region), dims))
+        order = None if costs is None else sorted(range(len(tiles)), key=lambda i: -(costs[i] or 0.0))
+        job = RenderJob(slaves, view, tiles, tiles_in_flight, self.scene.hash, master=self,
+                        order=order,
+                        model=model, payload=payload, compress=bool(compress), passes=passes,
                         duplicates=duplicates, silence_timeout=self.silence_timeout,
                         tile_budget=self.tile_budget, hold_when_stranded=hold_when_stranded)
         with self._lock:
             self._job = job
         job.start()
         return job
+
+    def _auto_tile_size(self, view: View) -> tuple:
+        with self._lock:
+            count = len(self.slaves)
+        return auto_tile_size(view.region, count)
 
     def _heal(self) -> list:
         """Before a frame: reconnect to endpoints without a live connection (in the background
@@ -601,6 +651,8 @@ class _SlaveWorker:
         self.step = None                # (state, tile) the slave last said it was at
         self.step_since = time.monotonic()
         self.tiles_done = 0
+        self.pixels_rendered, self.render_s = 0, 0.0   # this frame, for the slave's speed
+        self.window = DEFAULT_TILES_IN_FLIGHT if job.tiles_in_flight == "auto" else job.tiles_in_flight
         self.state = threading.Condition()
         label = connection.label
         if job.model == "3a":
@@ -632,11 +684,17 @@ class _SlaveWorker:
         self.connection.send(MsgType.FRAME_START, {
             "frame_id": job.frame_id, "scene_hash": job.scene_hash, "view": job.view_dict,
             "tile_size": job.tile_w, "tile_height": job.tile_h, "model": job.model,
-            "payload": job.payload, "compress": job.compress})
+            "payload": job.payload, "compress": job.compress, "passes": list(job.passes)})
 
-    def _take(self) -> int | None:
+    def _take(self, timeout: float = POLL_S, copies: bool = True, busy: bool = None) -> int | None:
+        """The next tile for this slave; `busy`: it has another to render first (then it gets a
+        cheap one, see TilePool's order). None: judged from its tiles in flight."""
         job = self.job
-        index = job.pool.take(POLL_S, holder=self, duplicates=job.duplicates)
+        if busy is None:
+            with self.state:
+                busy = bool(self.in_flight)
+        index = job.pool.take(timeout, holder=self, duplicates=copies and job.duplicates,
+                              cheap=busy)
         if index is None:
             return None
         with self.state:
@@ -656,7 +714,7 @@ class _SlaveWorker:
         while self.alive and not job.over:
             with self.state:
                 if not self.state.wait_for(
-                        lambda: len(self.in_flight) < job.tiles_in_flight or not self.alive,
+                        lambda: len(self.in_flight) < self.window or not self.alive,
                         POLL_S):
                     continue
             index = self._take()
@@ -759,18 +817,40 @@ class _SlaveWorker:
         x, y, w, h_ = job.tiles[index]
         if [h.get(k) for k in ("x", "y", "w", "h")] != [x, y, w, h_]:
             raise ProtocolError(f"tile {index} has the wrong rectangle")
-        passes = protocol.decode_tile(h, msg.arrays, w, h_, job.payload)
         render_ms = protocol.get_float(h, "render_ms")
+        # Model 3b: the next request goes out from here, before this tile is decoded, so the
+        # slave's queue refills at once and the sender thread is not woken for each tile (it
+        # fills slots at the start, and hands out copies at the end).
+        refilled = False
+        if job.model == "3b" and not job.over:
+            with self.state:
+                others = len(self.in_flight) - 1      # besides this tile
+            following = self._take(0, copies=False, busy=others > 0) if others < self.window else None
+            if following is not None:
+                self.connection.send(MsgType.TILE_REQUEST,
+                                     {"frame_id": job.frame_id, "tile": following})
+                refilled = True
+        # Checked, then written straight into the frame; a copy of a tile another slave
+        # delivered first is checked only (an honest copy has the same bits anyway).
+        windows = job.windows(x, y, w, h_)
+        protocol.decode_tile(h, msg.arrays, w, h_, job.payload, job.passes,
+                             out=None if job.pool.is_done(index) else windows)
+        self.pixels_rendered += w * h_
+        self.render_s += max(render_ms, 0.0) / 1000.0
         with self.state:
             self.in_flight.discard(index)
             self.step, self.step_since = None, now
-            self.state.notify_all()
+            if not refilled:
+                self.state.notify_all()
+        if job.tiles_in_flight == "auto" and self.render_s > 0:
+            job.update_window(self)
         if job.cancelled:
             return
+        job.tile_ms[index] = render_ms     # before the frame can be complete
         if job.pool.mark_done(index):
             self.tiles_done += 1
             job._rejoined.discard(self.connection.endpoint)
-            job._deliver(TileResult(index, x, y, w, h_, passes, self.connection.name,
+            job._deliver(TileResult(index, x, y, w, h_, windows, self.connection.name,
                                     self.connection.id, render_ms))
 
     def _heartbeat(self, h: dict, now: float) -> None:
@@ -819,23 +899,35 @@ class _SlaveWorker:
 class RenderJob:
     """One frame in progress. Thread-safe; the caller polls next_result()."""
 
-    def __init__(self, connections: list, view: View, tiles: TileGrid, tiles_in_flight: int,
+    def __init__(self, connections: list, view: View, tiles: TileGrid, tiles_in_flight,
                  scene_hash: str, master: Master | None = None,
                  model: str = protocol.DEFAULT_MODEL, payload: str = "f32",
-                 compress: bool = False, duplicates: bool = True,
+                 compress: bool = False, passes=protocol.ALL_PASSES, duplicates: bool = True,
                  silence_timeout: float = protocol.SILENCE_S,
-                 tile_budget: TileBudget = TileBudget(), hold_when_stranded: bool = False):
+                 tile_budget: TileBudget = TileBudget(), hold_when_stranded: bool = False,
+                 order=None):
         self.master = master
         self.view, self.view_dict, self.tiles_in_flight = view, view.to_dict(), tiles_in_flight
         self.tiles = tiles
         self.tile_w, self.tile_h = tiles.tile_w, tiles.tile_h
         self.model, self.payload, self.compress = model, payload, compress
+        self.passes = protocol.check_passes(passes)
+        # The frame, composed by the receivers as tiles arrive (what is not rendered stays
+        # empty: zero colour, no surface).
+        x0, y0, x1, y1 = view.region
+        self.origin, shape = (x0, y0), (y1 - y0, x1 - x0)
+        self.image = {name: (np.full(shape, DEPTH_MISS, np.float32) if name == "depth" else
+                             np.zeros(shape + (protocol.TILE_PASSES[name],), np.float32))
+                      for name in self.passes}
         self.duplicates, self.silence_timeout = duplicates, silence_timeout
         self.tile_budget, self.hold_when_stranded = tile_budget, hold_when_stranded
         self.scene_hash = scene_hash
         self.frame_id = uuid.uuid4().int >> 65   # unique across masters and renders; fits JSON ints
-        self.pool = TilePool(len(self.tiles), max_copies=2 if duplicates else 1)
-        self.limits = protocol.Limits(max_tile_pixels=self.tile_w * self.tile_h)
+        self.pool = TilePool(len(self.tiles), max_copies=2 if duplicates else 1, order=order)
+        self.tile_ms = [None] * len(self.tiles)   # render ms of each delivered tile
+        self.limits = protocol.Limits(
+            max_tile_pixels=self.tile_w * self.tile_h,
+            tile_bytes_per_pixel=protocol.tile_bytes_per_pixel(payload, self.passes))
         self.errors: list = []       # every problem, including slaves lost and recovered from
         self.error: str | None = None  # set when the frame cannot be finished
         self.cancelled = False
@@ -847,6 +939,7 @@ class RenderJob:
         self._delivered = self._taken = 0
         self._joins = 0              # reconnections under way that may still bring a slave
         self._rejoined: set = set()  # endpoints reconnected after a loss, no tile since
+        self._median_speed, self._median_at = None, -1.0   # tiles_in_flight="auto"
         self._over = threading.Event()
         self._lock = threading.Lock()
         self._workers = [_SlaveWorker(self, c) for c in connections]
@@ -854,6 +947,29 @@ class RenderJob:
     def start(self) -> None:
         for worker in list(self._workers):
             self._start_worker(worker)
+
+    def windows(self, x: int, y: int, w: int, h: int) -> dict:
+        """name -> the tile's window of job.image."""
+        left, top = x - self.origin[0], y - self.origin[1]
+        return {name: image[top:top + h, left:left + w] for name, image in self.image.items()}
+
+    def update_window(self, worker: "_SlaveWorker") -> None:
+        """tiles_in_flight="auto": the slave's requests in proportion to its measured speed,
+        against the median of the job's slaves (refreshed at most every AUTO_REFRESH_S)."""
+        now = time.monotonic()
+        if now - self._median_at > AUTO_REFRESH_S:
+            speeds = sorted(w.pixels_rendered / w.render_s for w in list(self._workers)
+                            if w.alive and w.render_s > 0)
+            if speeds:
+                self._median_speed, self._median_at = speeds[len(speeds) // 2], now
+        if not self._median_speed or worker.render_s <= 0:
+            return
+        speed = worker.pixels_rendered / worker.render_s
+        window = min(AUTO_MAX_IN_FLIGHT, max(1, round(AUTO_IN_FLIGHT * speed / self._median_speed)))
+        if window != worker.window:
+            with worker.state:
+                worker.window = window
+                worker.state.notify_all()
 
     def _start_worker(self, worker: _SlaveWorker) -> None:
         if self.master is not None:
@@ -958,6 +1074,9 @@ class RenderJob:
         self._results.put(result)
         if self.pool.all_done:
             self.elapsed_s = now
+            if self.master is not None:
+                self.master._tile_ms[(tuple(self.view.region), (self.tile_w, self.tile_h))] = \
+                    list(self.tile_ms)
             self._end()
 
     def _slave_lost(self, worker: _SlaveWorker, reason: str, retry: bool) -> None:

@@ -16,6 +16,7 @@ session key and an implicit sequence number (no injection, replay or reordering)
 from __future__ import annotations
 
 import enum
+import functools
 import hashlib
 import hmac
 import json
@@ -33,8 +34,9 @@ import numpy as np
 
 
 # 2: HMAC handshake, float16/zlib tiles, N x M tiles; 3: compact kd-tree arrays; 4: HEARTBEAT,
-# heartbeat_s in HELLO, "busy" refusals, session MACs after an authenticated handshake.
-PROTOCOL_VERSION = 4
+# heartbeat_s in HELLO, "busy" refusals, session MACs after an authenticated handshake;
+# 5: FRAME_START "passes" (a tile carries only those) and the 8-bit preview payload "u8".
+PROTOCOL_VERSION = 5
 MAGIC = b"KDTR"
 HEADER = struct.Struct("!4sHHIQ")
 DEFAULT_PORT = 47600
@@ -56,6 +58,8 @@ HEARTBEAT_S = 2.0
 HEARTBEAT_RANGE_S = (0.05, 30.0)
 SILENCE_S = 10.0
 MIN_RATE_BPS = 256 * 1024
+PREALLOCATE_BYTES = 8 << 20     # parts of a message up to this size are received in place
+READ_AHEAD = 64 * 1024          # what a small read takes from the socket at once
 POLL_S = 0.25                   # how often a blocked send or receive looks at its deadline
 SLAVE_STATES = ("idle", "loading", "compiling", "waiting", "rendering")
 # How master and slave exchange a frame's tiles (FRAME_START "model"): the paper's Fig. 3a (one
@@ -89,7 +93,7 @@ SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_
 
 # Tile passes: name -> (channels, dtype); (h, w) or (h, w, channels).
 TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3}
-TILE_BYTES_PER_PIXEL = 4 * sum(TILE_PASSES.values())
+TILE_BYTES_PER_PIXEL = 4 * sum(TILE_PASSES.values())   # the most a tile pixel may take
 
 class ProtocolError(Exception):
     """The peer sent something that is not a valid message; the connection cannot go on."""
@@ -129,6 +133,7 @@ class Limits:
     max_frame_json: int = 16 * 1024 * 1024    # FRAME_START carries the shading (materials, lights)
     max_scene_bytes: int = 4 * 1024 ** 3      # SCENE_UPLOAD payload
     max_tile_pixels: int = MAX_TILE_SIZE * MAX_TILE_SIZE
+    tile_bytes_per_pixel: int = TILE_BYTES_PER_PIXEL   # the frame's passes and payload
 
     def json_limit(self, msg_type: MsgType) -> int:
         return self.max_frame_json if msg_type == MsgType.FRAME_START else self.max_json
@@ -137,7 +142,7 @@ class Limits:
         if msg_type == MsgType.SCENE_UPLOAD:
             return self.max_scene_bytes
         if msg_type == MsgType.TILE_RESULT:
-            return self.max_tile_pixels * TILE_BYTES_PER_PIXEL
+            return self.max_tile_pixels * self.tile_bytes_per_pixel
         return 0  # control messages carry no arrays
 
 
@@ -313,6 +318,7 @@ class Channel:
         self._recv_label = _DIRECTION_LABELS["slave" if role == "master" else "master"]
         self._key = None
         self._send_seq = self._recv_seq = 0
+        self._ahead, self._ahead_pos = bytearray(), 0   # received, not yet read (read-ahead)
         self._send_lock = threading.Lock()
         self.last_sent = self.last_received = time.monotonic()
         self.closed = False
@@ -383,31 +389,28 @@ class Channel:
         `deadline` (time.monotonic()) if given. `unauthenticated`: types accepted without a MAC
         (the handshake's refusals). ProtocolError on anything else."""
         waited_from = time.monotonic()
-        head = bytearray()
-        while not head:      # the first byte: nothing owed yet, so no transfer deadline
+        while self._ahead_pos == len(self._ahead):   # the first byte: nothing owed yet
             if deadline is not None and time.monotonic() > deadline:
                 raise PeerTooSlow("nothing arrived before the deadline")
             try:
-                chunk = self.sock.recv(HEADER.size)
+                chunk = self.sock.recv(READ_AHEAD)
             except socket.timeout:
                 if wait is not None and time.monotonic() - waited_from >= wait:
                     return None
                 continue
             if not chunk:
                 raise ConnectionClosed("connection closed by peer")
-            head += chunk
+            self._ahead, self._ahead_pos = bytearray(chunk), 0
         started = time.monotonic()
-        self._read_into(head, HEADER.size, started, HEADER.size, deadline, "header")
+        head = self._read_into(HEADER.size, started, HEADER.size, deadline, "header")
         msg_type, json_length, payload_length = _check_header(head, limits, allowed)
         keyed = self._key is not None and msg_type not in unauthenticated
         total = HEADER.size + json_length + payload_length + (MAC_BYTES if keyed else 0)
-        text = self._read_into(bytearray(), json_length, started, total, deadline, "JSON",
-                               HEADER.size)
-        payload = self._read_into(bytearray(), payload_length, started, total, deadline,
-                                  "payload", HEADER.size + json_length)
+        text = self._read_into(json_length, started, total, deadline, "JSON", HEADER.size)
+        payload = self._read_into(payload_length, started, total, deadline, "payload",
+                                  HEADER.size + json_length)
         if keyed:
-            tag = self._read_into(bytearray(), MAC_BYTES, started, total, deadline, "MAC",
-                                  total - MAC_BYTES)
+            tag = self._read_into(MAC_BYTES, started, total, deadline, "MAC", total - MAC_BYTES)
             expected = self._mac(self._recv_label, self._recv_seq, (head, text, payload))
             if not hmac.compare_digest(expected, bytes(tag)):
                 raise ProtocolError(f"{msg_type.name}: message authentication failed "
@@ -416,26 +419,61 @@ class Channel:
         self.last_received = time.monotonic()
         return _parse_body(msg_type, text, payload)
 
-    def _read_into(self, buffer: bytearray, count: int, started: float, total: int,
-                   deadline, what: str, before: int = 0) -> bytearray:
-        """Fill `buffer` to `count` bytes; `before`: bytes of this message already read."""
-        while len(buffer) < count:
+    def _read_into(self, count: int, started: float, total: int, deadline, what: str,
+                   before: int = 0) -> bytearray:
+        """The next `count` bytes of the message; `before`: bytes of it already read.
+
+        Small reads take up to READ_AHEAD bytes from the socket at once (a tile's header,
+        JSON and payload then arrive in one or two system calls, not one each: with many
+        slaves the master's threads mostly wait for those calls) and keep what follows for the
+        next read. Up to PREALLOCATE_BYTES (tiles up to 512 x 512) the rest of a long part is
+        received in place; beyond, the buffer grows as data arrives, so a lying length costs
+        nothing until bytes really come."""
+        in_place = count <= PREALLOCATE_BYTES
+        buffer = bytearray(count) if in_place else bytearray()
+        done = 0
+        while done < count:
+            available = len(self._ahead) - self._ahead_pos
+            if available:
+                n = min(count - done, available)
+                with memoryview(self._ahead) as ahead:
+                    piece = ahead[self._ahead_pos:self._ahead_pos + n]
+                    if in_place:
+                        buffer[done:done + n] = piece
+                    else:
+                        buffer += piece
+                    piece.release()
+                self._ahead_pos += n
+                done += n
+                continue
+            remaining = count - done
             try:
-                chunk = self.sock.recv(min(count - len(buffer), 1 << 20))
+                if in_place and remaining >= READ_AHEAD:
+                    with memoryview(buffer) as view:
+                        got = self.sock.recv_into(view[done:], min(remaining, 1 << 20))
+                    if got == 0:
+                        raise ConnectionBroken(f"connection closed in the middle of a message "
+                                               f"({what}: {done} of {count} bytes)")
+                    done += got
+                else:
+                    chunk = self.sock.recv(READ_AHEAD if remaining < READ_AHEAD
+                                           else min(remaining, 1 << 20))
+                    if not chunk:
+                        raise ConnectionBroken(f"connection closed in the middle of a message "
+                                               f"({what}: {done} of {count} bytes)")
+                    self._ahead, self._ahead_pos = bytearray(chunk), 0
+                    continue
             except socket.timeout:
-                chunk = None
-            if chunk == b"":
-                raise ConnectionBroken(f"connection closed in the middle of a message ({what}: "
-                                       f"{len(buffer)} of {count} bytes)")
-            if chunk:
-                buffer += chunk
-            if len(buffer) < count:
-                if deadline is not None and time.monotonic() > deadline:
-                    raise PeerTooSlow(f"message not complete before the deadline ({what}: "
-                                      f"{len(buffer)} of {count} bytes)")
-                self._check_rate(started, before + len(buffer), total, "received",
-                                 "message arrived too slowly")
+                pass
+            if done < count:
+                self._check_progress(started, before + done, total, deadline, what, done, count)
         return buffer
+
+    def _check_progress(self, started, done_total, total, deadline, what, done, count) -> None:
+        if deadline is not None and time.monotonic() > deadline:
+            raise PeerTooSlow(f"message not complete before the deadline ({what}: "
+                              f"{done} of {count} bytes)")
+        self._check_rate(started, done_total, total, "received", "message arrived too slowly")
 
     def close(self) -> None:
         """Shut the connection down (wakes a thread blocked on it) and close it."""
@@ -478,40 +516,94 @@ def check_scene_hash(value) -> str:
 
 # ----------------------------------------------------------------------------- tile payloads
 #
-# A TILE_RESULT carries the passes as float32 (default) or, with payload "f16", combined and
-# normal as float16 (depth stays float32: its miss value 1e10 and far distances do not fit
-# float16). With compression on, the slave deflates the passes (zlib level 1) and sends one u1
-# array "zlib" instead, but only when that saves at least 10 %; the master inflates it with a
-# bound of exactly the expected size, so a "zip bomb" costs nothing.
+# A frame asks for the passes it needs (FRAME_START "passes": combined, plus depth and normal
+# only when the view layer shows them) in one payload:
+#   f32  every pass float32 (exact);
+#   f16  combined and normal float16, depth float32 (its miss value 1e10 does not fit float16);
+#   u8   an 8-bit preview: combined's colour as sRGB codes, its alpha and the normal linear
+#        codes, depth float32. Decoding is a table lookup, so a decoded value is exactly the
+#        centre of its code (PREVIEW_* tables below): "exact to its quantisation".
+# With compression on, the slave deflates the passes (zlib level 1) and sends one u1 array
+# "zlib" instead, but only when that saves at least 10 %; the master inflates it with a bound
+# of exactly the expected size, so a "zip bomb" costs nothing. The master checks a tile (names,
+# shapes, dtypes, finite values) before it writes it straight into the frame (decode_tile's
+# `out`): no intermediate float32 copy per tile.
 
-PAYLOADS = ("f32", "f16")
-F16_PASSES = ("combined", "normal")
+PAYLOADS = ("f32", "f16", "u8")
+ALL_PASSES = tuple(TILE_PASSES)
 F16_MAX = 65504.0
 
 
-def pass_dtypes(payload: str) -> dict:
+def _srgb_to_linear(code: np.ndarray) -> np.ndarray:
+    c = code / 255.0
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+# The 8-bit preview's codes. Colour: code k decodes to PREVIEW_COLOR[k] = the linear value of
+# sRGB k/255; a value encodes to the code whose sRGB interval holds it, found by comparison
+# against float64 bounds (no transcendental on the slave, so every slave gives the same codes).
+# Alpha and normal: linear codes, rounded in float64.
+PREVIEW_COLOR = _srgb_to_linear(np.arange(256.0)).astype(np.float32)
+PREVIEW_COLOR_BOUNDS = _srgb_to_linear(np.arange(255.0) + 0.5)          # code k below bound k
+PREVIEW_ALPHA = (np.arange(256.0) / 255.0).astype(np.float32)
+PREVIEW_NORMAL = (np.arange(256.0) / 127.5 - 1.0).astype(np.float32)
+# combined's four channels in one lookup: code + 256 x channel indexes this table
+_PREVIEW_RGBA = np.concatenate([PREVIEW_COLOR] * 3 + [PREVIEW_ALPHA])
+_RGBA_OFFSETS = (np.arange(4) * 256).astype(np.uint16)
+
+
+def check_passes(passes) -> tuple:
+    """The passes a frame asks for, in wire order; combined is always one of them."""
+    if (not isinstance(passes, (list, tuple)) or not all(isinstance(p, str) for p in passes)
+            or not set(passes) <= set(TILE_PASSES) or len(set(passes)) != len(passes)
+            or "combined" not in passes):
+        raise ValueError(f"passes must be combined plus any of depth, normal, got {passes!r}")
+    return tuple(name for name in TILE_PASSES if name in passes)
+
+
+def pass_dtypes(payload: str, passes=ALL_PASSES) -> dict:
+    """name -> wire dtype of each pass the frame asks for, in wire order."""
     if payload not in PAYLOADS:
         raise ValueError(f"payload must be one of {PAYLOADS}, got {payload!r}")
-    return {name: np.dtype("<f2") if payload == "f16" and name in F16_PASSES else np.dtype("<f4")
-            for name in TILE_PASSES}
+    return dict(_pass_dtypes(payload, check_passes(passes)))
+
+
+@functools.lru_cache(maxsize=64)
+def _pass_dtypes(payload: str, passes: tuple) -> tuple:
+    small = {"f32": "<f4", "f16": "<f2", "u8": "|u1"}[payload]
+    return tuple((name, np.dtype("<f4" if name == "depth" else small)) for name in passes)
+
+
+def tile_bytes_per_pixel(payload: str, passes=ALL_PASSES) -> int:
+    return sum(TILE_PASSES[name] * dtype.itemsize for name, dtype in pass_dtypes(payload, passes).items())
 
 
 def _pass_shape(name: str, w: int, h: int) -> tuple:
     return (h, w) if TILE_PASSES[name] == 1 else (h, w, TILE_PASSES[name])
 
 
-def encode_tile(passes: dict, payload: str = "f32", compress: bool = False) -> tuple:
-    """(header fields, arrays) of a TILE_RESULT for float32 `passes`."""
-    dtypes = pass_dtypes(payload)
-    arrays = {}
-    for name, dtype in dtypes.items():
-        array = np.asarray(passes[name], np.float32)
+def _encode_pass(name: str, array: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    if dtype.kind == "f":
         if dtype.itemsize == 2:
             array = np.clip(array, -F16_MAX, F16_MAX)
-        arrays[name] = np.ascontiguousarray(array, dtype)
+        return np.ascontiguousarray(array, dtype)
+    if name == "normal":
+        return np.rint((np.clip(array, -1.0, 1.0, dtype=np.float64) + 1.0) * 127.5).astype(np.uint8)
+    codes = np.empty(array.shape, np.uint8)
+    codes[..., :3] = np.searchsorted(PREVIEW_COLOR_BOUNDS, array[..., :3], side="right")
+    codes[..., 3] = np.rint(np.clip(array[..., 3], 0.0, 1.0, dtype=np.float64) * 255.0)
+    return codes
+
+
+def encode_tile(passes: dict, payload: str = "f32", compress: bool = False,
+                names=ALL_PASSES) -> tuple:
+    """(header fields, arrays) of a TILE_RESULT carrying the passes `names` of the float32
+    `passes` as `payload`."""
+    arrays = {name: _encode_pass(name, np.asarray(passes[name], np.float32), dtype)
+              for name, dtype in pass_dtypes(payload, names).items()}
     fields = {"payload": payload, "compression": "none"}
     if compress:
-        raw = b"".join(a.tobytes() for a in arrays.values())
+        raw = b"".join(memoryview(a).cast("B") for a in arrays.values())
         packed = zlib.compress(raw, 1)
         if len(packed) <= 0.9 * len(raw):
             fields["compression"] = "zlib"
@@ -519,12 +611,21 @@ def encode_tile(passes: dict, payload: str = "f32", compress: bool = False) -> t
     return fields, arrays
 
 
-def decode_tile(header: dict, arrays: dict, w: int, h: int, payload: str) -> dict:
-    """The float32 passes of a w x h TILE_RESULT sent with `payload`; ProtocolError if anything
-    is off (format, names, shapes, dtypes, sizes, NaN or infinity)."""
+def _all_finite(array: np.ndarray) -> bool:
+    # One float64 sum instead of a boolean array: any NaN or infinity makes it non-finite, and
+    # float32/16 values cannot overflow it.
+    return array.dtype.kind != "f" or math.isfinite(float(array.sum(dtype=np.float64)))
+
+
+def decode_tile(header: dict, arrays: dict, w: int, h: int, payload: str, passes=ALL_PASSES,
+                out: dict | None = None) -> dict:
+    """Check a w x h TILE_RESULT sent with `payload` and `passes` and return its passes as
+    float32; with `out` (name -> float32 array of the tile's shape, e.g. a window of the frame)
+    write them there instead and return `out`. ProtocolError if anything is off (format, names,
+    shapes, dtypes, sizes, NaN or infinity); nothing is written then."""
     if header.get("payload", "f32") != payload:
         raise ProtocolError(f"tile payload {header.get('payload')!r}, expected {payload!r}")
-    dtypes = pass_dtypes(payload)
+    dtypes = pass_dtypes(payload, passes)
     compression = header.get("compression", "none")
     if compression == "zlib":
         packed = arrays.get("zlib")
@@ -533,7 +634,7 @@ def decode_tile(header: dict, arrays: dict, w: int, h: int, payload: str) -> dic
         expected = sum(math.prod(_pass_shape(n, w, h)) * d.itemsize for n, d in dtypes.items())
         inflater = zlib.decompressobj()
         try:
-            raw = inflater.decompress(packed.tobytes(), expected)
+            raw = inflater.decompress(packed, expected)
         except zlib.error as exc:
             raise ProtocolError(f"tile does not inflate: {exc}") from None
         if len(raw) != expected or inflater.unconsumed_tail or not inflater.eof:
@@ -545,19 +646,28 @@ def decode_tile(header: dict, arrays: dict, w: int, h: int, payload: str) -> dic
             offset += math.prod(shape) * dtype.itemsize
     elif compression != "none":
         raise ProtocolError(f"unknown tile compression {compression!r}")
-    if set(arrays) != set(TILE_PASSES):
-        raise ProtocolError(f"tile passes must be {sorted(TILE_PASSES)}, got {sorted(arrays)}")
-    passes = {}
+    if set(arrays) != set(dtypes):
+        raise ProtocolError(f"tile passes must be {sorted(dtypes)}, got {sorted(arrays)}")
     for name, dtype in dtypes.items():
         shape, array = _pass_shape(name, w, h), arrays[name]
         if array.dtype != dtype or array.shape != shape:
             raise ProtocolError(f"pass {name!r} must be {dtype.str} {shape}, "
                                 f"got {array.dtype.str} {array.shape}")
-        array = array.astype(np.float32)
-        if not np.isfinite(array).all():
+        if not _all_finite(array):
             raise ProtocolError(f"pass {name!r} contains NaN or infinity")
-        passes[name] = array
-    return passes
+    if out is None:
+        out = {name: np.empty(_pass_shape(name, w, h), np.float32) for name in dtypes}
+    for name, dtype in dtypes.items():
+        source, target = arrays[name], out[name]
+        if dtype.kind == "f":
+            np.copyto(target, source)
+        elif name == "normal":
+            target[...] = PREVIEW_NORMAL.take(source)
+        else:
+            codes = source.astype(np.uint16)
+            codes += _RGBA_OFFSETS
+            np.take(_PREVIEW_RGBA, codes, out=target, mode="clip")
+    return out
 
 
 # ----------------------------------------------------------------------------- authentication

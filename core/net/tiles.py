@@ -3,14 +3,19 @@
 Dynamic pull (rather than a fixed region per slave) keeps fast slaves busy and lets a lost
 slave's tiles go back to the others. Near the end of a frame, when nothing is pending, an idle
 slave may take a *copy* of a tile still outstanding elsewhere (the first result wins): a slow or
-hung slave then no longer holds up the frame.
+hung slave then no longer holds up the frame. Only a tile held longer than COPY_AFTER times the
+frame's median tile time (hand-out to result) is copied, so slaves that are merely busy with
+their last tiles are not doubled (with many slaves that was tens of wasted tiles a frame).
 """
 from __future__ import annotations
 
+import bisect
 import heapq
 import math
 import threading
 import time
+
+COPY_AFTER = 2.0    # a tile is copied once held this many median tile times
 
 
 def tile_dims(tile_size) -> tuple:
@@ -71,22 +76,35 @@ class TilePool:
     """Thread-safe tile indices: pending -> held by one or more slaves -> done (or back to
     pending when the last holder is lost)."""
 
-    def __init__(self, count: int, max_copies: int = 2):
+    def __init__(self, count: int, max_copies: int = 2, order=None):
+        """`order`: the tile indices from the most to the least expensive (e.g. as measured in
+        the last frame): a slave that asks for its next tile while it still has one gets the
+        cheapest pending tile (it only hides the request's latency), one that would otherwise
+        go idle the most expensive, so no long tile starts last or waits behind another.
+        Default: index order for all."""
         self.count = count
         self.max_copies = max_copies      # holders of one tile at once (1 = no duplicates)
-        self._next = 0                    # tiles from here on were never handed out
+        self._order = None if order is None else list(order)
+        if self._order is not None and sorted(self._order) != list(range(count)):
+            raise ValueError("order must be a permutation of the tile indices")
+        self._next = 0                    # position in the order: from here on never handed out
+        self._last = count                # ... up to here (the cheap end is taken from the back)
         self._returned = []               # heap of tiles handed out and given back
         self._holders: dict = {}          # index -> set of holder keys
         self._taken_at: dict = {}         # index -> monotonic time first handed out
         self._done = set()
+        self._durations = []              # sorted seconds from hand-out to done, this frame
         self._closed = False
         self._changed = threading.Condition()
         self.duplicates_handed_out = 0
 
     def _copyable(self, holder):
         best = None
+        # Before any tile is done there is no typical time: anything may be copied.
+        overdue = (time.monotonic() - COPY_AFTER * self._durations[len(self._durations) // 2]
+                   if self._durations else math.inf)
         for index, holders in self._holders.items():
-            if holder in holders or len(holders) >= self.max_copies:
+            if holder in holders or len(holders) >= self.max_copies or self._taken_at[index] > overdue:
                 continue
             key = (len(holders), self._taken_at[index])  # fewest copies, then the oldest
             if best is None or key < best[0]:
@@ -95,17 +113,25 @@ class TilePool:
 
     @property
     def _has_pending(self) -> bool:
-        return bool(self._returned) or self._next < self.count
+        return bool(self._returned) or self._next < self._last
 
-    def _pop_pending(self) -> int:
+    def _pop_pending(self, cheap: bool) -> int:
         if self._returned:
             return heapq.heappop(self._returned)
+        if self._order is None:
+            self._next += 1
+            return self._next - 1
+        if cheap:
+            self._last -= 1
+            return self._order[self._last]
         self._next += 1
-        return self._next - 1
+        return self._order[self._next - 1]
 
-    def take(self, timeout: float | None = None, holder=None, duplicates: bool = False) -> int | None:
-        """The pending tile of the lowest index; with `duplicates`, when nothing is pending, a
-        copy of a tile that other holders still have. Waits up to `timeout`; None if none."""
+    def take(self, timeout: float | None = None, holder=None, duplicates: bool = False,
+             cheap: bool = False) -> int | None:
+        """The next pending tile (`cheap`: for a slave that is still busy, see `order`); with
+        `duplicates`, when nothing is pending, a copy of a tile that other holders still have.
+        Waits up to `timeout`; None if none."""
         def ready():
             return (self._has_pending or self._closed or self.all_done
                     or (duplicates and self._copyable(holder) is not None))
@@ -114,7 +140,7 @@ class TilePool:
             if self._closed or self.all_done:
                 return None
             if self._has_pending:
-                index = self._pop_pending()
+                index = self._pop_pending(cheap)
                 self._taken_at[index] = time.monotonic()
             elif duplicates:
                 index = self._copyable(holder)
@@ -136,9 +162,9 @@ class TilePool:
                 if holders:
                     return
                 del self._holders[index]
-            if index not in self._done and index not in self._returned and index < self._next:
+            if index not in self._done and index not in self._returned and index in self._taken_at:
                 heapq.heappush(self._returned, index)
-            self._changed.notify_all()
+                self._changed.notify()     # one taker can have it
 
     def mark_done(self, index: int) -> bool:
         """Record a finished tile; False if it was already done (a duplicate)."""
@@ -147,10 +173,13 @@ class TilePool:
                 return False
             self._done.add(index)
             self._holders.pop(index, None)
+            if index in self._taken_at:
+                bisect.insort(self._durations, time.monotonic() - self._taken_at[index])
             if index in self._returned:
                 self._returned.remove(index)
                 heapq.heapify(self._returned)
-            self._changed.notify_all()
+            if self.all_done:   # wakes the takers to leave; nothing else became available
+                self._changed.notify_all()
             return True
 
     def is_done(self, index: int) -> bool:

@@ -1,0 +1,363 @@
+"""Many slaves on one machine: the master, the protocol and emulated links at S = 1..64.
+
+Each slave is a real `slave.server.SlaveServer` with its own listening socket, whose tracer is
+the calibrated stand-in of bench/standin.py (it sleeps the real tracer's measured time for each
+tile and returns the real tile's bytes). 64 slave processes would not fit this machine, so the
+servers run as threads in a few host processes (--hosts). Every connection goes through an
+emulated link (tests/linkemu.py) in a network process of its own: "link" = 802.11ac-like link
+per slave (3 ms, 300 Mbit/s each way), "shared" = the same latency and one 300 Mbit/s medium for
+the traffic of all slaves, both directions. The master runs alone in this process, so its CPU
+time (time.process_time) is the master's own.
+
+    flock /tmp/bench.lock .venv/bin/python bench/many_slaves.py [--json out.json] [--png plot.png]
+
+Calibration (once, cached in bench/out/): the real tracer renders the bench frame with one PoCL
+thread at each tile size, timing every tile in CPU time.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import statistics
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from bench.network_scaling import bench_scene, simulate  # noqa: E402
+from bench.standin import Calibration, StandInTracer, calibrate  # noqa: E402
+from core.net import protocol  # noqa: E402
+from core.net.master import Master  # noqa: E402
+from core.net.tiles import TileGrid  # noqa: E402
+from core.scene.scene import Scene  # noqa: E402
+from tests.linkemu import LinkEmulator, SharedMedium  # noqa: E402
+from tests.test_network import make_view, network_settings  # noqa: E402
+
+SIZE = 1024
+SAMPLES_PER_AXIS = 4            # 16 samples per pixel: ~25 s of one core per frame
+TILE_SIZES = (64, 128, 256)     # calibrated; the master's "auto" picks among these here
+LATENCY_S, BANDWIDTH_BPS = 0.003, 300e6
+COUNTS = (1, 2, 4, 6, 8, 16, 32, 64)
+OUT = ROOT / "bench" / "out"
+
+
+def bench_view():
+    import dataclasses
+    return dataclasses.replace(make_view(SIZE, SIZE),
+                               settings=network_settings(samples_per_axis=SAMPLES_PER_AXIS))
+
+
+def calibration_path() -> pathlib.Path:
+    return OUT / f"standin_{SIZE}_spa{SAMPLES_PER_AXIS}.npz"
+
+
+def run_calibration() -> None:
+    os.environ["POCL_MAX_PTHREAD_COUNT"] = "1"   # before PoCL starts: one core, as a slave
+    from slave.tracer import Tracer
+    scene = Scene.from_parts(*bench_scene())
+    started = time.perf_counter()
+    result = calibrate(Tracer(), scene, bench_view(), [(s, s) for s in TILE_SIZES])
+    OUT.mkdir(parents=True, exist_ok=True)
+    result.save(calibration_path())
+    for size in TILE_SIZES:
+        print(f"calibrated {size}x{size}: {sum(result.frame_ms((size, size))) / 1000:.1f} s of "
+              f"one core per frame", flush=True)
+    print(f"calibration took {time.perf_counter() - started:.0f} s", flush=True)
+
+
+# -- child processes: slave hosts and the network
+
+def serve_slaves(count: int, first: int, speeds: list) -> None:
+    """Host `count` stand-in slaves; print their ports; run until stdin closes."""
+    from slave.server import SlaveServer
+    import logging
+    logging.basicConfig(level=logging.WARNING)
+    calibration = Calibration.load(calibration_path())
+    servers = []
+    for i in range(count):
+        speed = speeds[(first + i) % len(speeds)]
+        server = SlaveServer(StandInTracer(calibration, speed, f"standin-{first + i}"),
+                             f"standin-{first + i}", bind="127.0.0.1", port=0)
+        server.start()
+        servers.append(server)
+    print(json.dumps([s.address[1] for s in servers]), flush=True)
+    sys.stdin.read()
+    for server in servers:
+        server.close()
+
+
+def serve_network(kind: str, ports: list) -> None:
+    """One emulated link per slave (kind "link") or one shared medium (kind "shared")."""
+    medium = SharedMedium(BANDWIDTH_BPS) if kind == "shared" else None
+    links = [LinkEmulator(("127.0.0.1", port), LATENCY_S,
+                          None if medium else BANDWIDTH_BPS, medium=medium).start()
+             for port in ports]
+    print(json.dumps([link.endpoint[1] for link in links]), flush=True)
+    sys.stdin.read()
+    for link in links:
+        link.close()
+
+
+class Child:
+    def __init__(self, *args):
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen([sys.executable, __file__, *args], cwd=ROOT, env=env,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        self.ports = json.loads(self.proc.stdout.readline())
+
+    def cpu_seconds(self) -> float:
+        """CPU time of the child so far (user + system, from /proc)."""
+        fields = pathlib.Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        self.proc.wait(30)
+
+
+# -- the master's side
+
+def run_frame(master, view, **options):
+    job = master.render(view, **options)
+    count = 0
+    while not job.finished:
+        if job.next_result(0.05) is not None:
+            count += 1
+    assert job.error is None and count == len(job.tiles), job.error
+    job.wait(30)
+    return job
+
+
+def measure(endpoints, scene, view, reps, options, warm=True) -> dict:
+    """Median frame time and the master's CPU per frame over `reps` frames, after one warm-up
+    frame (`warm`): the master learns the slaves' speeds ("auto" sizes) and the tiles' costs
+    (it hands out the most expensive first) from it, as it does from one frame to the next."""
+    with Master([("127.0.0.1", p) for p in endpoints], secret=None, name="bench") as master:
+        master.connect()
+        master.load_scene(scene)
+        if warm:
+            run_frame(master, view, **options)
+        times, cpu, copies = [], [], []
+        for _ in range(reps):
+            c0 = time.process_time()
+            job = run_frame(master, view, **options)
+            cpu.append(time.process_time() - c0)
+            times.append(job.elapsed_s)
+            copies.append(job.duplicates_handed_out)
+            tiles = len(job.tiles)
+            tile_size = (job.tile_w, job.tile_h)
+            windows = sorted({w.window for w in job._workers})
+    frame_bytes = SIZE * SIZE * protocol.tile_bytes_per_pixel(options.get("payload", "f32"),
+                                                             options.get("passes", ["combined"]))
+    return {"tau_s": statistics.median(times), "master_cpu_s": statistics.median(cpu),
+            "tiles": tiles, "tile_size": tile_size, "windows": windows, "frame_bytes": frame_bytes,
+            "copies": statistics.median(copies)}
+
+
+def model(calibration, tile_size, count, frame_bytes_per_pixel, shared: bool, in_flight=2) -> float:
+    """The event model of bench/network_scaling.py fed with the calibrated tile times, handed
+    out as the master does after a first frame: the most expensive first to a slave that would
+    go idle, the cheapest to one that is still busy."""
+    grid = TileGrid((0, 0, SIZE, SIZE), tile_size)
+    tiles = sorted(zip(calibration.frame_ms(tile_size),
+                       [w * h * frame_bytes_per_pixel for (_, _, w, h) in grid]), reverse=True)
+    return simulate([t[0] for t in tiles], [t[1] for t in tiles], count, LATENCY_S,
+                    BANDWIDTH_BPS, in_flight, shared_bps=BANDWIDTH_BPS if shared else None,
+                    cheap_prefetch=True)
+
+
+def plot_png(path, rows) -> None:
+    """Efficiency against S (log2 axis, labelled 1..64) for both link kinds: measured (thick,
+    dots) beside the model (thin, paler); blue: a link per slave, red: shared medium; grid
+    lines at every 0.1 of efficiency (labelled every 0.2)."""
+    from bench.image_error import FONT, write_png
+    w, h, margin = 640, 400, 40
+
+    def label(x, y, text, scale=2):
+        for k, char in enumerate(text):
+            bits = FONT[char]
+            for i in range(5):
+                for j in range(3):
+                    if bits[i * 3 + j] == "1":
+                        x0, y0 = x + (k * 4 + j) * scale, y + i * scale
+                        img[y0:y0 + scale, x0:x0 + scale] = 0
+
+    img = np.full((h, w, 3), 255, np.uint8)
+    xs = lambda s: margin + (np.log2(s) / 6.0) * (w - 2 * margin)
+    ys = lambda e: h - margin - min(max(e, 0.0), 1.05) / 1.05 * (h - 2 * margin)
+    for e in np.arange(0, 1.01, 0.1):
+        img[int(ys(e)), margin:w - margin] = (220, 220, 220) if round(e * 10) % 5 else (150, 150, 150)
+    for s in (1, 2, 4, 8, 16, 32, 64):
+        img[margin:h - margin, int(xs(s))] = (200, 200, 200)
+        label(int(xs(s)) - 4 * len(str(s)), h - margin + 8, str(s))
+    for e in (0.0, 0.2, 0.4, 0.6, 0.8, 1.0):
+        label(4, int(ys(e)) - 5, f"{e:.1f}")
+
+    def line(points, color, width):
+        for (x0, y0), (x1, y1) in zip(points, points[1:]):
+            for t in np.linspace(0, 1, 200):
+                x, y = int(x0 + t * (x1 - x0)), int(y0 + t * (y1 - y0))
+                img[max(0, y - width):y + width + 1, max(0, x - width):x + width + 1] = color
+
+    colors = {"link": (30, 90, 200), "shared": (210, 60, 30)}
+    for kind, color in colors.items():
+        mine = [r for r in rows if r["link"] == kind]
+        measured = [(xs(r["S"]), ys(r["efficiency"])) for r in mine]
+        modelled = [(xs(r["S"]), ys(r["model_efficiency"])) for r in mine]
+        line(modelled, tuple(int(c + (255 - c) * 0.55) for c in color), 0)
+        line(measured, color, 1)
+        for x, y in measured:
+            img[int(y) - 3:int(y) + 4, int(x) - 3:int(x) + 4] = color
+    write_png(path, img)
+
+
+def master_cost(scene, view, reps, ports) -> list:
+    """The master's CPU per frame at 64 slaves (per-link) with 16, 64 and 256 tiles: a fixed
+    part per frame and a part per tile (least squares)."""
+    rows = []
+    for size in (256, 128, 64):
+        options = {"tile_size": size, "tiles_in_flight": 2, "passes": ["combined"],
+                   "payload": "f32"}
+        r = measure(ports, scene, view, reps, options)
+        rows.append(r)
+        print(f"master cost, 64 slaves, {r['tiles']} tiles of {size}: "
+              f"{r['master_cpu_s'] * 1e3:.1f} ms CPU/frame, frame {r['tau_s'] * 1e3:.1f} ms",
+              flush=True)
+    tiles = np.array([r["tiles"] for r in rows], float)
+    cpu = np.array([r["master_cpu_s"] for r in rows])
+    per_tile, per_frame = np.polyfit(tiles, cpu, 1)
+    print(f"master CPU = {per_frame * 1e3:.1f} ms per frame + {per_tile * 1e6:.0f} us per tile",
+          flush=True)
+    return {"rows": rows, "per_frame_s": per_frame, "per_tile_s": per_tile}
+
+
+def mixed_speeds(scene, view, reps, count=16) -> list:
+    """Half the slaves three times as fast as the others (per-link emulation): fixed tile
+    size and tiles in flight against the master's choices from the slaves' speeds. Efficiency
+    here: the ideal time (all work spread in proportion to speed) over the measured."""
+    speeds = [1.0, 3.0]
+    calibration = Calibration.load(calibration_path())
+    host = Child("--serve", str(count), "0", "--speeds", ",".join(map(str, speeds)))
+    network = Child("--network", "link", *map(str, host.ports))
+    rows = []
+    try:
+        total_speed = sum(speeds[i % 2] for i in range(count))
+        for tile_size in (128, "auto"):
+            for in_flight in (2, "auto"):
+                options = {"tile_size": tile_size, "tiles_in_flight": in_flight,
+                           "passes": ["combined"], "payload": "f32"}
+                r = measure(network.ports, scene, view, reps, options)
+                size = r["tile_size"][0]
+                ideal = sum(calibration.frame_ms((size, size))) / 1000 / total_speed
+                r.update(tile_option=tile_size, in_flight_option=in_flight,
+                         efficiency=ideal / r["tau_s"])
+                rows.append(r)
+                print(f"mixed speeds 1/3 x{count}: tile {tile_size} ({size}), in flight "
+                      f"{in_flight} {r['windows']}: {r['tau_s'] * 1e3:.1f} ms, efficiency "
+                      f"{r['efficiency']:.3f}, master CPU {r['master_cpu_s'] * 1e3:.1f} ms/frame",
+                      flush=True)
+    finally:
+        network.close()
+        host.close()
+    return rows
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--reps", type=int, default=2)
+    parser.add_argument("--hosts", type=int, default=4, help="slave host processes")
+    parser.add_argument("--counts", default=",".join(map(str, COUNTS)))
+    parser.add_argument("--no-mixed", action="store_true", help="skip the mixed-speed runs")
+    parser.add_argument("--json", default=None)
+    parser.add_argument("--png", default=None)
+    parser.add_argument("--calibrate", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--serve", nargs=2, type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--speeds", default="1")
+    parser.add_argument("--network", nargs="+", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.calibrate:
+        return run_calibration()
+    if args.serve:
+        return serve_slaves(*args.serve, [float(s) for s in args.speeds.split(",")])
+    if args.network:
+        return serve_network(args.network[0], [int(p) for p in args.network[1:]])
+
+    counts = [int(c) for c in args.counts.split(",")]
+    if not calibration_path().exists():
+        subprocess.run([sys.executable, __file__, "--calibrate"], cwd=ROOT, check=True)
+    calibration = Calibration.load(calibration_path())
+    scene, view = Scene.from_parts(*bench_scene()), bench_view()
+    with open("/proc/loadavg") as handle:
+        load = handle.read().split()[:3]
+    out = {"command": " ".join([os.path.relpath(sys.executable, ROOT)] + sys.argv),
+           "machine": f"{platform.node()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+           "load_average_at_start": load, "size": SIZE, "samples_per_axis": SAMPLES_PER_AXIS,
+           "one_core_frame_s": {s: sum(calibration.frame_ms((s, s))) / 1000 for s in TILE_SIZES}}
+    print(json.dumps(out), flush=True)
+    most = max(counts)
+    per_host = -(-most // args.hosts)
+    hosts = [Child("--serve", str(min(per_host, most - i)), str(i), "--speeds", args.speeds)
+             for i in range(0, most, per_host)]
+    ports = [p for host in hosts for p in host.ports]
+    rows = []
+    try:
+        for kind in ("link", "shared"):
+            network = Child("--network", kind, *map(str, ports))
+            try:
+                base = {}
+                for count in counts:
+                    for payload in (("f32", "u8") if kind == "shared" else ("f32",)):
+                        options = {"tile_size": "auto", "tiles_in_flight": "auto",
+                                   "passes": ["combined"], "payload": payload}
+                        net0 = network.cpu_seconds()
+                        # one slave: no warm-up (nothing to learn), one frame (~30 s)
+                        r = measure(network.ports[:count], scene, view,
+                                    1 if count <= 2 else args.reps, options, warm=count > 1)
+                        r["network_cpu_s_total"] = network.cpu_seconds() - net0
+                        base.setdefault(payload, r["tau_s"]) if count == 1 else None
+                        bpp = protocol.tile_bytes_per_pixel(payload, ["combined"])
+                        m1 = model(calibration, r["tile_size"], 1, bpp, kind == "shared")
+                        ms = model(calibration, r["tile_size"], count, bpp, kind == "shared")
+                        r.update(link=kind, S=count, payload=payload,
+                                 efficiency=base[payload] / (count * r["tau_s"])
+                                 if payload in base else float("nan"),
+                                 model_tau_s=ms, model_efficiency=m1 / (count * ms),
+                                 master_cpu_per_tile_us=r["master_cpu_s"] / r["tiles"] * 1e6,
+                                 master_cpu_per_mib_ms=r["master_cpu_s"] / (r["frame_bytes"] / 2 ** 20) * 1e3,
+                                 tiles_per_s=r["tiles"] / r["tau_s"],
+                                 master_cpu_share=r["master_cpu_s"] / r["tau_s"])
+                        rows.append(r)
+                        print(f"{kind:6s} {payload} S={count:2d} tile {r['tile_size'][0]:3d} "
+                              f"windows {r['windows']} copies {r['copies']}: "
+                              f"{r['tau_s'] * 1e3:8.1f} ms "
+                              f"eff {r['efficiency']:.3f} (model {r['model_efficiency']:.3f}, "
+                              f"{ms * 1e3:.1f} ms)  master CPU {r['master_cpu_s'] * 1e3:.1f} ms/frame "
+                              f"= {r['master_cpu_per_tile_us']:.0f} us/tile, "
+                              f"{r['master_cpu_per_mib_ms']:.2f} ms/MiB, "
+                              f"{r['master_cpu_share'] * 100:.1f} % of a core", flush=True)
+                if kind == "link" and most >= 64:
+                    out["master_cost"] = master_cost(scene, view, args.reps, network.ports[:64])
+            finally:
+                network.close()
+    finally:
+        for host in hosts:
+            host.close()
+    out["rows"] = rows
+    if not args.no_mixed:
+        out["mixed"] = mixed_speeds(scene, view, args.reps)
+    if args.json:
+        pathlib.Path(args.json).write_text(json.dumps(out, indent=1))
+    if args.png:
+        plot_png(args.png, [r for r in rows if r["payload"] == "f32"])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,104 @@
+"""A calibrated stand-in for the slave's tracer: many slaves on one machine, for benchmarks and
+tests of the master, the protocol and the links at scale.
+
+It is not a slave mode and cannot be picked from the slave's command line: a bench or test
+process plugs it in as the tracer object of a `slave.server.SlaveServer` (the way the tests
+plug in fakes), so the server, the protocol, the sockets and the master are the real ones.
+
+A `Calibration` holds, for one scene and view, the frame the real tracer rendered (every tile a
+real slave sends is a window of it, bit for bit: pixels do not depend on the tiling, which the
+network tests check) and the render time it measured for every tile of each calibrated tile
+size. `StandInTracer.render_tile` sleeps that time (divided by the slave's `speed`) and returns
+the tile's window, so the server encodes and sends the same bytes a real slave would.
+"""
+from __future__ import annotations
+
+import pathlib
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core.net.tiles import TileGrid
+
+
+@dataclass
+class Calibration:
+    region: tuple                       # (x0, y0, x1, y1) of the frame
+    image: dict                         # pass name -> float32 frame (the real tracer's)
+    tile_ms: dict = field(default_factory=dict)   # (x, y, w, h) -> measured render ms
+
+    def tile_sizes(self) -> list:
+        return sorted({(w, h) for (x, y, w, h) in self.tile_ms if x == self.region[0]
+                       and y == self.region[1]})
+
+    def frame_ms(self, tile_size) -> list:
+        """The measured ms of every tile of a frame cut into `tile_size` tiles, in grid order."""
+        return [self.tile_ms[tile] for tile in TileGrid(self.region, tile_size)]
+
+    def save(self, path) -> None:
+        tiles = np.array(sorted(self.tile_ms), np.int64).reshape(-1, 4)
+        np.savez(path, region=np.array(self.region), tiles=tiles,
+                 ms=np.array([self.tile_ms[tuple(t)] for t in tiles.tolist()], np.float64),
+                 **{f"pass_{name}": image for name, image in self.image.items()})
+
+    @classmethod
+    def load(cls, path) -> "Calibration":
+        with np.load(pathlib.Path(path), allow_pickle=False) as data:
+            image = {key[5:]: data[key] for key in data.files if key.startswith("pass_")}
+            tile_ms = {tuple(t): float(ms) for t, ms in zip(data["tiles"].tolist(), data["ms"])}
+            return cls(tuple(int(v) for v in data["region"]), image, tile_ms)
+
+
+def calibrate(tracer, scene, view, tile_sizes, clock=time.process_time) -> Calibration:
+    """Render the frame with the real `tracer` once per tile size, timing every tile with
+    `clock`; the frame's passes are those of the first tile size (the others give the same
+    bits). The default clock is this process's CPU time: with one PoCL thread
+    (POCL_MAX_PTHREAD_COUNT=1) that is the tile's time on a core of its own, also on a machine
+    that others load."""
+    tracer.load(scene)
+    tracer.prepare(view)
+    x0, y0, x1, y1 = view.region
+    image = None
+    tile_ms = {}
+    for size in tile_sizes:
+        tracer.render_tile(view, x0, y0, min(16, x1 - x0), min(16, y1 - y0))  # warm: kernels
+        for x, y, w, h in TileGrid(view.region, size):
+            start = clock()
+            passes = tracer.render_tile(view, x, y, w, h)
+            tile_ms[(x, y, w, h)] = (clock() - start) * 1000.0
+            if image is None:
+                image = {name: np.zeros((y1 - y0, x1 - x0) + a.shape[2:], np.float32)
+                         for name, a in passes.items()}
+            if size == tile_sizes[0]:
+                for name, array in passes.items():
+                    image[name][y - y0:y - y0 + h, x - x0:x - x0 + w] = array
+    return Calibration((x0, y0, x1, y1), image, tile_ms)
+
+
+class StandInTracer:
+    """The tracer interface SlaveServer uses (device_info, build_seconds, load, prepare,
+    render_tile), answered from a Calibration: sleeps the measured time / `speed`."""
+
+    build_seconds = 0.0
+
+    def __init__(self, calibration: Calibration, speed: float = 1.0, name: str = "stand-in"):
+        self.calibration, self.speed = calibration, float(speed)
+        self.device_info = {"name": f"{name} (calibrated stand-in, x{speed:g})",
+                            "compute_units": 1, "memory": 1 << 30, "platform": "bench"}
+
+    def load(self, scene) -> None:
+        pass
+
+    def prepare(self, view) -> None:
+        pass
+
+    def render_tile(self, view, x: int, y: int, w: int, h: int) -> dict:
+        ms = self.calibration.tile_ms.get((x, y, w, h))
+        if ms is None:
+            raise ValueError(f"tile {(x, y, w, h)} was not calibrated (tile sizes: "
+                             f"{self.calibration.tile_sizes()})")
+        time.sleep(ms / 1000.0 / self.speed)
+        x0, y0 = self.calibration.region[:2]
+        return {name: image[y - y0:y - y0 + h, x - x0:x - x0 + w].copy()
+                for name, image in self.calibration.image.items()}
