@@ -147,7 +147,7 @@ def glass_scene(ior, with_glass=True, emission=0.0):
     vertices, triangles = merge(*meshes)
     ids = np.r_[np.zeros(len(floor[1])), np.ones(len(triangles) - len(floor[1]))].astype(np.uint16)
     params = default_material_params(2)
-    params[1] = [0.0, 0.0, 1.0, ior, emission, emission, emission, 0.5, -1]
+    params[1, :9] = [0.0, 0.0, 1.0, ior, emission, emission, emission, 0.5, -1]
     if emission:
         params[1, 2] = 0.0
     camera = Camera("PERSP", look_at((0.5, -5, 4), (0, 0, 0.5)), (0.5, 0.4), (0, 0), 0.05, 100)

@@ -36,7 +36,8 @@ scene.render.engine = "KDTRACE"
 scene.kdtrace.use_zeroconf = False
 scene.kdtrace.local_slaves = 1
 bpy.ops.render.render()  # so the Last Render legend has something to show
-context = SimpleNamespace(scene=scene, engine="KDTRACE", preferences=bpy.context.preferences)
+context = SimpleNamespace(scene=scene, engine="KDTRACE", preferences=bpy.context.preferences,
+                          object=scene.objects[0])
 drawn = {}
 for panel in addon.addon.ui.classes:
     if issubclass(panel, bpy.types.Panel):
