@@ -18,7 +18,8 @@ import numpy as np
 
 from ..core.layout import (NODE_GRADIENT_CODES, NODE_MATH_CODES, NODE_MIX_CODES, NODE_OP_CODES,
                            NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS,
-                           NODE_VECTOR_MATH_CODES, VISIBILITY_CODES, VISIBLE_TO_ALL)
+                           NODE_TRANSFORM_SIZE, NODE_VECTOR_MATH_CODES, VISIBILITY_CODES,
+                           VISIBLE_TO_ALL)
 from ..core.scene.features import scene_features, strip_geometry
 from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
                                 MAX_MATERIALS, RenderSettings, SceneError, Shading, View,
@@ -89,21 +90,33 @@ class _MaterialTable:
         self._images = {}           # image name -> texture index
         self.textures = []          # (texels (N, 4) float16, width, height)
         self.node_rows = []         # the node programs of all materials, float4 rows
+        self._spatial = {}          # material key -> its NodeProgram reading the hit's position
 
     def index(self, material, obj_name: str | None = None,
-              visibility: int = VISIBLE_TO_ALL) -> int:
+              visibility: int = VISIBLE_TO_ALL, placement=None) -> int:
         """The material's index; `obj_name`: the object that uses it (named in warnings).
         `visibility`: the object's ray visibility and holdout (core/layout.py VISIBILITY_CODES);
-        other than the default, the material gets a record of its own with it."""
+        other than the default, the material gets a record of its own with it. `placement`
+        (a Placement): where the object is, for a node program that reads Generated or Object
+        coordinates (then each placement gets a record and a program of its own)."""
         key = material.name_full if material is not None else None
-        if visibility != VISIBLE_TO_ALL:
-            variant = (key, visibility)
+        if visibility != VISIBLE_TO_ALL or placement is not None:
+            base = self.index(material, obj_name)
+            program = self._spatial.get(key)
+            where = placement.key if program is not None and placement is not None else None
+            variant = (key, visibility, where)
+            if variant == (key, VISIBLE_TO_ALL, None):
+                return base
             if variant not in self._index:
-                base = self.index(material, obj_name)
+                if len(self._colors) >= MAX_MATERIALS:
+                    raise SceneError(f"the scene uses more than {MAX_MATERIALS} materials")
                 self._index[variant] = len(self._colors)
                 self._colors.append(self._colors[base])
                 params = list(self._params[base])
                 params[MATERIAL_PARAMS.index("visibility")] = float(visibility)
+                if where is not None:
+                    params[MATERIAL_PARAMS.index("program")] = float(len(self.node_rows))
+                    self.node_rows += program.rows(placement.matrices)
                 self._params.append(tuple(params))
             return self._index[variant]
         if key not in self._index:
@@ -118,6 +131,8 @@ class _MaterialTable:
             if program.outputs:
                 params["program"] = float(len(self.node_rows))
                 self.node_rows += program.rows()
+                if program.transforms:
+                    self._spatial[key] = program
             if problems:        # one warning per material, naming everything it lacks
                 on = f" (on object '{obj_name}')" if obj_name else ""
                 self._warnings.append(f"material '{material.name}'{on}: " + "; ".join(problems))
@@ -185,6 +200,23 @@ _NODE_OUTPUTS = {"metallic": "METALLIC", "roughness": "ROUGHNESS", "ior": "IOR",
                  "transmission": "TRANSMISSION", "specular": "SPECULAR"}
 
 
+class Placement:
+    """Where an object instance is, for node programs: `matrices` maps "OBJECT" and
+    "GENERATED" to 3 x 4 world -> coordinates matrices (Object: the inverse of its world
+    matrix; Generated: then Cycles' texture space map, (P - location) / (2 size) + 0.5 per
+    axis, 0.5 where a size is 0); `key` tells placements apart."""
+
+    def __init__(self, matrix_world, texspace_location, texspace_size):
+        to_object = np.linalg.inv(np.asarray(matrix_world, np.float64))[:3]
+        size = np.asarray(texspace_size, np.float64)
+        scale = np.where(size != 0, 0.5 / np.where(size != 0, size, 1.0), 0.0)
+        offset = 0.5 - np.asarray(texspace_location, np.float64) * scale
+        generated = scale[:, None] * to_object
+        generated[:, 3] += offset
+        self.matrices = {"OBJECT": to_object, "GENERATED": generated}
+        self.key = np.concatenate([to_object.ravel(), generated.ravel()]).tobytes()
+
+
 class _Unsupported(Exception):
     """A node (or a setting of one) the node program cannot evaluate."""
 
@@ -211,16 +243,17 @@ class NodeProgram:
         self._kinds = {}                        # operand -> its socket's type (RGBA, VECTOR)
         self._next = 0
         self.outputs = []
+        self.transforms = []                    # (instruction index, "OBJECT" or "GENERATED")
 
     def output(self, socket, field, problems) -> bool:
         """Evaluate the graph linked to `socket` into BSDF input `field`; False (with a
         problem naming the node) when it cannot."""
         saved = (list(self._code), list(self._ramps), dict(self._values), dict(self._kinds),
-                 self._next)
+                 self._next, list(self.transforms))
         try:
             ref = self._linked(socket)
         except _Unsupported as error:
-            self._code, self._ramps, self._values, self._kinds, self._next = saved
+            self._code, self._ramps, self._values, self._kinds, self._next, self.transforms = saved
             problems.append(f"input '{socket.name}': {error}; using its value {_plain(socket)}")
             return False
         if field != "BASE_COLOR":
@@ -229,25 +262,31 @@ class NodeProgram:
         self.outputs.append(field)
         return True
 
-    def rows(self) -> list:
-        """The program's float4 rows: its instructions, END, then its ramp tables."""
+    def rows(self, matrices=None) -> list:
+        """The program's float4 rows: its instructions, END, then its tables (colour ramps,
+        the coordinate transforms: `matrices` as Placement's; identity without one)."""
         code = self._code + [("END", 0, 0, 0, 0, (0.0, 0.0, 0.0))]
+        identity = np.eye(4)[:3]
+        tables = list(self._ramps) + [
+            (index, [tuple(r) for r in (identity if matrices is None else matrices[kind])]
+             + [(0.0, 0.0, 0.0, 0.0)] * (NODE_TRANSFORM_SIZE - 3))
+            for index, kind in self.transforms]
         rows = []
         table_row = 2 * len(code)
         offsets = {}
-        for index, table in self._ramps:
-            offsets[index] = table_row - 2 * index      # relative to the RAMP instruction
+        for index, table in tables:
+            offsets[index] = table_row - 2 * index      # relative to the instruction
             table_row += len(table)
         for index, (op, dst, a, b, c, params) in enumerate(code):
             params = tuple(params) + (0.0,) * (3 - len(params))
-            if op == "RAMP":
+            if op in ("RAMP", "TRANSFORM"):
                 params = (float(offsets[index]),) + params[1:]
             if op == "CONST":
                 rows += [(NODE_OP_CODES[op], dst, 0, 0), tuple(a)]
             else:
                 rows += [(NODE_OP_CODES[op], dst, a, b), (c,) + params]
-        for _, table in self._ramps:
-            rows += [tuple(r) for r in table]
+        for _, table in tables:
+            rows += [tuple(float(v) for v in r) for r in table]
         return rows
 
     # -- compiling ---------------------------------------------------------------------------
@@ -324,6 +363,8 @@ class NodeProgram:
             register = self._register()
             self._emit("UV", register)
             return self._whole(register)
+        if kind == "TEX_COORD" and name in ("Generated", "Object") and node.object is None:
+            return self._coordinates(name.upper())
         if kind == "VALUE":
             return self._constant(float(out.default_value))
         if kind == "RGB":
@@ -382,10 +423,8 @@ class NodeProgram:
             self._emit("INVERT", register, fac, color)
             return self._whole(register)
         if kind == "TEX_CHECKER":
-            if not node.inputs["Vector"].is_linked:
-                raise _Unsupported(f"node '{node.name}' (Checker Texture) needs a linked Vector "
-                                   "(Generated coordinates are not evaluated)")
-            vector = self._input(node, "Vector")
+            vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked \
+                else self._coordinates("GENERATED")
             c1, c2 = self._input(node, "Color1"), self._input(node, "Color2")
             scale = node.inputs["Scale"]
             if scale.is_linked:
@@ -430,14 +469,25 @@ class NodeProgram:
             self._emit("HSV", register, fac, color, self._whole(hsv))
             return self._whole(register)
         if kind == "TEX_GRADIENT" and node.gradient_type in NODE_GRADIENT_CODES:
-            if not node.inputs["Vector"].is_linked:
-                raise _Unsupported(f"node '{node.name}' (Gradient Texture) needs a linked Vector "
-                                   "(Generated coordinates are not evaluated)")
+            vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked \
+                else self._coordinates("GENERATED")
             register = self._register()
-            self._emit("GRADIENT", register, self._input(node, "Vector"),
+            self._emit("GRADIENT", register, vector,
                        params=(NODE_GRADIENT_CODES[node.gradient_type],))
             return self._lane(register, 0) if name == "Fac" else self._whole(register)
         raise _Unsupported(f"node '{node.name}' ({node.bl_idname}) is not evaluated")
+
+    def _coordinates(self, kind):
+        """The hit point in Generated or Object coordinates (the unlinked default of the
+        procedural textures is Generated)."""
+        key = ("coordinates", kind)
+        if key not in self._values:
+            register = self._register()
+            self.transforms.append((len(self._code), kind))
+            self._emit("TRANSFORM", register)
+            self._values[key] = self._whole(register)
+            self._kinds[self._whole(register)] = "VECTOR"
+        return self._values[key]
 
     def _second_vector(self, node):
         """Vector Math's second vector input (the node has three called Vector)."""
@@ -649,8 +699,10 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list) -> Ge
             continue
         mesh = obj.data
         visibility = object_visibility(obj)
+        placement = Placement(instance.matrix_world, mesh.texspace_location, mesh.texspace_size)
         slot_materials = np.array(
-            [materials.index(slot.material, obj.name, visibility) for slot in obj.material_slots]
+            [materials.index(slot.material, obj.name, visibility, placement)
+             for slot in obj.material_slots]
             or [materials.index(None, obj.name, visibility)], np.uint16)
         textured = any(materials.uses_texture(slot.material) for slot in obj.material_slots)
         key = (mesh.as_pointer(), textured)
@@ -711,7 +763,7 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list) -> Ge
                                             np.cumsum([0] + [len(v) for v in parts["v"][:-1]]))])
     uvs = None
     texels, sizes = materials.texture_arrays()
-    if texels is not None:
+    if texels is not None or materials.node_rows:       # textures and node programs read UVs
         uvs = np.concatenate([uv if uv is not None else np.zeros((3 * c, 2), np.float32)
                               for uv, c in zip(parts["uv"], counts)])
     return Geometry(np.concatenate(parts["v"]), np.concatenate(parts["t"]),

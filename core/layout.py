@@ -206,7 +206,7 @@ VISIBLE_TO_ALL = 31             # every ray sees it; no holdout
 # register). CONST loads its second row; OUT stores operand a into a BSDF input.
 NODE_OP_CODES = {"END": 0, "CONST": 1, "UV": 2, "IMAGE": 3, "COMBINE": 4, "MIX": 5, "MATH": 6,
                  "INVERT": 7, "CHECKER": 8, "RAMP": 9, "OUT": 10, "DOT": 11, "MAP_RANGE": 12,
-                 "VECTOR_MATH": 13, "HSV": 14, "GRADIENT": 15}
+                 "VECTOR_MATH": 13, "HSV": 14, "GRADIENT": 15, "TRANSFORM": 16}
 NODE_MIX_CODES = {"MIX": 0, "ADD": 1, "MULTIPLY": 2, "SUBTRACT": 3, "SCREEN": 4,
                   "DIFFERENCE": 5, "DARKEN": 6, "LIGHTEN": 7}
 NODE_MATH_CODES = {"ADD": 0, "SUBTRACT": 1, "MULTIPLY": 2, "DIVIDE": 3, "MULTIPLY_ADD": 4,
@@ -222,6 +222,8 @@ NODE_OUT_CODES = {"BASE_COLOR": 0, "ALPHA": 1, "METALLIC": 2, "ROUGHNESS": 3,
 NODE_REGISTERS = 16
 NODE_REF_REGISTER = 8           # operand = register * 8 + lane
 NODE_RAMP_SIZE = 256            # colour ramps as tables of this many RGBA rows (as Cycles)
+NODE_TRANSFORM_SIZE = 4         # TRANSFORM: the hit point through a 3 x 4 matrix (Generated,
+                                # Object coordinates): its 3 rows and one unused, after the END
 CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("LIGHT_SHAPE", "Area light shapes (LIGHT_AREA_SHAPE)", AREA_SHAPE_CODES),
          Codes("CAMERA", "Camera kinds (CAMERA_KIND)", CAMERA_CODES),
@@ -238,7 +240,7 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("NODE_GRADIENT", "Gradient Texture types (GRADIENT p0)", NODE_GRADIENT_CODES),
          Codes("NODE", "Shader node program sizes",
                {"REGISTERS": NODE_REGISTERS, "REF_REGISTER": NODE_REF_REGISTER,
-                "RAMP_SIZE": NODE_RAMP_SIZE}))
+                "RAMP_SIZE": NODE_RAMP_SIZE, "TRANSFORM_SIZE": NODE_TRANSFORM_SIZE}))
 
 LIGHT = Record("LIGHT", "A light (lights buffer, light_count records)", 6, (
     Slot("position", 0, "xyz", "position"),

@@ -33,6 +33,7 @@ SCENES = {
     "camera_motion": (12, {"BOUNCES", "CAMERA_MOTION", "SMOOTH", "SOFT_LIGHTS", "SUN", "WORLD"}),
     "nodes": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "nodes_more": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
+    "generated": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "WORLD"}),
 }
 # Cycles' Light Paths defaults (also ours), uniform sampling, the samples of each scene.
 MATCHED = {name: value for name, value in RenderSettings().to_dict().items()

@@ -439,7 +439,8 @@ def check_node_program(rows, starts) -> np.ndarray:
     (>= 0) instructions up to an END (the kernel runs them so). A program's ramp tables
     follow its END (addon/export.py compiles them)."""
     from ..layout import (NODE_OP_CODES, NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER,
-                          NODE_REGISTERS)
+                          NODE_REGISTERS, NODE_TRANSFORM_SIZE)
+    tables = {NODE_OP_CODES["RAMP"]: NODE_RAMP_SIZE, NODE_OP_CODES["TRANSFORM"]: NODE_TRANSFORM_SIZE}
     if not isinstance(rows, list) or len(rows) > MAX_NODE_ROWS or len(rows) % 2:
         raise SceneError("node_program must be an even number of rows")
     program = np.array([_finite_floats(r, 4, "node program row") for r in rows], np.float32) \
@@ -452,11 +453,11 @@ def check_node_program(rows, starts) -> np.ndarray:
         op = int(w0[0])
         if op != w0[0] or op not in NODE_OP_CODES.values():
             raise SceneError(f"node program row {pc}: unknown operation {w0[0]}")
-        if op == NODE_OP_CODES["RAMP"]:
+        if op in tables:
             start = int(w1[1])
-            if start != w1[1] or not 0 <= pc + start <= n - NODE_RAMP_SIZE:
-                raise SceneError(f"node program row {pc}: ramp table outside the program")
-            ramps.append((pc + start, pc + start + NODE_RAMP_SIZE))
+            if start != w1[1] or not 2 <= start or not pc + start <= n - tables[op]:
+                raise SceneError(f"node program row {pc}: table outside the program")
+            ramps.append((pc + start, pc + start + tables[op]))
         if op not in (NODE_OP_CODES["CONST"], NODE_OP_CODES["END"]):
             refs = (w0[2], w0[3], w1[0])
             if any(r != int(r) or not 0 <= r < NODE_REGISTERS * NODE_REF_REGISTER for r in refs) \
@@ -467,9 +468,11 @@ def check_node_program(rows, starts) -> np.ndarray:
         if op == NODE_OP_CODES["IMAGE"] and not (w1[1] == int(w1[1]) and 0 <= w1[1] < MAX_TEXTURES):
             raise SceneError(f"node program row {pc}: bad texture {w1[1]}")
         pc += 2
-        for lo, hi in ramps:            # a ramp table after an END
+        for lo, hi in ramps:            # a table after an END
             if pc == lo:
                 pc = hi
+        if pc % 2:
+            raise SceneError("node program tables must end on an even row")
     for start in (int(v) for v in starts if v >= 0):
         pc = start
         while instructions.get(pc, -1) > 0 and pc < 2 * 1024 + start:

@@ -364,7 +364,7 @@ inline float node_gradient(int kind, float4 p)
 
 // Runs the program at row `at` of the materials buffer for the hit (uv: its texture
 // coordinates) and sets the BSDF inputs it computes.
-inline void run_nodes(const Scene *sc, int at, float2 uv, Material *m)
+inline void run_nodes(const Scene *sc, int at, float2 uv, float3 p, Material *m)
 {
     float4 regs[NODE_REGISTERS];
     __global const float4 *code = sc->materials + at;
@@ -431,6 +431,10 @@ inline void run_nodes(const Scene *sc, int at, float2 uv, Material *m)
         } else if (op == NODE_OP_GRADIENT) {
             float f = node_gradient((int)w1.y, a);
             out = (float4)(f, f, f, f);
+        } else if (op == NODE_OP_TRANSFORM) {  // Generated / Object coordinates of the hit
+            __global const float4 *rows = code + pc + (int)w1.y;
+            float4 q = (float4)(p, 1.0f);
+            out = (float4)(dot(rows[0], q), dot(rows[1], q), dot(rows[2], q), 0.0f);
         } else if (op == NODE_OP_DOT) {        // colour or vector to a value
             out = (float4)(dot(a.xyz, w1.yzw));
         } else if (op == NODE_OP_OUT) {
@@ -485,7 +489,9 @@ inline Material material_at(const Scene *sc, uint tri, float u, float v)
     if (program >= 0) {
         float2 uv = (1.0f - u - v) * vload2(3 * tri, sc->uvs) + u * vload2(3 * tri + 1, sc->uvs)
                     + v * vload2(3 * tri + 2, sc->uvs);
-        run_nodes(sc, program, uv, &m);
+        __global const float4 *T = sc->tri_verts + TRIANGLE_SIZE * tri;
+        float3 p = (1.0f - u - v) * TRIANGLE_V0(T) + u * TRIANGLE_V1(T) + v * TRIANGLE_V2(T);
+        run_nodes(sc, program, uv, p, &m);
     }
 #endif
     return m;

@@ -477,6 +477,33 @@ def build(name):
         sphere(m, (0.8, 0.3, 0.6))
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
+    elif name == "generated":
+        # Procedural textures at their default coordinates (Generated: the object's texture
+        # space), one material on two objects of different sizes; Object coordinates.
+        world((0.3, 0.32, 0.36))
+        m, nodes, links, bsdf = node_material("checker box")
+        checker = nodes.new("ShaderNodeTexChecker")
+        checker.inputs["Scale"].default_value = 3.0
+        checker.inputs["Color1"].default_value = (0.8, 0.2, 0.15, 1)
+        links.new(checker.outputs["Color"], bsdf.inputs["Base Color"])
+        box = add(bpy.ops.mesh.primitive_cube_add, m, size=0.8, location=(-0.9, 0.3, 0.4),
+                  rotation=(0, 0, math.radians(30)))
+        add(bpy.ops.mesh.primitive_cube_add, m, size=0.5, location=(0.2, -0.4, 0.25))
+        box.scale = (1.0, 1.5, 1.0)
+        m, nodes, links, bsdf = node_material("gradient ball")
+        gradient = nodes.new("ShaderNodeTexGradient")
+        gradient.gradient_type = "QUADRATIC_SPHERE"
+        links.new(gradient.outputs["Color"], bsdf.inputs["Base Color"])
+        sphere(m, (0.9, 0.4, 0.6))
+        m, nodes, links, bsdf = node_material("object checker")
+        coords = nodes.new("ShaderNodeTexCoord")
+        checker = nodes.new("ShaderNodeTexChecker")
+        checker.inputs["Scale"].default_value = 1.0
+        links.new(coords.outputs["Object"], checker.inputs["Vector"])
+        links.new(checker.outputs["Color"], bsdf.inputs["Base Color"])
+        floor(m, size=6.0)
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "warned":
         # Things KD Trace does not render, each to be named in a warning (export only).
         w = bpy.data.worlds.new("sky world")
