@@ -99,17 +99,14 @@ class RENDER_PT_kdtrace_motion_blur(KDTracePanel, bpy.types.Panel):
         layout.prop(render, "motion_blur_shutter")
 
 
-class OBJECT_PT_kdtrace_visibility(bpy.types.Panel):
+class OBJECT_PT_kdtrace_visibility(KDTracePanel, bpy.types.Panel):
     """As Cycles' Ray Visibility: which rays see the object, and Holdout."""
     bl_label = "KD Trace Ray Visibility"
-    bl_space_type = "PROPERTIES"
-    bl_region_type = "WINDOW"
     bl_context = "object"
-    COMPAT_ENGINES = {"KDTRACE"}
 
     @classmethod
     def poll(cls, context):
-        return context.engine in cls.COMPAT_ENGINES and context.object is not None
+        return super().poll(context) and context.object is not None
 
     def draw(self, context):
         layout = self.layout

@@ -76,6 +76,20 @@ inline void camera_ray(__global const float4 *cam, float fx, float fy, float2 le
 #endif
 }
 
+// The ray goes on behind the surface it hit (a cut-out, an object it does not see), not a
+// bounce; the camera ray keeps its clipping range and the distance it has travelled.
+inline void go_behind(const Surface *s, const Hit *h, float3 d, bool primary, float3 *o,
+                      uint *ignore, float *t_before, float *tmin, float *tmax)
+{
+    *o = spawn(s, d);
+    *ignore = h->tri;
+    if (primary) {
+        *t_before += h->t;
+        *tmin = fmax(*tmin - h->t, 0.0f);
+        *tmax -= h->t;
+    }
+}
+
 // The bounce limits of a path (RenderSettings' Light Paths) and its clamping.
 typedef struct {
     int max_bounces, diffuse, glossy, transmission, transparent;
@@ -159,13 +173,7 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         if (!(visibility & ray_kind)) {
             if (++unseen > MAX_UNSEEN_SURFACES)
                 break;
-            o = spawn(&s, d);
-            ignore = h.tri;
-            if (primary) {
-                t_before += h.t;
-                tmin = fmax(tmin - h.t, 0.0f);
-                tmax = tmax - h.t;
-            }
+            go_behind(&s, &h, d, primary, &o, &ignore, &t_before, &tmin, &tmax);
             continue;
         }
 #endif
@@ -188,13 +196,7 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         if (m.alpha < 1.0f && rng_next(rng) >= m.alpha) {
             if (++transparent > limits->transparent)
                 break;
-            o = spawn(&s, d);
-            ignore = h.tri;
-            if (primary) {
-                t_before += h.t;
-                tmin = fmax(tmin - h.t, 0.0f);
-                tmax = tmax - h.t;
-            }
+            go_behind(&s, &h, d, primary, &o, &ignore, &t_before, &tmin, &tmax);
             continue;
         }
 #endif
@@ -386,11 +388,7 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
             Surface s = surface_at(&sc, &h, d);
 #ifdef HAS_VISIBILITY
             if (!(material_visibility(&sc, h.tri) & VISIBILITY_CAMERA)) {   // not seen: behind
-                o = spawn(&s, d);
-                ignore = h.tri;
-                t_before += h.t;
-                tmin = fmax(tmin - h.t, 0.0f);
-                tmax -= h.t;
+                go_behind(&s, &h, d, true, &o, &ignore, &t_before, &tmin, &tmax);
                 continue;
             }
 #endif
