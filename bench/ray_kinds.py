@@ -1,7 +1,7 @@
 """The rays a renderer traces, our tracer against Embree (embreex), one core each.
 
     .venv/bin/python bench/ray_kinds.py [--scenes dragon architecture dragons12] [--size 512]
-        [--repeat 3] [--mode ours] [--out bench/out]
+        [--repeat 3] [--mode ours] [--variant LABEL=SPEC ...] [--out bench/out]
 
 Per scene, from the camera of bench/kdtree_tables.py's Table 3 (the dragon from the front; the
 architecture from inside a ground-floor room): primary rays in row order and in the tracer's
@@ -9,18 +9,23 @@ tile order (16 x 16 blocks, Morton inside: slave.tracer.tile_pixel_order); then,
 hits, the secondary rays a path tracer makes, the same rays for both tracers:
 - diffuse: one cosine-distributed bounce per hit, in random order (what a wavefront of bounces
   looks like without sorting);
+- diffuse_pixels: the same bounces in pixel order (what the render kernel traces: each
+  work-item follows its pixel's path);
 - shadow_point: towards a point light, any hit up to the light;
 - shadow_area: towards a random point of a square area light, any hit;
 - glossy: a GGX reflection (roughness 0.3) per hit, in pixel order.
-Embree answers shadow rays with its occluded query; ours with `Tracer.occluded` where the tracer
-has one, else with a nearest-hit query up to the light (printed). Times are process CPU time,
-best of --repeat, with the process pinned to one CPU (PoCL then runs one thread, and Embree's
-threads share that core). Ratios are ours/Embree in rays per second; agreement counts rays with
-the same answer (same triangle or t within 1e-5 relative; same occlusion).
+Shadow rays are any-hit queries: Embree's occluded query, our `Tracer.occluded`. Times are
+process CPU time, best of --repeat, the tracers and Embree alternating within each repeat, with
+the process pinned to one CPU (PoCL then runs one thread, and Embree's threads share that
+core). Ratios are ours/Embree in rays per second; agreement counts rays with the same answer
+(same triangle or t within 1e-5 relative; same occlusion). `--variant` times other tracers
+beside the current one on the same rays (make_tracer: other kernel files, the breadth-first
+node order, rays in the given order, one ray per work-item), e.g. the tracer before a change.
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import pathlib
@@ -34,9 +39,10 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from bench.kdtree_tables import load_scene, table3_view  # noqa: E402
-from bench.trace_vs_embree import best_cpu_time, cpu_model  # noqa: E402
+from bench.trace_vs_embree import cpu_model  # noqa: E402
 
-KINDS = ("primary_rows", "primary_tiles", "diffuse", "shadow_point", "shadow_area", "glossy")
+KINDS = ("primary_rows", "primary_tiles", "diffuse", "diffuse_pixels", "shadow_point",
+         "shadow_area", "glossy")
 SHADOW_KINDS = ("shadow_point", "shadow_area")
 
 
@@ -76,6 +82,7 @@ def secondary_rays(hit_points, normals, incoming, light, area_axes, extent, rng)
         + np.sqrt(1 - r2)[:, None] * normals
     order = rng.permutation(n)
     out["diffuse"] = (offset[order], d[order], np.inf)
+    out["diffuse_pixels"] = (offset, d, np.inf)
     # Shadow rays: the light at t = 1 (direction = light - origin), stopping just short of it.
     out["shadow_point"] = (offset, light[None] - offset, 1 - 1e-4)
     u, v = rng.random(n) - 0.5, rng.random(n) - 0.5
@@ -114,10 +121,32 @@ def embree_query(scene, origins, directions, tmax, shadow):
 
 
 def ours_query(tracer, origins, directions, tmax, shadow):
-    if shadow and hasattr(tracer, "occluded"):
+    if not shadow:
+        return tracer.intersect(origins, directions, tmax=tmax)
+    if "occluded_rays" in tracer._source:
         return tracer.occluded(origins, directions, tmax=tmax)
-    hits = tracer.intersect(origins, directions, tmax=tmax)
-    return hits.triangle >= 0 if shadow else hits
+    return tracer.intersect(origins, directions, tmax=tmax).triangle >= 0   # older kernels
+
+
+def make_tracer(spec):
+    """A Tracer on the CPU device as `spec` says: "current", or "+"-joined settings:
+    kernels:DIR (the kernel files of another copy of kernels/), breadth-first (the tree as the
+    compactor lays it out, no treelets), given-order (scattered rays not reordered), one-ray
+    (one ray per work-item, no packets)."""
+    from slave.tracer import Tracer
+    settings = [] if spec == "current" else spec.split("+")
+    kernels = [x.split(":", 1)[1] for x in settings if x.startswith("kernels:")]
+    tracer = Tracer("cpu", kernel_dir=kernels[0] if kernels else None)
+    for setting in settings:
+        if setting == "breadth-first":
+            tracer.treelets = False
+        elif setting == "given-order":
+            tracer.reorder_rays = False
+        elif setting == "one-ray":
+            tracer.packet = 0
+        elif not setting.startswith("kernels:"):
+            raise SystemExit(f"unknown tracer setting {setting!r} in {spec!r}")
+    return tracer
 
 
 def agreement(ours, embree, shadow):
@@ -134,32 +163,28 @@ def agreement(ours, embree, shadow):
 def tree_for(name, vertices, triangles, mode, cache):
     """The compact tree of the scene (the numpy build cached as .npz under `cache`)."""
     from core.accel.compact import compact_tree
-    from core.accel.kdtree import KDTree, build_kdtree
+    from core.accel.kdtree import KDTree
+    from core.accel.kdtree_cl import build_standard
     path = cache / f"{name}.npz"
     if path.exists():
         with np.load(path) as data:
             tree = KDTree(data["nodes"], data["leaf_indices"], data["bounds"])
     else:
         started = time.perf_counter()
-        tree = build_kdtree(vertices, triangles)
-        print(f"  kd-tree build {time.perf_counter() - started:.1f} s", flush=True)
+        tree, _ = build_standard(vertices, triangles)      # the numpy builder's tree
+        print(f"  kd-tree build {time.perf_counter() - started:.1f} s "
+              f"({tree.stats['builder']})", flush=True)
         np.savez(path, nodes=tree.nodes, leaf_indices=tree.leaf_indices, bounds=tree.bounds)
     return compact_tree(tree, len(triangles), mode)
 
 
-def run_scene(name, args, cache, tracer):
-    from core.scene.model import Geometry
-    from core.scene.scene import Scene
+def scene_rays(name, vertices, triangles, size, embree):
+    """The rays of every kind for scene `name` from its Table 3 view at size x size: a dict
+    kind -> (origins, directions, tmax), float32, the secondary rays at Embree's primary hits."""
     from slave.tracer import tile_pixel_order
-    vertices, triangles = load_scene(name)
-    print(f"\n{name}: {len(triangles):,} triangles", flush=True)
-    tree = tree_for(name, vertices, triangles, args.mode, cache)
-    tracer.load(Scene.from_parts(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)),
-                                 tree))
-    embree = embree_scene(vertices, triangles)
-    view = table3_view(name, vertices, args.size)
+    view = table3_view(name, vertices, size)
     origins, directions = camera_rays(view)
-    order = tile_pixel_order(args.size, args.size)
+    order = tile_pixel_order(size, size)
     rays = {"primary_rows": (origins, directions, np.inf),
             "primary_tiles": (origins[order], directions[order], np.inf)}
     # The hits of the primary rays in tile order (a renderer's pixel order) start the rest.
@@ -181,24 +206,64 @@ def run_scene(name, args, cache, tracer):
     area = np.stack([axes[0][0], axes[1][0]]) * (0.25 * extent)
     rays.update(secondary_rays(points, normals, d64, light, area, extent,
                                np.random.default_rng(1)))
+    return rays
+
+
+def run_scene(name, args, cache, tracers):
+    """Every ray kind of scene `name` through each of `tracers` (label -> Tracer) and Embree,
+    alternating in every repeat; best process CPU time of each."""
+    from core.scene.model import Geometry
+    from core.scene.scene import Scene
+    vertices, triangles = load_scene(name)
+    print(f"\n{name}: {len(triangles):,} triangles", flush=True)
+    tree = tree_for(name, vertices, triangles, args.mode, cache)
+    scene = Scene.from_parts(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)),
+                             tree)
+    load_s = {}
+    for label, tracer in tracers.items():
+        started = time.process_time()
+        tracer.load(scene)
+        load_s[label] = time.process_time() - started
+    print("  load (process s): " + ", ".join(f"{k} {v:.2f}" for k, v in load_s.items()))
+    # What the tracer's reorderings cost: the treelet node order once per load, the ray order
+    # once per query of scattered rays (here the diffuse bounces in random order).
+    from core.accel.reorder import treelet_order
+    from slave.tracer import ray_order
+    started = time.process_time()
+    treelet_order(tree)
+    treelet_s = time.process_time() - started
+    embree = embree_scene(vertices, triangles)
+    rays = scene_rays(name, vertices, triangles, args.size, embree)
+    started = time.process_time()
+    ray_order(rays["diffuse"][0], tree.bounds)
+    sort_s = time.process_time() - started
+    print(f"  treelet_order {treelet_s:.3f} s per load; ray_order {sort_s:.3f} s for "
+          f"{len(rays['diffuse'][0]):,} diffuse rays", flush=True)
     results = {}
     for kind in KINDS:
         o, d, tmax = rays[kind]
         shadow = kind in SHADOW_KINDS
-        # Untimed first runs: PoCL compiles a kernel again for each new launch size.
-        ours_query(tracer, o, d, tmax, shadow)
-        embree_query(embree, o[:1024], d[:1024], tmax, shadow)
-        ours_s, ours = best_cpu_time(lambda: ours_query(tracer, o, d, tmax, shadow), args.repeat)
-        embree_s, ref = best_cpu_time(lambda: embree_query(embree, o, d, tmax, shadow),
-                                      args.repeat)
-        results[kind] = {"rays": len(o), "ours_mrays": len(o) / ours_s / 1e6,
-                         "embree_mrays": len(o) / embree_s / 1e6, "ratio": embree_s / ours_s,
-                         "agreement": agreement(ours, ref, shadow)}
-        r = results[kind]
-        print(f"  {kind:14s} {r['rays']:>9,} rays  ours {r['ours_mrays']:6.2f} Mrays/s  "
-              f"Embree {r['embree_mrays']:6.2f} Mrays/s  ratio {r['ratio']:.3f}  "
-              f"agreement {100 * r['agreement']:.3f} %", flush=True)
-    return {"triangles": len(triangles), "mode": args.mode, "kinds": results}
+        runs = {label: functools.partial(ours_query, tracer, o, d, tmax, shadow)
+                for label, tracer in tracers.items()}
+        runs["Embree"] = functools.partial(embree_query, embree, o, d, tmax, shadow)
+        answers = {label: run() for label, run in runs.items()}   # untimed: PoCL compiles
+        times = {label: [] for label in runs}                     # per launch size
+        for r in range(args.repeat):
+            for label in (list(runs) if r % 2 == 0 else list(runs)[::-1]):
+                started = time.process_time()
+                runs[label]()
+                times[label].append(time.process_time() - started)
+        best = {label: min(t) for label, t in times.items()}
+        row = {"rays": len(o), "embree_mrays": len(o) / best["Embree"] / 1e6}
+        for label in tracers:
+            row[label] = {"mrays": len(o) / best[label] / 1e6, "ratio": best["Embree"] / best[label],
+                          "agreement": agreement(answers[label], answers["Embree"], shadow)}
+        results[kind] = row
+        print(f"  {kind:14s} {len(o):>9,} rays  Embree {row['embree_mrays']:6.2f} Mrays/s  " + "  ".join(
+            f"{label} {row[label]['mrays']:6.2f} ({row[label]['ratio']:.3f}, "
+            f"{100 * row[label]['agreement']:.2f} %)" for label in tracers), flush=True)
+    return {"triangles": len(triangles), "mode": args.mode, "kinds": results,
+            "treelet_order_s": treelet_s, "ray_order_s": sort_s, "load_s": load_s}
 
 
 def main():
@@ -208,6 +273,9 @@ def main():
     parser.add_argument("--size", type=int, default=512)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--mode", default="ours", choices=("standard", "choi", "ours"))
+    parser.add_argument("--variant", action="append", default=[], metavar="LABEL=SPEC",
+                        help="another tracer timed beside the current one (make_tracer's SPEC), "
+                             "e.g. previous=kernels:/tmp/old/kernels+breadth-first+given-order")
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
     args = parser.parse_args()
     out = pathlib.Path(args.out)
@@ -218,14 +286,16 @@ def main():
         pinned = "pinned to one CPU"
     except (AttributeError, OSError):
         pinned = "NOT pinned (no sched_setaffinity)"
-    from slave.tracer import Tracer
-    tracer = Tracer("cpu")
+    specs = {"ours": "current", **dict(v.split("=", 1) for v in args.variant)}
+    tracers = {label: make_tracer(spec) for label, spec in specs.items()}
     print("command:", " ".join([os.path.basename(sys.executable)] + sys.argv))
-    print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs); process {pinned}")
-    print("device:", tracer.device_info["name"], "| shadow rays, ours:",
-          "any hit (occluded)" if hasattr(tracer, "occluded") else "nearest hit up to the light")
-    report = {"command": sys.argv, "machine": cpu_model(), "size": args.size,
-              "scenes": {name: run_scene(name, args, cache, tracer) for name in args.scenes}}
+    print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs); process {pinned}; "
+          f"load average {os.getloadavg()[0]:.1f}")
+    print("device:", tracers["ours"].device_info["name"], "| tracers:",
+          ", ".join(f"{label} = {spec}" for label, spec in specs.items()))
+    print("per kind: Mrays/s of each, (ratio to Embree in rays/s, agreement with Embree)")
+    report = {"command": sys.argv, "machine": cpu_model(), "size": args.size, "tracers": specs,
+              "scenes": {name: run_scene(name, args, cache, tracers) for name in args.scenes}}
     (out / "ray_kinds.json").write_text(json.dumps(report, indent=1))
     print(f"\nwrote {out / 'ray_kinds.json'}")
 

@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import functools
 import math
+import pathlib
 import time
 from typing import NamedTuple
 
 import numpy as np
 
-from core.layout import ACCUM
+from core.accel.reorder import treelet_order
+from core.layout import ACCUM, c_header
 from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
 from core.scene.features import ALL_FEATURES, needed_arrays
 from core.scene.model import SceneError, View
@@ -67,7 +69,9 @@ def kernel_options(features: dict) -> list:
 class Tracer:
     """Ray queries and tile rendering on one OpenCL device (docs/architecture.md, "Tracer")."""
 
-    def __init__(self, device=None):
+    def __init__(self, device=None, kernel_dir=None):
+        """`kernel_dir`: read the kernel files from another copy of kernels/ (benchmarks of
+        one kernel against another)."""
         ensure_pocl_cache_dir()     # before the ICD loader initialises PoCL
         import pyopencl as cl
         self._cl = cl
@@ -75,7 +79,8 @@ class Tracer:
         self.context = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.context)
         self._programs = Programs(cl, self.context, self.device, TracerError)
-        self._source = kernel_source(KERNEL_FILES)
+        self._source = kernel_source(KERNEL_FILES) if kernel_dir is None else "\n".join(
+            [c_header()] + [(pathlib.Path(kernel_dir) / name).read_text() for name in KERNEL_FILES])
         self._scene = None
         self._stack_size = MIN_STACK_SIZE
         self._loaded = None         # the Scene whose buffers self._scene holds
@@ -87,6 +92,8 @@ class Tracer:
         # Rays per work-item in intersect(): CPU devices trace 8 neighbouring rays together in
         # vector lanes (kernels/trace/packet.cl); 0 = one ray per work-item (GPUs).
         self.packet = PACKET_RAYS if self.device.type & cl.device_type.CPU else 0
+        self.reorder_rays = True    # trace scattered rays of a query in their origins' order
+        self.treelets = True        # load() lays the tree's nodes out in treelets
 
     @property
     def device_info(self) -> dict:
@@ -135,6 +142,9 @@ class Tracer:
         def optional(array, dtype):
             return upload(np.zeros(4, dtype) if array is None else np.ascontiguousarray(array, dtype))
 
+        # The same tree with its nodes in treelets, a cache-friendlier order (core/accel/reorder.py).
+        if self.treelets:
+            tree = treelet_order(tree)
         self._scene = {"nodes": upload(tree.nodes), "leaf_index32": upload(tree.leaf_index32),
                        "leaf_index16": upload(tree.leaf_index16),
                        "leaf_shift": np.uint32(tree.leaf_shift),
@@ -157,6 +167,19 @@ class Tracer:
     # -- ray queries ---------------------------------------------------------------------
     def intersect(self, origins, directions, tmin=0.0, tmax=np.inf) -> RayHits:
         """Nearest hit of each ray with t in [tmin, tmax], t in units of the direction's length."""
+        t, tri, u, v = self._query("intersect_rays", origins, directions, tmin, tmax,
+                                   (np.float32, np.int32, np.float32, np.float32))
+        return RayHits(t, tri, u, v)
+
+    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+        """Whether each ray has a hit with t in [tmin, tmax] (a bool array): shadow rays. The
+        traversal stops at the first hit it finds (trace_ray's any_hit), so this is faster
+        than intersect() and says exactly whether intersect() would find a hit."""
+        (hit,) = self._query("occluded_rays", origins, directions, tmin, tmax, (np.uint8,))
+        return hit.view(np.bool_)
+
+    def _query(self, kernel_name, origins, directions, tmin, tmax, out_dtypes) -> list:
+        """Run a ray-query kernel of intersect.cl: checked rays in, one array per output."""
         cl = self._cl
         origins = np.ascontiguousarray(origins, dtype=np.float32)
         directions = np.ascontiguousarray(directions, dtype=np.float32)
@@ -172,30 +195,35 @@ class Tracer:
             raise ValueError("tmin and tmax must not be NaN")
         scene = self._scene_buffers()
         n = len(origins)
-        out = RayHits(np.empty(n, np.float32), np.empty(n, np.int32),
-                      np.empty(n, np.float32), np.empty(n, np.float32))
+        outs = [np.empty(n, dtype) for dtype in out_dtypes]
         if n == 0:
-            return out
+            return outs
+        # Rays in scattered order (bounces gathered from a whole image, random samples) are
+        # traced in the order of their origins along a space-filling curve: neighbouring
+        # work-items then read the same nodes and triangles while they are in cache.
+        order = ray_order(origins, self._loaded.tree.bounds) if self.reorder_rays else None
+        if order is not None:
+            origins, directions = origins[order], directions[order]
         mf = cl.mem_flags
         ctx = self.context
         o_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=origins)
         d_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=directions)
-        outs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in out]
-        # Only intersect() compiles the packet kernel (render programs build without it).
-        if self.packet:
-            kernel = self._program(self._features(packet=self.packet))["intersect_rays"]
-            work_items = -(-n // self.packet)
-        else:
-            kernel = self._program(self._features())["intersect_rays"]
-            work_items = n
-        kernel(self.queue, self._global_size(work_items), self._local(), o_buf, d_buf, np.float32(tmin), np.float32(tmax),
-               np.uint32(n), scene["nodes"], scene["leaf_index32"], scene["leaf_index16"],
-               scene["leaf_shift"], scene["tri_verts"],
-               scene["bounds"], *outs)
-        for host, buf in zip(out, outs):
+        out_bufs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in outs]
+        # Only the ray queries compile the packet kernels (render programs build without them).
+        kernel = self._program(self._features(packet=self.packet))[kernel_name]
+        work_items = -(-n // self.packet) if self.packet else n
+        kernel(self.queue, self._global_size(work_items), self._local(), o_buf, d_buf,
+               np.float32(tmin), np.float32(tmax), np.uint32(n), scene["nodes"],
+               scene["leaf_index32"], scene["leaf_index16"], scene["leaf_shift"],
+               scene["tri_verts"], scene["bounds"], *out_bufs)
+        for host, buf in zip(outs, out_bufs):
             cl.enqueue_copy(self.queue, host, buf)
         self.queue.finish()
-        return out
+        if order is not None:
+            for i, traced in enumerate(outs):
+                outs[i] = np.empty_like(traced)
+                outs[i][order] = traced
+        return outs
 
     # -- camera tiles --------------------------------------------------------------------
     def render_tile(self, view: View, x: int, y: int, w: int, h: int) -> dict:
@@ -299,6 +327,50 @@ class Tracer:
             raise TracerError(f"features {sorted(flags)} need the geometry arrays {missing}; "
                               "load core.scene.features.full_geometry(geometry) to render unspecialised")
         return self._program(self._features(flags))["render_samples"], flags
+
+
+# ray_order: rays count as scattered when consecutive origins lie this far apart on average
+# (relative to the scene's size); camera rays (one origin) and rays from the hits of neighbouring
+# pixels lie orders of magnitude closer. Queries this small keep their order.
+SCATTERED_RAY_STEP = 0.02
+MIN_REORDERED_RAYS = 4096
+_MORTON_BITS = 10
+
+
+@functools.lru_cache(maxsize=1)
+def _morton_spread() -> np.ndarray:
+    """The 10 bits of i spread to every third bit (a Morton code's lookup table)."""
+    i = np.arange(1 << _MORTON_BITS, dtype=np.int64)
+    out = np.zeros_like(i)
+    for bit in range(_MORTON_BITS):
+        out |= ((i >> bit) & 1) << (3 * bit)
+    return out
+
+
+def ray_order(origins: np.ndarray, bounds: np.ndarray):
+    """The order to trace a query's rays in: None (as given) unless they are scattered (module
+    constants), else their origins' order along a Morton curve over the scene's box (what it
+    gains and costs: docs/tracer.md, "Speed"); the results do not depend on it."""
+    n = len(origins)
+    if n < MIN_REORDERED_RAYS:
+        return None
+    lo, hi = bounds[0].astype(np.float64), bounds[1].astype(np.float64)
+    size = float(np.max(hi - lo)) or 1.0
+    sample = origins[np.linspace(0, n - 2, 1024).astype(np.int64)[:, None] + [0, 1]]
+    step = np.abs(sample[:, 1] - sample[:, 0]).max(axis=1).mean()
+    if step < SCATTERED_RAY_STEP * size:
+        return None
+    cells = (1 << _MORTON_BITS) - 1
+    scale = cells / np.maximum(hi - lo, 1e-30)
+    spread = _morton_spread()
+    key = np.zeros(n, np.int64)
+    for axis in range(3):
+        q = np.clip((origins[:, axis] - lo[axis]) * scale[axis], 0, cells).astype(np.int64)
+        key |= spread[q] << axis
+    # The 30-bit keys sorted in two stable 15-bit passes (numpy sorts 16-bit keys by radix:
+    # half the time of an argsort of the int64 keys).
+    low = np.argsort((key & 0x7FFF).astype(np.uint16), kind="stable")
+    return low[np.argsort((key[low] >> 15).astype(np.uint16), kind="stable")]
 
 
 @functools.lru_cache(maxsize=8)

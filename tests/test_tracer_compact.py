@@ -100,21 +100,26 @@ def camera_fan(geometry, count, seed):
 @pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("name", list(SCENES))
 def test_packets_match_the_one_ray_kernel(name, mode):
-    """intersect_packets (8 rays per work-item, CPU devices) gives the same bits as
-    intersect_rays: incoherent rays (lanes disagree on the child order), camera rays, rays
-    starting inside the scene, rays straight down through vertices (edge functions exactly 0,
-    ties between the triangles sharing the vertex), ray counts that leave a packet part-full,
-    tmin/tmax."""
+    """intersect_rays with 8 rays per work-item (CPU devices: a packet where the rays share
+    the direction octant, else trace_ray one after another) gives the same bits as one ray
+    per work-item: rays of one octant from scattered origins (the packet's lanes disagree on
+    the child order), incoherent rays, camera rays, rays starting inside the scene, rays
+    straight down through vertices (edge functions exactly 0, ties between the triangles
+    sharing the vertex), ray counts that leave a packet part-full, tmin/tmax. The rays are
+    traced in the order given (no reordering of scattered rays)."""
     geometry, tree, origins, directions = scene(name)
     tracer = Tracer("cpu")
     assert tracer.packet == 8
+    tracer.reorder_rays = False
     tracer.load(Scene.from_parts(geometry, compact_tree(tree, geometry.triangle_count, mode)))
     cam_o, cam_d = camera_fan(geometry, 4099, seed=len(name))
     size = float(np.abs(geometry.vertices.max(0) - geometry.vertices.min(0)).max())
     inside_o = np.repeat(((geometry.vertices.min(0) + geometry.vertices.max(0)) / 2)[None], 500, 0)
     down_o = geometry.vertices[:2000] + np.float32([0, 0, size])
     down_d = np.repeat(np.float32([[0, 0, -1]]), len(down_o), 0)
-    cases = [(origins, directions, 0.0, np.inf), (cam_o, cam_d, 0.0, np.inf),
+    one_octant = np.abs(directions)
+    cases = [(origins, one_octant, 0.0, np.inf), (origins, directions, 0.0, np.inf),
+             (cam_o, cam_d, 0.0, np.inf),
              (down_o, down_d, 0.0, np.inf),
              (inside_o, directions[:500], 0.0, np.inf), (origins[:9], directions[:9], 0.0, np.inf),
              (origins[:1], directions[:1], 0.0, np.inf), (cam_o, cam_d, 1.2 * size, 1.5 * size)]
@@ -129,6 +134,82 @@ def test_packets_match_the_one_ray_kernel(name, mode):
             differ = np.flatnonzero(ours.view(np.uint32) != ref.view(np.uint32))
             assert not len(differ), (f"{len(differ)} of {len(o)} rays differ in {field}, e.g. "
                                      f"ray {differ[0]}: {ours[differ[0]]!r} vs {ref[differ[0]]!r}")
+
+
+def shadow_rays(geometry, count, seed):
+    """Rays from random points just off random triangles to random points of others, with
+    tmax = 1 - 1e-4 (direction = target - origin): about half are blocked."""
+    rng = np.random.default_rng(seed)
+    corners = geometry.vertices.astype(np.float64)[geometry.triangles.astype(np.int64)]
+
+    def points():
+        tri = rng.integers(0, len(corners), count)
+        return np.einsum("tk,tkd->td", rng.dirichlet(np.ones(3), count), corners[tri]), tri
+    start, tri = points()
+    normal = np.cross(corners[tri, 1] - corners[tri, 0], corners[tri, 2] - corners[tri, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    size = float(np.abs(geometry.vertices.max(0) - geometry.vertices.min(0)).max())
+    end, _ = points()
+    side = np.sign(np.sum((end - start) * normal, 1, keepdims=True))
+    origins = start + side * normal * (1e-4 * size)
+    return origins.astype(np.float32), (end - origins).astype(np.float32)
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("name", list(SCENES))
+def test_occluded_is_whether_intersect_hits(name, mode):
+    """Tracer.occluded (any hit: the traversal stops at the first hit it finds) says exactly
+    whether brute force finds a hit in [tmin, tmax]: shadow rays between surface points,
+    random rays, a tmin/tmax window, camera rays; 8-ray packets and one ray per work-item,
+    in the given and in the origins' order."""
+    geometry, tree, origins, directions = scene(name)
+    tracer = Tracer("cpu")
+    tracer.load(Scene.from_parts(geometry, compact_tree(tree, geometry.triangle_count, mode)))
+    reference = Tracer("cpu")
+    reference.load(Scene.from_parts(geometry, one_leaf(geometry.triangle_count, geometry.vertices)))
+    shadow_o, shadow_d = shadow_rays(geometry, 6000, seed=len(name))
+    cam_o, cam_d = camera_fan(geometry, 4099, seed=len(name))
+    size = float(np.abs(geometry.vertices.max(0) - geometry.vertices.min(0)).max())
+    cases = [(shadow_o, shadow_d, 0.0, 1 - 1e-4), (origins, directions, 0.0, np.inf),
+             (origins, directions, 0.3 * size, 0.6 * size), (cam_o, cam_d, 0.0, np.inf),
+             (shadow_o[:13], shadow_d[:13], 0.0, 1 - 1e-4)]
+    blocked = []
+    for o, d, tmin, tmax in cases:
+        expected = reference.intersect(o, d, tmin, tmax).triangle >= 0
+        blocked.append(expected)
+        for packet, reorder in ((8, True), (8, False), (0, False)):
+            tracer.packet, tracer.reorder_rays = packet, reorder
+            hit = tracer.occluded(o, d, tmin, tmax)
+            assert hit.dtype == np.bool_ and hit.shape == (len(o),)
+            wrong = np.flatnonzero(hit != expected)
+            assert not len(wrong), (f"packet {packet}, reorder {reorder}: {len(wrong)} of "
+                                    f"{len(o)} rays, e.g. ray {wrong[0]}: {hit[wrong[0]]}")
+    assert 0.1 < np.concatenate(blocked).mean() < 0.9
+
+
+def test_scattered_rays_are_traced_in_origin_order(tracer):
+    """intersect() traces rays in scattered order (consecutive origins far apart) in their
+    origins' Morton order and gives every ray its own result back; coherent rays (one origin)
+    and small queries keep their order."""
+    from slave.tracer import MIN_REORDERED_RAYS, ray_order
+    geometry, tree, origins, directions = scene("bunny")
+    bounds = np.array([geometry.vertices.min(0), geometry.vertices.max(0)])
+    order = ray_order(origins, bounds)
+    assert order is not None and np.array_equal(np.sort(order), np.arange(len(origins)))
+    key_steps = np.abs(np.diff(origins[order], axis=0)).max(1).mean()
+    assert key_steps < 0.2 * np.abs(np.diff(origins, axis=0)).max(1).mean()
+    cam_o, cam_d = camera_fan(geometry, 5000, seed=1)
+    assert ray_order(cam_o, bounds) is None
+    assert ray_order(origins[:MIN_REORDERED_RAYS - 1], bounds) is None
+    tracer.load(Scene.from_parts(geometry, compact_tree(tree, geometry.triangle_count, "ours")))
+    results = []
+    for reorder in (True, False):
+        tracer.reorder_rays = reorder
+        results.append(tracer.intersect(origins, directions))
+    tracer.reorder_rays = True
+    for field in RayHits._fields:
+        assert np.array_equal(getattr(results[0], field).view(np.uint32),
+                              getattr(results[1], field).view(np.uint32)), field
 
 
 def test_plain_tree_is_loaded_as_standard(tracer):

@@ -128,9 +128,11 @@ KD_INLINE void consider_lanes(int8 m, uint tri, const PacketRay *p, const TriRay
             consider_lane(k, tri, q, tri_verts, tmin, b);
 }
 
-// Nearest hits of the rays r[k] for the lanes in `live` (the others are left as misses).
-void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree *kd,
-                  __global const float4 *tri_verts, Hit *hits)
+// Nearest hits of the rays r[k] for the lanes in `live` (the others are left as misses), or,
+// when any_hit, a hit for each lane that has one (a lane stops at its first hit, as
+// trace_ray's any_hit: shadow rays).
+void trace_packet(const Ray *r, int8 live, float tmin, float tmax, bool any_hit,
+                  const KdTree *kd, __global const float4 *tri_verts, Hit *hits)
 {
     __global const uint2 *nodes = kd->nodes;
     Lanes org[3], inv[3], dir[3];
@@ -200,6 +202,12 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
                     consider_lanes(m, refs.x, &p, q, tri_verts, tmin, &b);
                     if (has_second_ref(refs))
                         consider_lanes(m, refs.y, &p, q, tri_verts, tmin, &b);
+                    if (any_hit) {
+                        // A lane with a hit is done (the second reference makes no difference
+                        // to whether it has one).
+                        alive &= ~as_int8(b.tri.v != (uint8)(NO_HIT));
+                        m &= alive;
+                    }
                 }
                 float split = in.split;
                 float8 o = org[in.axis].v, d = dir[in.axis].v;
@@ -265,6 +273,8 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, const KdTree 
                     consider_lanes(m, leaf16_triangle(&leaf, i), &p, q, tri_verts, tmin, &b);
                 for (uint i = 0; i < leaf.count32; ++i)
                     consider_lanes(m, leaf32_triangle(&leaf, i), &p, q, tri_verts, tmin, &b);
+                if (any_hit)
+                    alive &= ~as_int8(b.tri.v != (uint8)(NO_HIT));
             }
         }
         // Pop the next entry that still has a lane going on.
