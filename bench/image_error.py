@@ -1,24 +1,50 @@
-"""Image error against run time, and what kernel specialisation saves.
+"""Image error against run time: KD Trace's sampling settings, and KD Trace against Cycles.
 
-For two scenes (glass + mirrors with soft lights; a diffuse bunny under an area light and a soft
-point light), render a converged reference, then sweep samples per pixel (1, 4, 16, 64 uniform),
-adaptive sampling (several thresholds), and the bounce depth; report RMSE/PSNR against the
-reference and wall time as a table, a JSON file and a PNG plot (PSNR against time, written with
-numpy + zlib). Then render each scene with the specialised kernel and with the kernel that
-compiles every feature (all optional arrays loaded) and report kernel time and scene bytes.
+Without --against-cycles: for two scenes (glass + mirrors with soft lights; a diffuse bunny
+under an area light and a soft point light), render a converged reference, then sweep samples
+per pixel (1, 4, 16, 64 uniform), adaptive sampling (several thresholds), and the bounce depth;
+report RMSE/PSNR against the reference and wall time as a table, a JSON file and a PNG plot
+(PSNR against time, written with numpy + zlib). Then render each scene with the specialised
+kernel and with the kernel that compiles every feature (all optional arrays loaded) and report
+kernel time and scene bytes.
 
     .venv/bin/python bench/image_error.py [--size 160x120] [--out bench/out] [--reference-axis 16]
+
+With --against-cycles: time to equal error against Cycles, as a user sees it. Each scene of
+CYCLES_SCENES is built in Blender (the bpy module, in a child process) and rendered there by
+Cycles (CPU, as many threads as the machine has cores) and by KD Trace (the installed add-on
+with one local slave, which uses the same cores), both at the same light paths (direct light
+plus one diffuse bounce), uniform sampling, no denoising, box pixel filter; at 1, 4, 16, 64,
+256 samples per pixel, the two renderers alternating, wall time of each render (Blender's
+render call: export or sync, acceleration structure when it is not cached, sampling, the
+image; the fastest of --repeat). A first render of each at 1 spp, timed apart, starts what
+later renders reuse. A converged Cycles render (another seed) is the reference; KD Trace's
+converged render shows how far the two converge apart (the floor of the comparison). For
+target PSNRs between both curves, the time each renderer needs is interpolated (PSNR linear in
+log time between neighbouring sample counts) and the ratio KD Trace / Cycles printed, as a
+table, a JSON file and a PNG plot of PSNR against time for both.
+
+    .venv/bin/python bench/image_error.py --against-cycles [--cycles-scenes dragon interior]
+        [--size 160x120] [--reference-spp 1024] [--repeat 2] [--out bench/out/image_error_cycles]
+
+A scene is a CyclesScene: the function that builds it in an empty Blender file (objects,
+materials, lights, world, camera; issue 14's builders of tests/bpy_scripts/cycles_scenes.py by
+name) and the light paths both renderers use; add one to CYCLES_SCENES to compare another.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import os
 import pathlib
+import platform
 import struct
+import subprocess
 import sys
 import time
 import zlib
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,7 +56,6 @@ from core.accel.kdtree import build_kdtree  # noqa: E402
 from core.scene.model import (Camera, Geometry, Light, RenderSettings, Shading, View,  # noqa: E402
                         default_material_params)
 from core.scene.scene import Scene  # noqa: E402
-from slave.tracer import Tracer  # noqa: E402
 from tests.meshes import grid_plane, load_bunny, look_at, merge, uv_sphere  # noqa: E402
 
 
@@ -54,9 +79,9 @@ def glass_scene():
     normals = np.concatenate([smooth_normals(*p) if i else
                               np.tile([0, 0, 1.0], (3 * len(p[1]), 1)) for i, p in enumerate(parts)])
     params = default_material_params(4)
-    params[1] = [0, 0.0, 1.0, 1.5, 0, 0, 0, 0.5, -1]       # glass
-    params[2] = [1, 0.02, 0, 1.5, 0, 0, 0, 0.5, -1]        # mirror
-    params[3] = [0, 0.4, 0, 1.5, 0, 0, 0, 0.5, -1]         # glossy plastic
+    params[1, :9] = [0, 0.0, 1.0, 1.5, 0, 0, 0, 0.5, -1]   # glass
+    params[2, :9] = [1, 0.02, 0, 1.5, 0, 0, 0, 0.5, -1]    # mirror
+    params[3, :9] = [0, 0.4, 0, 1.5, 0, 0, 0, 0.5, -1]     # glossy plastic
     colours = np.array([[0.7, 0.7, 0.65, 1], [1, 1, 1, 1], [0.9, 0.9, 0.9, 1], [0.8, 0.2, 0.1, 1]],
                        np.float32)
     lights = [Light("AREA", (1, 1, 1), 400.0, (0.0, -2.0, 4.0), (0, 0.4, -1), shape="DISK",
@@ -102,6 +127,7 @@ def timed_render(tracer, view, repeat=1):
 
 # -- PNG plot with numpy + zlib ----------------------------------------------------------------
 COLOURS = {"uniform": (31, 119, 180), "adaptive": (214, 39, 40), "bounces": (44, 160, 44)}
+RENDERER_COLOURS = {"KD Trace": (31, 119, 180), "Cycles": (230, 120, 20)}
 FONT = {  # 3x5 digits for axis labels
     "0": "111101101101111", "1": "010110010010111", "2": "111001111100111", "3": "111001111001111",
     "4": "101101111001001", "5": "111100111001111", "6": "111100111101111", "7": "111001001001001",
@@ -131,9 +157,10 @@ def draw_text(canvas, x, y, text, scale=2):
                 canvas[y0:y0 + scale, x0:x0 + scale] = 0
 
 
-def plot(path, panels):
-    """One panel per scene: PSNR (y) against log10 time (x); blue uniform, red adaptive,
-    green bounce sweep. Axis ticks are labelled with numbers (seconds, dB)."""
+def plot(path, panels, colours=COLOURS):
+    """One panel per scene: PSNR (y) against log10 time (x), one line per series of `colours`
+    (here blue uniform, red adaptive, green bounce sweep; against Cycles blue KD Trace, orange
+    Cycles). Axis ticks are labelled with numbers (seconds, dB)."""
     pw, ph, margin = 420, 300, 50
     canvas = np.full((ph + 2 * margin, len(panels) * (pw + 2 * margin), 3), 255, np.uint8)
     for p, (name, rows) in enumerate(panels.items()):
@@ -157,8 +184,11 @@ def plot(path, panels):
             xx, _ = to_px(10 ** e, y0)
             canvas[margin:margin + ph, int(xx)] = np.minimum(canvas[margin:margin + ph, int(xx)], 220)
             draw_text(canvas, int(xx) - 10, margin + ph + 8, f"{10 ** e:.2g}")
-        for series, colour in COLOURS.items():
-            pts = sorted((r["seconds"], min(r["psnr"], 60)) for r in rows if r["series"] == series)
+        for series, colour in colours.items():
+            # In order of samples where the rows have them (times of a sweep can be noisy).
+            pts = [(r["seconds"], min(r["psnr"], 60)) for r in
+                   sorted((r for r in rows if r["series"] == series),
+                          key=lambda r: (r.get("spp", 0), r["seconds"]))]
             pts = [to_px(t, v) for t, v in pts]
             for (xa, ya), (xb, yb) in zip(pts, pts[1:]):
                 n = int(max(abs(xb - xa), abs(yb - ya))) + 1
@@ -170,15 +200,12 @@ def plot(path, panels):
     write_png(path, canvas)
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--size", default="160x120")
-    parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
-    parser.add_argument("--reference-axis", type=int, default=16, help="reference: N x N samples")
-    args = parser.parse_args()
+def sampling_sweeps(args):
+    """KD Trace alone: error against time of its sampling settings, and specialisation."""
     width, height = (int(v) for v in args.size.split("x"))
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    from slave.tracer import Tracer
     tracer = Tracer()
     print(f"device: {tracer.device_info['name']}, image {width}x{height}")
     results, specialisation = {}, {}
@@ -187,8 +214,9 @@ def main():
         tree = build_kdtree(geometry.vertices, geometry.triangles)
         tracer.load(Scene.from_parts(geometry, tree))
 
-        def view(**settings):
-            return View(camera, width, height, shading, settings=RenderSettings(**settings))
+        def view(**settings):       # uniform sampling unless the settings say adaptive
+            return View(camera, width, height, shading,
+                        settings=RenderSettings(**{"adaptive": False, **settings}))
         started = time.perf_counter()
         reference, _, _ = timed_render(tracer, view(samples_per_axis=args.reference_axis,
                                                     light_samples_per_axis=2, max_bounces=8))
@@ -248,6 +276,242 @@ def main():
         {"device": tracer.device_info, "size": [width, height], "scenes": results,
          "specialisation": specialisation}, indent=1))
     print(f"wrote {out / 'image_error.png'} and {out / 'image_error.json'}")
+
+
+# -- against Cycles ------------------------------------------------------------------------------
+# Direct light plus one diffuse bounce (and one glossy, for the interior's chrome): the light
+# paths of both renderers (Blender's Light Paths settings, which KD Trace's panel mirrors).
+ONE_BOUNCE = {"max_bounces": 1, "diffuse_bounces": 1, "glossy_bounces": 1,
+              "transmission_bounces": 0, "transparent_bounces": 0}
+SWEEP_AXES = (1, 2, 4, 8, 16)       # KD Trace's samples per axis: 1 .. 256 spp for both
+# KD Trace's render settings by their Cycles names (the others are named alike).
+CYCLES_NAMES = {"transparent_bounces": "transparent_max_bounces",
+                "clamp_direct": "sample_clamp_direct", "clamp_indirect": "sample_clamp_indirect",
+                "filter_glossy": "blur_glossy"}
+
+
+@dataclass
+class CyclesScene:
+    """A scene of the Cycles comparison: `build(b)` builds it in an empty Blender file, with
+    b the scene builders of issue 14 (issue14_builders); `settings` are the light paths both
+    renderers use."""
+    build: object
+    settings: dict = field(default_factory=lambda: dict(ONE_BOUNCE))
+
+
+def dragon_scene(b):
+    """The Stanford dragon (diffuse, z up, about 4 units long) on a floor, under a square area
+    light, with a dim world fill."""
+    from blender_setup import mesh_object
+    from tests.meshes import load_dragon
+    vertices, triangles = load_dragon()
+    vertices = vertices[:, [0, 2, 1]] * [20.0, -20.0, 20.0]
+    vertices[:, 2] -= vertices[:, 2].min()
+    dragon = mesh_object("dragon", vertices, triangles)
+    dragon.data.materials.clear()
+    dragon.data.materials.append(b["material"]("dragon", "DIFFUSE", (0.8, 0.55, 0.3)))
+    b["world"]((0.12, 0.14, 0.18))
+    b["floor"](size=20.0)
+    b["light"]("AREA", (2.5, -3.5, 6.0), (0, 0, 1), energy=900.0, size=2.0)
+    b["camera"]((0.0, -9.0, 3.4), (0, 0, 1.3), lens=40)
+
+
+CYCLES_SCENES = {
+    # The Stanford dragon (871k triangles) under an area light.
+    "dragon": CyclesScene(dragon_scene),
+    # Issue 14's interior: an HDRI sky through a window and an emissive ceiling panel lighting
+    # a diffuse room (with a chrome ball and a Principled table).
+    "interior": CyclesScene(lambda b: b["build"]("interior")),
+}
+
+
+def cycles_child(arguments, result_path):
+    """Runs inside a process that imports bpy (started by against_cycles): build each scene,
+    render it with both renderers at every sample count, the two alternating, and a converged
+    render of each; write the images as .npy and the wall time of each render call."""
+    sys.path.insert(0, str(ROOT / "tests" / "bpy_scripts"))
+    import bpy
+    from blender_setup import install_extension
+    install_extension(arguments["zip"])
+    out = pathlib.Path(arguments["out"])
+    builders = issue14_builders(str(out))
+    width, height = arguments["width"], arguments["height"]
+    scene = bpy.context.scene
+    timings = {}
+
+    def render(engine, name, axis, settings, label, seed=1, repeat=1):
+        scene.render.engine = engine
+        if engine == "CYCLES":
+            c = scene.cycles
+            c.device, c.samples, c.seed = "CPU", axis * axis, seed
+            c.use_adaptive_sampling = c.use_denoising = False
+            c.pixel_filter_type, c.filter_width = "BOX", 1.0     # ours: a box of one pixel
+            scene.render.threads_mode = "AUTO"                   # every core
+            for key, value in settings.items():
+                setattr(c, CYCLES_NAMES.get(key, key), value)
+        else:
+            props = scene.kdtrace
+            props.use_zeroconf, props.local_slaves, props.tile_size = False, 1, 32
+            props.samples_per_axis, props.adaptive, props.light_samples_per_axis = axis, False, 1
+            for key, value in settings.items():
+                setattr(props, key, value)
+        path = out / f"{name}-{label}.exr"
+        scene.render.filepath = str(path)
+        seconds = math.inf
+        for _ in range(repeat):     # the same image each time (fixed seed): the fastest counts
+            started = time.perf_counter()
+            bpy.ops.render.render(write_still=True)
+            seconds = min(seconds, time.perf_counter() - started)
+        image = bpy.data.images.load(str(path))
+        pixels = np.array(image.pixels[:], np.float32).reshape(height, width, 4)[::-1]
+        bpy.data.images.remove(image)
+        np.save(out / f"{name}-{label}.npy", pixels)
+        path.unlink()
+        timings[f"{name}-{label}"] = seconds
+        print(f"  {name} {label}: {seconds:.2f} s", flush=True)
+
+    for name in arguments["scenes"]:
+        settings = dict(CYCLES_SCENES[name].settings, **arguments["kdtrace"])
+        builders["clear"]()
+        CYCLES_SCENES[name].build(builders)
+        bpy.context.view_layer.update()
+        r = scene.render
+        r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
+        scene.view_settings.view_transform, scene.view_settings.look = "Standard", "None"
+        r.image_settings.file_format, r.image_settings.color_depth = "OPEN_EXR", "32"
+        # The first render of each starts what later ones reuse (KD Trace: the slave, its kernel
+        # build, the kd-tree in the add-on's cache; Cycles: its kernels): timed apart.
+        for engine, who in (("CYCLES", "cycles"), ("KDTRACE", "kdtrace")):
+            render(engine, name, 1, settings, f"{who}-first")
+        for axis in SWEEP_AXES:
+            order = (("CYCLES", "cycles"), ("KDTRACE", "kdtrace"))
+            for engine, who in (order if axis % 2 else order[::-1]):
+                render(engine, name, axis, settings, f"{who}-{axis * axis}",
+                       repeat=arguments["repeat"])
+        axis = arguments["reference_axis"]
+        # Another seed: the reference's noise is independent of the sweep's.
+        render("CYCLES", name, axis, settings, "cycles-reference", seed=2)
+        render("KDTRACE", name, axis, settings, "kdtrace-converged")
+    with open(result_path, "w") as f:
+        json.dump({"timings": timings, "blender": bpy.app.version_string}, f)
+
+
+def issue14_builders(out):
+    """The scene-building functions of tests/bpy_scripts/cycles_scenes.py (issue 14's
+    comparison scenes: build(name), material, add, floor, light, camera, world, clear ...),
+    without its render loop: the file's imports, constants and functions, run here."""
+    import ast
+    path = ROOT / "tests" / "bpy_scripts" / "cycles_scenes.py"
+    module = ast.parse(path.read_text())
+    keep = [node for node in module.body
+            if isinstance(node, (ast.Import, ast.ImportFrom, ast.FunctionDef))
+            or (isinstance(node, ast.Assign) and all(isinstance(t, ast.Name) and t.id.isupper()
+                                                     and t.id != "OUT" for t in node.targets))]
+    namespace = {"OUT": out, "__name__": "issue14_scenes"}
+    exec(compile(ast.Module(keep, type_ignores=[]), str(path), "exec"), namespace)
+    return namespace
+
+
+def time_for_psnr(rows, target):
+    """Seconds to reach `target` dB along a renderer's sweep (in order of samples): PSNR linear
+    in log time between neighbouring sample counts; None outside them."""
+    pts = [(r["seconds"], r["psnr"]) for r in sorted(rows, key=lambda r: r["spp"])]
+    for (ta, pa), (tb, pb) in zip(pts, pts[1:]):
+        if min(pa, pb) <= target <= max(pa, pb) and pa != pb:
+            f = (target - pa) / (pb - pa)
+            return math.exp(math.log(ta) + f * (math.log(tb) - math.log(ta)))
+    return None
+
+
+def against_cycles(args):
+    """Time to equal error against Cycles (module docstring)."""
+    from tests.blender import build_extension
+    from tests.test_cycles_scenes import MATCHED, psnr as psnr_db
+    width, height = (int(v) for v in args.size.split("x"))
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"command: {' '.join([os.path.basename(sys.executable)] + sys.argv)}")
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, "
+          f"load average {os.getloadavg()[0]:.1f}")
+    arguments = {"zip": str(build_extension(out / "dist")), "out": str(out), "width": width,
+                 "height": height, "scenes": args.cycles_scenes, "kdtrace": {},
+                 "reference_axis": round(math.sqrt(args.reference_spp)), "repeat": args.repeat}
+    # KD Trace's settings beside the light paths: the Cycles-like defaults the test matches.
+    arguments["kdtrace"] = {k: v for k, v in MATCHED.items()
+                            if k not in ("adaptive", "light_samples_per_axis")
+                            and k not in ONE_BOUNCE}
+    result_path = out / "child-result.json"
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(out / "blender-user"), PYTHONPATH=str(ROOT),
+               PYTHONUNBUFFERED="1")
+    subprocess.run([sys.executable, __file__, "--bpy-child", json.dumps(arguments),
+                    str(result_path)], env=env, check=True, cwd=out)
+    timings = json.loads(result_path.read_text())["timings"]
+    report, panels = {}, {}
+    for name in args.cycles_scenes:
+        reference = np.load(out / f"{name}-cycles-reference.npy")
+        converged = np.load(out / f"{name}-kdtrace-converged.npy")
+        rows = [{"series": series, "spp": a * a, "seconds": timings[f"{name}-{who}-{a * a}"],
+                 "psnr": psnr_db(np.load(out / f"{name}-{who}-{a * a}.npy"), reference)}
+                for a in SWEEP_AXES for series, who in (("Cycles", "cycles"),
+                                                        ("KD Trace", "kdtrace"))]
+        floor = psnr_db(converged, reference)
+        print(f"\n{name}: {width}x{height}, reference Cycles {args.reference_spp} spp "
+              f"({timings[name + '-cycles-reference']:.1f} s); KD Trace at "
+              f"{args.reference_spp} spp against it: {floor:.2f} dB (the floor); first renders "
+              f"Cycles {timings[name + '-cycles-first']:.2f} s, KD Trace "
+              f"{timings[name + '-kdtrace-first']:.2f} s (start-up, untimed below)")
+        print("| spp | Cycles s | Cycles PSNR dB | KD Trace s | KD Trace PSNR dB |")
+        print("|---|---|---|---|---|")
+        for a in SWEEP_AXES:
+            c, k = (next(r for r in rows if r["series"] == s and r["spp"] == a * a)
+                    for s in ("Cycles", "KD Trace"))
+            print(f"| {a * a} | {c['seconds']:.2f} | {c['psnr']:.2f} | {k['seconds']:.2f} | "
+                  f"{k['psnr']:.2f} |")
+        equal = []
+        for target in sorted({round(r["psnr"]) for r in rows if r["series"] == "Cycles"}):
+            t_cycles = time_for_psnr([r for r in rows if r["series"] == "Cycles"], target)
+            t_ours = time_for_psnr([r for r in rows if r["series"] == "KD Trace"], target)
+            if t_cycles and t_ours:
+                equal.append({"psnr": target, "cycles_s": t_cycles, "kdtrace_s": t_ours,
+                              "ratio": t_ours / t_cycles})
+        print("| PSNR dB | Cycles s | KD Trace s | KD Trace / Cycles |")
+        print("|---|---|---|---|")
+        for e in equal:
+            print(f"| {e['psnr']} | {e['cycles_s']:.2f} | {e['kdtrace_s']:.2f} | {e['ratio']:.2f} |")
+        report[name] = {"rows": rows, "kdtrace_floor_psnr": floor, "equal_error": equal,
+                        "first_render_s": {w: timings[f"{name}-{w}-first"]
+                                           for w in ("cycles", "kdtrace")}}
+        panels[name] = rows
+    plot(out / "image_error_cycles.png", panels, RENDERER_COLOURS)
+    (out / "image_error_cycles.json").write_text(json.dumps(
+        {"command": sys.argv, "size": [width, height], "reference_spp": args.reference_spp,
+         "scenes": report}, indent=1))
+    print(f"\nwrote {out / 'image_error_cycles.png'} and {out / 'image_error_cycles.json'}")
+
+
+def main():
+    if len(sys.argv) == 4 and sys.argv[1] == "--bpy-child":
+        cycles_child(json.loads(sys.argv[2]), sys.argv[3])
+        return
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--against-cycles", action="store_true")
+    parser.add_argument("--size", help="WxH (default 160x120; against Cycles 160x120 too)",
+                        default="160x120")
+    parser.add_argument("--out", help="default bench/out, against Cycles bench/out/image_error_cycles")
+    parser.add_argument("--reference-axis", type=int, default=16, help="reference: N x N samples")
+    parser.add_argument("--cycles-scenes", nargs="+", default=list(CYCLES_SCENES),
+                        choices=list(CYCLES_SCENES))
+    parser.add_argument("--reference-spp", type=int, default=1024,
+                        help="against Cycles: samples per pixel of the converged renders")
+    parser.add_argument("--repeat", type=int, default=2,
+                        help="against Cycles: renders per sweep point, the fastest counts")
+    args = parser.parse_args()
+    if args.against_cycles:
+        args.out = args.out or str(ROOT / "bench" / "out" / "image_error_cycles")
+        against_cycles(args)
+    else:
+        args.out = args.out or str(ROOT / "bench" / "out")
+        sampling_sweeps(args)
 
 
 if __name__ == "__main__":
