@@ -91,6 +91,7 @@ class _MaterialTable:
         self.textures = []          # (texels (N, 4) float16, width, height)
         self.node_rows = []         # the node programs of all materials, float4 rows
         self._spatial = {}          # material key -> its NodeProgram reading the hit's position
+        self._uv_programs = set()   # keys of the materials whose node program reads UVs
 
     def index(self, material, obj_name: str | None = None,
               visibility: int = VISIBLE_TO_ALL, placement=None) -> int:
@@ -133,6 +134,8 @@ class _MaterialTable:
                 self.node_rows += program.rows()
                 if program.transforms:
                     self._spatial[key] = program
+                if program.reads_uv:
+                    self._uv_programs.add(key)
             if problems:        # one warning per material, naming everything it lacks
                 on = f" (on object '{obj_name}')" if obj_name else ""
                 self._warnings.append(f"material '{material.name}'{on}: " + "; ".join(problems))
@@ -141,11 +144,11 @@ class _MaterialTable:
         return self._index[key]
 
     def uses_texture(self, material) -> bool:
-        """Whether the material reads UVs (an image texture or a node program)."""
+        """Whether the material reads UVs (an image texture, or a node program that does)."""
         key = material.name_full if material is not None else None
-        return key in self._index and any(
-            self._params[self._index[key]][MATERIAL_PARAMS.index(name)] >= 0
-            for name in ("texture", "program"))
+        return key in self._index and (
+            self._params[self._index[key]][MATERIAL_PARAMS.index("texture")] >= 0
+            or key in self._uv_programs)
 
     def texture(self, image, owner: str) -> int:
         """The index of `image` in the texture table (added on first use); `owner` names the
@@ -244,6 +247,10 @@ class NodeProgram:
         self._next = 0
         self.outputs = []
         self.transforms = []                    # (instruction index, "OBJECT" or "GENERATED")
+
+    @property
+    def reads_uv(self) -> bool:
+        return any(op == "UV" for op, *_ in self._code)
 
     def output(self, socket, field, problems) -> bool:
         """Evaluate the graph linked to `socket` into BSDF input `field`; False (with a
