@@ -270,6 +270,42 @@ def mixed_speeds(scene, view, reps, count=16) -> list:
     return rows
 
 
+def markdown(out) -> str:
+    """The tables of docs/distributed.md ("Many slaves") from a --json result."""
+    lines = ["| link | payload | S | tile | tiles in flight | frame ms | efficiency | model ms | "
+             "model efficiency | tiles/s | master CPU ms/frame | us/tile | ms/MiB | % of a core |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in out["rows"]:
+        lines.append(
+            f"| {r['link']} | {r['payload']} | {r['S']} | {r['tile_size'][0]} | "
+            f"{min(r['windows'])}-{max(r['windows'])} | {r['tau_s'] * 1e3:.0f} | "
+            f"{r['efficiency']:.2f} | {r['model_tau_s'] * 1e3:.0f} | {r['model_efficiency']:.2f} | "
+            f"{r['tiles_per_s']:.0f} | {r['master_cpu_s'] * 1e3:.0f} | "
+            f"{r['master_cpu_per_tile_us']:.0f} | {r['master_cpu_per_mib_ms']:.1f} | "
+            f"{r['master_cpu_share'] * 100:.1f} |")
+    if "master_cost" in out:
+        lines += ["", "| tiles (64 slaves) | tile | master CPU ms/frame | frame ms |", "|---|---|---|---|"]
+        for r in out["master_cost"]["rows"]:
+            lines.append(f"| {r['tiles']} | {r['tile_size'][0]} | {r['master_cpu_s'] * 1e3:.0f} | "
+                         f"{r['tau_s'] * 1e3:.0f} |")
+        cost = out["master_cost"]
+        lines.append(f"\nfit: {cost['per_frame_s'] * 1e3:.1f} ms per frame + "
+                     f"{cost['per_tile_s'] * 1e6:.0f} us per tile")
+    if "mixed" in out:
+        lines += ["", "| tile size | tiles in flight | tile | windows | frame ms | efficiency | copies |",
+                  "|---|---|---|---|---|---|---|"]
+        for r in out["mixed"]:
+            lines.append(f"| {r['tile_option']} | {r['in_flight_option']} | {r['tile_size'][0]} | "
+                         f"{min(r['windows'])}-{max(r['windows'])} | {r['tau_s'] * 1e3:.0f} | "
+                         f"{r['efficiency']:.2f} | {r['copies']:.0f} |")
+    return "\n".join(lines)
+
+
+def save(path, out) -> None:
+    if path:
+        pathlib.Path(path).write_text(json.dumps(out, indent=1))
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reps", type=int, default=2)
@@ -278,11 +314,14 @@ def main():
     parser.add_argument("--no-mixed", action="store_true", help="skip the mixed-speed runs")
     parser.add_argument("--json", default=None)
     parser.add_argument("--png", default=None)
+    parser.add_argument("--table", default=None, help="print the Markdown tables of a --json file")
     parser.add_argument("--calibrate", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--serve", nargs=2, type=int, help=argparse.SUPPRESS)
     parser.add_argument("--speeds", default="1")
     parser.add_argument("--network", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.table:
+        return print(markdown(json.loads(pathlib.Path(args.table).read_text())))
     if args.calibrate:
         return run_calibration()
     if args.serve:
@@ -335,6 +374,7 @@ def main():
                                  tiles_per_s=r["tiles"] / r["tau_s"],
                                  master_cpu_share=r["master_cpu_s"] / r["tau_s"])
                         rows.append(r)
+                        save(args.json, dict(out, rows=rows))
                         print(f"{kind:6s} {payload} S={count:2d} tile {r['tile_size'][0]:3d} "
                               f"windows {r['windows']} copies {r['copies']}: "
                               f"{r['tau_s'] * 1e3:8.1f} ms "
@@ -351,10 +391,10 @@ def main():
         for host in hosts:
             host.close()
     out["rows"] = rows
+    save(args.json, out)
     if not args.no_mixed:
         out["mixed"] = mixed_speeds(scene, view, args.reps)
-    if args.json:
-        pathlib.Path(args.json).write_text(json.dumps(out, indent=1))
+    save(args.json, out)
     if args.png:
         plot_png(args.png, [r for r in rows if r["payload"] == "f32"])
 

@@ -38,6 +38,7 @@ from ..scene.scene import Scene
 from .tiles import TileGrid, TilePool, partition_tile_size, tile_dims
 
 POLL_S = 0.2             # how often worker threads look at the job's state
+IDLE_POLL_S = 2.0        # a sender with every slot taken waits this long (it is woken for work)
 DEFAULT_TILE_SIZE = 64
 DEFAULT_TILES_IN_FLIGHT = 2
 MAX_TILES_IN_FLIGHT = protocol.MAX_TILES_IN_FLIGHT
@@ -713,11 +714,13 @@ class _SlaveWorker:
         self._frame_start()
         while self.alive and not job.over:
             with self.state:
+                # Woken when a slot frees, the slave is lost or the job ends: with many slaves,
+                # polling here cost more of the master's CPU than the tiles did.
                 if not self.state.wait_for(
-                        lambda: len(self.in_flight) < self.window or not self.alive,
-                        POLL_S):
+                        lambda: len(self.in_flight) < self.window or not self.alive or job.over,
+                        IDLE_POLL_S):
                     continue
-            index = self._take()
+            index = self._take(IDLE_POLL_S)   # the pool wakes it for work, copies and the end
             if index is not None:
                 self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
 
@@ -1126,3 +1129,6 @@ class RenderJob:
             self._over.set()
             self.pool.close()
             self._results.put(None)
+            for worker in list(self._workers):   # senders waiting for a free slot
+                with worker.state:
+                    worker.state.notify_all()

@@ -60,6 +60,7 @@ SILENCE_S = 10.0
 MIN_RATE_BPS = 256 * 1024
 PREALLOCATE_BYTES = 8 << 20     # parts of a message up to this size are received in place
 READ_AHEAD = 64 * 1024          # what a small read takes from the socket at once
+LOW_WATER_BYTES = 256 * 1024    # a long read wakes when this much (or the rest) has arrived
 POLL_S = 0.25                   # how often a blocked send or receive looks at its deadline
 SLAVE_STATES = ("idle", "loading", "compiling", "waiting", "rendering")
 # How master and slave exchange a frame's tiles (FRAME_START "model"): the paper's Fig. 3a (one
@@ -319,6 +320,7 @@ class Channel:
         self._key = None
         self._send_seq = self._recv_seq = 0
         self._ahead, self._ahead_pos = bytearray(), 0   # received, not yet read (read-ahead)
+        self._rcvlowat = 1
         self._send_lock = threading.Lock()
         self.last_sent = self.last_received = time.monotonic()
         self.closed = False
@@ -449,6 +451,9 @@ class Channel:
             remaining = count - done
             try:
                 if in_place and remaining >= READ_AHEAD:
+                    # Wake when the rest (up to LOW_WATER_BYTES) is there, not for every
+                    # segment: a tile arriving over a slow link is one wakeup, not dozens.
+                    self._low_water(min(remaining, LOW_WATER_BYTES))
                     with memoryview(buffer) as view:
                         got = self.sock.recv_into(view[done:], min(remaining, 1 << 20))
                     if got == 0:
@@ -467,7 +472,18 @@ class Channel:
                 pass
             if done < count:
                 self._check_progress(started, before + done, total, deadline, what, done, count)
+        self._low_water(1)
         return buffer
+
+    def _low_water(self, nbytes: int) -> None:
+        """SO_RCVLOWAT: poll() (and so a receive with a timeout) wakes once this much is
+        there, or at the end of the stream or the timeout."""
+        if nbytes != self._rcvlowat and hasattr(socket, "SO_RCVLOWAT"):
+            try:
+                self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT, nbytes)
+                self._rcvlowat = nbytes
+            except OSError:
+                pass
 
     def _check_progress(self, started, done_total, total, deadline, what, done, count) -> None:
         if deadline is not None and time.monotonic() > deadline:

@@ -111,6 +111,15 @@ class TilePool:
                 best = (key, index)
         return None if best is None else best[1]
 
+    def _next_overdue(self, holder):
+        """When the first tile `holder` could copy becomes overdue (None: none can)."""
+        if not self._durations:
+            return None
+        after = COPY_AFTER * self._durations[len(self._durations) // 2]
+        times = [self._taken_at[i] for i, holders in self._holders.items()
+                 if holder not in holders and len(holders) < self.max_copies]
+        return min(times) + after if times else None
+
     @property
     def _has_pending(self) -> bool:
         return bool(self._returned) or self._next < self._last
@@ -135,8 +144,20 @@ class TilePool:
         def ready():
             return (self._has_pending or self._closed or self.all_done
                     or (duplicates and self._copyable(holder) is not None))
+        deadline = None if timeout is None else time.monotonic() + timeout
         with self._changed:
-            self._changed.wait_for(ready, timeout)
+            # Wait for a notification, the deadline, or the moment a held tile becomes
+            # overdue (then it may be copied): no polling in between.
+            while not ready():
+                now = time.monotonic()
+                wake = deadline
+                if duplicates:
+                    overdue = self._next_overdue(holder)
+                    if overdue is not None:
+                        wake = overdue if wake is None else min(wake, overdue)
+                if deadline is not None and now >= deadline:
+                    break
+                self._changed.wait(None if wake is None else max(0.001, wake - now))
             if self._closed or self.all_done:
                 return None
             if self._has_pending:
