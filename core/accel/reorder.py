@@ -73,8 +73,8 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
     # child first (a parent's inner children appear in the next level in that order).
     size = np.ones(len(inner), np.int64)
     for d in range(len(inner_levels) - 1, 0, -1):
-        at = at_depth(d)
-        size += np.bincount(parent[at], size[at], len(inner)).astype(np.int64)
+        at, above = at_depth(d), at_depth(d - 1)         # the parents are in the level above
+        size[above] += np.bincount(parent[at] - above[0], size[at], len(above)).astype(np.int64)
     preorder = np.zeros(len(inner), np.int64)
     for d in range(1, len(inner_levels)):
         at = at_depth(d)                     # per parent (in order): below, then above
