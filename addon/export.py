@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from ..core.layout import (NODE_GRADIENT_CODES, NODE_MATH_CODES, NODE_MIX_CODES, NODE_OP_CODES,
+from ..core.layout import (NODE_EXTENSION_CODES, NODE_GRADIENT_CODES, NODE_MATH_CODES, NODE_MIX_CODES, NODE_OP_CODES,
                            NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS,
                            NODE_TRANSFORM_SIZE, NODE_VECTOR_MATH_CODES, VISIBILITY_CODES,
                            VISIBLE_TO_ALL)
@@ -225,7 +225,7 @@ class _Unsupported(Exception):
 
 
 def _plain_image_node(node) -> bool:
-    """An Image Texture as the plain texture lookup does it: flat, repeat."""
+    """An Image Texture as the material's texture lookup does it: flat, repeat."""
     return node.projection == "FLAT" and node.extension == "REPEAT"
 
 
@@ -376,7 +376,8 @@ class NodeProgram:
             return self._constant(float(out.default_value))
         if kind == "RGB":
             return self._constant(tuple(out.default_value))
-        if kind == "TEX_IMAGE" and node.image is not None and _plain_image_node(node):
+        if kind == "TEX_IMAGE" and node.image is not None and node.projection == "FLAT" and \
+                node.extension in NODE_EXTENSION_CODES and node.interpolation in ("Linear", "Closest"):
             vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked else None
             if vector is None:
                 register = self._register()
@@ -384,7 +385,8 @@ class NodeProgram:
                 vector = self._whole(register)
             register = self._register()
             self._emit("IMAGE", register, vector,
-                       params=(self._texture_index(node.image), float(node.interpolation == "Closest")))
+                       params=(self._texture_index(node.image), float(node.interpolation == "Closest"),
+                               float(NODE_EXTENSION_CODES[node.extension])))
             return self._lane(register, 3) if name == "Alpha" else self._whole(register)
         if kind in ("SEPARATE_COLOR", "SEPRGB", "SEPARATE_XYZ") and \
                 getattr(node, "mode", "RGB") == "RGB":

@@ -217,6 +217,7 @@ NODE_VECTOR_MATH_CODES = {"ADD": 0, "SUBTRACT": 1, "MULTIPLY": 2, "DIVIDE": 3, "
                           "ABSOLUTE": 9, "MINIMUM": 10, "MAXIMUM": 11}
 NODE_GRADIENT_CODES = {"LINEAR": 0, "QUADRATIC": 1, "EASING": 2, "DIAGONAL": 3, "RADIAL": 4,
                        "QUADRATIC_SPHERE": 5, "SPHERICAL": 6}
+NODE_EXTENSION_CODES = {"REPEAT": 0, "EXTEND": 1, "CLIP": 2, "MIRROR": 3}   # Image Texture
 NODE_OUT_CODES = {"BASE_COLOR": 0, "ALPHA": 1, "METALLIC": 2, "ROUGHNESS": 3,
                   "TRANSMISSION": 4, "IOR": 5, "SPECULAR": 6}
 NODE_REGISTERS = 16
@@ -238,6 +239,7 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("NODE_VECTOR_MATH", "Vector Math operations (VECTOR_MATH p0)",
                NODE_VECTOR_MATH_CODES),
          Codes("NODE_GRADIENT", "Gradient Texture types (GRADIENT p0)", NODE_GRADIENT_CODES),
+         Codes("NODE_EXTENSION", "Image Texture extensions (IMAGE p2)", NODE_EXTENSION_CODES),
          Codes("NODE", "Shader node program sizes",
                {"REGISTERS": NODE_REGISTERS, "REF_REGISTER": NODE_REF_REGISTER,
                 "RAMP_SIZE": NODE_RAMP_SIZE, "TRANSFORM_SIZE": NODE_TRANSFORM_SIZE}))

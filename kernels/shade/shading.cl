@@ -190,29 +190,59 @@ inline float4 texel(const Scene *sc, uint offset, int w, int x, int y)
     return vload_half4(offset + (uint)(y * w + x), sc->texels);
 }
 
-// Bilinear (or closest) lookup, repeat wrap; uv (0, 0) is the first texel (Blender's
-// bottom-left).
-inline float4 texture_lookup(const Scene *sc, int tex, float2 uv, bool closest)
+// Texel i of a row or column of n in an Image Texture extension mode (Cycles'); -1: outside
+// the image (Clip: black and transparent).
+inline int wrap_texel(int i, int n, int extension)
+{
+    if (extension == NODE_EXTENSION_EXTEND)
+        return clamp(i, 0, n - 1);
+    if (extension == NODE_EXTENSION_CLIP)
+        return i < 0 || i >= n ? -1 : i;
+    if (extension == NODE_EXTENSION_MIRROR) {
+        int m = i % (2 * n);
+        m = m < 0 ? m + 2 * n : m;
+        return m < n ? m : 2 * n - 1 - m;
+    }
+    return i < 0 ? n - 1 : (i >= n ? 0 : i);           // repeat (i is in [-1, n])
+}
+
+inline float4 texel_or_clear(const Scene *sc, uint offset, int w, int x, int y)
+{
+    return x < 0 || y < 0 ? (float4)(0.0f, 0.0f, 0.0f, 0.0f) : texel(sc, offset, w, x, y);
+}
+
+// Bilinear (or closest) lookup; uv (0, 0) is the first texel (Blender's bottom-left).
+// `extension`: a NODE_EXTENSION code (material textures and the world repeat).
+inline float4 texture_lookup_ext(const Scene *sc, int tex, float2 uv, bool closest,
+                                 int extension)
 {
     __global const uint *size = sc->tex_sizes + TEXTURE_SIZE_COLUMNS * tex;
     uint offset = size[TEXTURE_SIZE_OFFSET];
     int w = (int)size[TEXTURE_SIZE_WIDTH], h = (int)size[TEXTURE_SIZE_HEIGHT];
-    uv = uv - floor(uv);                               // [0, 1), also for huge uv
-    if (closest)
-        return texel(sc, offset, w, min((int)(uv.x * (float)w), w - 1),
-                     min((int)(uv.y * (float)h), h - 1));
+    if (extension == NODE_EXTENSION_REPEAT)
+        uv = uv - floor(uv);                           // [0, 1), also for huge uv
+    else
+        uv = clamp(uv, -4.0f, 5.0f);                   // the same texels, no int overflow
+    if (closest) {
+        int x = (int)floor(uv.x * (float)w), y = (int)floor(uv.y * (float)h);
+        if (extension == NODE_EXTENSION_REPEAT)
+            return texel(sc, offset, w, min(x, w - 1), min(y, h - 1));
+        return texel_or_clear(sc, offset, w, wrap_texel(x, w, extension),
+                              wrap_texel(y, h, extension));
+    }
     float x = uv.x * (float)w - 0.5f, y = uv.y * (float)h - 0.5f;
     float fx = floor(x), fy = floor(y);
     float tx = x - fx, ty = y - fy;
-    int x0 = (int)fx, y0 = (int)fy;
-    int x1 = x0 + 1, y1 = y0 + 1;
-    x0 = x0 < 0 ? w - 1 : (x0 >= w ? 0 : x0);
-    y0 = y0 < 0 ? h - 1 : (y0 >= h ? 0 : y0);
-    x1 = x1 >= w ? 0 : x1;
-    y1 = y1 >= h ? 0 : y1;
-    float4 c00 = texel(sc, offset, w, x0, y0), c10 = texel(sc, offset, w, x1, y0);
-    float4 c01 = texel(sc, offset, w, x0, y1), c11 = texel(sc, offset, w, x1, y1);
+    int x0 = wrap_texel((int)fx, w, extension), y0 = wrap_texel((int)fy, h, extension);
+    int x1 = wrap_texel((int)fx + 1, w, extension), y1 = wrap_texel((int)fy + 1, h, extension);
+    float4 c00 = texel_or_clear(sc, offset, w, x0, y0), c10 = texel_or_clear(sc, offset, w, x1, y0);
+    float4 c01 = texel_or_clear(sc, offset, w, x0, y1), c11 = texel_or_clear(sc, offset, w, x1, y1);
     return (1.0f - ty) * ((1.0f - tx) * c00 + tx * c10) + ty * ((1.0f - tx) * c01 + tx * c11);
+}
+
+inline float4 texture_lookup(const Scene *sc, int tex, float2 uv, bool closest)
+{
+    return texture_lookup_ext(sc, tex, uv, closest, NODE_EXTENSION_REPEAT);
 }
 #endif
 
@@ -383,7 +413,7 @@ inline void run_nodes(const Scene *sc, int at, float2 uv, float3 p, Material *m)
         }
 #ifdef HAS_TEXTURES
         else if (op == NODE_OP_IMAGE) {
-            out = texture_lookup(sc, (int)w1.y, a.xy, w1.z > 0.0f);
+            out = texture_lookup_ext(sc, (int)w1.y, a.xy, w1.z > 0.0f, (int)w1.w);
         }
 #endif
         else if (op == NODE_OP_COMBINE) {

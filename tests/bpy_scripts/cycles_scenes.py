@@ -448,6 +448,13 @@ def build(name):
         m, nodes, links, bsdf = node_material("hue shifted")
         image = nodes.new("ShaderNodeTexImage")
         image.image = data
+        image.extension = "CLIP"            # UVs scaled past the image: black outside
+        uv = nodes.new("ShaderNodeTexCoord")
+        stretch = nodes.new("ShaderNodeVectorMath")
+        stretch.operation = "SCALE"
+        stretch.inputs["Scale"].default_value = 1.6
+        links.new(uv.outputs["UV"], stretch.inputs[0])
+        links.new(stretch.outputs["Vector"], image.inputs["Vector"])
         hsv = nodes.new("ShaderNodeHueSaturation")
         hsv.inputs["Hue"].default_value = 0.3
         hsv.inputs["Saturation"].default_value = 1.5
@@ -475,6 +482,15 @@ def build(name):
         links.new(ball.outputs["Color"], lighten.inputs["Color2"])
         links.new(lighten.outputs["Color"], bsdf.inputs["Base Color"])
         sphere(m, (0.8, 0.3, 0.6))
+        m, nodes, links, bsdf = node_material("extended")
+        image = nodes.new("ShaderNodeTexImage")
+        image.image = data
+        image.extension = "EXTEND"
+        image.interpolation = "Closest"
+        coords = nodes.new("ShaderNodeTexCoord")
+        links.new(coords.outputs["Generated"], image.inputs["Vector"])
+        links.new(image.outputs["Color"], bsdf.inputs["Base Color"])
+        add(bpy.ops.mesh.primitive_cube_add, m, size=0.5, location=(0.0, -0.8, 0.25))
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "generated":
