@@ -225,8 +225,10 @@ class _Unsupported(Exception):
 
 
 def _plain_image_node(node) -> bool:
-    """An Image Texture as the material's texture lookup does it: flat, repeat."""
-    return node.projection == "FLAT" and node.extension == "REPEAT"
+    """An Image Texture as the material's texture lookup does it: flat, repeat, bilinear (Cubic
+    and Smart too: approximated); the others go through a node program, or are warned."""
+    return node.projection == "FLAT" and node.extension == "REPEAT" and \
+        node.interpolation != "Closest"
 
 
 class NodeProgram:
@@ -377,7 +379,7 @@ class NodeProgram:
         if kind == "RGB":
             return self._constant(tuple(out.default_value))
         if kind == "TEX_IMAGE" and node.image is not None and node.projection == "FLAT" and \
-                node.extension in NODE_EXTENSION_CODES and node.interpolation in ("Linear", "Closest"):
+                node.extension in NODE_EXTENSION_CODES:     # Cubic, Smart: bilinear
             vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked else None
             if vector is None:
                 register = self._register()
