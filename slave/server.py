@@ -46,7 +46,6 @@ log = logging.getLogger("kdtrace.slave")
 MAX_CONNECTIONS = 16        # masters served at once
 MAX_HANDSHAKES = 32         # connections still in their handshake (the oldest gives way)
 HANDSHAKE_TIMEOUT_S = 10.0  # for the whole handshake, from accept to WELCOME
-IDLE_TIMEOUT_S = 300.0      # a master with no work here that says nothing this long is closed
 EVICTABLE_AFTER_S = 5.0     # an idle master gives its slot to a new one after this long
 OUTBOX_TILES = 2            # finished tiles waiting for the sender
 OUTBOX_MESSAGES = 64        # other replies waiting for the sender
@@ -389,7 +388,7 @@ class MasterConnection:
                     except (OSError, ProtocolError) as exc:
                         log.info("master %s: heartbeat failed: %s", self.peer, exc)
                         self._end()
-            elif now - self.last_heard > IDLE_TIMEOUT_S:
+            elif now - self.last_heard > protocol.IDLE_S:
                 log.info("master %s: closing: idle for %.0f s", self.peer, now - self.last_heard)
                 self._end(f"closing: idle for {now - self.last_heard:.0f} s")
 
@@ -534,6 +533,8 @@ class MasterConnection:
             frame = self.frame if self.frame and self.frame.frame_id == frame_id else None
             self.work.cancel(frame, frame_id)
             self.server.activity.frame_over(self.peer)
+        elif msg.type == MsgType.HEARTBEAT:
+            pass        # the master is still there (last_heard): nothing to answer
         else:
             raise ProtocolError(f"unexpected {msg.type.name} after the handshake")
 

@@ -417,6 +417,46 @@ def test_tiles_longer_than_the_silence_timeout(slaves, scene, slow_reference):
         np.testing.assert_array_equal(image[window], slow_reference[name][window], err_msg=name)
 
 
+def test_a_slave_with_nothing_left_stays_in_a_long_frame(scene, reference, monkeypatch):
+    """The last tile of a frame takes longer than the slave's idle deadline: the other slave,
+    which has nothing left to render, is kept in the frame by the master's HEARTBEAT, not
+    closed as an idle master (2 tiles, one slave much slower; deadlines scaled down)."""
+    from slave.server import SlaveServer
+    from slave.tracer import Tracer
+
+    class SlowTracer(Tracer):
+        def render_tile(self, *args, **kwargs):
+            time.sleep(3.0)
+            return super().render_tile(*args, **kwargs)
+
+    def frame(keepalive_s):
+        monkeypatch.setattr(protocol, "IDLE_S", 1.0)
+        monkeypatch.setattr(protocol, "KEEPALIVE_S", keepalive_s)
+        servers = [SlaveServer(tracer, name, bind="127.0.0.1", port=0)
+                   for tracer, name in ((Tracer(), "kdt-quick"), (SlowTracer(), "kdt-slow"))]
+        for server in servers:
+            server.start()
+        try:
+            with Master([s.address for s in servers], secret=None, retry_delays=()) as master:
+                master.connect()
+                master.load_scene(scene)
+                job = master.render(make_view(), tile_size=(32, 48), tiles_in_flight=1,
+                                    duplicates=False)
+                images, results = render_all(job, timeout=60)
+                return job, images, results
+        finally:
+            for server in servers:
+                server.close()
+
+    # Without the master's HEARTBEAT the quick slave closes the connection as idle.
+    job, _, _ = frame(keepalive_s=1e9)
+    assert any("idle" in e for e in job.errors), job.errors
+    job, images, results = frame(keepalive_s=0.3)
+    assert job.error is None and job.errors == [], job.errors
+    assert len({r.slave_id for r in results}) == 2
+    assert_images_equal(images, reference)
+
+
 @pytest.mark.skipif(not LONG_TESTS, reason="2-minute tiles take minutes: bench/soak.py runs "
                                            "this with KDTRACE_LONG_TESTS=1")
 def test_two_minute_tiles_with_the_default_deadlines(scene):

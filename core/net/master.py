@@ -687,6 +687,12 @@ class _SlaveWorker:
             "tile_size": job.tile_w, "tile_height": job.tile_h, "model": job.model,
             "payload": job.payload, "compress": job.compress, "passes": list(job.passes)})
 
+    def _keep_alive(self) -> None:
+        """A slave with nothing to render while the frame goes on elsewhere (the last tiles
+        take long) stays in the frame: tell it before its idle deadline closes the connection."""
+        if time.monotonic() - self.connection.channel.last_sent > protocol.KEEPALIVE_S:
+            self.connection.send(MsgType.HEARTBEAT, {})
+
     def _take(self, timeout: float = POLL_S, copies: bool = True, busy: bool = None) -> int | None:
         """The next tile for this slave; `busy`: it has another to render first (then it gets a
         cheap one, see TilePool's order). None: judged from its tiles in flight."""
@@ -723,6 +729,8 @@ class _SlaveWorker:
             index = self._take(IDLE_POLL_S)   # the pool wakes it for work, copies and the end
             if index is not None:
                 self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
+            else:
+                self._keep_alive()
 
     def _receive_loop(self) -> None:
         job = self.job
@@ -773,6 +781,7 @@ class _SlaveWorker:
         while self.alive and not job.over:
             index = self._take()
             if index is None:
+                self._keep_alive()
                 continue
             self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
             while self.alive and index in self.in_flight:

@@ -57,6 +57,11 @@ MAX_TILES_IN_FLIGHT = 16        # tile requests a master may have outstanding on
 HEARTBEAT_S = 2.0
 HEARTBEAT_RANGE_S = (0.05, 30.0)
 SILENCE_S = 10.0
+# A slave closes a master connection that has no work there and says nothing for IDLE_S (its
+# slot goes back); a master in a frame that has nothing left for a slave (its last tiles are
+# elsewhere) sends HEARTBEAT when it has sent nothing for KEEPALIVE_S.
+IDLE_S = 300.0
+KEEPALIVE_S = 30.0
 MIN_RATE_BPS = 256 * 1024
 PREALLOCATE_BYTES = 8 << 20     # parts of a message up to this size are received in place
 READ_AHEAD = 64 * 1024          # what a small read takes from the socket at once
@@ -83,12 +88,13 @@ class MsgType(enum.IntEnum):
     BYE = 11           # master -> slave: closing
     CHALLENGE = 12     # slave -> master: slave nonce + the slave's proof (only with a shared secret)
     AUTH = 13          # master -> slave: the master's proof; WELCOME follows if it is right
-    HEARTBEAT = 14     # slave -> master: what a busy slave is doing (state, frame id, tile)
+    HEARTBEAT = 14     # slave -> master: what a busy slave is doing (state, frame id, tile);
+                       # master -> slave: it is still in a frame that has nothing for the slave
 
 
 MASTER_TO_SLAVE = frozenset({MsgType.HELLO, MsgType.SCENE_QUERY, MsgType.SCENE_UPLOAD,
                              MsgType.FRAME_START, MsgType.TILE_REQUEST, MsgType.CANCEL,
-                             MsgType.ERROR, MsgType.BYE, MsgType.AUTH})
+                             MsgType.ERROR, MsgType.BYE, MsgType.AUTH, MsgType.HEARTBEAT})
 SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_RESULT,
                              MsgType.CANCEL, MsgType.ERROR, MsgType.CHALLENGE, MsgType.HEARTBEAT})
 
