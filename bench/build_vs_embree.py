@@ -7,7 +7,7 @@ For every scene, each in a child process of its own (so that its peak memory is 
 - ours: core.accel.kdtree_cl's build on PoCL's CPU device (all its threads), then compact_tree
   (--mode) on the same device; wall and process CPU seconds (PoCL's threads included), peak
   RSS (mesh included), the longest stretch between two progress calls (how long Esc can take);
-  kernels are compiled by a small build first and timed apart;
+  every kernel is compiled and launched once by a small build first (warm_up), timed apart;
 - Embree: the BVH build of the same triangles (embreex: the scene's first ray query commits
   it), on the same threads (Embree's default: every hardware thread);
 - numpy (--numpy scenes): core.accel.kdtree.build_kdtree and compact_tree without a device,
@@ -41,6 +41,16 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from bench.kdtree_tables import cpu_model  # noqa: E402
+
+
+def warm_up(builder, mode):
+    """Compile and first-launch every kernel: PoCL compiles each kernel at its first launch,
+    so the warm-up scene has more references than a subtree (the big-node passes run too)."""
+    from core.accel.compact import compact_tree
+    from tests.meshes import uv_sphere
+    ball = uv_sphere(64, 64)                  # 8,064 triangles, above subtree_refs (2048)
+    assert len(ball[1]) > builder.subtree_refs
+    compact_tree(builder.build(*ball), len(ball[1]), mode, device=builder)
 
 
 def load_scene(name):
@@ -110,9 +120,7 @@ def stage_profile(name, mode):
     from core.accel.kdtree_cl import KDTreeBuilderCL
     vertices, triangles = load_scene(name)
     builder = KDTreeBuilderCL("cpu", profile_kernels=True)
-    from tests.meshes import uv_sphere
-    ball = uv_sphere(16, 8)
-    compact_tree(builder.build(*ball), len(ball[1]), mode, device=builder)      # compile
+    warm_up(builder, mode)
     builder.kernel_times()
     result = {}
     for stage, run in (("build", lambda p: builder.build(vertices, triangles, progress=p)),
@@ -133,8 +141,10 @@ def stage_tune(name, sizes, rounds):
     from tests.meshes import uv_sphere
     vertices, triangles = load_scene(name)
     builders = {size: KDTreeBuilderCL("cpu", subtree_refs=size) for size in sizes}
+    ball = uv_sphere(128, 64)                 # compile: more references than the thresholds
+    assert len(ball[1]) > max(sizes)
     for b in builders.values():
-        b.build(*uv_sphere(16, 8))                                     # compile
+        b.build(*ball)
     times, trees = {size: [] for size in sizes}, set()
     for _ in range(rounds):
         for size, b in builders.items():
@@ -152,11 +162,8 @@ def stage_ours(name, mode):
     from core.accel.kdtree_cl import KDTreeBuilderCL
     vertices, triangles = load_scene(name)
     mesh_mb = peak_mb()
-    from tests.meshes import uv_sphere
     builder = KDTreeBuilderCL("cpu")
-    ball = uv_sphere(16, 8)
-    _, compile_wall, _ = timed(lambda: compact_tree(builder.build(*ball), len(ball[1]), mode,
-                                                    device=builder))
+    _, compile_wall, _ = timed(lambda: warm_up(builder, mode))
     gaps = ProgressGaps()
     tree, build_wall, build_cpu = timed(lambda: builder.build(vertices, triangles, progress=gaps))
     build_gap = (gaps.longest, gaps.where)
