@@ -421,6 +421,7 @@ def test_a_slave_with_nothing_left_stays_in_a_long_frame(scene, reference, monke
     """The last tile of a frame takes longer than the slave's idle deadline: the other slave,
     which has nothing left to render, is kept in the frame by the master's HEARTBEAT, not
     closed as an idle master (2 tiles, one slave much slower; deadlines scaled down)."""
+    from core.net import master as master_module
     from slave.server import SlaveServer
     from slave.tracer import Tracer
 
@@ -432,6 +433,7 @@ def test_a_slave_with_nothing_left_stays_in_a_long_frame(scene, reference, monke
     def frame(keepalive_s):
         monkeypatch.setattr(protocol, "IDLE_S", 1.0)
         monkeypatch.setattr(protocol, "KEEPALIVE_S", keepalive_s)
+        monkeypatch.setattr(master_module, "IDLE_POLL_S", 0.1)     # how often it looks
         servers = [SlaveServer(tracer, name, bind="127.0.0.1", port=0)
                    for tracer, name in ((Tracer(), "kdt-quick"), (SlowTracer(), "kdt-slow"))]
         for server in servers:
