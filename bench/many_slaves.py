@@ -164,8 +164,8 @@ def measure(endpoints, scene, view, reps, options, warm=True) -> dict:
 
 def model(calibration, tile_size, count, frame_bytes_per_pixel, shared: bool, in_flight=2) -> float:
     """The event model of bench/network_scaling.py fed with the calibrated tile times, handed
-    out as the master does after a first frame: the most expensive first to a slave that would
-    go idle, the cheapest to one that is still busy."""
+    out as the master does after a first frame: the most expensive first, the cheapest to the
+    slots beside each slave's first at the start."""
     grid = TileGrid((0, 0, SIZE, SIZE), tile_size)
     tiles = sorted(zip(calibration.frame_ms(tile_size),
                        [w * h * frame_bytes_per_pixel for (_, _, w, h) in grid]), reverse=True)
@@ -346,28 +346,29 @@ def main():
     hosts = [Child("--serve", str(min(per_host, most - i)), str(i), "--speeds", args.speeds)
              for i in range(0, most, per_host)]
     ports = [p for host in hosts for p in host.ports]
-    rows = []
+    rows, base = [], None     # tau_1: one slave, float32, its own link
     try:
         for kind in ("link", "shared"):
             network = Child("--network", kind, *map(str, ports))
             try:
-                base = {}
                 for count in counts:
+                    if kind == "shared" and count == 1:
+                        continue    # one slave alone: the medium is its link (measured above)
                     for payload in (("f32", "u8") if kind == "shared" else ("f32",)):
-                        options = {"tile_size": "auto", "tiles_in_flight": "auto",
+                        options = {"tile_size": "auto", "tiles_in_flight": 2,
                                    "passes": ["combined"], "payload": payload}
                         net0 = network.cpu_seconds()
                         # one slave: no warm-up (nothing to learn), one frame (~30 s)
                         r = measure(network.ports[:count], scene, view,
                                     1 if count <= 2 else args.reps, options, warm=count > 1)
                         r["network_cpu_s_total"] = network.cpu_seconds() - net0
-                        base.setdefault(payload, r["tau_s"]) if count == 1 else None
+                        if count == 1:
+                            base = r["tau_s"]
                         bpp = protocol.tile_bytes_per_pixel(payload, ["combined"])
                         m1 = model(calibration, r["tile_size"], 1, bpp, kind == "shared")
                         ms = model(calibration, r["tile_size"], count, bpp, kind == "shared")
                         r.update(link=kind, S=count, payload=payload,
-                                 efficiency=base[payload] / (count * r["tau_s"])
-                                 if payload in base else float("nan"),
+                                 efficiency=base / (count * r["tau_s"]) if base else float("nan"),
                                  model_tau_s=ms, model_efficiency=m1 / (count * ms),
                                  master_cpu_per_tile_us=r["master_cpu_s"] / r["tiles"] * 1e6,
                                  master_cpu_per_mib_ms=r["master_cpu_s"] / (r["frame_bytes"] / 2 ** 20) * 1e3,

@@ -118,8 +118,9 @@ def simulate(tile_ms, tile_bytes, slaves, link_latency_s, bandwidth_bps, in_flig
              master_ms_per_mib=0.0, shared_bps=None, cheap_prefetch=False):
     """Event model of model 3b: tiles handed out in the given order to the slave whose request
     arrives first (each slave keeps `in_flight` requests outstanding; with `cheap_prefetch`, as
-    the master does when it knows the tiles' costs and gets them most expensive first, a
-    request that reaches a busy slave takes the last tile of the order instead); per slave the device
+    the master does when it knows the tiles' costs and gets them most expensive first, the
+    requests beyond a slave's first at the start of the frame take the last tiles of the order
+    instead); per slave the device
     renders its tiles back to back; a finished tile goes out over the slave's own link
     (serialised per link) while the next renders; a request costs one latency; the master
     handles tiles one at a time in arrival order (master_ms_per_mib); shared_bps: one medium
@@ -130,9 +131,11 @@ def simulate(tile_ms, tile_bytes, slaves, link_latency_s, bandwidth_bps, in_flig
     device_free = [0.0] * slaves
     link_free = [0.0] * slaves
     medium_free = master_free = finish = 0.0
-    # (time, kind, slave, tile): kind 0 = a request reaches the slave, 1 = its device is done
-    # with the tile, 2 = the tile has reached the master
-    events = [(link_latency_s, 0, s, -1) for s in range(slaves) for _ in range(in_flight)]
+    # (time, kind, slave, tile): kind 0 = a request reaches the slave (tile -2: one of the
+    # first fill beyond the first), 1 = its device is done with the tile, 2 = the tile has
+    # reached the master
+    events = [(link_latency_s, 0, s, -2 if k else -1) for s in range(slaves)
+              for k in range(in_flight)]
     heapq.heapify(events)
     first, last = 0, n     # tiles first..last-1 of the order are pending
     while events:
@@ -140,7 +143,7 @@ def simulate(tile_ms, tile_bytes, slaves, link_latency_s, bandwidth_bps, in_flig
         if kind == 0:
             if first == last:
                 continue
-            if cheap_prefetch and device_free[s] > t:
+            if cheap_prefetch and index == -2:
                 last -= 1
                 index = last
             else:

@@ -694,8 +694,9 @@ class _SlaveWorker:
             self.connection.send(MsgType.HEARTBEAT, {})
 
     def _take(self, timeout: float = POLL_S, copies: bool = True, busy: bool = None) -> int | None:
-        """The next tile for this slave; `busy`: it has another to render first (then it gets a
-        cheap one, see TilePool's order). None: judged from its tiles in flight."""
+        """The next tile for this slave; `busy`: a slot filled beside another at the start of
+        the frame, to hide the request's latency (it gets a cheap tile, see TilePool's order).
+        None: judged from its tiles in flight (the sender)."""
         job = self.job
         if busy is None:
             with self.state:
@@ -837,7 +838,8 @@ class _SlaveWorker:
         if job.model == "3b" and not job.over:
             with self.state:
                 others = len(self.in_flight) - 1      # besides this tile
-            following = self._take(0, copies=False, busy=others > 0) if others < self.window else None
+            # the most expensive pending tile: it starts after the ones queued there
+            following = self._take(0, copies=False, busy=False) if others < self.window else None
             if following is not None:
                 self.connection.send(MsgType.TILE_REQUEST,
                                      {"frame_id": job.frame_id, "tile": following})

@@ -78,10 +78,10 @@ class TilePool:
 
     def __init__(self, count: int, max_copies: int = 2, order=None):
         """`order`: the tile indices from the most to the least expensive (e.g. as measured in
-        the last frame): a slave that asks for its next tile while it still has one gets the
-        cheapest pending tile (it only hides the request's latency), one that would otherwise
-        go idle the most expensive, so no long tile starts last or waits behind another.
-        Default: index order for all."""
+        the last frame): tiles go out most expensive first, so no long tile starts last, except
+        that a `cheap` take (the slots a slave fills beside its first at the start of a frame,
+        only to hide the request's latency) gets the cheapest pending tile, so that no slave
+        starts with two long ones. Default: index order for all."""
         self.count = count
         self.max_copies = max_copies      # holders of one tile at once (1 = no duplicates)
         self._order = None if order is None else list(order)
