@@ -185,18 +185,20 @@ def test_auto_tile_size_gives_each_slave_about_four_tiles():
 
 
 def test_faster_slaves_get_more_tiles_in_flight(scene, calibration):
-    """tiles_in_flight="auto": a slave eight times as fast as the other keeps more requests."""
+    """tiles_in_flight="auto": behind links of 20 ms each way, a slave eight times as fast as
+    the other (6 ms tiles against 50) keeps more requests ahead; the slow one keeps 2."""
     slaves = StandIns(calibration, 2, speeds=(1.0, 8.0))
+    links = [LinkEmulator(endpoint, latency_s=0.02).start() for endpoint in slaves.endpoints]
     try:
-        with Master(slaves.endpoints, secret=None, retry_delays=()) as master:
+        with Master([link.endpoint for link in links], secret=None, retry_delays=()) as master:
             master.connect()
             master.load_scene(scene)
             job, _ = render(master, make_view(128, 96), tile_size=TILE, tiles_in_flight="auto")
-            windows = {w.connection.name: w.window for w in job._workers}
-            assert windows["standin-1"] > windows["standin-0"] >= 1, windows
             fast, slow = (next(w for w in job._workers if w.connection.name == name)
                           for name in ("standin-1", "standin-0"))
-            assert fast.pixels_rendered / fast.render_s > 4 * slow.pixels_rendered / slow.render_s
-            assert fast.tiles_done > 2 * slow.tiles_done
+            assert slow.window == 2 and fast.window > 4, (fast.window, slow.window)
+            assert fast.round_trip_s >= 0.04 and fast.tiles_done > 2 * slow.tiles_done
     finally:
+        for link in links:
+            link.close()
         slaves.close()

@@ -22,6 +22,7 @@ restarted) into the frame in progress. The frame fails only when no slave is lef
 """
 from __future__ import annotations
 
+import math
 import queue
 import socket
 import threading
@@ -42,12 +43,12 @@ IDLE_POLL_S = 2.0        # a sender with every slot taken waits this long (it is
 DEFAULT_TILE_SIZE = 64
 DEFAULT_TILES_IN_FLIGHT = 2
 MAX_TILES_IN_FLIGHT = protocol.MAX_TILES_IN_FLIGHT
-# tiles_in_flight="auto": a slave of the median speed keeps AUTO_IN_FLIGHT tiles requested, a
-# faster one proportionally more (up to AUTO_MAX_IN_FLIGHT), a slower one fewer (at least 1),
-# so fast slaves never wait for a request and slow ones do not hoard the last tiles.
+# tiles_in_flight="auto": per slave, 1 + as many tiles as it renders in one round trip (the
+# least time from a request to its result, less the render time, seen in this frame), at
+# least AUTO_IN_FLIGHT and at most AUTO_MAX_IN_FLIGHT: a slave whose tiles take less than a
+# round trip gets more requests ahead, one with long tiles does not hoard them.
 AUTO_IN_FLIGHT = 2
 AUTO_MAX_IN_FLIGHT = 8
-AUTO_REFRESH_S = 0.1
 # tile_size="auto": the largest of these edges that gives each slave about
 # AUTO_TILES_PER_SLAVE tiles (AUTO_SLACK: 64 slaves on 1024 x 1024 get 64-pixel tiles).
 AUTO_TILE_EDGES = (32, 64, 128, 256)
@@ -521,7 +522,7 @@ class Master:
         tile_size: pixels (int, square tiles, or a (w, h) pair), or "auto" (auto_tile_size:
         about AUTO_TILES_PER_SLAVE tiles per slave); partition=N instead cuts the
         render region into N x N tiles (Table 5b). tiles_in_flight: requests outstanding per
-        slave (model 3b), or "auto": per slave, in proportion to its speed (AUTO_IN_FLIGHT).
+        slave (model 3b), or "auto": per slave, enough to cover a round trip (AUTO_IN_FLIGHT).
         model: "3b" (sender + receiver thread per slave, the default) or "3a"
         (one thread per slave that asks for a tile and waits for it: for comparison).
         payload: "f32", "f16" (combined and normal as float16) or "u8" (an 8-bit preview:
@@ -652,7 +653,9 @@ class _SlaveWorker:
         self.step = None                # (state, tile) the slave last said it was at
         self.step_since = time.monotonic()
         self.tiles_done = 0
-        self.pixels_rendered, self.render_s = 0, 0.0   # this frame, for the slave's speed
+        self.render_s, self.tiles_rendered = 0.0, 0     # this frame: seconds of render, tiles
+        self.requested_at: dict = {}    # tile -> when its request went out
+        self.round_trip_s = None        # least (result - request - render) this frame
         self.window = DEFAULT_TILES_IN_FLIGHT if job.tiles_in_flight == "auto" else job.tiles_in_flight
         self.state = threading.Condition()
         label = connection.label
@@ -729,9 +732,24 @@ class _SlaveWorker:
                     continue
             index = self._take(IDLE_POLL_S)   # the pool wakes it for work, copies and the end
             if index is not None:
-                self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
+                self._request(index)
             else:
                 self._keep_alive()
+
+    def _request(self, index: int) -> None:
+        self.requested_at[index] = time.monotonic()
+        self.connection.send(MsgType.TILE_REQUEST, {"frame_id": self.job.frame_id, "tile": index})
+
+    def _auto_window(self) -> None:
+        """tiles_in_flight="auto" (see AUTO_IN_FLIGHT)."""
+        tile_s = self.render_s / max(1, self.tiles_rendered)
+        trip = max(0.0, self.round_trip_s or 0.0)
+        window = 1 + math.ceil(trip / tile_s) if tile_s > 0 else AUTO_MAX_IN_FLIGHT
+        window = min(AUTO_MAX_IN_FLIGHT, max(AUTO_IN_FLIGHT, window))
+        if window != self.window:
+            with self.state:
+                self.window = window
+                self.state.notify_all()
 
     def _receive_loop(self) -> None:
         job = self.job
@@ -841,23 +859,26 @@ class _SlaveWorker:
             # the most expensive pending tile: it starts after the ones queued there
             following = self._take(0, copies=False, busy=False) if others < self.window else None
             if following is not None:
-                self.connection.send(MsgType.TILE_REQUEST,
-                                     {"frame_id": job.frame_id, "tile": following})
+                self._request(following)
                 refilled = True
         # Checked, then written straight into the frame; a copy of a tile another slave
         # delivered first is checked only (an honest copy has the same bits anyway).
         windows = job.windows(x, y, w, h_)
         protocol.decode_tile(h, msg.arrays, w, h_, job.payload, job.passes,
                              out=None if job.pool.is_done(index) else windows)
-        self.pixels_rendered += w * h_
         self.render_s += max(render_ms, 0.0) / 1000.0
+        self.tiles_rendered += 1
         with self.state:
             self.in_flight.discard(index)
             self.step, self.step_since = None, now
             if not refilled:
                 self.state.notify_all()
+        sent = self.requested_at.pop(index, None)
+        if sent is not None:
+            trip = now - sent - max(render_ms, 0.0) / 1000.0
+            self.round_trip_s = trip if self.round_trip_s is None else min(self.round_trip_s, trip)
         if job.tiles_in_flight == "auto" and self.render_s > 0:
-            job.update_window(self)
+            self._auto_window()
         if job.cancelled:
             return
         job.tile_ms[index] = render_ms     # before the frame can be complete
@@ -953,7 +974,6 @@ class RenderJob:
         self._delivered = self._taken = 0
         self._joins = 0              # reconnections under way that may still bring a slave
         self._rejoined: set = set()  # endpoints reconnected after a loss, no tile since
-        self._median_speed, self._median_at = None, -1.0   # tiles_in_flight="auto"
         self._over = threading.Event()
         self._lock = threading.Lock()
         self._workers = [_SlaveWorker(self, c) for c in connections]
@@ -966,24 +986,6 @@ class RenderJob:
         """name -> the tile's window of job.image."""
         left, top = x - self.origin[0], y - self.origin[1]
         return {name: image[top:top + h, left:left + w] for name, image in self.image.items()}
-
-    def update_window(self, worker: "_SlaveWorker") -> None:
-        """tiles_in_flight="auto": the slave's requests in proportion to its measured speed,
-        against the median of the job's slaves (refreshed at most every AUTO_REFRESH_S)."""
-        now = time.monotonic()
-        if now - self._median_at > AUTO_REFRESH_S:
-            speeds = sorted(w.pixels_rendered / w.render_s for w in list(self._workers)
-                            if w.alive and w.render_s > 0)
-            if speeds:
-                self._median_speed, self._median_at = speeds[len(speeds) // 2], now
-        if not self._median_speed or worker.render_s <= 0:
-            return
-        speed = worker.pixels_rendered / worker.render_s
-        window = min(AUTO_MAX_IN_FLIGHT, max(1, round(AUTO_IN_FLIGHT * speed / self._median_speed)))
-        if window != worker.window:
-            with worker.state:
-                worker.window = window
-                worker.state.notify_all()
 
     def _start_worker(self, worker: _SlaveWorker) -> None:
         if self.master is not None:
