@@ -5,6 +5,7 @@ import json
 import socket
 import struct
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -292,3 +293,35 @@ def test_tile_pool_hands_out_puts_back_and_finishes():
     closed = TilePool(2)
     closed.close()
     assert closed.take(1.0) is None
+
+
+def test_the_end_of_a_long_part_arriving_late_is_received():
+    """A long payload whose last bytes come after a pause (as over a slow link): the read of
+    those last bytes must not wait for a low-water mark set for the bytes before them."""
+    listener = socket.socket()
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)   # holds all but the tail
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    sender = socket.create_connection(listener.getsockname())
+    receiver, _ = listener.accept()
+    listener.close()
+    data = b"".join(bytes(b) for b in protocol.encode_message(
+        MsgType.SCENE_UPLOAD, {"scene_hash": "0" * 32},
+        {"values": np.arange(1 << 19, dtype=np.float32)}))           # 2 MiB
+    tail = 20_000
+
+    def write():
+        sender.sendall(data[:-tail])
+        threading.Event().wait(0.5)
+        sender.sendall(data[-tail:])
+    thread = threading.Thread(target=write, daemon=True)
+    thread.start()
+    threading.Event().wait(0.2)     # all but the tail waits in the receive buffer
+    try:
+        channel = protocol.Channel(receiver, "slave")
+        msg = channel.recv(deadline=time.monotonic() + 5)
+        np.testing.assert_array_equal(msg.arrays["values"], np.arange(1 << 19, dtype=np.float32))
+    finally:
+        thread.join(5)
+        sender.close()
+        receiver.close()

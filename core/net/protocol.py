@@ -467,6 +467,7 @@ class Channel:
                                                f"({what}: {done} of {count} bytes)")
                     done += got
                 else:
+                    self._low_water(1)      # the rest may be less than the last mark
                     chunk = self.sock.recv(READ_AHEAD if remaining < READ_AHEAD
                                            else min(remaining, 1 << 20))
                     if not chunk:
