@@ -762,10 +762,12 @@ class _SlaveWorker:
                 stale = job.over and self.in_flight and not self.cancelling
             if stale:
                 self.cancel()
-            self._check_deadlines(waiting)
+            # What arrived first, then the deadlines: a receiver that the machine kept from
+            # running must not take the heartbeats waiting in its socket for silence.
             msg = self.connection.recv(job.limits, wait=POLL_S)
             if msg is not None:
                 self._handle(msg)
+            self._check_deadlines(waiting)
 
     def _check_deadlines(self, waiting: bool) -> None:
         # A cancel is confirmed after the tile being rendered: owed like a tile, so the same
@@ -806,15 +808,15 @@ class _SlaveWorker:
             while self.alive and index in self.in_flight:
                 if job.over and not self.cancelling:
                     self.cancel()
-                self._check_deadlines(True)
                 msg = self.connection.recv(job.limits, wait=POLL_S)
                 if msg is not None:
                     self._handle(msg)
+                self._check_deadlines(True)
         while self.alive and self.cancelling:  # a cancel being confirmed
-            self._check_deadlines(True)
             msg = self.connection.recv(job.limits, wait=POLL_S)
             if msg is not None:
                 self._handle(msg)
+            self._check_deadlines(True)
 
     # -- both
 
