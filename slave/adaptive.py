@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.layout import ACCUM, STATS
+
 
 def sample_tile(tile, settings, x: int, y: int, w: int, h: int, every: np.ndarray) -> None:
     """Trace the tile's samples as `settings` (core.scene.model.RenderSettings) say; `every`:
@@ -48,9 +50,8 @@ def _undersample(tile, x, y, w, h, count, threshold):
     traced = np.flatnonzero(coarse.ravel()).astype(np.int32)
     tile.run(traced, 0, count, 0)
     accum, stats = tile.read()
-    # RGB and alpha of each pixel
-    colour = (accum[:, (0, 1, 2, 4)] / np.maximum(accum[:, 3:4], 1.0)).reshape(h, w, 4)
-    lum = (stats[:, 0] / count).reshape(h, w)
+    colour = pixel_rgba(accum).reshape(h, w, 4)
+    lum = (stat(stats, "sum") / count).reshape(h, w)
     error = pixel_error(stats, count, w, h).reshape(h, w)
     sum_c = np.zeros((h, w, 4), np.float32)
     n_c = np.zeros((h, w), np.int32)
@@ -76,9 +77,12 @@ def _undersample(tile, x, y, w, h, count, threshold):
     fill = np.flatnonzero(smooth.ravel())
     if len(fill):
         interpolated = (sum_c / np.maximum(n_c, 1)[..., None]).reshape(-1, 4)[fill]
-        accum[fill, :3] = interpolated[:, :3]
-        accum[fill, 3] = 1.0
-        accum[fill, 4] = interpolated[:, 3]
+        records = accum.reshape(len(accum), ACCUM.size, 4)
+        filled = records[fill]
+        ACCUM.put(filled, "color", interpolated[:, :3])
+        ACCUM.put(filled, "samples", 1.0)
+        ACCUM.put(filled, "alpha", interpolated[:, 3])
+        records[fill] = filled
         stats[fill] = 0.0                   # converged: never refined
         tile.write_accum(accum)
     rest = np.flatnonzero((~coarse & ~smooth).ravel()).astype(np.int32)
@@ -87,6 +91,18 @@ def _undersample(tile, x, y, w, h, count, threshold):
     done = ~smooth.ravel()
     return np.flatnonzero(done).astype(np.int32)
 
+
+def pixel_rgba(accum: np.ndarray) -> np.ndarray:
+    """Each pixel's mean RGB and alpha, (n, 4), from its accumulator record (n, 4 * ACCUM.size;
+    core/layout.py ACCUM)."""
+    records = accum.reshape(len(accum), ACCUM.size, 4)
+    sums = np.concatenate([ACCUM.get(records, "color"), ACCUM.get(records, "alpha")[:, None]], 1)
+    return sums / np.maximum(ACCUM.get(records, "samples"), 1.0)[:, None]
+
+
+def stat(stats: np.ndarray, name: str) -> np.ndarray:
+    """Slot `name` of each pixel's error statistics (n, STATS.width; core/layout.py STATS)."""
+    return STATS.get(stats.reshape(len(stats), STATS.size, STATS.width), name)
 
 
 def pixel_error(stats: np.ndarray, count: int, w: int, h: int) -> np.ndarray:
@@ -98,8 +114,9 @@ def pixel_error(stats: np.ndarray, count: int, w: int, h: int) -> np.ndarray:
     Widened to half its 4-neighbours' value (in the spirit of Kim et al. 2016: what a coarse
     pass finds noisy or at an edge, and its neighbourhood, is refined; smooth regions keep the
     minimum)."""
-    mean = stats[:, 0] / count
-    variance = np.maximum(stats[:, 1] / count - mean * mean, 0.0) * (count / max(count - 1, 1))
+    mean = stat(stats, "sum") / count
+    variance = np.maximum(stat(stats, "sum_squares") / count - mean * mean, 0.0) \
+        * (count / max(count - 1, 1))
     difference = 3.0 * np.sqrt(2.0 / np.pi) * np.sqrt(variance / count)
     error = (difference / (1e-4 + np.sqrt(3.0 * np.maximum(mean, 0.0)))).reshape(h, w)
     widened = error.copy()

@@ -18,13 +18,13 @@ from typing import NamedTuple
 import numpy as np
 
 from core.accel.reorder import treelet_order
-from core.layout import ACCUM, c_header
+from core.layout import ACCUM, STATS, c_header
 from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
 from core.scene.features import ALL_FEATURES, needed_arrays
 from core.scene.model import SceneError, View
 from core.scene.scene import Scene
 
-from .adaptive import sample_tile
+from .adaptive import pixel_rgba, sample_tile
 from .buffers import (pack_bounds, pack_camera, pack_emitters, pack_lights, pack_materials,
                       pack_triangles, pack_world, world_importance)
 
@@ -250,7 +250,7 @@ class Tracer:
         settings = view.settings
         n = w * h
         accum = np.zeros((n, 4 * ACCUM.size), np.float32)
-        stats = np.zeros((n, 2), np.float32)
+        stats = np.zeros((n, STATS.width * STATS.size), np.float32)
         depth = np.empty((h, w), np.float32)
         normal = np.empty((h, w, 3), np.float32)
         accum_buf = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=accum)
@@ -274,9 +274,7 @@ class Tracer:
         cl.enqueue_copy(self.queue, depth, depth_buf)
         cl.enqueue_copy(self.queue, normal, normal_buf)
         self.queue.finish()
-        combined = np.empty((n, 4), np.float32)
-        combined[:, :3] = accum[:, :3] / np.maximum(accum[:, 3:4], 1.0)
-        combined[:, 3] = accum[:, 4] / np.maximum(accum[:, 3], 1.0)
+        combined = pixel_rgba(accum)
         self.last_render = {"kernel_seconds": time.perf_counter() - started,
                             "samples": tile.traced, "features": sorted(flags)}
         return {"combined": combined.reshape(h, w, 4), "depth": depth, "normal": normal}
