@@ -33,15 +33,12 @@ MATERIALS = {
 }
 
 PROBE = r'''
-// Samples the BSDF of one material from wo (cos theta = cos_o) n times per work-item; sums
-// the reflected and transmitted weights (transmission as energy: times eta^2) and the largest
-// relative difference between a sample's density and bsdf_eval_local's.
-__kernel void probe(float metallic, float roughness, float transmission, float ior,
-                    float specular, float cos_o, int front, int n, __global float4 *out)
+// A material of the Principled inputs under test on a grey base colour.
+Material grey_material(float grey, float metallic, float roughness, float transmission,
+                       float ior, float specular)
 {
-    int i = get_global_id(0);
     Material m;
-    m.base = (float3)(1.0f, 1.0f, 1.0f);
+    m.base = (float3)(grey, grey, grey);
     m.alpha = 1.0f;
     m.metallic = metallic;
     m.roughness = roughness;
@@ -49,6 +46,17 @@ __kernel void probe(float metallic, float roughness, float transmission, float i
     m.ior = ior;
     m.emission = (float3)(0.0f, 0.0f, 0.0f);
     m.specular = specular;
+    return m;
+}
+
+// Samples the BSDF of one material from wo (cos theta = cos_o) n times per work-item; sums
+// the reflected and transmitted weights (transmission as energy: times eta^2) and the largest
+// relative difference between a sample's density and bsdf_eval_local's.
+__kernel void probe(float metallic, float roughness, float transmission, float ior,
+                    float specular, float cos_o, int front, int n, __global float4 *out)
+{
+    int i = get_global_id(0);
+    Material m = grey_material(1.0f, metallic, roughness, transmission, ior, specular);
     float3 wo = (float3)(sqrt(1.0f - cos_o * cos_o), 0.0f, cos_o);
     Lobes l = lobes_at(&m, cos_o, front != 0, 0.0f);
     Rng r = rng_seed((uint)i, 3u, 11u);
@@ -78,15 +86,7 @@ __kernel void pdf_integral(float metallic, float roughness, float transmission, 
                            float specular, float cos_o, int n, __global float *out)
 {
     int i = get_global_id(0);
-    Material m;
-    m.base = (float3)(0.7f, 0.7f, 0.7f);
-    m.alpha = 1.0f;
-    m.metallic = metallic;
-    m.roughness = roughness;
-    m.transmission = transmission;
-    m.ior = ior;
-    m.emission = (float3)(0.0f, 0.0f, 0.0f);
-    m.specular = specular;
+    Material m = grey_material(0.7f, metallic, roughness, transmission, ior, specular);
     float3 wo = (float3)(sqrt(1.0f - cos_o * cos_o), 0.0f, cos_o);
     Lobes l = lobes_at(&m, cos_o, true, 0.0f);
     Rng r = rng_seed((uint)i, 5u, 13u);

@@ -834,7 +834,7 @@ def _step(fr: _Frontier, level: int, ctx: _BuildContext):
     if int(counts.max(initial=0)) > MAX_NODE_FIELD:
         raise ValueError("kd-tree leaf too large for the 30-bit reference count")
     words = np.zeros((node_count, 2), np.uint32)
-    words[:, 0] = np.where(make_leaf, LEAF_TAG | (counts << 2), axis)
+    words[:, 0] = np.where(make_leaf, LEAF_TAG | PLAIN_FIELD.put(counts), axis)
     words[:, 1] = np.where(make_leaf, 0, plane.view(np.uint32))
     leaf_triangles = _ref_triangles(refs)[np.repeat(make_leaf, counts)].astype(np.uint32)
     leaf_area = area[make_leaf] / ctx.root_area
@@ -1001,9 +1001,9 @@ def _write_nodes(levels: list) -> tuple:
         first_child = level_base + len(words) + 2 * split_rank
         if (~make_leaf).any() and first_child.max() > MAX_NODE_FIELD:
             raise ValueError("kd-tree too large for the 30-bit child index")
-        leaf_counts = np.where(make_leaf, words[:, 0] >> 2, 0).astype(np.int64)
+        leaf_counts = np.where(make_leaf, PLAIN_FIELD.get(words[:, 0]), 0).astype(np.int64)
         leaf_offset = leaf_total + _exclusive_cumsum(leaf_counts)[:-1]
-        words[:, 0] |= np.where(make_leaf, 0, first_child << 2).astype(np.uint32)
+        words[:, 0] |= np.where(make_leaf, 0, PLAIN_FIELD.put(first_child)).astype(np.uint32)
         words[:, 1] |= np.where(make_leaf, leaf_offset, 0).astype(np.uint32)
         level_base += len(words)
         leaf_total += int(leaf_counts.sum())
