@@ -437,7 +437,7 @@ def check_node_program(rows, starts) -> np.ndarray:
     """The node program rows from the network, checked: whole-number operations, registers
     and operands in range, every ramp table inside the rows, and from each start in `starts`
     (>= 0) instructions up to an END (the kernel runs them so). A program's ramp tables
-    follow its END (addon/export.py compiles them)."""
+    follow its END (addon/nodes.py compiles them)."""
     from ..layout import (NODE_OP_CODES, NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER,
                           NODE_REGISTERS, NODE_TRANSFORM_SIZE)
     tables = {NODE_OP_CODES["RAMP"]: NODE_RAMP_SIZE, NODE_OP_CODES["TRANSFORM"]: NODE_TRANSFORM_SIZE}

@@ -248,7 +248,7 @@ inline float4 texture_lookup(const Scene *sc, int tex, float2 uv, bool closest)
 
 #ifdef HAS_NODES
 // ---------------------------------------------------------------------------------------------
-// Shader node programs (core/layout.py NODE_OP_CODES; compiled by addon/export.py): a few
+// Shader node programs (core/layout.py NODE_OP_CODES; compiled by addon/nodes.py): a few
 // registers, one instruction per node, then OUT instructions that set the BSDF inputs.
 
 inline float4 node_operand(const float4 *regs, float ref)

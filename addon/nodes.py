@@ -1,0 +1,466 @@
+"""Blender material node trees -> core.scene material parameters and node programs.
+
+material_parameters maps the Principled BSDF (and the Diffuse, Glossy, Glass and Emission BSDFs)
+onto core.scene's material parameters (docs/shading.md); NodeProgram compiles the node graphs
+linked to their inputs into a program for the kernel (core/layout.py NODE_OP_CODES, shading.cl
+run_nodes). What cannot be mapped is named in the returned problems.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..core.layout import (NODE_EXTENSION_CODES, NODE_GRADIENT_CODES, NODE_MATH_CODES, NODE_MIX_CODES,
+                           NODE_OP_CODES, NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER,
+                           NODE_REGISTERS, NODE_TRANSFORM_SIZE, NODE_VECTOR_MATH_CODES)
+from ..core.scene.model import DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS
+
+# What Cycles renders where there is no material: a default Principled BSDF.
+PRINCIPLED_DEFAULTS = {"metallic": 0.0, "roughness": 0.5, "ior": 1.5, "specular": 0.5}
+
+# Principled BSDF input -> our parameter; inputs not listed here are ignored silently when at
+# their defaults and with a warning when linked.
+_PRINCIPLED = {"Metallic": "metallic", "Roughness": "roughness", "IOR": "ior",
+               "Transmission Weight": "transmission", "Specular IOR Level": "specular"}
+
+
+_NODE_OUTPUTS = {"metallic": "METALLIC", "roughness": "ROUGHNESS", "ior": "IOR",
+                 "transmission": "TRANSMISSION", "specular": "SPECULAR"}
+
+
+class _Unsupported(Exception):
+    """A node (or a setting of one) the node program cannot evaluate."""
+
+
+def _plain_image_node(node) -> bool:
+    """An Image Texture as the material's texture lookup does it: flat, repeat, bilinear (Cubic
+    and Smart too: approximated); the others go through a node program, or are warned."""
+    return node.projection == "FLAT" and node.extension == "REPEAT" and \
+        node.interpolation != "Closest"
+
+
+class NodeProgram:
+    """Compiles the node graphs linked to a material's BSDF inputs into one program for the
+    kernel (core/layout.py NODE_OP_CODES; shading.cl run_nodes): each node once, into a
+    register; constants for unlinked inputs. Nodes: Image Texture (UV, Linear/Closest,
+    Repeat), Texture Coordinate and UV Map (UV), Separate/Combine Color (RGB) and XYZ, Mix
+    (float, colour and vector; Mix, Add, Multiply, Subtract, Screen, Difference, Darken,
+    Lighten), Math (the NODE_MATH_CODES operations), Invert, Checker Texture, Color Ramp, Value
+    and RGB. Another node makes its input keep its value, and the problem names it."""
+
+    def __init__(self, texture_index):
+        self._texture_index = texture_index     # image -> texture table index
+        self._code = []                         # instructions: (op, dst, a, b, c, p0, p1, p2)
+        self._ramps = []                        # (instruction index, table rows)
+        self._values = {}                       # (node name, output) -> operand
+        self._kinds = {}                        # operand -> its socket's type (RGBA, VECTOR)
+        self._next = 0
+        self.outputs = []
+        self.transforms = []                    # (instruction index, "OBJECT" or "GENERATED")
+
+    @property
+    def reads_uv(self) -> bool:
+        return any(op == "UV" for op, *_ in self._code)
+
+    def output(self, socket, field, problems) -> bool:
+        """Evaluate the graph linked to `socket` into BSDF input `field`; False (with a
+        problem naming the node) when it cannot."""
+        saved = (list(self._code), list(self._ramps), dict(self._values), dict(self._kinds),
+                 self._next, list(self.transforms))
+        try:
+            ref = self._linked(socket)
+        except _Unsupported as error:
+            self._code, self._ramps, self._values, self._kinds, self._next, self.transforms = saved
+            problems.append(f"input '{socket.name}': {error}; using its value {socket_value(socket)}")
+            return False
+        if field != "BASE_COLOR":
+            ref = self._as_float(ref)
+        self._emit("OUT", 0, ref, params=(NODE_OUT_CODES[field],))
+        self.outputs.append(field)
+        return True
+
+    def rows(self, matrices=None) -> list:
+        """The program's float4 rows: its instructions, END, then its tables (colour ramps,
+        the coordinate transforms: `matrices` as Placement's; identity without one)."""
+        code = self._code + [("END", 0, 0, 0, 0, (0.0, 0.0, 0.0))]
+        identity = np.eye(4)[:3]
+        tables = list(self._ramps) + [
+            (index, [tuple(r) for r in (identity if matrices is None else matrices[kind])]
+             + [(0.0, 0.0, 0.0, 0.0)] * (NODE_TRANSFORM_SIZE - 3))
+            for index, kind in self.transforms]
+        rows = []
+        table_row = 2 * len(code)
+        offsets = {}
+        for index, table in tables:
+            offsets[index] = table_row - 2 * index      # relative to the instruction
+            table_row += len(table)
+        for index, (op, dst, a, b, c, params) in enumerate(code):
+            params = tuple(params) + (0.0,) * (3 - len(params))
+            if op in ("RAMP", "TRANSFORM"):
+                params = (float(offsets[index]),) + params[1:]
+            if op == "CONST":
+                rows += [(NODE_OP_CODES[op], dst, 0, 0), tuple(a)]
+            else:
+                rows += [(NODE_OP_CODES[op], dst, a, b), (c,) + params]
+        for _, table in tables:
+            rows += [tuple(float(v) for v in r) for r in table]
+        return rows
+
+    # -- compiling ---------------------------------------------------------------------------
+    def _register(self) -> int:
+        if self._next >= NODE_REGISTERS:
+            raise _Unsupported("the node graph needs more than "
+                               f"{NODE_REGISTERS} values")
+        self._next += 1
+        return self._next - 1
+
+    def _emit(self, op, dst, a=0, b=0, c=0, params=()):
+        self._code.append((op, dst, a, b, c, params))
+
+    def _whole(self, register):
+        return register * NODE_REF_REGISTER + 4
+
+    def _lane(self, register, lane):
+        return register * NODE_REF_REGISTER + lane
+
+    def _constant(self, value):
+        register = self._register()
+        if not isinstance(value, tuple):
+            self._code.append(("CONST", register, (float(value),) * 4, 0, 0, ()))
+            return self._lane(register, 0)
+        self._kinds[self._whole(register)] = "RGBA" if len(value) == 4 else "VECTOR"
+        value = tuple(float(v) for v in value) + (1.0,) * (4 - len(value))
+        self._code.append(("CONST", register, value, 0, 0, ()))
+        return self._whole(register)
+
+    def _input(self, node, key):
+        """The operand of a node's input (by name or index), converted as Blender converts
+        between colours, vectors and values."""
+        socket = node.inputs[key]
+        ref = self._linked(socket) if socket.is_linked else self._constant(socket_value(socket))
+        return self._as_float(ref) if socket.type == "VALUE" else ref
+
+    def _as_float(self, ref):
+        """A single value from `ref`: a colour's luminance (Rec. 709, Cycles' conversion), a
+        vector's mean."""
+        if ref % NODE_REF_REGISTER != 4:
+            return ref
+        register = self._register()
+        weights = (0.2126, 0.7152, 0.0722) if self._kinds.get(ref) == "RGBA" else (1 / 3,) * 3
+        self._emit("DOT", register, ref, params=weights)
+        return self._lane(register, 0)
+
+    def _enabled_input(self, node, name):
+        """The operand of the enabled input called `name` (the Mix node has one per type)."""
+        for socket in node.inputs:
+            if socket.name == name and socket.enabled:
+                ref = self._linked(socket) if socket.is_linked else self._constant(socket_value(socket))
+                return self._as_float(ref) if socket.type == "VALUE" else ref
+        raise _Unsupported(f"node '{node.name}' has no input '{name}'")
+
+    def _linked(self, socket):
+        link = socket.links[0]
+        if not link.is_valid or link.is_muted:
+            raise _Unsupported(f"its link is muted or invalid")
+        node, out = link.from_node, link.from_socket
+        while node.type == "REROUTE":
+            if not node.inputs[0].is_linked:
+                return self._constant(socket_value(node.inputs[0]))
+            link = node.inputs[0].links[0]
+            node, out = link.from_node, link.from_socket
+        key = (node.name, out.identifier)
+        if key not in self._values:
+            self._values[key] = self._node(node, out)
+            self._kinds[self._values[key]] = out.type
+        return self._values[key]
+
+    def _node(self, node, out):
+        kind, name = node.type, out.name
+        if kind in ("TEX_COORD", "UVMAP") and name == "UV":
+            register = self._register()
+            self._emit("UV", register)
+            return self._whole(register)
+        if kind == "TEX_COORD" and name in ("Generated", "Object") and node.object is None:
+            return self._coordinates(name.upper())
+        if kind == "VALUE":
+            return self._constant(float(out.default_value))
+        if kind == "RGB":
+            return self._constant(tuple(out.default_value))
+        if kind == "TEX_IMAGE" and node.image is not None and node.projection == "FLAT" and \
+                node.extension in NODE_EXTENSION_CODES:     # Cubic, Smart: bilinear
+            vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked else None
+            if vector is None:
+                register = self._register()
+                self._emit("UV", register)
+                vector = self._whole(register)
+            register = self._register()
+            self._emit("IMAGE", register, vector,
+                       params=(self._texture_index(node.image), float(node.interpolation == "Closest"),
+                               float(NODE_EXTENSION_CODES[node.extension])))
+            return self._lane(register, 3) if name == "Alpha" else self._whole(register)
+        if kind in ("SEPARATE_COLOR", "SEPRGB", "SEPARATE_XYZ") and \
+                getattr(node, "mode", "RGB") == "RGB":
+            source = self._input(node, 0)
+            register = source // NODE_REF_REGISTER
+            if source % NODE_REF_REGISTER != 4:        # a single value: all lanes alike
+                return source
+            lanes = {"Red": 0, "Green": 1, "Blue": 2, "R": 0, "G": 1, "B": 2, "X": 0, "Y": 1, "Z": 2}
+            return self._lane(register, lanes[name])
+        if kind in ("COMBINE_COLOR", "COMBRGB", "COMBINE_XYZ") and \
+                getattr(node, "mode", "RGB") == "RGB":
+            a, b, c = (self._input(node, k) for k in range(3))
+            register = self._register()
+            self._emit("COMBINE", register, a, b, c)
+            return self._whole(register)
+        if kind == "MIX" and node.blend_type in NODE_MIX_CODES:
+            if node.data_type == "VECTOR" and node.factor_mode != "UNIFORM":
+                raise _Unsupported(f"node '{node.name}' (Mix, non-uniform factor) is not evaluated")
+            fac = self._enabled_input(node, "Factor")
+            if node.clamp_factor is False:
+                raise _Unsupported(f"node '{node.name}' (Mix without Clamp Factor) is not evaluated")
+            a, b = self._enabled_input(node, "A"), self._enabled_input(node, "B")
+            register = self._register()
+            mode = node.blend_type if node.data_type == "RGBA" else "MIX"
+            self._emit("MIX", register, fac, a, b,
+                       params=(NODE_MIX_CODES[mode], float(node.data_type == "RGBA" and node.clamp_result)))
+            return self._whole(register)
+        if kind == "MIX_RGB" and node.blend_type in NODE_MIX_CODES:
+            fac, a, b = (self._input(node, k) for k in range(3))
+            register = self._register()
+            self._emit("MIX", register, fac, a, b,
+                       params=(NODE_MIX_CODES[node.blend_type], float(node.use_clamp)))
+            return self._whole(register)
+        if kind == "MATH" and node.operation in NODE_MATH_CODES:
+            a, b, c = (self._input(node, k) for k in range(3))
+            register = self._register()
+            self._emit("MATH", register, a, b, c,
+                       params=(NODE_MATH_CODES[node.operation], float(node.use_clamp)))
+            return self._lane(register, 0)
+        if kind == "INVERT":
+            fac, color = self._input(node, "Fac"), self._input(node, "Color")
+            register = self._register()
+            self._emit("INVERT", register, fac, color)
+            return self._whole(register)
+        if kind == "TEX_CHECKER":
+            vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked \
+                else self._coordinates("GENERATED")
+            c1, c2 = self._input(node, "Color1"), self._input(node, "Color2")
+            scale = node.inputs["Scale"]
+            if scale.is_linked:
+                raise _Unsupported(f"node '{node.name}' (Checker Texture, linked Scale) is not evaluated")
+            register = self._register()
+            self._emit("CHECKER", register, vector, c1, c2, params=(float(scale.default_value),))
+            return self._lane(register, 3) if name == "Fac" else self._whole(register)
+        if kind == "VALTORGB":
+            ramp = node.color_ramp
+            if ramp.color_mode != "RGB" or ramp.interpolation not in ("LINEAR", "CONSTANT"):
+                raise _Unsupported(f"node '{node.name}' (Color Ramp, {ramp.color_mode} "
+                                   f"{ramp.interpolation}) is not evaluated")
+            fac = self._input(node, "Fac")
+            register = self._register()
+            table = [tuple(ramp.evaluate(i / (NODE_RAMP_SIZE - 1))) for i in range(NODE_RAMP_SIZE)]
+            self._ramps.append((len(self._code), table))
+            self._emit("RAMP", register, fac,
+                       params=(0.0, float(ramp.interpolation != "CONSTANT")))
+            return self._lane(register, 3) if name == "Alpha" else self._whole(register)
+        if kind == "MAP_RANGE" and node.data_type == "FLOAT" and node.interpolation_type == "LINEAR":
+            value, lo, hi, to_lo, to_hi = (self._input(node, k) for k in
+                                           ("Value", "From Min", "From Max", "To Min", "To Max"))
+            ranges = self._register()
+            self._emit("COMBINE", ranges, lo, hi, to_lo)
+            register = self._register()
+            self._emit("MAP_RANGE", register, value, self._whole(ranges), to_hi,
+                       params=(0.0, float(node.clamp)))
+            return self._lane(register, 0)
+        if kind == "VECT_MATH" and node.operation in NODE_VECTOR_MATH_CODES:
+            a, b = self._enabled_input(node, "Vector"), self._second_vector(node)
+            scale = self._enabled_input(node, "Scale") if node.operation == "SCALE" else 0
+            register = self._register()
+            self._emit("VECTOR_MATH", register, a, b, scale,
+                       params=(NODE_VECTOR_MATH_CODES[node.operation],))
+            return self._lane(register, 3) if out.type == "VALUE" else self._whole(register)
+        if kind == "HUE_SAT":
+            hue, saturation, value, fac, color = (self._input(node, k) for k in
+                                                  ("Hue", "Saturation", "Value", "Fac", "Color"))
+            hsv = self._register()
+            self._emit("COMBINE", hsv, hue, saturation, value)
+            register = self._register()
+            self._emit("HSV", register, fac, color, self._whole(hsv))
+            return self._whole(register)
+        if kind == "TEX_GRADIENT" and node.gradient_type in NODE_GRADIENT_CODES:
+            vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked \
+                else self._coordinates("GENERATED")
+            register = self._register()
+            self._emit("GRADIENT", register, vector,
+                       params=(NODE_GRADIENT_CODES[node.gradient_type],))
+            return self._lane(register, 0) if name == "Fac" else self._whole(register)
+        raise _Unsupported(f"node '{node.name}' ({node.bl_idname}) is not evaluated")
+
+    def _coordinates(self, kind):
+        """The hit point in Generated or Object coordinates (the unlinked default of the
+        procedural textures is Generated)."""
+        key = ("coordinates", kind)
+        if key not in self._values:
+            register = self._register()
+            self.transforms.append((len(self._code), kind))
+            self._emit("TRANSFORM", register)
+            self._values[key] = self._whole(register)
+            self._kinds[self._whole(register)] = "VECTOR"
+        return self._values[key]
+
+    def _second_vector(self, node):
+        """Vector Math's second vector input (the node has three called Vector)."""
+        vectors = [s for s in node.inputs if s.name == "Vector" and s.enabled]
+        if len(vectors) < 2:
+            return 0
+        socket = vectors[1]
+        return self._linked(socket) if socket.is_linked else self._constant(socket_value(socket))
+
+
+def _surface_node(material):
+    """The node linked to the active Material Output's Surface, or None."""
+    tree = material.node_tree
+    outputs = [n for n in tree.nodes if n.type == "OUTPUT_MATERIAL"]
+    active = [n for n in outputs if n.is_active_output] or outputs
+    if not active or not active[0].inputs["Surface"].is_linked:
+        return None
+    return active[0].inputs["Surface"].links[0].from_node
+
+
+def input_value(node, name, problems, program=None, output=None):
+    """The unlinked value of input `name`; a linked one goes through the node program (as
+    BSDF input `output`, a NODE_OUT_CODES name) when it can, else its value with a problem."""
+    socket = node.inputs.get(name)
+    if socket is None:
+        return None
+    if socket.is_linked:
+        if program is not None and output is not None and program.output(socket, output, problems):
+            return _linked_stand_in(output, socket_value(socket))
+        if program is None or output is None:
+            problems.append(f"input '{name}' of '{node.name}' is linked; using its value "
+                            f"{socket_value(socket)}")
+    return socket_value(socket)
+
+
+def _linked_stand_in(output, value):
+    """The constant a material keeps for an input its node program sets: one that switches on
+    the kernel features the input may need (core/scene/features.py)."""
+    return {"METALLIC": 0.5, "TRANSMISSION": 0.5, "SPECULAR": max(value, 0.5),
+            "ALPHA": 0.5}.get(output, value)
+
+
+def _unhandled_links(node, handled, problems):
+    """A problem for the first linked input of `node` that the mapping does not read (a
+    Normal map, a Coat Normal, ...)."""
+    for socket in node.inputs:
+        if socket.is_linked and socket.name not in handled and socket.enabled:
+            problems.append(f"input '{socket.name}' of '{node.name}' is linked, which KD Trace "
+                            "does not evaluate; ignored")
+            return
+
+
+def socket_value(socket):
+    value = socket.default_value
+    try:
+        return tuple(float(v) for v in value)
+    except TypeError:
+        return float(value)
+
+
+def _color_input(node, name, problems, program=None):
+    """(colour RGBA, image or None): an unlinked colour, one linked straight to an Image
+    Texture (through the active UV map), or (with `program`) any node graph the program
+    evaluates."""
+    socket = node.inputs[name]
+    if socket.is_linked:
+        source = socket.links[0].from_node
+        if source.type == "TEX_IMAGE" and source.image is not None and \
+                _plain_image_node(source) and not source.inputs["Vector"].is_linked and \
+                socket.links[0].from_socket.name == "Color":
+            return (1.0, 1.0, 1.0, 1.0), source.image
+        if program is not None and program.output(socket, "BASE_COLOR", problems):
+            return (1.0, 1.0, 1.0, 1.0), None
+        if program is None:
+            problems.append(f"input '{name}' is linked to '{source.name}', which KD Trace cannot "
+                            f"evaluate; using its value")
+    value = socket_value(socket)
+    return tuple(value) + (1.0,) * (4 - len(value)), None
+
+
+def material_parameters(material, program=None):
+    """(base colour RGBA, params dict, image or None, problems) of a Blender material.
+    `program`: a NodeProgram that takes the node graphs linked to the BSDF's inputs (without
+    one, linked inputs other than a plain Image Texture keep their values, with a problem)."""
+    params = dict(zip(MATERIAL_PARAMS, DEFAULT_MATERIAL_PARAMS), **PRINCIPLED_DEFAULTS)
+    problems = []
+    fallback = tuple(material.diffuse_color)
+    if not (material.use_nodes and material.node_tree):
+        # Cycles renders a material without nodes as a Principled BSDF of its viewport values.
+        params.update(metallic=float(material.metallic), roughness=float(material.roughness),
+                      specular=float(material.specular_intensity))
+        return fallback, params, None, problems
+    node = _surface_node(material)
+    kind = node.type if node is not None else None
+    image = None
+    if kind == "BSDF_PRINCIPLED":
+        color, image = _color_input(node, "Base Color", problems, program)
+        for socket_name, name in _PRINCIPLED.items():
+            value = input_value(node, socket_name, problems, program, _NODE_OUTPUTS[name])
+            if value is not None:
+                params[name] = value
+        alpha = input_value(node, "Alpha", problems, program, "ALPHA")
+        color = color[:3] + (alpha if alpha is not None else 1.0,)
+        emission, _ = _color_input(node, "Emission Color", problems)
+        strength = input_value(node, "Emission Strength", problems) or 0.0
+        params["emission_r"], params["emission_g"], params["emission_b"] = (
+            max(0.0, c * strength) for c in emission[:3])
+        for other in ("Coat Weight", "Sheen Weight", "Subsurface Weight", "Anisotropic",
+                      "Diffuse Roughness", "Thin Film Thickness"):
+            socket = node.inputs.get(other)
+            if socket is not None and (socket.is_linked or socket_value(socket) > 0):
+                problems.append(f"'{other}' is not supported and is ignored")
+        tint = node.inputs.get("Specular Tint")
+        if tint is not None and (tint.is_linked or min(socket_value(tint)[:3]) < 1.0):
+            problems.append("'Specular Tint' is not supported; rendering white")
+        _unhandled_links(node, ("Base Color", "Alpha", "Emission Color", "Emission Strength",
+                                *_PRINCIPLED), problems)
+    elif kind == "BSDF_DIFFUSE":
+        color, image = _color_input(node, "Color", problems, program)
+        params["roughness"], params["specular"] = 1.0, 0.0
+        roughness = input_value(node, "Roughness", problems)
+        if roughness:
+            problems.append("Oren-Nayar roughness is rendered as Lambertian diffuse")
+        _unhandled_links(node, ("Color", "Roughness"), problems)
+    elif kind in ("BSDF_GLOSSY", "BSDF_ANISOTROPIC"):
+        color, image = _color_input(node, "Color", problems, program)
+        params["metallic"] = 1.0
+        params["roughness"] = input_value(node, "Roughness", problems, program, "ROUGHNESS") or 0.0
+        anisotropy = node.inputs.get("Anisotropy")
+        if anisotropy is not None and (anisotropy.is_linked or socket_value(anisotropy) != 0):
+            problems.append("'Anisotropy' is not supported and is ignored")
+        _unhandled_links(node, ("Color", "Roughness", "Anisotropy"), problems)
+    elif kind == "BSDF_GLASS":
+        color, image = _color_input(node, "Color", problems)
+        # The Glass BSDF tints every refraction by its colour; Principled (the kernel) by the
+        # square root of the base colour.
+        color = tuple(c * c for c in color[:3]) + color[3:]
+        params["transmission"], params["specular"] = 1.0, 0.5
+        params["roughness"] = input_value(node, "Roughness", problems) or 0.0
+        params["ior"] = input_value(node, "IOR", problems) or 1.45
+        _unhandled_links(node, ("Color", "Roughness", "IOR"), problems)
+    elif kind == "EMISSION":
+        emission, _ = _color_input(node, "Color", problems)
+        strength = input_value(node, "Strength", problems) or 0.0
+        color = (0.0, 0.0, 0.0, 1.0)
+        params["specular"] = 0.0
+        params["emission_r"], params["emission_g"], params["emission_b"] = (
+            max(0.0, c * strength) for c in emission[:3])
+    else:
+        what = f"'{node.name}' ({node.bl_idname})" if node is not None else "nothing"
+        return fallback, params, None, [
+            f"its surface is {what}, which KD Trace cannot map; rendering its base colour"]
+    params["ior"] = min(max(params["ior"], 0.01), 100.0)
+    for name in ("metallic", "roughness", "transmission"):
+        params[name] = min(max(params[name], 0.0), 1.0)
+    params["specular"] = min(max(params["specular"], 0.0), 1000.0)
+    color = tuple(min(max(c, 0.0), 1e6) for c in color[:3]) + (min(max(color[3], 0.0), 1.0),)
+    return color, params, image, list(dict.fromkeys(problems))
