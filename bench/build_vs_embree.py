@@ -16,6 +16,10 @@ For every scene, each in a child process of its own (so that its peak memory is 
   the compact trees of both builders, in turn over --rounds rounds, one PoCL thread;
 - tune (--tune scene, --subtree-refs sizes): the build with each subtree threshold in turn over
   --rounds rounds in one process (the trees must be the same bits), medians;
+- first use (--first-use scenes): build and compaction twice in one process on an empty PoCL
+  cache, then twice in a second process on the cache the first filled: user, system seconds
+  and minor page faults of each (PoCL compiles a kernel variant at its first launch of a kind;
+  warm_up);
 - profile (--profile scenes): after the timed run, build and compaction again on a queue with
   event profiling: device seconds per kernel, and wall seconds per host step (between two
   distinct progress messages, numbers left out), so the host's share is the rest.
@@ -33,6 +37,7 @@ import re
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -44,13 +49,26 @@ from bench.kdtree_tables import cpu_model  # noqa: E402
 
 
 def warm_up(builder, mode):
-    """Compile and first-launch every kernel: PoCL compiles each kernel at its first launch,
-    so the warm-up scene has more references than a subtree (the big-node passes run too)."""
+    """Compile every kernel the timed runs launch, in every variant. PoCL compiles a kernel at
+    its first launch of each kind: work-group size, zero or non-zero global offset, and under
+    or over 65,536 work-items ("goffs0", "smallgrid" in its cache); a big scene's first
+    compaction otherwise compiles some 40 variants (about 2.6 s CPU on a cold cache). So the
+    warm-up scene has more nodes, references, triangles and lifted references than twice
+    65,536 (thin triangles: many references each), a degenerate triangle (the kept ones are
+    moved), and its launches go in small pieces (non-zero offsets; the tree does not depend
+    on them)."""
+    import core.accel.kdtree_cl as kcl
     from core.accel.compact import compact_tree
     from tests.meshes import uv_sphere
-    ball = uv_sphere(64, 64)                  # 8,064 triangles, above subtree_refs (2048)
-    assert len(ball[1]) > builder.subtree_refs
-    compact_tree(builder.build(*ball), len(ball[1]), mode, device=builder)
+    vertices, triangles = uv_sphere(1000, 80)        # 158,000 triangles, 84 K lifted
+    triangles = np.vstack([triangles, triangles[:1, [0, 0, 1]]]).astype(np.uint32)
+    assert len(triangles) > 2 * 65536 > builder.subtree_refs
+    pieces = kcl.PIECE_REFS, kcl.PIECE_ITEMS
+    kcl.PIECE_REFS, kcl.PIECE_ITEMS = 8 * builder.chunk_refs, 65536
+    try:
+        compact_tree(builder.build(vertices, triangles), len(triangles), mode, device=builder)
+    finally:
+        kcl.PIECE_REFS, kcl.PIECE_ITEMS = pieces
 
 
 def load_scene(name):
@@ -133,6 +151,28 @@ def stage_profile(name, mode):
         result[stage] = {"wall": wall, "cpu": cpu, "kernels": builder.kernel_times(),
                          "steps": steps.steps}
     return result
+
+
+def stage_first_use(name, mode):
+    """Build and compaction twice, no warm-up: user / system s and minor faults of each."""
+    from core.accel.compact import compact_tree
+    from core.accel.kdtree_cl import KDTreeBuilderCL
+    vertices, triangles = load_scene(name)
+    builder = KDTreeBuilderCL("cpu")
+
+    def usage():
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return np.array([r.ru_utime, r.ru_stime, r.ru_minflt])
+
+    runs = []
+    for _ in range(2):
+        start = usage()
+        tree = builder.build(vertices, triangles)
+        built = usage()
+        compact_tree(tree, len(triangles), mode, device=builder)
+        runs.append({"build": (built - start).tolist(), "compaction": (usage() - built).tolist()})
+        del tree
+    return runs
 
 
 def stage_tune(name, sizes, rounds):
@@ -251,6 +291,8 @@ def main():
                         help="scenes whose render time is compared (numpy tree vs ours)")
     parser.add_argument("--profile", nargs="*", default=["dragon"],
                         help="scenes built again with kernel event profiling")
+    parser.add_argument("--first-use", nargs="*", default=[],
+                        help="scenes built and compacted on an empty PoCL cache, then on the filled one")
     parser.add_argument("--tune", nargs="*", default=[],
                         help="scenes built with each --subtree-refs threshold in turn")
     parser.add_argument("--subtree-refs", nargs="+", type=int, default=[512, 2048, 8192])
@@ -264,6 +306,7 @@ def main():
         result = {"ours": lambda: stage_ours(name, args.mode), "embree": lambda: stage_embree(name),
                   "numpy": lambda: stage_numpy(name, args.mode),
                   "profile": lambda: stage_profile(name, args.mode),
+                  "first_use": lambda: stage_first_use(name, args.mode),
                   "tune": lambda: stage_tune(name, args.subtree_refs, args.rounds),
                   "render": lambda: stage_render(name, args.mode, args.rounds, args.size)}[stage]()
         print(json.dumps(result, default=float))
@@ -331,6 +374,17 @@ def main():
             print("    steps (wall s, up to the message): " + "; ".join(
                 f"'{k}' {t:.3f}" for k, t in sorted(r["steps"].items(), key=lambda kv: -kv[1])
                 if t >= 0.005))
+    for name in args.first_use:
+        with tempfile.TemporaryDirectory() as cache:
+            env = dict(os.environ, POCL_CACHE_DIR=cache)
+            runs = [child("first_use", name, "--mode", args.mode, env=env) for _ in range(2)]
+        print(f"\nFirst use of {name} (no warm-up; user / system s, minor page faults; process 1 "
+              f"on an empty PoCL cache, process 2 on the cache process 1 filled):")
+        for p, process in enumerate(runs, 1):
+            for k, run in enumerate(process, 1):
+                print(f"  process {p}, run {k}: " + "; ".join(
+                    f"{stage} {u:.2f} / {sy:.2f} s, {int(faults):,} faults"
+                    for stage, (u, sy, faults) in run.items()))
     for name in args.tune:
         r = child("tune", name, "--subtree-refs", *map(str, args.subtree_refs),
                   "--rounds", str(args.rounds))
