@@ -44,8 +44,8 @@ class NodeProgram:
     register; constants for unlinked inputs. Nodes: Image Texture (UV, Linear/Closest,
     Repeat), Texture Coordinate and UV Map (UV), Separate/Combine Color (RGB) and XYZ, Mix
     (float, colour and vector; Mix, Add, Multiply, Subtract, Screen, Difference, Darken,
-    Lighten), Math (the NODE_MATH_CODES operations), Invert, Checker Texture, Color Ramp, Value
-    and RGB. Another node makes its input keep its value, and the problem names it."""
+    Lighten), Math (the NODE_MATH_CODES operations), Invert, Checker Texture, Noise Texture (3D
+    fBm), Color Ramp, Value and RGB. Another node makes its input keep its value, and the problem names it."""
 
     def __init__(self, texture_index):
         self._texture_index = texture_index     # image -> texture table index
@@ -293,7 +293,41 @@ class NodeProgram:
             self._emit("GRADIENT", register, vector,
                        params=(NODE_GRADIENT_CODES[node.gradient_type],))
             return self._lane(register, 0) if name == "Fac" else self._whole(register)
+        if kind == "TEX_NOISE":
+            return self._noise(node, name)
         raise _Unsupported(f"node '{node.name}' ({node.bl_idname}) is not evaluated")
+
+    def _noise(self, node, name):
+        """Noise Texture (3D fBm): one instruction for both outputs; its Color (two more
+        fBm sums) only when that output is linked."""
+        if node.noise_dimensions != "3D" or node.noise_type != "FBM":
+            raise _Unsupported(f"node '{node.name}' (Noise Texture, {node.noise_dimensions} "
+                               f"{node.noise_type}) is not evaluated")
+        distortion = node.inputs["Distortion"]
+        if distortion.is_linked:
+            raise _Unsupported(f"node '{node.name}' (Noise Texture, linked Distortion) is not evaluated")
+        key = (node.name, "noise")
+        if key not in self._values:
+            vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked \
+                else self._coordinates("GENERATED")
+            settings = self._pack(node, ("Detail", "Roughness", "Lacunarity"))
+            scale = self._input(node, "Scale")
+            register = self._register()
+            self._emit("NOISE", register, vector, settings, scale,
+                       params=(float(node.normalize), float(node.outputs["Color"].is_linked),
+                               float(distortion.default_value)))
+            self._values[key] = register
+        register = self._values[key]
+        return self._lane(register, 0) if name == "Fac" else self._whole(register)
+
+    def _pack(self, node, names):
+        """Three float inputs in the lanes of one register: a constant when none is linked."""
+        if not any(node.inputs[k].is_linked for k in names):
+            return self._constant(tuple(socket_value(node.inputs[k]) for k in names))
+        a, b, c = (self._input(node, k) for k in names)
+        register = self._register()
+        self._emit("COMBINE", register, a, b, c)
+        return self._whole(register)
 
     def _coordinates(self, kind):
         """The hit point in Generated or Object coordinates (the unlinked default of the

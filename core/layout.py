@@ -200,13 +200,13 @@ INTERPOLATION_CODES = {"LINEAR": 0, "CLOSEST": 1}
 VISIBILITY_CODES = {"CAMERA": 1, "DIFFUSE": 2, "GLOSSY": 4, "TRANSMISSION": 8, "SHADOW": 16,
                     "HOLDOUT": 32}
 VISIBLE_TO_ALL = 31             # every ray sees it; no holdout
-# Shader node programs (core/scene/model.py NodeProgram; evaluated by shading.cl run_nodes):
+# Shader node programs (addon/nodes.py NodeProgram; evaluated by shading.cl run_nodes):
 # instructions of two float4 rows, (op, dst, a, b) and (c, p0, p1, p2); a, b, c are operand
 # references register * NODE_REF_REGISTER + lane (0-3: that lane in all four, 4: the whole
 # register). CONST loads its second row; OUT stores operand a into a BSDF input.
 NODE_OP_CODES = {"END": 0, "CONST": 1, "UV": 2, "IMAGE": 3, "COMBINE": 4, "MIX": 5, "MATH": 6,
                  "INVERT": 7, "CHECKER": 8, "RAMP": 9, "OUT": 10, "DOT": 11, "MAP_RANGE": 12,
-                 "VECTOR_MATH": 13, "HSV": 14, "GRADIENT": 15, "TRANSFORM": 16}
+                 "VECTOR_MATH": 13, "HSV": 14, "GRADIENT": 15, "TRANSFORM": 16, "NOISE": 17}
 NODE_MIX_CODES = {"MIX": 0, "ADD": 1, "MULTIPLY": 2, "SUBTRACT": 3, "SCREEN": 4,
                   "DIFFERENCE": 5, "DARKEN": 6, "LIGHTEN": 7}
 NODE_MATH_CODES = {"ADD": 0, "SUBTRACT": 1, "MULTIPLY": 2, "DIVIDE": 3, "MULTIPLY_ADD": 4,

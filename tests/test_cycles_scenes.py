@@ -2,8 +2,8 @@
 add-on, local slaves) at matched settings (tests/bpy_scripts/cycles_scenes.py): the world as
 a colour (sky fill) and as an HDRI (equirectangular and mirror ball, through a Mapping node),
 a room lit only by an emissive mesh, the BSDF nodes and Principled inputs, glass under an area
-light, Film > Transparent with a holdout, ray visibility, depth of field and camera motion
-blur. Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
+light, Film > Transparent with a holdout, ray visibility, depth of field, camera motion
+blur, shader node programs and procedural textures. Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
 uses; what is not supported is named in warnings. docs/cycles_features.md lists the rows."""
 from __future__ import annotations
 
@@ -34,6 +34,7 @@ SCENES = {
     "nodes": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "nodes_more": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "generated": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "WORLD"}),
+    "procedural": (12, {"AREA", "BOUNCES", "NODES", "NOISE", "SMOOTH", "SPECULAR", "WORLD"}),
 }
 # Cycles' Light Paths defaults (also ours), uniform sampling, the samples of each scene.
 MATCHED = {name: value for name, value in RenderSettings().to_dict().items()
@@ -113,5 +114,5 @@ def test_unsupported_things_are_named(renders):
     one("material 'toon'", "object 'toon floor'", "Toon")
     one("light 'narrow area'", "spread")
     one("object 'moving box'", "motion blur")
-    one("material 'noisy'", "object 'noisy cube'", "Noise Texture")
+    one("material 'noisy'", "object 'noisy cube'", "Voronoi Texture")
     assert len(warnings) == 6, warnings

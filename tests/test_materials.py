@@ -318,6 +318,103 @@ def test_node_program_evaluates_per_hit_as_numpy_does(tracer):
     assert fac.min() == 0 and fac.max() == 1
 
 
+def lookup3_final(a, b, c):
+    """Bob Jenkins' lookup3 final mix on uint32 arrays (as Cycles' hash_uint2/3)."""
+    def rot(x, k):
+        return (x << np.uint32(k)) | (x >> np.uint32(32 - k))
+    a, b, c = (np.asarray(v, np.uint32).copy() for v in (a, b, c))
+    with np.errstate(over="ignore"):
+        for x, y, z, k in ((c, b, None, 14), (a, c, None, 11), (b, a, None, 25), (c, b, None, 16),
+                           (a, c, None, 4), (b, a, None, 14), (c, b, None, 24)):
+            x ^= y
+            x -= rot(y, k)
+    return c
+
+
+def perlin_fbm(p, detail, roughness, lacunarity, distortion, colour):
+    """Cycles' Noise Texture (3D fBm, normalised) at points p (..., 3), in numpy (float64)."""
+    def signed(q):
+        cell = np.floor(q)
+        f, i = q - cell, cell.astype(np.int64)
+        fade = f * f * f * (f * (f * 6 - 15) + 10)
+        seed = np.uint32(0xdeadbeef + (3 << 2) + 13)
+        total = 0.0
+        for k in range(8):
+            d = np.array([k & 1, (k >> 1) & 1, k >> 2])
+            words = [(i[..., j] + d[j]).astype(np.uint32) + seed for j in range(3)]
+            with np.errstate(over="ignore"):
+                h = lookup3_final(*words) & np.uint32(15)
+            x, y, z = (f[..., j] - d[j] for j in range(3))
+            u = np.where(h < 8, x, y)
+            v = np.where(h < 4, y, np.where((h == 12) | (h == 14), x, z))
+            g = np.where(h & 1, -u, u) + np.where(h & 2, -v, v)
+            weight = np.prod([fade[..., j] if d[j] else 1 - fade[..., j] for j in range(3)], axis=0)
+            total = total + weight * g
+        return 0.982 * total
+
+    def fbm(q):
+        amp, scale, sums, total = 1.0, 1.0, [], 0.0
+        for _ in range(int(detail) + 2):
+            total = total + amp * signed(scale * q)
+            sums.append((total, amp))
+            amp, scale = amp * roughness, scale * lacunarity
+        norm = [0.5 * t / sum(a for _, a in sums[:n + 1]) + 0.5 for n, (t, _) in enumerate(sums)]
+        rest = detail - np.floor(detail)
+        return norm[int(detail)] + rest * (norm[int(detail) + 1] - norm[int(detail)])
+
+    def offset(seed):
+        init = np.uint32(0xdeadbeef + (2 << 2) + 13)
+        bits = [np.float32(v).view(np.uint32) for v in (seed, 0.0, 1.0, 2.0)]
+        with np.errstate(over="ignore"):
+            h = [lookup3_final(init + bits[0], init + bits[k], init) for k in (1, 2, 3)]
+        return 100.0 + np.array([float(v) for v in h]) * (100.0 / 4294967296.0)
+    p = p + distortion * np.stack([signed(p + offset(k)) for k in range(3)], -1)
+    value = fbm(p)
+    return np.stack([value] + ([fbm(p + offset(3)), fbm(p + offset(4))] if colour else [value] * 2), -1)
+
+
+def test_noise_texture_is_cycles_perlin_fbm(tracer):
+    """The Noise Texture instruction (3D fBm with a fractional detail, distortion and its
+    Color) on a plane's Object coordinates, as the base colour under a sun: each pixel is the
+    numpy evaluation of Cycles' noise x E / pi."""
+    from core.layout import NODE_OP_CODES as OP, NODE_OUT_CODES, NODE_REF_REGISTER as R
+    from core.scene.model import MATERIAL_PARAMS, check_node_program, default_material_params
+    vertices, triangles = grid_plane(2.0, 1, 0.37)
+    geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16),
+                        uvs=np.zeros((3 * len(triangles), 2), np.float32))
+    tracer.load(Scene.from_parts(geometry, build_kdtree(vertices, triangles)))
+    whole = lambda r: r * R + 4
+    detail, roughness, lacunarity, distortion, scale = 2.5, 0.6, 2.1, 0.4, 3.0
+    code = [(OP["TRANSFORM"], 0, 0, 0), (0, 12, 0, 0),                # identity rows after END
+            (OP["CONST"], 1, 0, 0), (detail, roughness, lacunarity, 1.0),
+            (OP["CONST"], 2, 0, 0), (scale,) * 4,
+            (OP["NOISE"], 3, whole(0), whole(1)), (2 * R, 1, 1, distortion),
+            (OP["OUT"], 0, whole(3), 0), (0, NODE_OUT_CODES["BASE_COLOR"], 0, 0),
+            (OP["END"], 0, 0, 0), (0, 0, 0, 0),
+            (1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 0)]
+    rows = np.array(code, np.float32)
+    params = default_material_params(1)
+    params[0, MATERIAL_PARAMS.index("specular")] = 0.0
+    params[0, MATERIAL_PARAMS.index("program")] = 0
+    check_node_program(rows.tolist(), params[:, MATERIAL_PARAMS.index("program")])
+    shading = Shading(np.array([[1, 1, 1, 1]], np.float32),
+                      [Light("SUN", (1, 1, 1), 2.0, direction=(0, 0, -1))], (0, 0, 0), params,
+                      node_program=rows)
+    m = np.eye(4)
+    m[2, 3] = 1.0
+    size = 24
+    view = View(Camera("ORTHO", m, (1.0, 1.0), (0, 0), 0.01, 10.0), size, size, shading,
+                settings=RenderSettings(samples_per_axis=1, adaptive=False, max_bounces=0))
+    image = tracer.render_tile(view, 0, 0, size, size)["combined"][..., :3]
+    assert {"NODES", "NOISE"} <= set(tracer.last_render["features"])
+    centres = (np.arange(size) + 0.5) / size * 2 - 1
+    x, y = np.meshgrid(centres, centres[::-1])
+    p = np.stack([x, y, np.full_like(x, 0.37)], -1) * scale
+    expected = perlin_fbm(p, detail, roughness, lacunarity, distortion, colour=True)
+    np.testing.assert_allclose(image, expected * 2.0 / np.pi, rtol=1e-3, atol=2e-4)
+    assert expected.std() > 0.05 and np.abs(expected[..., 1] - expected[..., 0]).mean() > 0.03
+
+
 @pytest.mark.parametrize("bad", [
     lambda rows: rows.__setitem__(0, [99, 0, 0, 0]),                  # unknown operation
     lambda rows: rows.__setitem__(10, [6, 4, 8 * 40, 1]),             # register out of range

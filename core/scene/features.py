@@ -31,6 +31,7 @@ FEATURES = {
     "DOF": (),                # depth of field: a thin lens with an aperture
     "CAMERA_MOTION": (),      # camera motion blur: the camera moves while the shutter is open
     "NODES": ("uvs",),        # shader node programs compute BSDF inputs per hit
+    "NOISE": (),              # a node program evaluates a Noise Texture
 }
 ALL_FEATURES = frozenset(FEATURES)
 
@@ -59,6 +60,9 @@ def scene_features(geometry: Geometry, view: View, used_materials=None) -> froze
     programs = column("program")
     if (programs >= 0).any():
         features.add("NODES")
+        ops = program_instructions(shading.node_program, programs[programs >= 0])[:, 0]
+        if (ops == NODE_OP_CODES["NOISE"]).any():
+            features.add("NOISE")
     if geometry.texture_count and ((column("texture") >= 0).any() or
                                    program_textures(shading.node_program, programs[programs >= 0])):
         features.add("TEXTURES")
@@ -106,15 +110,21 @@ def scene_features(geometry: Geometry, view: View, used_materials=None) -> froze
     return frozenset(features)
 
 
+def program_instructions(program: np.ndarray, starts) -> np.ndarray:
+    """The instructions (N, 8: both rows) of the node programs starting at `starts` (rows, -1
+    none), each up to its END."""
+    out = [np.zeros((0, 8), np.float32)]
+    for start in sorted({int(v) for v in starts if v >= 0}):
+        code = program[start:start + (len(program) - start) // 2 * 2].reshape(-1, 8)
+        end = np.flatnonzero(code[:, 0] == NODE_OP_CODES["END"])
+        out.append(code[:end[0] if len(end) else len(code)])
+    return np.concatenate(out)
+
+
 def program_textures(program: np.ndarray, starts) -> set:
     """The texture indices that the node programs starting at `starts` (rows, -1 none) read."""
-    out = set()
-    for start in sorted({int(v) for v in starts if v >= 0}):
-        ops = program[start::2, 0]
-        end = np.flatnonzero(ops == NODE_OP_CODES["END"])
-        images = np.flatnonzero(ops[:end[0] if len(end) else len(ops)] == NODE_OP_CODES["IMAGE"])
-        out.update(int(program[start + 2 * i + 1, 1]) for i in images)
-    return out
+    code = program_instructions(program, starts)
+    return {int(v) for v in code[code[:, 0] == NODE_OP_CODES["IMAGE"], 5]}
 
 
 def needed_arrays(features) -> set:

@@ -392,6 +392,115 @@ inline float node_gradient(int kind, float4 p)
     return clamp(r, 0.0f, 1.0f);
 }
 
+#ifdef HAS_NOISE
+// Cycles' Noise Texture (3D, fBm): Perlin noise with Cycles' hash (Bob Jenkins' lookup3) and
+// gradients, so that the pattern is Cycles' own, not merely alike.
+inline uint lookup3_final(uint a, uint b, uint c)
+{
+    c ^= b; c -= rotate(b, 14u);
+    a ^= c; a -= rotate(c, 11u);
+    b ^= a; b -= rotate(a, 25u);
+    c ^= b; c -= rotate(b, 16u);
+    a ^= c; a -= rotate(c, 4u);
+    b ^= a; b -= rotate(a, 14u);
+    c ^= b; c -= rotate(b, 24u);
+    return c;
+}
+
+// A lattice point's hash: lookup3 of three words (its integer coordinates).
+inline uint noise_hash(int x, int y, int z)
+{
+    uint seed = 0xdeadbeefu + (3u << 2) + 13u;
+    return lookup3_final(seed + (uint)x, seed + (uint)y, seed + (uint)z);
+}
+
+// One of 12 edge directions of a cube (4 of them twice) dotted with the offset to the point.
+inline float noise_gradient(uint hash, float x, float y, float z)
+{
+    uint h = hash & 15u;
+    float u = h < 8u ? x : y;
+    float v = h < 4u ? y : (h == 12u || h == 14u) ? x : z;
+    return ((h & 1u) ? -u : u) + ((h & 2u) ? -v : v);
+}
+
+inline float noise_fade(float t)
+{
+    return t * t * t * (t * (t * 6.0f - 15.0f) + 10.0f);
+}
+
+// Signed Perlin noise in about [-1, 1] (Cycles' snoise_3d): repeats every 100000 units, as
+// Cycles' does, to keep float precision.
+inline float signed_noise(float3 p)
+{
+    float3 big = (float3)(fabs(p.x) >= 1e6f ? 0.5f : 0.0f, fabs(p.y) >= 1e6f ? 0.5f : 0.0f,
+                          fabs(p.z) >= 1e6f ? 0.5f : 0.0f);
+    p = fmod(p, 100000.0f) + big;
+    float3 cell = floor(p), f = p - cell;
+    int X = (int)cell.x, Y = (int)cell.y, Z = (int)cell.z;
+    float u = noise_fade(f.x), v = noise_fade(f.y), w = noise_fade(f.z);
+    float g[8];
+    for (int k = 0; k < 8; ++k) {
+        int dx = k & 1, dy = (k >> 1) & 1, dz = k >> 2;
+        g[k] = noise_gradient(noise_hash(X + dx, Y + dy, Z + dz), f.x - (float)dx,
+                              f.y - (float)dy, f.z - (float)dz);
+    }
+    float u1 = 1.0f - u, v1 = 1.0f - v, w1 = 1.0f - w;
+    float r = w1 * (v1 * (g[0] * u1 + g[1] * u) + v * (g[2] * u1 + g[3] * u)) +
+              w * (v1 * (g[4] * u1 + g[5] * u) + v * (g[6] * u1 + g[7] * u));
+    return 0.9820f * r;             // Cycles' (OSL's) scale of 3D Perlin noise
+}
+
+// Fractal Brownian motion: octaves at `lacunarity` times the frequency and `roughness` times
+// the amplitude, the fraction of `detail` blending in the last; normalised to [0, 1] or not.
+inline float noise_fbm(float3 p, float detail, float roughness, float lacunarity, bool normalize)
+{
+    float scale = 1.0f, amp = 1.0f, max_amp = 0.0f, sum = 0.0f;
+    for (int i = 0; i <= (int)detail; ++i) {
+        sum += signed_noise(scale * p) * amp;
+        max_amp += amp;
+        amp *= roughness;
+        scale *= lacunarity;
+    }
+    float rest = detail - floor(detail);
+    if (rest != 0.0f) {
+        float sum2 = sum + signed_noise(scale * p) * amp;
+        return normalize ? mix(0.5f * sum / max_amp + 0.5f, 0.5f * sum2 / (max_amp + amp) + 0.5f, rest)
+                         : mix(sum, sum2, rest);
+    }
+    return normalize ? 0.5f * sum / max_amp + 0.5f : sum;
+}
+
+// Cycles' seed offsets for the distortion and colour channels: 100 + 100 x hash(seed, axis),
+// the hash of the two floats' bits (lookup3 of two words).
+inline float3 noise_offset(float seed)
+{
+    uint init = 0xdeadbeefu + (2u << 2) + 13u;
+    float3 r;
+    r.x = (float)lookup3_final(init + as_uint(seed), init + as_uint(0.0f), init);
+    r.y = (float)lookup3_final(init + as_uint(seed), init + as_uint(1.0f), init);
+    r.z = (float)lookup3_final(init + as_uint(seed), init + as_uint(2.0f), init);
+    return 100.0f + r * (100.0f / (float)0xFFFFFFFFu);
+}
+
+// The Noise Texture at p (already times Scale): (Fac, Fac, Fac) or, with `colour`, its Color.
+inline float4 node_noise(float3 p, float detail, float roughness, float lacunarity,
+                         float distortion, bool normalize, bool colour)
+{
+    detail = clamp(detail, 0.0f, 15.0f);
+    roughness = fmax(roughness, 0.0f);
+    if (distortion != 0.0f)
+        p += (float3)(signed_noise(p + noise_offset(0.0f)), signed_noise(p + noise_offset(1.0f)),
+                      signed_noise(p + noise_offset(2.0f))) * distortion;
+    float f = noise_fbm(p, detail, roughness, lacunarity, normalize);
+    float4 out = (float4)(f, f, f, 1.0f);
+    if (colour) {
+        out.y = noise_fbm(p + noise_offset(3.0f), detail, roughness, lacunarity, normalize);
+        out.z = noise_fbm(p + noise_offset(4.0f), detail, roughness, lacunarity, normalize);
+    }
+    return out;
+}
+#endif
+
 // Runs the program at row `at` of the materials buffer for the hit (uv: its texture
 // coordinates) and sets the BSDF inputs it computes.
 inline void run_nodes(const Scene *sc, int at, float2 uv, float3 p, Material *m)
@@ -461,6 +570,10 @@ inline void run_nodes(const Scene *sc, int at, float2 uv, float3 p, Material *m)
         } else if (op == NODE_OP_GRADIENT) {
             float f = node_gradient((int)w1.y, a);
             out = (float4)(f, f, f, f);
+#ifdef HAS_NOISE
+        } else if (op == NODE_OP_NOISE) {      // a: vector; b: detail, roughness, lacunarity; c: scale
+            out = node_noise(a.xyz * c.x, b.x, b.y, b.z, w1.w, w1.y > 0.0f, w1.z > 0.0f);
+#endif
         } else if (op == NODE_OP_TRANSFORM) {  // Generated / Object coordinates of the hit
             __global const float4 *rows = code + pc + (int)w1.y;
             float4 q = (float4)(p, 1.0f);

@@ -520,6 +520,36 @@ def build(name):
         floor(m, size=6.0)
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
+    elif name == "procedural":
+        # Cycles' Noise Texture (its own Perlin noise and fBm): Color at the default Generated
+        # coordinates, with distortion and a fractional detail; Fac through a Color Ramp at
+        # Object coordinates, and as Roughness.
+        world((0.3, 0.32, 0.36))
+        m, nodes, links, bsdf = node_material("noise colour")
+        noise = nodes.new("ShaderNodeTexNoise")
+        noise.inputs["Scale"].default_value = 4.0
+        noise.inputs["Detail"].default_value = 3.5
+        noise.inputs["Distortion"].default_value = 0.3
+        links.new(noise.outputs["Color"], bsdf.inputs["Base Color"])
+        sphere(m, (-0.7, 0.3, 0.6))
+        m, nodes, links, bsdf = node_material("noise floor")
+        coords = nodes.new("ShaderNodeTexCoord")
+        noise = nodes.new("ShaderNodeTexNoise")
+        noise.inputs["Scale"].default_value = 1.5
+        noise.inputs["Roughness"].default_value = 0.7
+        noise.inputs["Lacunarity"].default_value = 2.5
+        links.new(coords.outputs["Object"], noise.inputs["Vector"])
+        ramp = nodes.new("ShaderNodeValToRGB")
+        ramp.color_ramp.elements[0].position = 0.35
+        ramp.color_ramp.elements[0].color = (0.6, 0.15, 0.1, 1)
+        ramp.color_ramp.elements[1].position = 0.65
+        ramp.color_ramp.elements[1].color = (0.9, 0.85, 0.6, 1)
+        links.new(noise.outputs["Fac"], ramp.inputs["Fac"])
+        links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
+        links.new(noise.outputs["Fac"], bsdf.inputs["Roughness"])
+        floor(m, size=6.0)
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "warned":
         # Things KD Trace does not render, each to be named in a warning (export only).
         w = bpy.data.worlds.new("sky world")
@@ -538,8 +568,8 @@ def build(name):
         toon.node_tree.links.new(node.outputs[0], toon.node_tree.nodes["Material Output"].inputs["Surface"])
         floor(toon).name = "toon floor"
         noisy, nodes, links, bsdf = node_material("noisy")
-        noise = nodes.new("ShaderNodeTexNoise")
-        links.new(noise.outputs["Color"], bsdf.inputs["Base Color"])
+        voronoi = nodes.new("ShaderNodeTexVoronoi")
+        links.new(voronoi.outputs["Color"], bsdf.inputs["Base Color"])
         add(bpy.ops.mesh.primitive_cube_add, noisy, size=0.4, location=(-1.5, 0.0, 0.2)).name = "noisy cube"
         light("AREA", (0, 0, 3), (0, 0, 0), energy=100.0, size=1.0, spread=math.radians(60))
         bpy.data.objects["area"].name = "narrow area"
