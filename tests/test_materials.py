@@ -259,13 +259,31 @@ def test_albedo_tables_match_a_fresh_integration():
         assert abs(leave[i, r, m] - generator.dielectric_albedo(mu, rough, 1 / ior, 64)[1]) < 3e-3
 
 
+def render_program_under_sun(tracer, rows, size, sun=(0, 0, -1)):
+    """The loaded scene (seen from z = 1 by an orthographic camera over [-1, 1]^2, one sample
+    at each pixel centre) with one white diffuse material whose node program is `rows`
+    (checked as the network's are), under a sun of irradiance 2: Combined RGB."""
+    from core.scene.model import MATERIAL_PARAMS, check_node_program
+    params = default_material_params(1)
+    params[0, MATERIAL_PARAMS.index("specular")] = 0.0
+    params[0, MATERIAL_PARAMS.index("program")] = 0
+    check_node_program(rows.tolist(), params[:, MATERIAL_PARAMS.index("program")])
+    shading = Shading(np.array([[1, 1, 1, 1]], np.float32),
+                      [Light("SUN", (1, 1, 1), 2.0, direction=sun)], (0, 0, 0), params,
+                      node_program=rows)
+    m = np.eye(4)
+    m[2, 3] = 1.0
+    view = View(Camera("ORTHO", m, (1.0, 1.0), (0, 0), 0.01, 10.0), size, size, shading,
+                settings=RenderSettings(samples_per_axis=1, adaptive=False, max_bounces=0))
+    return tracer.render_tile(view, 0, 0, size, size)["combined"][..., :3]
+
+
 def test_node_program_evaluates_per_hit_as_numpy_does(tracer):
     """A shader node program (checker on the UVs, math, colour ramp, multiply mix) sets the base
     colour per hit: under a sun straight down (one sample at each pixel centre, no specular)
     each pixel is that colour x E / pi, against the same nodes evaluated here in numpy."""
     from core.layout import NODE_MATH_CODES, NODE_MIX_CODES, NODE_OP_CODES as OP, NODE_OUT_CODES
     from core.layout import NODE_RAMP_SIZE, NODE_REF_REGISTER as R
-    from core.scene.model import MATERIAL_PARAMS, check_node_program, default_material_params
     vertices, triangles = grid_plane(2.0, 1, 0.0)
     uvs = (vertices[triangles.reshape(-1)][:, :2] + 1.0) / 2.0          # u, v = (x, y + 1) / 2
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16),
@@ -286,20 +304,9 @@ def test_node_program_evaluates_per_hit_as_numpy_does(tracer):
         (OP["OUT"], 0, whole(7), 0), (0, NODE_OUT_CODES["BASE_COLOR"], 0, 0),
         (OP["END"], 0, 0, 0), (0, 0, 0, 0)]
     code[13] = (0, len(code) - 12, 1, 0)                      # the table follows END
-    rows = np.array(code + [tuple(r) for r in ramp], np.float32)
-    params = default_material_params(1)
-    params[0, MATERIAL_PARAMS.index("specular")] = 0.0
-    params[0, MATERIAL_PARAMS.index("program")] = 0
-    check_node_program(rows.tolist(), params[:, MATERIAL_PARAMS.index("program")])
-    shading = Shading(np.array([[1, 1, 1, 1]], np.float32),
-                      [Light("SUN", (1, 1, 1), 2.0, direction=(0, 0, -1))], (0, 0, 0), params,
-                      node_program=rows)
-    m = np.eye(4)
-    m[2, 3] = 1.0
     size = 24
-    view = View(Camera("ORTHO", m, (1.0, 1.0), (0, 0), 0.01, 10.0), size, size, shading,
-                settings=RenderSettings(samples_per_axis=1, adaptive=False, max_bounces=0))
-    image = tracer.render_tile(view, 0, 0, size, size)["combined"][..., :3]
+    image = render_program_under_sun(tracer, np.array(code + [tuple(r) for r in ramp], np.float32),
+                                     size)
     assert {"NODES"} <= set(tracer.last_render["features"])
     # numpy: the same nodes at the pixel centres (x right, y up)
     centres = (np.arange(size) + 0.5) / size
@@ -378,7 +385,6 @@ def test_noise_texture_is_cycles_perlin_fbm(tracer):
     Color) on a plane's Object coordinates, as the base colour under a sun: each pixel is the
     numpy evaluation of Cycles' noise x E / pi."""
     from core.layout import NODE_OP_CODES as OP, NODE_OUT_CODES, NODE_REF_REGISTER as R
-    from core.scene.model import MATERIAL_PARAMS, check_node_program, default_material_params
     vertices, triangles = grid_plane(2.0, 1, 0.37)
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16),
                         uvs=np.zeros((3 * len(triangles), 2), np.float32))
@@ -392,20 +398,8 @@ def test_noise_texture_is_cycles_perlin_fbm(tracer):
             (OP["OUT"], 0, whole(3), 0), (0, NODE_OUT_CODES["BASE_COLOR"], 0, 0),
             (OP["END"], 0, 0, 0), (0, 0, 0, 0),
             (1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 0)]
-    rows = np.array(code, np.float32)
-    params = default_material_params(1)
-    params[0, MATERIAL_PARAMS.index("specular")] = 0.0
-    params[0, MATERIAL_PARAMS.index("program")] = 0
-    check_node_program(rows.tolist(), params[:, MATERIAL_PARAMS.index("program")])
-    shading = Shading(np.array([[1, 1, 1, 1]], np.float32),
-                      [Light("SUN", (1, 1, 1), 2.0, direction=(0, 0, -1))], (0, 0, 0), params,
-                      node_program=rows)
-    m = np.eye(4)
-    m[2, 3] = 1.0
     size = 24
-    view = View(Camera("ORTHO", m, (1.0, 1.0), (0, 0), 0.01, 10.0), size, size, shading,
-                settings=RenderSettings(samples_per_axis=1, adaptive=False, max_bounces=0))
-    image = tracer.render_tile(view, 0, 0, size, size)["combined"][..., :3]
+    image = render_program_under_sun(tracer, np.array(code, np.float32), size)
     assert {"NODES", "NOISE"} <= set(tracer.last_render["features"])
     centres = (np.arange(size) + 0.5) / size * 2 - 1
     x, y = np.meshgrid(centres, centres[::-1])
