@@ -10,8 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.layout import (NODE_EXTENSION_CODES, NODE_GRADIENT_CODES, NODE_MATH_CODES, NODE_MIX_CODES,
-                           NODE_OP_CODES, NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER,
-                           NODE_REGISTERS, NODE_TRANSFORM_SIZE, NODE_VECTOR_MATH_CODES)
+                           NODE_NORMAL_SPACE_CODES, NODE_OBJECT_NORMAL_SPACES, NODE_OP_CODES,
+                           NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS,
+                           NODE_TRANSFORM_SIZE, NODE_VECTOR_MATH_CODES)
 from ..core.scene.model import DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS
 
 # What Cycles renders where there is no material: a default Principled BSDF.
@@ -45,7 +46,8 @@ class NodeProgram:
     Repeat), Texture Coordinate and UV Map (UV), Separate/Combine Color (RGB) and XYZ, Mix
     (float, colour and vector; Mix, Add, Multiply, Subtract, Screen, Difference, Darken,
     Lighten), Math (the NODE_MATH_CODES operations), Invert, Checker Texture, Noise Texture (3D
-    fBm), Color Ramp, Value and RGB. Another node makes its input keep its value, and the problem names it."""
+    fBm), Color Ramp, Value and RGB; into a BSDF's Normal: Normal Map (tangent, object, world
+    space) and Bump. Another node makes its input keep its value, and the problem names it."""
 
     def __init__(self, texture_index):
         self._texture_index = texture_index     # image -> texture table index
@@ -56,10 +58,14 @@ class NodeProgram:
         self._next = 0
         self.outputs = []
         self.transforms = []                    # (instruction index, "OBJECT" or "GENERATED")
+        self._step = 0                          # compiling a Bump's height: its step 0, 1, 2
 
     @property
     def reads_uv(self) -> bool:
-        return any(op == "UV" for op, *_ in self._code)
+        """Whether the program reads the UV map (UV coordinates, a tangent-space normal map)."""
+        tangent = float(NODE_NORMAL_SPACE_CODES["TANGENT"])
+        return any(op == "UV" or (op == "NORMAL_MAP" and params[1] == tangent)
+                   for op, _, _, _, _, params in self._code)
 
     def output(self, socket, field, problems) -> bool:
         """Evaluate the graph linked to `socket` into BSDF input `field`; False (with a
@@ -70,9 +76,10 @@ class NodeProgram:
             ref = self._linked(socket)
         except _Unsupported as error:
             self._code, self._ramps, self._values, self._kinds, self._next, self.transforms = saved
-            problems.append(f"input '{socket.name}': {error}; using its value {socket_value(socket)}")
+            keeps = "the surface's own normal" if field == "NORMAL" else f"its value {socket_value(socket)}"
+            problems.append(f"input '{socket.name}': {error}; using {keeps}")
             return False
-        if field != "BASE_COLOR":
+        if field not in ("BASE_COLOR", "NORMAL"):
             ref = self._as_float(ref)
         self._emit("OUT", 0, ref, params=(NODE_OUT_CODES[field],))
         self.outputs.append(field)
@@ -95,7 +102,7 @@ class NodeProgram:
             table_row += len(table)
         for index, (op, dst, a, b, c, params) in enumerate(code):
             params = tuple(params) + (0.0,) * (3 - len(params))
-            if op in ("RAMP", "TRANSFORM"):
+            if index in offsets:            # RAMP, TRANSFORM, object space NORMAL_MAP
                 params = (float(offsets[index]),) + params[1:]
             if op == "CONST":
                 rows += [(NODE_OP_CODES[op], dst, 0, 0), tuple(a)]
@@ -123,14 +130,21 @@ class NodeProgram:
         return register * NODE_REF_REGISTER + lane
 
     def _constant(self, value):
+        """A register holding `value` (one per distinct value: a Bump compiles its height three
+        times)."""
+        key = ("constant", value if isinstance(value, tuple) else float(value))
+        if key in self._values:
+            return self._values[key]
         register = self._register()
         if not isinstance(value, tuple):
             self._code.append(("CONST", register, (float(value),) * 4, 0, 0, ()))
-            return self._lane(register, 0)
+            self._values[key] = self._lane(register, 0)
+            return self._values[key]
         self._kinds[self._whole(register)] = "RGBA" if len(value) == 4 else "VECTOR"
         value = tuple(float(v) for v in value) + (1.0,) * (4 - len(value))
         self._code.append(("CONST", register, value, 0, 0, ()))
-        return self._whole(register)
+        self._values[key] = self._whole(register)
+        return self._values[key]
 
     def _input(self, node, key):
         """The operand of a node's input (by name or index), converted as Blender converts
@@ -167,7 +181,7 @@ class NodeProgram:
                 return self._constant(socket_value(node.inputs[0]))
             link = node.inputs[0].links[0]
             node, out = link.from_node, link.from_socket
-        key = (node.name, out.identifier)
+        key = (node.name, out.identifier, self._step)
         if key not in self._values:
             self._values[key] = self._node(node, out)
             self._kinds[self._values[key]] = out.type
@@ -176,9 +190,7 @@ class NodeProgram:
     def _node(self, node, out):
         kind, name = node.type, out.name
         if kind in ("TEX_COORD", "UVMAP") and name == "UV":
-            register = self._register()
-            self._emit("UV", register)
-            return self._whole(register)
+            return self._uv()
         if kind == "TEX_COORD" and name in ("Generated", "Object") and node.object is None:
             return self._coordinates(name.upper())
         if kind == "VALUE":
@@ -189,9 +201,7 @@ class NodeProgram:
                 node.extension in NODE_EXTENSION_CODES:     # Cubic, Smart: bilinear
             vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked else None
             if vector is None:
-                register = self._register()
-                self._emit("UV", register)
-                vector = self._whole(register)
+                vector = self._uv()
             register = self._register()
             self._emit("IMAGE", register, vector,
                        params=(self._texture_index(node.image), float(node.interpolation == "Closest"),
@@ -295,6 +305,16 @@ class NodeProgram:
             return self._lane(register, 0) if name == "Fac" else self._whole(register)
         if kind == "TEX_NOISE":
             return self._noise(node, name)
+        if kind == "NORMAL_MAP":
+            colour, strength = self._input(node, "Color"), self._input(node, "Strength")
+            register = self._register()
+            if node.space in NODE_OBJECT_NORMAL_SPACES:
+                self.transforms.append((len(self._code), "OBJECT"))     # its normal matrix
+            self._emit("NORMAL_MAP", register, colour, strength,
+                       params=(0.0, float(NODE_NORMAL_SPACE_CODES[node.space])))
+            return self._whole(register)
+        if kind == "BUMP":
+            return self._bump(node)
         raise _Unsupported(f"node '{node.name}' ({node.bl_idname}) is not evaluated")
 
     def _noise(self, node, name):
@@ -306,7 +326,7 @@ class NodeProgram:
         distortion = node.inputs["Distortion"]
         if distortion.is_linked:
             raise _Unsupported(f"node '{node.name}' (Noise Texture, linked Distortion) is not evaluated")
-        key = (node.name, "noise")
+        key = (node.name, "noise", self._step)
         if key not in self._values:
             vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked \
                 else self._coordinates("GENERATED")
@@ -320,23 +340,56 @@ class NodeProgram:
         register = self._values[key]
         return self._lane(register, 0) if name == "Fac" else self._whole(register)
 
+    def _bump(self, node):
+        """Bump: its height compiled three times, at the hit and at two steps along the surface
+        (UV and TRANSFORM read the moved point), as Cycles evaluates it."""
+        if self._step:
+            raise _Unsupported(f"node '{node.name}' (a Bump in a Bump's height) is not evaluated")
+        heights = []
+        try:
+            for step in (0, 1, 2):
+                self._step = step
+                heights.append(self._input(node, "Height"))
+        finally:
+            self._step = 0
+        combined = self._register()
+        self._emit("COMBINE", combined, *heights)
+        normal = node.inputs["Normal"]
+        normal_ref = self._input(node, "Normal") if normal.is_linked else 0
+        settings = self._pack(node, ("Strength", "Distance"))
+        register = self._register()
+        self._emit("BUMP", register, self._whole(combined), normal_ref, settings,
+                   params=(float(node.invert), float(normal.is_linked)))
+        return self._whole(register)
+
     def _pack(self, node, names):
-        """Three float inputs in the lanes of one register: a constant when none is linked."""
+        """Up to three float inputs in the lanes of one register: a constant when none is
+        linked."""
         if not any(node.inputs[k].is_linked for k in names):
-            return self._constant(tuple(socket_value(node.inputs[k]) for k in names))
-        a, b, c = (self._input(node, k) for k in names)
+            return self._constant(tuple(socket_value(node.inputs[k]) for k in names)
+                                  + (0.0,) * (3 - len(names)))
+        a, b, c = [self._input(node, k) for k in names] + [self._constant(0.0)] * (3 - len(names))
         register = self._register()
         self._emit("COMBINE", register, a, b, c)
         return self._whole(register)
 
+    def _uv(self):
+        """The hit's UVs (at the Bump step being compiled)."""
+        key = ("uv", self._step)
+        if key not in self._values:
+            register = self._register()
+            self._emit("UV", register, params=(float(self._step),))
+            self._values[key] = self._whole(register)
+        return self._values[key]
+
     def _coordinates(self, kind):
         """The hit point in Generated or Object coordinates (the unlinked default of the
         procedural textures is Generated)."""
-        key = ("coordinates", kind)
+        key = ("coordinates", kind, self._step)
         if key not in self._values:
             register = self._register()
             self.transforms.append((len(self._code), kind))
-            self._emit("TRANSFORM", register)
+            self._emit("TRANSFORM", register, params=(0.0, float(self._step)))
             self._values[key] = self._whole(register)
             self._kinds[self._whole(register)] = "VECTOR"
         return self._values[key]
@@ -380,6 +433,18 @@ def _linked_stand_in(output, value):
     the kernel features the input may need (core/scene/features.py)."""
     return {"METALLIC": 0.5, "TRANSMISSION": 0.5, "SPECULAR": max(value, 0.5),
             "ALPHA": 0.5}.get(output, value)
+
+
+def _normal_input(node, problems, program):
+    """A linked Normal input through the node program (Normal Map, Bump)."""
+    socket = node.inputs.get("Normal")
+    if socket is None or not socket.is_linked:
+        return
+    if program is None:
+        problems.append(f"input 'Normal' of '{node.name}' is linked, which KD Trace does not "
+                        "evaluate here; ignored")
+    else:
+        program.output(socket, "NORMAL", problems)
 
 
 def _unhandled_links(node, handled, problems):
@@ -455,15 +520,17 @@ def material_parameters(material, program=None):
         tint = node.inputs.get("Specular Tint")
         if tint is not None and (tint.is_linked or min(socket_value(tint)[:3]) < 1.0):
             problems.append("'Specular Tint' is not supported; rendering white")
+        _normal_input(node, problems, program)
         _unhandled_links(node, ("Base Color", "Alpha", "Emission Color", "Emission Strength",
-                                *_PRINCIPLED), problems)
+                                "Normal", *_PRINCIPLED), problems)
     elif kind == "BSDF_DIFFUSE":
         color, image = _color_input(node, "Color", problems, program)
         params["roughness"], params["specular"] = 1.0, 0.0
         roughness = input_value(node, "Roughness", problems)
         if roughness:
             problems.append("Oren-Nayar roughness is rendered as Lambertian diffuse")
-        _unhandled_links(node, ("Color", "Roughness"), problems)
+        _normal_input(node, problems, program)
+        _unhandled_links(node, ("Color", "Roughness", "Normal"), problems)
     elif kind in ("BSDF_GLOSSY", "BSDF_ANISOTROPIC"):
         color, image = _color_input(node, "Color", problems, program)
         params["metallic"] = 1.0
@@ -471,7 +538,8 @@ def material_parameters(material, program=None):
         anisotropy = node.inputs.get("Anisotropy")
         if anisotropy is not None and (anisotropy.is_linked or socket_value(anisotropy) != 0):
             problems.append("'Anisotropy' is not supported and is ignored")
-        _unhandled_links(node, ("Color", "Roughness", "Anisotropy"), problems)
+        _normal_input(node, problems, program)
+        _unhandled_links(node, ("Color", "Roughness", "Anisotropy", "Normal"), problems)
     elif kind == "BSDF_GLASS":
         color, image = _color_input(node, "Color", problems)
         # The Glass BSDF tints every refraction by its colour; Principled (the kernel) by the

@@ -203,10 +203,13 @@ VISIBLE_TO_ALL = 31             # every ray sees it; no holdout
 # Shader node programs (addon/nodes.py NodeProgram; evaluated by shading.cl run_nodes):
 # instructions of two float4 rows, (op, dst, a, b) and (c, p0, p1, p2); a, b, c are operand
 # references register * NODE_REF_REGISTER + lane (0-3: that lane in all four, 4: the whole
-# register). CONST loads its second row; OUT stores operand a into a BSDF input.
+# register). CONST loads its second row; OUT stores operand a into a BSDF input. Under a Bump
+# node the height's coordinates are read three times: UV p0 and TRANSFORM p1 name the step
+# (0: the hit, 1 and 2: a small step along the surface; shading.cl bump_offsets).
 NODE_OP_CODES = {"END": 0, "CONST": 1, "UV": 2, "IMAGE": 3, "COMBINE": 4, "MIX": 5, "MATH": 6,
                  "INVERT": 7, "CHECKER": 8, "RAMP": 9, "OUT": 10, "DOT": 11, "MAP_RANGE": 12,
-                 "VECTOR_MATH": 13, "HSV": 14, "GRADIENT": 15, "TRANSFORM": 16, "NOISE": 17}
+                 "VECTOR_MATH": 13, "HSV": 14, "GRADIENT": 15, "TRANSFORM": 16, "NOISE": 17,
+                 "NORMAL_MAP": 18, "BUMP": 19}
 NODE_MIX_CODES = {"MIX": 0, "ADD": 1, "MULTIPLY": 2, "SUBTRACT": 3, "SCREEN": 4,
                   "DIFFERENCE": 5, "DARKEN": 6, "LIGHTEN": 7}
 NODE_MATH_CODES = {"ADD": 0, "SUBTRACT": 1, "MULTIPLY": 2, "DIVIDE": 3, "MULTIPLY_ADD": 4,
@@ -219,7 +222,10 @@ NODE_GRADIENT_CODES = {"LINEAR": 0, "QUADRATIC": 1, "EASING": 2, "DIAGONAL": 3, 
                        "QUADRATIC_SPHERE": 5, "SPHERICAL": 6}
 NODE_EXTENSION_CODES = {"REPEAT": 0, "EXTEND": 1, "CLIP": 2, "MIRROR": 3}   # Image Texture
 NODE_OUT_CODES = {"BASE_COLOR": 0, "ALPHA": 1, "METALLIC": 2, "ROUGHNESS": 3,
-                  "TRANSMISSION": 4, "IOR": 5, "SPECULAR": 6}
+                  "TRANSMISSION": 4, "IOR": 5, "SPECULAR": 6, "NORMAL": 7}
+NODE_NORMAL_SPACE_CODES = {"TANGENT": 0, "OBJECT": 1, "WORLD": 2, "BLENDER_OBJECT": 3,
+                           "BLENDER_WORLD": 4}      # Normal Map (NORMAL_MAP p1)
+NODE_OBJECT_NORMAL_SPACES = ("OBJECT", "BLENDER_OBJECT")    # these read the object's rows (p0)
 NODE_REGISTERS = 16
 NODE_REF_REGISTER = 8           # operand = register * 8 + lane
 NODE_RAMP_SIZE = 256            # colour ramps as tables of this many RGBA rows (as Cycles)
@@ -240,6 +246,7 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
                NODE_VECTOR_MATH_CODES),
          Codes("NODE_GRADIENT", "Gradient Texture types (GRADIENT p0)", NODE_GRADIENT_CODES),
          Codes("NODE_EXTENSION", "Image Texture extensions (IMAGE p2)", NODE_EXTENSION_CODES),
+         Codes("NODE_NORMAL_SPACE", "Normal Map spaces (NORMAL_MAP p1)", NODE_NORMAL_SPACE_CODES),
          Codes("NODE", "Shader node program sizes",
                {"REGISTERS": NODE_REGISTERS, "REF_REGISTER": NODE_REF_REGISTER,
                 "RAMP_SIZE": NODE_RAMP_SIZE, "TRANSFORM_SIZE": NODE_TRANSFORM_SIZE}))

@@ -409,6 +409,60 @@ def test_noise_texture_is_cycles_perlin_fbm(tracer):
     assert expected.std() > 0.05 and np.abs(expected[..., 1] - expected[..., 0]).mean() > 0.03
 
 
+def test_normal_map_and_bump_set_the_shading_normal_as_numpy_does(tracer):
+    """A tangent-space Normal Map of the colour (u, 0.5, 1) at Strength 0.7 and a Bump of the
+    height u^2 (Distance 0.5; inverted too) on a UV-mapped plane (u, v = (x, y + 1) / 2: the
+    tangent is +x), under a slanted sun: each pixel is max(n . L, 0) E / pi for the normal
+    numpy computes as Cycles' nodes do."""
+    from core.layout import (NODE_MATH_CODES, NODE_NORMAL_SPACE_CODES, NODE_OP_CODES as OP,
+                             NODE_OUT_CODES, NODE_REF_REGISTER as R)
+    vertices, triangles = grid_plane(2.0, 1, 0.0)
+    uvs = (vertices[triangles.reshape(-1)][:, :2] + 1.0) / 2.0
+    geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16),
+                        uvs=uvs.astype(np.float32))
+    tracer.load(Scene.from_parts(geometry, build_kdtree(vertices, triangles)))
+    whole, lane = (lambda r: r * R + 4), (lambda r, k: r * R + k)
+    out = (OP["OUT"], 0, whole(9), 0), (0, NODE_OUT_CODES["NORMAL"], 0, 0)
+    end = (OP["END"], 0, 0, 0), (0, 0, 0, 0)
+    normal_map = [(OP["UV"], 0, 0, 0), (0, 0, 0, 0),
+                  (OP["CONST"], 1, 0, 0), (0.5, 0.5, 0.5, 0.5),
+                  (OP["CONST"], 2, 0, 0), (1.0, 1.0, 1.0, 1.0),
+                  (OP["COMBINE"], 3, lane(0, 0), lane(1, 0)), (lane(2, 0), 0, 0, 0),
+                  (OP["CONST"], 4, 0, 0), (0.7, 0.7, 0.7, 0.7),
+                  (OP["NORMAL_MAP"], 9, whole(3), lane(4, 0)),
+                  (0, 0, NODE_NORMAL_SPACE_CODES["TANGENT"], 0), *out, *end]
+    bump = [(OP["CONST"], 1, 0, 0), (2.0, 2.0, 2.0, 2.0)]
+    for step in range(3):           # u at the hit and at the two steps, squared
+        bump += [(OP["UV"], 2 + 2 * step, 0, 0), (0, step, 0, 0),
+                 (OP["MATH"], 3 + 2 * step, lane(2 + 2 * step, 0), lane(1, 0)),
+                 (0, NODE_MATH_CODES["POWER"], 0, 0)]
+    size, sun = 24, np.array([-0.5, 0.2, -1.0])
+    centres = (np.arange(size) + 0.5) / size * 2 - 1
+    x, _ = np.meshgrid(centres, centres[::-1])
+    u = (x + 1) / 2
+    light = -sun / np.linalg.norm(sun)
+    for invert in (0, 1):
+        program = bump + [(OP["COMBINE"], 8, lane(3, 0), lane(5, 0)), (lane(7, 0), 0, 0, 0),
+                          (OP["CONST"], 10, 0, 0), (1.0, 0.5, 0.0, 1.0),
+                          (OP["BUMP"], 9, whole(8), 0), (whole(10), invert, 0, 0), *out, *end]
+        image = render_program_under_sun(tracer, np.array(program, np.float32), size, sun)
+        assert {"NODES", "BUMP"} <= set(tracer.last_render["features"])
+        # Cycles' bump: n = normalize(N - distance x the surface gradient of the height)
+        n = np.stack([-(0.5 if not invert else -0.5) * u, np.zeros_like(u), np.ones_like(u)], -1)
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        expected = np.maximum(n @ light, 0) * 2 / np.pi
+        np.testing.assert_allclose(image, expected[..., None].repeat(3, -1), rtol=2e-3, atol=2e-4)
+    image = render_program_under_sun(tracer, np.array(normal_map, np.float32), size, sun)
+    assert {"NODES", "NORMAL_MAP"} <= set(tracer.last_render["features"])
+    mapped = np.stack([2 * u - 1, np.zeros_like(u), np.ones_like(u)], -1)
+    mapped /= np.linalg.norm(mapped, axis=-1, keepdims=True)
+    n = np.array([0, 0, 1.0]) + (mapped - [0, 0, 1.0]) * 0.7
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    expected = np.maximum(n @ light, 0) * 2 / np.pi
+    np.testing.assert_allclose(image, expected[..., None].repeat(3, -1), rtol=2e-3, atol=2e-4)
+    assert expected.max() - expected.min() > 0.1
+
+
 @pytest.mark.parametrize("bad", [
     lambda rows: rows.__setitem__(0, [99, 0, 0, 0]),                  # unknown operation
     lambda rows: rows.__setitem__(10, [6, 4, 8 * 40, 1]),             # register out of range

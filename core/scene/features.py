@@ -32,6 +32,8 @@ FEATURES = {
     "CAMERA_MOTION": (),      # camera motion blur: the camera moves while the shutter is open
     "NODES": ("uvs",),        # shader node programs compute BSDF inputs per hit
     "NOISE": (),              # a node program evaluates a Noise Texture
+    "NORMAL_MAP": (),         # a node program evaluates a Normal Map (sets the shading normal)
+    "BUMP": (),               # a node program evaluates a Bump (heights at three points)
 }
 ALL_FEATURES = frozenset(FEATURES)
 
@@ -61,8 +63,9 @@ def scene_features(geometry: Geometry, view: View, used_materials=None) -> froze
     if (programs >= 0).any():
         features.add("NODES")
         ops = program_instructions(shading.node_program, programs[programs >= 0])[:, 0]
-        if (ops == NODE_OP_CODES["NOISE"]).any():
-            features.add("NOISE")
+        for feature in ("NOISE", "NORMAL_MAP", "BUMP"):
+            if (ops == NODE_OP_CODES[feature]).any():
+                features.add(feature)
     if geometry.texture_count and ((column("texture") >= 0).any() or
                                    program_textures(shading.node_program, programs[programs >= 0])):
         features.add("TEXTURES")

@@ -435,12 +435,16 @@ class Shading:
 
 def check_node_program(rows, starts) -> np.ndarray:
     """The node program rows from the network, checked: whole-number operations, registers
-    and operands in range, every ramp table inside the rows, and from each start in `starts`
+    and operands in range, normal map spaces known, every table (colour ramps, coordinate and
+    object normal transforms) inside the rows, and from each start in `starts`
     (>= 0) instructions up to an END (the kernel runs them so). A program's ramp tables
     follow its END (addon/nodes.py compiles them)."""
-    from ..layout import (NODE_OP_CODES, NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER,
-                          NODE_REGISTERS, NODE_TRANSFORM_SIZE)
-    tables = {NODE_OP_CODES["RAMP"]: NODE_RAMP_SIZE, NODE_OP_CODES["TRANSFORM"]: NODE_TRANSFORM_SIZE}
+    from ..layout import (NODE_NORMAL_SPACE_CODES, NODE_OBJECT_NORMAL_SPACES, NODE_OP_CODES,
+                          NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS,
+                          NODE_TRANSFORM_SIZE)
+    tables = {NODE_OP_CODES["RAMP"]: NODE_RAMP_SIZE, NODE_OP_CODES["TRANSFORM"]: NODE_TRANSFORM_SIZE,
+              NODE_OP_CODES["NORMAL_MAP"]: NODE_TRANSFORM_SIZE}     # object space: its rows
+    object_spaces = [NODE_NORMAL_SPACE_CODES[k] for k in NODE_OBJECT_NORMAL_SPACES]
     if not isinstance(rows, list) or len(rows) > MAX_NODE_ROWS or len(rows) % 2:
         raise SceneError("node_program must be an even number of rows")
     program = np.array([_finite_floats(r, 4, "node program row") for r in rows], np.float32) \
@@ -453,7 +457,9 @@ def check_node_program(rows, starts) -> np.ndarray:
         op = int(w0[0])
         if op != w0[0] or op not in NODE_OP_CODES.values():
             raise SceneError(f"node program row {pc}: unknown operation {w0[0]}")
-        if op in tables:
+        if op == NODE_OP_CODES["NORMAL_MAP"] and w1[2] not in NODE_NORMAL_SPACE_CODES.values():
+            raise SceneError(f"node program row {pc}: unknown normal map space {w1[2]}")
+        if op in tables and (op != NODE_OP_CODES["NORMAL_MAP"] or w1[2] in object_spaces):
             start = int(w1[1])
             if start != w1[1] or not 2 <= start or not pc + start <= n - tables[op]:
                 raise SceneError(f"node program row {pc}: table outside the program")

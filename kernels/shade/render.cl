@@ -189,7 +189,7 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
             break;
         }
 #endif
-        Material m = material_at(sc, h.tri, h.u, h.v);
+        Material m = surface_material(sc, &s, d);
 #ifdef HAS_ALPHA
         // Cut-out: the path goes on through with probability 1 - alpha (Cycles' stochastic
         // transparency); not a bounce.

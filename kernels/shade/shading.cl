@@ -501,14 +501,130 @@ inline float4 node_noise(float3 p, float detail, float roughness, float lacunari
 }
 #endif
 
-// Runs the program at row `at` of the materials buffer for the hit (uv: its texture
-// coordinates) and sets the BSDF inputs it computes.
-inline void run_nodes(const Scene *sc, int at, float2 uv, float3 p, Material *m)
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+inline float3 safe_normalize(float3 n)
+{
+    float len = length(n);
+    return len > 0.0f && isfinite(len) ? n / len : (float3)(0.0f, 0.0f, 0.0f);
+}
+
+// The triangle's first corner, its edges from it, and its UVs there and along the edges.
+inline void triangle_edges_uv(const Scene *sc, uint tri, float3 *p0, float3 *e1, float3 *e2,
+                             float2 *uv0, float2 *duv1, float2 *duv2)
+{
+    __global const float4 *T = sc->tri_verts + TRIANGLE_SIZE * tri;
+    *p0 = TRIANGLE_V0(T);
+    *e1 = TRIANGLE_V1(T) - *p0;
+    *e2 = TRIANGLE_V2(T) - *p0;
+    *uv0 = vload2(3 * tri, sc->uvs);
+    *duv1 = vload2(3 * tri + 1, sc->uvs) - *uv0;
+    *duv2 = vload2(3 * tri + 2, sc->uvs) - *uv0;
+}
+#endif
+
+#ifdef HAS_NORMAL_MAP
+// Cycles' Normal Map node (svm_node_normal_map). Tangent space: the UV map's tangent, here the
+// triangle's dP/du made orthogonal to the normal (MikkTSpace's tangent where the UVs are
+// affine over the faces around a vertex), the bitangent's sign from dP/dv, and the smooth
+// normal unnormalised (the geometric one on flat faces); object space: through the object's
+// normal matrix (the transpose of its world -> object rows). Then flipped on back faces and
+// blended toward the shading normal by Strength.
+inline float3 node_normal_map(const Scene *sc, const Surface *s, __global const float4 *rows,
+                              int space, float3 colour, float strength)
+{
+    float3 c = 2.0f * (colour - 0.5f);
+    float3 n;
+    if (space == NODE_NORMAL_SPACE_TANGENT) {
+        float3 p0, e1, e2;
+        float2 uv0, duv1, duv2;
+        triangle_edges_uv(sc, s->tri, &p0, &e1, &e2, &uv0, &duv1, &duv2);
+        float3 normal = normalize(cross(e1, e2));
+#ifdef HAS_SMOOTH
+        float b0 = 1.0f - s->u - s->v;
+        normal = b0 * vload3(3 * s->tri, sc->normals) + s->u * vload3(3 * s->tri + 1, sc->normals)
+                 + s->v * vload3(3 * s->tri + 2, sc->normals);
+#endif
+        float det = duv1.x * duv2.y - duv2.x * duv1.y;
+        if (det == 0.0f)
+            return s->ns;                   // no UVs here: Cycles' unperturbed normal
+        float3 dpdu = (e1 * duv2.y - e2 * duv1.y) / det, dpdv = (e2 * duv1.x - e1 * duv2.x) / det;
+        float3 unit = safe_normalize(normal);
+        float3 tangent = safe_normalize(dpdu - dot(dpdu, unit) * unit);
+        float sign = dot(cross(normal, tangent), dpdv) < 0.0f ? -1.0f : 1.0f;
+        n = safe_normalize(c.x * tangent + c.y * sign * cross(normal, tangent) + c.z * normal);
+    } else {
+        if (space == NODE_NORMAL_SPACE_BLENDER_OBJECT || space == NODE_NORMAL_SPACE_BLENDER_WORLD)
+            c.yz = -c.yz;                   // Blender's convention
+        if (space == NODE_NORMAL_SPACE_OBJECT || space == NODE_NORMAL_SPACE_BLENDER_OBJECT)
+            c = c.x * rows[0].xyz + c.y * rows[1].xyz + c.z * rows[2].xyz;
+        n = safe_normalize(c);
+    }
+    if (!s->front)
+        n = -n;
+    if (strength != 1.0f)
+        n = safe_normalize(s->ns + (n - s->ns) * fmax(strength, 0.0f));
+    return all(n == 0.0f) ? s->ns : n;
+}
+#endif
+
+#ifdef HAS_BUMP
+// Where a Bump node's height is evaluated: the hit (0) and two points a small step along the
+// surface from it (1, 2; Cycles steps along the ray differentials, which for a height that
+// is smooth at the scale of a pixel gives the same gradient), and the UVs there.
+inline void bump_offsets(const Scene *sc, uint tri, float3 p, float3 *dp, float2 *duv)
+{
+    float3 p0, e1, e2;
+    float2 uv0, duv1, duv2;
+    triangle_edges_uv(sc, tri, &p0, &e1, &e2, &uv0, &duv1, &duv2);
+    float3 n = safe_normalize(cross(e1, e2)), t, b;
+    basis(all(n == 0.0f) ? (float3)(0.0f, 0.0f, 1.0f) : n, &t, &b);
+    float step = 1e-4f * (1.0f + fmax(fabs(p.x), fmax(fabs(p.y), fabs(p.z))));
+    dp[0] = (float3)(0.0f, 0.0f, 0.0f);
+    dp[1] = step * t;
+    dp[2] = step * b;
+    // The barycentric steps of dp (least squares in the triangle's plane) move the UVs.
+    float a11 = dot(e1, e1), a12 = dot(e1, e2), a22 = dot(e2, e2);
+    float det = a11 * a22 - a12 * a12;
+    for (int k = 0; k < 3; ++k) {
+        float r1 = dot(e1, dp[k]), r2 = dot(e2, dp[k]);
+        float s1 = det != 0.0f ? (a22 * r1 - a12 * r2) / det : 0.0f;
+        float s2 = det != 0.0f ? (a11 * r2 - a12 * r1) / det : 0.0f;
+        duv[k] = s1 * duv1 + s2 * duv2;
+    }
+}
+
+// Cycles' Bump node (svm_node_set_bump): the surface gradient of the height from its values
+// at the hit and at the two steps, the normal tilted against it by Distance (negative:
+// inverted), blended with the input normal by Strength.
+inline float3 node_bump(float3 dpx, float3 dpy, float3 normal_in, float4 heights,
+                        float strength, float distance)
+{
+    float3 rx = cross(dpy, normal_in), ry = cross(normal_in, dpx);
+    float det = dot(dpx, rx);
+    float3 gradient = (heights.y - heights.x) * rx + (heights.z - heights.x) * ry;
+    float3 n = safe_normalize(fabs(det) * normal_in - distance * sign(det) * gradient);
+    if (all(n == 0.0f))
+        return normal_in;
+    strength = fmax(strength, 0.0f);
+    return normalize(strength * n + (1.0f - strength) * normal_in);
+}
+#endif
+
+// Runs the program at row `at` of the materials buffer for the hit on triangle `tri` (uv: its
+// texture coordinates, p: its position; s: the surface point, or 0 where the shading normal
+// does not matter) and sets the BSDF inputs it computes; a Normal output sets s->ns.
+inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Surface *s,
+                      Material *m)
 {
     float4 regs[NODE_REGISTERS];
     __global const float4 *code = sc->materials + at;
     for (int k = 0; k < NODE_REGISTERS; ++k)
         regs[k] = (float4)(0.0f, 0.0f, 0.0f, 0.0f);
+#ifdef HAS_BUMP
+    float3 dp[3];                       // UV and TRANSFORM p1 (bump step 0, 1, 2) move the hit
+    float2 duv[3];
+    bump_offsets(sc, tri, p, dp, duv);
+#endif
     for (int pc = 0; pc < 2 * 1024; pc += 2) {
         float4 w0 = code[pc], w1 = code[pc + 1];
         int op = (int)w0.x, dst = min((int)w0.y, NODE_REGISTERS - 1);
@@ -519,6 +635,9 @@ inline void run_nodes(const Scene *sc, int at, float2 uv, float3 p, Material *m)
         float4 out = w1;
         if (op == NODE_OP_UV) {
             out = (float4)(uv, 0.0f, 0.0f);
+#ifdef HAS_BUMP
+            out.xy += duv[clamp((int)w1.y, 0, 2)];
+#endif
         }
 #ifdef HAS_TEXTURES
         else if (op == NODE_OP_IMAGE) {
@@ -577,7 +696,20 @@ inline void run_nodes(const Scene *sc, int at, float2 uv, float3 p, Material *m)
         } else if (op == NODE_OP_TRANSFORM) {  // Generated / Object coordinates of the hit
             __global const float4 *rows = code + pc + (int)w1.y;
             float4 q = (float4)(p, 1.0f);
+#ifdef HAS_BUMP
+            q.xyz += dp[clamp((int)w1.z, 0, 2)];
+#endif
             out = (float4)(dot(rows[0], q), dot(rows[1], q), dot(rows[2], q), 0.0f);
+#ifdef HAS_NORMAL_MAP
+        } else if (op == NODE_OP_NORMAL_MAP) { // a: colour; b: strength; p0: object rows; p1: space
+            out = (float4)(s ? node_normal_map(sc, s, code + pc + (int)w1.y, (int)w1.z, a.xyz, b.x)
+                             : (float3)(0.0f, 0.0f, 1.0f), 0.0f);
+#endif
+#ifdef HAS_BUMP
+        } else if (op == NODE_OP_BUMP) {       // a: heights at the steps; b: normal; c: strength, distance
+            float3 normal_in = s ? (w1.z > 0.0f ? b.xyz : s->ns) : (float3)(0.0f, 0.0f, 1.0f);
+            out = (float4)(node_bump(dp[1], dp[2], normal_in, a, c.x, w1.y > 0.0f ? -c.y : c.y), 0.0f);
+#endif
         } else if (op == NODE_OP_DOT) {        // colour or vector to a value
             out = (float4)(dot(a.xyz, w1.yzw));
         } else if (op == NODE_OP_OUT) {
@@ -596,6 +728,13 @@ inline void run_nodes(const Scene *sc, int at, float2 uv, float3 p, Material *m)
                 m->ior = clamp(a.x, 0.01f, 100.0f);
             else if (field == NODE_OUT_SPECULAR)
                 m->specular = fmax(a.x, 0.0f);
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+            else if (field == NODE_OUT_NORMAL && s) {
+                float3 n = safe_normalize(a.xyz);
+                if (any(n != 0.0f))
+                    s->ns = n;
+            }
+#endif
             continue;
         }
         regs[dst] = out;
@@ -603,7 +742,9 @@ inline void run_nodes(const Scene *sc, int at, float2 uv, float3 p, Material *m)
 }
 #endif
 
-inline Material material_at(const Scene *sc, uint tri, float u, float v)
+// The material of triangle `tri` at barycentrics (u, v); `s`: the surface point where the
+// shading normal matters (a node program's Normal output sets s->ns), else 0.
+inline Material material_eval(const Scene *sc, uint tri, float u, float v, Surface *s)
 {
     uint id = sc->material_ids[tri];
     __global const float4 *M = sc->materials + MATERIAL_SIZE * id;
@@ -634,10 +775,31 @@ inline Material material_at(const Scene *sc, uint tri, float u, float v)
                     + v * vload2(3 * tri + 2, sc->uvs);
         __global const float4 *T = sc->tri_verts + TRIANGLE_SIZE * tri;
         float3 p = (1.0f - u - v) * TRIANGLE_V0(T) + u * TRIANGLE_V1(T) + v * TRIANGLE_V2(T);
-        run_nodes(sc, program, uv, p, &m);
+        run_nodes(sc, program, tri, uv, p, s, &m);
     }
 #endif
     return m;
+}
+
+// The material where the shading normal does not matter (emitters, shadow rays' alpha).
+inline Material material_at(const Scene *sc, uint tri, float u, float v)
+{
+    return material_eval(sc, tri, u, v, 0);
+}
+
+// The material where a ray of direction d hit s. Normal Map and Bump nodes set s->ns; one
+// that faces away from the ray keeps the unperturbed normal.
+inline Material surface_material(const Scene *sc, Surface *s, float3 d)
+{
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+    float3 ns = s->ns;
+    Material m = material_eval(sc, s->tri, s->u, s->v, s);
+    if (!(dot(s->ns, d) < 0.0f))
+        s->ns = ns;
+    return m;
+#else
+    return material_eval(sc, s->tri, s->u, s->v, 0);
+#endif
 }
 
 // The VISIBILITY_<RAY> bits of the rays that see the triangle, and VISIBILITY_HOLDOUT.

@@ -58,16 +58,27 @@ def hdri(projection):
         s = 2 * np.sqrt(np.maximum(1 - r2, 0))
         d = np.stack([s * x, 2 * r2 - 1, s * z], -1)
         rgb = np.where((r2 <= 1)[..., None], sky(d), 0.0)
-    pixels = np.concatenate([rgb, np.ones((h, w, 1))], -1).astype(np.float32)
-    image = bpy.data.images.new(f"sky-{projection}", w, h, float_buffer=True)
-    image.pixels.foreach_set(pixels.ravel())
+    pixels = np.concatenate([rgb, np.ones((h, w, 1))], -1)
     # OpenEXR keeps the linear values (Blender writes .hdr through the display transform).
-    path = f"{OUT}/sky-{projection.lower()}.exr"
+    return saved_image(f"sky-{projection.lower()}.exr", pixels)
+
+
+def saved_image(file_name, pixels, non_color=False):
+    """The RGBA pixels (rows bottom first) as an image saved to OUT/file_name (.exr: float,
+    OpenEXR; .png: 8-bit PNG) and loaded back from the file."""
+    h, w = pixels.shape[:2]
+    exr = file_name.endswith(".exr")
+    image = bpy.data.images.new(file_name, w, h, float_buffer=exr)
+    image.pixels.foreach_set(pixels.astype(np.float32).ravel())
+    path = f"{OUT}/{file_name}"
     image.filepath_raw = path
-    image.file_format = "OPEN_EXR"
+    image.file_format = "OPEN_EXR" if exr else "PNG"
     image.save()
     bpy.data.images.remove(image)
-    return bpy.data.images.load(path)
+    image = bpy.data.images.load(path)
+    if non_color:
+        image.colorspace_settings.name = "Non-Color"
+    return image
 
 
 def data_image():
@@ -76,17 +87,32 @@ def data_image():
     n = 64
     u, v = np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) / n)
     checker = ((np.floor(4 * u) + np.floor(4 * v)) % 2)
-    pixels = np.stack([u, v, checker, np.ones_like(u)], -1).astype(np.float32)
-    image = bpy.data.images.new("data", n, n)
-    image.pixels.foreach_set(pixels.ravel())
-    path = f"{OUT}/data.png"
-    image.filepath_raw = path
-    image.file_format = "PNG"
-    image.save()
-    bpy.data.images.remove(image)
-    image = bpy.data.images.load(path)
-    image.colorspace_settings.name = "Non-Color"
-    return image
+    return saved_image("data.png", np.stack([u, v, checker, np.ones_like(u)], -1), non_color=True)
+
+
+def ripple_normals():
+    """A 64 x 64 tangent-space normal map (Non-Color, OpenEXR) of the height
+    0.04 sin(2 pi 3 u) sin(2 pi 2 v): n = normalize(-dh/du, -dh/dv, 1) as 0.5 n + 0.5."""
+    n = 64
+    u, v = np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) / n)
+    k = 0.04 * 2 * np.pi
+    normal = np.stack([-k * 3 * np.cos(6 * np.pi * u) * np.sin(4 * np.pi * v),
+                       -k * 2 * np.sin(6 * np.pi * u) * np.cos(4 * np.pi * v), np.ones_like(u)], -1)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    return saved_image("ripples.exr", np.concatenate([0.5 * normal + 0.5, np.ones_like(u)[..., None]], -1),
+                       non_color=True)
+
+
+def vector_math(nodes, links, operation, vector, scale=None, second=None):
+    """A Vector Math node of `vector` (a socket); its Vector output."""
+    node = nodes.new("ShaderNodeVectorMath")
+    node.operation = operation
+    links.new(vector, node.inputs[0])
+    if scale is not None:
+        node.inputs["Scale"].default_value = scale
+    if second is not None:
+        node.inputs[1].default_value = second
+    return node.outputs["Vector"]
 
 
 def node_material(name):
@@ -464,17 +490,11 @@ def build(name):
         sphere(m, (-0.8, 0.3, 0.6))
         m, nodes, links, bsdf = node_material("spherical")
         uv = nodes.new("ShaderNodeTexCoord")
-        scale = nodes.new("ShaderNodeVectorMath")
-        scale.operation = "SCALE"
-        scale.inputs["Scale"].default_value = 2.0
-        links.new(uv.outputs["UV"], scale.inputs[0])
-        shift = nodes.new("ShaderNodeVectorMath")
-        shift.operation = "SUBTRACT"
-        shift.inputs[1].default_value = (1.0, 1.0, 0.0)
-        links.new(scale.outputs["Vector"], shift.inputs[0])
+        scaled = vector_math(nodes, links, "SCALE", uv.outputs["UV"], scale=2.0)
+        shifted = vector_math(nodes, links, "SUBTRACT", scaled, second=(1.0, 1.0, 0.0))
         ball = nodes.new("ShaderNodeTexGradient")
         ball.gradient_type = "SPHERICAL"
-        links.new(shift.outputs["Vector"], ball.inputs["Vector"])
+        links.new(shifted, ball.inputs["Vector"])
         lighten = nodes.new("ShaderNodeMixRGB")
         lighten.blend_type = "LIGHTEN"
         lighten.inputs["Fac"].default_value = 0.9
@@ -523,7 +543,7 @@ def build(name):
     elif name == "procedural":
         # Cycles' Noise Texture (its own Perlin noise and fBm): Color at the default Generated
         # coordinates, with distortion and a fractional detail; Fac through a Color Ramp at
-        # Object coordinates, and as Roughness.
+        # Object coordinates, and as Roughness; Bump and Normal Map (tangent, object space).
         world((0.3, 0.32, 0.36))
         m, nodes, links, bsdf = node_material("noise colour")
         noise = nodes.new("ShaderNodeTexNoise")
@@ -548,6 +568,48 @@ def build(name):
         links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
         links.new(noise.outputs["Fac"], bsdf.inputs["Roughness"])
         floor(m, size=6.0)
+        # Bump: a noise height at Generated coordinates on a smooth sphere.
+        m, nodes, links, bsdf = node_material("bumpy")
+        bsdf.inputs["Base Color"].default_value = (0.7, 0.7, 0.75, 1)
+        bsdf.inputs["Roughness"].default_value = 0.35
+        noise = nodes.new("ShaderNodeTexNoise")
+        noise.inputs["Scale"].default_value = 6.0
+        bump = nodes.new("ShaderNodeBump")
+        bump.inputs["Distance"].default_value = 0.3
+        links.new(noise.outputs["Fac"], bump.inputs["Height"])
+        links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
+        sphere(m, (0.75, 0.35, 0.6))
+        # Normal Map, tangent space: ripples from an image on the UV map of a turned cube.
+        m, nodes, links, bsdf = node_material("rippled")
+        bsdf.inputs["Base Color"].default_value = (0.3, 0.5, 0.8, 1)
+        image = nodes.new("ShaderNodeTexImage")
+        image.image = ripple_normals()
+        mapped = nodes.new("ShaderNodeNormalMap")
+        links.new(image.outputs["Color"], mapped.inputs["Color"])
+        links.new(mapped.outputs["Normal"], bsdf.inputs["Normal"])
+        add(bpy.ops.mesh.primitive_cube_add, m, size=0.6, location=(0.05, -0.75, 0.3),
+            rotation=(0, 0, math.radians(35)))
+        # Normal Map, object space at Strength 0.8: a flat-shaded, turned ball's own object-space
+        # normals (its normalised Object coordinates as a colour) mixed with a noise colour.
+        m, nodes, links, bsdf = node_material("object normals")
+        coords = nodes.new("ShaderNodeTexCoord")
+        unit = vector_math(nodes, links, "NORMALIZE", coords.outputs["Object"])
+        half = vector_math(nodes, links, "SCALE", unit, scale=0.5)
+        colour = vector_math(nodes, links, "ADD", half, second=(0.5, 0.5, 0.5))
+        noise = nodes.new("ShaderNodeTexNoise")
+        noise.inputs["Scale"].default_value = 3.0
+        mix = nodes.new("ShaderNodeMixRGB")
+        mix.inputs["Fac"].default_value = 0.3
+        links.new(colour, mix.inputs["Color1"])
+        links.new(noise.outputs["Color"], mix.inputs["Color2"])
+        mapped = nodes.new("ShaderNodeNormalMap")
+        mapped.space = "OBJECT"
+        mapped.inputs["Strength"].default_value = 0.8
+        links.new(mix.outputs["Color"], mapped.inputs["Color"])
+        links.new(mapped.outputs["Normal"], bsdf.inputs["Normal"])
+        ball = add(bpy.ops.mesh.primitive_ico_sphere_add, m, radius=0.3, subdivisions=2,
+                   location=(1.25, -0.6, 0.3), rotation=(math.radians(40), 0, math.radians(-25)))
+        ball.scale = (1.0, 1.0, 1.0)
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "warned":
@@ -559,6 +621,8 @@ def build(name):
         bpy.context.scene.world = w
         coat = material("coated", color=(0.5, 0.5, 0.8), **{"Coat Weight": 0.5})
         bump = coat.node_tree.nodes.new("ShaderNodeBump")
+        cells = coat.node_tree.nodes.new("ShaderNodeTexVoronoi")     # a height not evaluated
+        coat.node_tree.links.new(cells.outputs["Distance"], bump.inputs["Height"])
         coat.node_tree.links.new(bump.outputs["Normal"],
                                  coat.node_tree.nodes["Principled BSDF"].inputs["Normal"])
         sphere(coat, (0, 0, 0.5), radius=0.5).name = "coated ball"
