@@ -30,7 +30,8 @@ from tests.processes import SlaveProcess
 def slaves():
     started = []
     try:
-        for name in ("kdt-test-a", "kdt-test-b"):
+        # Names unique to this run: zeroconf would report another run's slaves of the same name.
+        for name in (f"kdt-test-a-{os.getpid()}", f"kdt-test-b-{os.getpid()}"):
             started.append(SlaveProcess(name))
         yield started
     finally:

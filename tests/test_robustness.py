@@ -37,6 +37,9 @@ def shading(lights, params=None, colours=((0.8, 0.3, 0.2, 1), (0.7, 0.7, 0.7, 1)
 def render(tracer, vertices, triangles, ids, camera, shade, size=(64, 48), tree=None, **settings):
     geometry = Geometry(vertices, triangles, ids)
     tracer.load(Scene.from_parts(geometry, tree if tree is not None else build_kdtree(geometry.vertices, geometry.triangles)))
+    # 2 x 2 samples unless a test asks for more: these tests compare pictures of the same
+    # samples, which Cycles' final-render defaults (up to 64 x 64, adaptive) only make slower.
+    settings = {"samples_per_axis": 2, "adaptive": False, **settings}
     view = View(camera, *size, shade, settings=RenderSettings(**settings))
     passes = tracer.render_tile(view, 0, 0, *size)
     for name, image in passes.items():
