@@ -231,6 +231,9 @@ NODE_REF_REGISTER = 8           # operand = register * 8 + lane
 NODE_RAMP_SIZE = 256            # colour ramps as tables of this many RGBA rows (as Cycles)
 NODE_TRANSFORM_SIZE = 4         # TRANSFORM: the hit point through a 3 x 4 matrix (Generated,
                                 # Object coordinates): its 3 rows and one unused, after the END
+# The top-level BVH of instanced scenes (core/accel/toplevel.py; TOPLEVEL_NODE below).
+TOPLEVEL_LEAF_MAX = 4           # instances in a top-level leaf
+TOPLEVEL_MAX_DEPTH = 48         # levels of the top-level BVH (its traversal stack)
 CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("LIGHT_SHAPE", "Area light shapes (LIGHT_AREA_SHAPE)", AREA_SHAPE_CODES),
          Codes("CAMERA", "Camera kinds (CAMERA_KIND)", CAMERA_CODES),
@@ -247,6 +250,8 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("NODE_GRADIENT", "Gradient Texture types (GRADIENT p0)", NODE_GRADIENT_CODES),
          Codes("NODE_EXTENSION", "Image Texture extensions (IMAGE p2)", NODE_EXTENSION_CODES),
          Codes("NODE_NORMAL_SPACE", "Normal Map spaces (NORMAL_MAP p1)", NODE_NORMAL_SPACE_CODES),
+         Codes("TOPLEVEL", "Top-level BVH sizes",
+               {"LEAF_MAX": TOPLEVEL_LEAF_MAX, "MAX_DEPTH": TOPLEVEL_MAX_DEPTH}),
          Codes("NODE", "Shader node program sizes",
                {"REGISTERS": NODE_REGISTERS, "REF_REGISTER": NODE_REF_REGISTER,
                 "RAMP_SIZE": NODE_RAMP_SIZE, "TRANSFORM_SIZE": NODE_TRANSFORM_SIZE}))
@@ -350,12 +355,38 @@ EMITTER = Record("EMITTER", "An emissive triangle (emitters buffer, emitter_coun
     Slot("pmf", 0, "w", "probability of choosing this triangle: its power over all emitters'"),
 ))
 
-RECORDS = (LIGHT, MATERIAL, CAMERA, BOUNDS, TRIANGLE, ACCUM, STATS, WORLD, EMITTER)
+# Instanced scenes (core/scene/instances.py; docs/instances.md): instances of meshes, each
+# mesh a compact kd-tree in object space, and a top-level BVH over the instances' world boxes
+# (core/accel/toplevel.py). Integers travel as uint bits of float slots.
+INSTANCE = Record("INSTANCE", "An instance (instances buffer, in the top level's leaf order)", 7, (
+    Slot("to_object", 0, "xyzw", "rows of the 3x4 world -> object transform", rows=3),
+    Slot("to_world", 3, "xyzw", "rows of the 3x4 object -> world transform", rows=3),
+    Slot("mesh", 6, "x", "its mesh: a row of the MESH table (uint bits)"),
+    Slot("key_base", 6, "y", "hit key of its first triangle: the triangles of the instances "
+         "before it (uint bits); key = key_base + triangle within the mesh"),
+    Slot("visibility", 6, "z", "VISIBILITY_<RAY> bits of the rays that see it, and HOLDOUT"),
+    Slot("orientation", 6, "w", "sign of det(to_world): -1 flips the geometric normal"),
+))
+
+TOPLEVEL_NODE = Record("TOPLEVEL", "A top-level BVH node (toplevel buffer; node 0 the root)", 2, (
+    Slot("min", 0, "xyz", "lower corner of its world box"),
+    Slot("first", 0, "w", "inner: the first child (the second follows it); leaf: its first "
+         "instance record (uint bits)"),
+    Slot("max", 1, "xyz", "upper corner"),
+    Slot("count", 1, "w", "leaf: its instances (1 to TOPLEVEL_LEAF_MAX); inner: 0 (uint bits)"),
+))
+
+RECORDS = (LIGHT, MATERIAL, CAMERA, BOUNDS, TRIANGLE, ACCUM, STATS, WORLD, EMITTER, INSTANCE,
+           TOPLEVEL_NODE)
 
 # Geometry.texture_sizes (core/scene/model.py): one row per texture.
 TEXTURE_SIZE = Columns("TEXTURE_SIZE", "A texture (texture_sizes, uint32 rows)",
                        ("offset", "width", "height"))
-COLUMNS = (TEXTURE_SIZE,)
+# An instanced scene's meshes: where each one's triangles and compact tree lie in the
+# concatenated buffers (its tree's node, leaf-list and triangle indices count from these bases).
+MESH = Columns("MESH", "A mesh of an instanced scene (meshes, uint32 rows)",
+               ("tri_base", "tri_count", "node_base", "leaf32_base", "leaf16_base", "leaf_shift"))
+COLUMNS = (TEXTURE_SIZE, MESH)
 
 
 # ---------------------------------------------------------------------------------------------

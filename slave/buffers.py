@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from core.layout import (AREA_SHAPE_CODES, BOUNDS, CAMERA, CAMERA_CODES, EMITTER,
+from core.layout import (AREA_SHAPE_CODES, BOUNDS, CAMERA, CAMERA_CODES, EMITTER, INSTANCE,
                          INTERPOLATION_CODES, LIGHT, LIGHT_CODES, MATERIAL, PROJECTION_CODES,
                          TRIANGLE, WORLD)
 from core.scene.model import MATERIAL_PARAMS, View
@@ -81,6 +81,24 @@ def pack_bounds(bounds) -> np.ndarray:
     BOUNDS.put(out, "max", bounds[1])
     BOUNDS.put(out, "extent", np.abs(bounds).max())
     return out
+
+
+def pack_instances(instances) -> dict:
+    """An instanced scene's top-level buffers (core/scene/instances.py InstanceSet): the
+    TOPLEVEL nodes, the INSTANCE records in the top level's leaf order, the MESH rows and one
+    BOUNDS record per mesh."""
+    order = instances.toplevel.order
+    records = np.zeros((len(order), INSTANCE.size, 4), np.float32)
+    INSTANCE.put(records, "to_object", instances.to_object[order])
+    INSTANCE.put(records, "to_world", instances.to_world[order])
+    INSTANCE.put(records, "mesh", instances.mesh[order].view(np.float32))
+    INSTANCE.put(records, "key_base", instances.key_base[order].view(np.float32))
+    INSTANCE.put(records, "visibility", instances.visibility[order].astype(np.float32))
+    det = np.linalg.det(instances.to_world[order, :, :3].astype(np.float64))
+    INSTANCE.put(records, "orientation", np.where(det < 0, -1.0, 1.0))
+    return {"toplevel": instances.toplevel.nodes, "instances": records,
+            "meshes": np.ascontiguousarray(instances.mesh_table, np.uint32),
+            "mesh_bounds": np.concatenate([pack_bounds(b) for b in instances.mesh_bounds])}
 
 
 def pack_triangles(geometry) -> np.ndarray:

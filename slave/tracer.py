@@ -18,15 +18,15 @@ from typing import NamedTuple
 import numpy as np
 
 from core.accel.reorder import treelet_order
-from core.layout import ACCUM, STATS, c_header
+from core.layout import ACCUM, MESH, STATS, c_header
 from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
 from core.scene.features import ALL_FEATURES, needed_arrays
 from core.scene.model import SceneError, View
 from core.scene.scene import Scene
 
 from .adaptive import pixel_rgba, sample_tile
-from .buffers import (pack_bounds, pack_camera, pack_emitters, pack_lights, pack_materials,
-                      pack_triangles, pack_world, world_importance)
+from .buffers import (pack_bounds, pack_camera, pack_emitters, pack_instances, pack_lights,
+                      pack_materials, pack_triangles, pack_world, world_importance)
 
 # Concatenated in this order: each file uses only what the ones before it define.
 KERNEL_FILES = ("trace/trace.cl", "shade/sampling.cl", "shade/ggx_albedo.cl", "shade/shading.cl",
@@ -41,9 +41,18 @@ class TracerError(OpenCLError):
 
 class RayHits(NamedTuple):
     t: np.ndarray           # float32, inf on a miss
-    triangle: np.ndarray    # int32, -1 on a miss
+    triangle: np.ndarray    # int32, -1 on a miss (an index into the scene's geometry)
     u: np.ndarray           # float32, weight of the triangle's second vertex
     v: np.ndarray           # float32, weight of the third vertex
+
+
+class InstanceHits(NamedTuple):
+    """RayHits of an instanced scene: also the instance hit (docs/instances.md)."""
+    t: np.ndarray
+    triangle: np.ndarray    # int32 index into the scene's geometry (the mesh's triangle)
+    u: np.ndarray
+    v: np.ndarray
+    instance: np.ndarray    # int64, -1 on a miss
 
 
 def kernel_options(features: dict) -> list:
@@ -84,6 +93,7 @@ class Tracer:
         self._scene = None
         self._stack_size = MIN_STACK_SIZE
         self._loaded = None         # the Scene whose buffers self._scene holds
+        self._toplevel = ()         # an instanced scene's top-level buffers (kernel arguments)
         self._checked_view = None   # the last view checked against it
         self._light_tables = None   # (key, buffers) of the world importance map and emitters
         self.specialise = True      # False: compile every feature (for measuring specialisation)
@@ -142,9 +152,18 @@ class Tracer:
         def optional(array, dtype):
             return upload(np.zeros(4, dtype) if array is None else np.ascontiguousarray(array, dtype))
 
-        # The same tree with its nodes in treelets, a cache-friendlier order (core/accel/reorder.py).
-        if self.treelets:
+        # The same tree with its nodes in treelets, a cache-friendlier order (core/accel/reorder.py);
+        # an instanced scene's mesh trees each on its own (same lengths: the bases stay).
+        if self.treelets and scene.instances is None:
             tree = treelet_order(tree)
+        elif self.treelets:
+            trees = [treelet_order(t) for t in scene.mesh_trees()]
+            tree = type(tree)(*(np.concatenate([getattr(t, name) for t in trees])
+                                for name in ("nodes", "leaf_index32", "leaf_index16")),
+                              tree.bounds, 0)
+            assert len(tree.nodes) == len(scene.tree.nodes)
+        self._toplevel = () if scene.instances is None else tuple(
+            upload(array) for array in pack_instances(scene.instances).values())
         self._scene = {"nodes": upload(tree.nodes), "leaf_index32": upload(tree.leaf_index32),
                        "leaf_index16": upload(tree.leaf_index16),
                        "leaf_shift": np.uint32(tree.leaf_shift),
@@ -165,11 +184,18 @@ class Tracer:
         return self._scene
 
     # -- ray queries ---------------------------------------------------------------------
-    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf) -> RayHits:
+    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf) -> RayHits | InstanceHits:
         """Nearest hit of each ray with t in [tmin, tmax], t in units of the direction's length."""
         t, tri, u, v = self._query("intersect_rays", origins, directions, tmin, tmax,
                                    (np.float32, np.int32, np.float32, np.float32))
-        return RayHits(t, tri, u, v)
+        instances = self._loaded.instances
+        if instances is None:
+            return RayHits(t, tri, u, v)
+        # The kernel reports hit keys: back to (instance, the scene's triangle index).
+        inst, local = instances.hit_instance(tri.astype(np.int64))
+        base = instances.mesh_table[instances.mesh[np.maximum(inst, 0)], MESH.index("tri_base")]
+        triangle = np.where(inst < 0, -1, base.astype(np.int64) + local).astype(np.int32)
+        return InstanceHits(t, triangle, u, v, inst)
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """Whether each ray has a hit with t in [tmin, tmax] (a bool array): shadow rays. The
@@ -210,12 +236,16 @@ class Tracer:
         d_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=directions)
         out_bufs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in outs]
         # Only the ray queries compile the packet kernels (render programs build without them).
-        kernel = self._program(self._features(packet=self.packet))[kernel_name]
-        work_items = -(-n // self.packet) if self.packet else n
+        # Instanced scenes trace one ray per work-item (intersect.cl).
+        instanced = self._loaded.instances is not None
+        packet = 0 if instanced else self.packet
+        flags = ("INSTANCES",) if instanced else ()
+        kernel = self._program(self._features(flags, packet=packet))[kernel_name]
+        work_items = -(-n // packet) if packet else n
         kernel(self.queue, self._global_size(work_items), self._local(), o_buf, d_buf,
                np.float32(tmin), np.float32(tmax), np.uint32(n), scene["nodes"],
                scene["leaf_index32"], scene["leaf_index16"], scene["leaf_shift"],
-               scene["tri_verts"], scene["bounds"], *out_bufs)
+               scene["tri_verts"], scene["bounds"], *self._toplevel, *out_bufs)
         for host, buf in zip(outs, out_bufs):
             cl.enqueue_copy(self.queue, host, buf)
         self.queue.finish()
@@ -260,7 +290,7 @@ class Tracer:
         fixed = (upload(pack_camera(view)), np.int32(x), np.int32(y), np.int32(w))
         world, env_cdf, emitters, emitter_count, emitter_power = self._lights_for(shading, flags)
         scene_args = (scene["nodes"], scene["leaf_index32"], scene["leaf_index16"],
-                      scene["leaf_shift"], scene["tri_verts"], scene["bounds"],
+                      scene["leaf_shift"], scene["tri_verts"], scene["bounds"], *self._toplevel,
                       scene["material_ids"], upload(pack_materials(shading)),
                       upload(pack_lights(shading.lights)), np.uint32(len(shading.lights)),
                       scene["normals"], scene["uvs"], scene["texels"], scene["texture_sizes"],

@@ -34,14 +34,17 @@ FEATURES = {
     "NOISE": (),              # a node program evaluates a Noise Texture
     "NORMAL_MAP": (),         # a node program evaluates a Normal Map (sets the shading normal)
     "BUMP": (),               # a node program evaluates a Bump (heights at three points)
+    "INSTANCES": (),          # instanced meshes under a top-level BVH (docs/instances.md)
 }
 ALL_FEATURES = frozenset(FEATURES)
 
 
-def scene_features(geometry: Geometry, view: View, used_materials=None) -> frozenset:
+def scene_features(geometry: Geometry, view: View, used_materials=None,
+                   instances=None) -> frozenset:
     """The features the scene (geometry + the frame's view) needs. Only materials that some
     triangle uses count, so an unused glass material does not switch refraction on.
-    `used_materials`: those material ids, when known (core.scene.scene.Scene keeps them)."""
+    `used_materials`: those material ids, when known (core.scene.scene.Scene keeps them);
+    `instances`: an instanced scene's InstanceSet (core/scene/instances.py)."""
     shading = view.shading
     features = {light.kind for light in shading.lights}
     if any((light.kind in ("POINT", "SPOT", "SUN") and light.radius > 0) for light in shading.lights):
@@ -86,6 +89,13 @@ def scene_features(geometry: Geometry, view: View, used_materials=None) -> froze
         features.add("HOLDOUT")
     if ((visibility & VISIBLE_TO_ALL) != VISIBLE_TO_ALL).any():
         features.add("VISIBILITY")
+    if instances is not None:
+        features.add("INSTANCES")
+        bits = instances.visibility.astype(np.int64)
+        if (bits & VISIBILITY_CODES["HOLDOUT"]).any():
+            features.add("HOLDOUT")
+        if ((bits & VISIBLE_TO_ALL) != VISIBLE_TO_ALL).any():
+            features.add("VISIBILITY")
     if view.film_transparent:
         features.add("TRANSPARENT_FILM")
     camera = view.camera

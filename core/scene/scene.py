@@ -5,6 +5,12 @@
 A Scene carries what those layers would otherwise recompute: its content hash (the one key of
 uploads and caches), the tree's depth (the traversal stack size) and which materials the
 triangles use (what the kernel features depend on, core/scene/features.py).
+
+An instanced scene (`Scene.from_instances`, docs/instances.md) also carries `instances`
+(core/scene/instances.py): its geometry is then its meshes' object-space triangles one after
+another, its tree their compact kd-trees one after another (each counting from its bases in
+the MESH table) with the world box of all instances as bounds, and its depth the deepest
+mesh tree's. A scene of one identity instance is made flat: the same scene as from_parts.
 """
 from __future__ import annotations
 
@@ -16,9 +22,11 @@ import numpy as np
 from ..accel.compact import CompactTree, compact_tree
 from ..accel.kdtree import KDTree
 from ..accel.validate import validate_compact
-from .features import needed_arrays, program_textures, scene_features
-from .model import (INDEX_DTYPE, MATERIAL_ID_DTYPE, MAX_LIGHTS, VERTEX_DTYPE, Geometry,
-                    SceneError, View)
+from ..layout import INSTANCE, MESH, VISIBLE_TO_ALL
+from .features import full_geometry, needed_arrays, program_textures, scene_features
+from .instances import InstanceSet, as_3x4
+from .model import (INDEX_DTYPE, MATERIAL_ID_DTYPE, MATERIAL_PARAMS, MAX_LIGHTS, VERTEX_DTYPE,
+                    Geometry, SceneError, View)
 
 # The arrays of a scene as they travel and are stored: name -> (dtype, shape; -1 = any length).
 SCENE_ARRAYS = {
@@ -36,6 +44,21 @@ TREE_ARRAYS = ("nodes", "leaf_index32", "leaf_index16", "bounds", "leaf_shift")
 # Geometry arrays that travel only when the scene needs them (smooth normals, textures).
 OPTIONAL_SCENE_ARRAYS = {name: (dtype, (-1, width))
                          for name, (dtype, width) in Geometry.OPTIONAL.items()}
+# An instanced scene's arrays in place of "bounds" and "leaf_shift" (core/scene/instances.py).
+# mesh_counts: per mesh its triangles, nodes, 32-bit and 16-bit leaf entries and leaf_shift
+# (the bases follow as their running sums); mesh_bounds: its object-space root box.
+MESH_COUNTS = ("triangles", "nodes", "leaf32", "leaf16", "leaf_shift")
+INSTANCE_ARRAYS = {
+    "mesh_counts": (np.dtype("<u4"), (-1, len(MESH_COUNTS))),
+    "mesh_bounds": (np.dtype("<f4"), (-1, 2, 3)),
+    "instance_mesh": (np.dtype("<u4"), (-1,)),
+    "instance_to_world": (np.dtype("<f4"), (-1, 3, 4)),
+    "instance_visibility": (np.dtype("u1"), (-1,)),
+}
+INSTANCED_SCENE_ARRAYS = {**{name: SCENE_ARRAYS[name] for name in ("vertices", "triangles",
+                                                                  "material_ids", "nodes",
+                                                                  "leaf_index32", "leaf_index16")},
+                          **INSTANCE_ARRAYS}
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,6 +68,7 @@ class Scene:
     hash: str                      # 32 hex digits over the geometry and the tree arrays
     depth: int                     # levels of the tree (root = 1)
     used_materials: np.ndarray     # sorted material ids that some triangle uses
+    instances: InstanceSet | None = None    # None: a flat scene (world-space geometry)
 
     @classmethod
     def from_parts(cls, geometry: Geometry, tree) -> "Scene":
@@ -63,10 +87,11 @@ class Scene:
         """The scene of arrays received or read from disk (`wire_arrays` of a sender), after
         checking every name, dtype and shape, the geometry and the tree (so that no kernel ever
         indexes outside its buffers); SceneError names the problem."""
-        if not set(SCENE_ARRAYS) <= set(arrays) <= set(SCENE_ARRAYS) | set(OPTIONAL_SCENE_ARRAYS):
-            raise SceneError(f"a scene must carry the arrays {sorted(SCENE_ARRAYS)} and optionally "
+        required = INSTANCED_SCENE_ARRAYS if "instance_mesh" in arrays else SCENE_ARRAYS
+        if not set(required) <= set(arrays) <= set(required) | set(OPTIONAL_SCENE_ARRAYS):
+            raise SceneError(f"a scene must carry the arrays {sorted(required)} and optionally "
                              f"{sorted(OPTIONAL_SCENE_ARRAYS)}, got {sorted(arrays)}")
-        specs = {**SCENE_ARRAYS, **OPTIONAL_SCENE_ARRAYS}
+        specs = {**required, **OPTIONAL_SCENE_ARRAYS}
         for name, array in arrays.items():
             dtype, pattern = specs[name]
             if array.dtype != dtype or array.ndim != len(pattern) or any(
@@ -76,9 +101,109 @@ class Scene:
         geometry = Geometry(arrays["vertices"], arrays["triangles"], arrays["material_ids"],
                             **{name: arrays.get(name) for name in OPTIONAL_SCENE_ARRAYS})
         geometry.validate()
+        if "instance_mesh" in arrays:
+            return cls._checked_instances(geometry, arrays)
         tree = CompactTree(arrays["nodes"], arrays["leaf_index32"], arrays["leaf_index16"],
                            arrays["bounds"], int(arrays["leaf_shift"][0]))
         return cls._checked(geometry, tree)
+
+    @classmethod
+    def from_instances(cls, meshes, instance_mesh, to_world, visibility=None, texels=None,
+                       texture_sizes=None) -> "Scene":
+        """The scene of meshes (a list of (Geometry in object space, its KDTree or CompactTree);
+        their optional arrays normals/uvs, where some mesh has them) placed by instances:
+        instance_mesh (I,) mesh indices, to_world (I, 4, 4) or (I, 3, 4) object-to-world
+        transforms, visibility (I,) VISIBILITY bits (default: every ray). The textures are the
+        scene's. One identity instance of one mesh gives the flat scene (from_parts)."""
+        instance_mesh = np.asarray(instance_mesh, np.int64).reshape(-1)
+        matrices = as_3x4(to_world)
+        visibility = np.full(len(instance_mesh), VISIBLE_TO_ALL, np.uint8) if visibility is None \
+            else np.asarray(visibility, np.uint8).reshape(-1)
+        if len(instance_mesh) and (instance_mesh.min() < 0 or instance_mesh.max() >= len(meshes)):
+            raise SceneError(f"an instance uses a mesh outside 0..{len(meshes) - 1}")
+        parts = []
+        for geometry, tree in meshes:
+            geometry.validate()
+            if isinstance(tree, KDTree):
+                tree = compact_tree(tree, geometry.triangle_count, mode="standard")
+            parts.append((geometry, tree))
+        if len(parts) == 1 and len(instance_mesh) == 1 and \
+                np.array_equal(matrices[0], np.eye(3, 4)) and visibility[0] == VISIBLE_TO_ALL:
+            geometry, tree = parts[0]
+            return cls.from_parts(Geometry(geometry.vertices, geometry.triangles,
+                                           geometry.material_ids, geometry.normals,
+                                           geometry.uvs, texels, texture_sizes), tree)
+        arrays = _concatenated_meshes(parts)
+        geometry = Geometry(arrays.pop("vertices"), arrays.pop("triangles"),
+                            arrays.pop("material_ids"), arrays.pop("normals", None),
+                            arrays.pop("uvs", None), texels, texture_sizes)
+        geometry.validate()
+        arrays.update(instance_mesh=instance_mesh.astype(np.uint32),
+                      instance_to_world=matrices.astype(np.float32),
+                      instance_visibility=visibility)
+        return cls._checked_instances(geometry, arrays)
+
+    @classmethod
+    def _checked_instances(cls, geometry: Geometry, arrays: dict) -> "Scene":
+        counts = arrays["mesh_counts"].astype(np.int64)
+        totals = counts[:, :4].sum(axis=0)
+        sizes = (geometry.triangle_count, len(arrays["nodes"]), len(arrays["leaf_index32"]),
+                 len(arrays["leaf_index16"]))
+        if tuple(int(v) for v in totals) != sizes:
+            raise SceneError(f"the meshes' triangles, nodes and leaf entries add up to "
+                             f"{tuple(int(v) for v in totals)}, the scene has {sizes}")
+        bases = np.concatenate([np.zeros((1, 4), np.int64), np.cumsum(counts[:, :4], axis=0)])
+        table = np.zeros((len(counts), len(MESH.columns)), np.uint32)
+        for column, k in (("tri_base", 0), ("node_base", 1), ("leaf32_base", 2),
+                          ("leaf16_base", 3)):
+            table[:, MESH.index(column)] = bases[:-1, k]
+        table[:, MESH.index("tri_count")] = counts[:, 0]
+        table[:, MESH.index("leaf_shift")] = counts[:, 4]
+        mesh_bounds = arrays["mesh_bounds"]
+        if len(mesh_bounds) != len(counts):
+            raise SceneError(f"{len(mesh_bounds)} mesh boxes for {len(counts)} meshes")
+        depth = 1
+        for m in range(len(counts)):
+            lo, hi = bases[m], bases[m + 1]
+            triangles = geometry.triangles[lo[0]:hi[0]]
+            try:
+                depth = max(depth, validate_compact(
+                    arrays["nodes"][lo[1]:hi[1]], arrays["leaf_index32"][lo[2]:hi[2]],
+                    arrays["leaf_index16"][lo[3]:hi[3]], mesh_bounds[m], int(counts[m, 4]),
+                    len(triangles)))
+            except ValueError as exc:
+                raise SceneError(f"invalid kd-tree of mesh {m}: {exc}") from None
+        instances = InstanceSet.checked(arrays["instance_mesh"], arrays["instance_to_world"],
+                                        arrays["instance_visibility"], table, mesh_bounds)
+        tree = CompactTree(arrays["nodes"], arrays["leaf_index32"], arrays["leaf_index16"],
+                           instances.bounds(), 0)
+        used = np.unique(geometry.material_ids) if geometry.triangle_count else \
+            np.zeros(0, geometry.material_ids.dtype)
+        wire = {**{name: arrays[name] for name in INSTANCE_ARRAYS},
+                **{name: np.ascontiguousarray(arrays[name], dtype=SCENE_ARRAYS[name][0])
+                   for name in ("nodes", "leaf_index32", "leaf_index16")}}
+        digest = hashlib.blake2b(digest_size=16)
+        digest.update(b"instanced" + geometry.content_hash().encode())
+        for name, array in wire.items():
+            digest.update(f"{name}{array.shape}".encode())
+            digest.update(np.ascontiguousarray(array).tobytes())
+        return cls(geometry, tree, digest.hexdigest(), depth, used, instances)
+
+    def mesh_trees(self) -> list:
+        """An instanced scene's mesh trees (CompactTree views into the scene's tree arrays)."""
+        table = self.instances.mesh_table
+        ends = [len(self.tree.nodes), len(self.tree.leaf_index32), len(self.tree.leaf_index16)]
+        columns = [MESH.index(c) for c in ("node_base", "leaf32_base", "leaf16_base")]
+        out = []
+        for m in range(len(table)):
+            lo = [int(table[m, c]) for c in columns]
+            hi = [int(table[m + 1, c]) for c in columns] if m + 1 < len(table) else ends
+            out.append(CompactTree(self.tree.nodes[lo[0]:hi[0]],
+                                   self.tree.leaf_index32[lo[1]:hi[1]],
+                                   self.tree.leaf_index16[lo[2]:hi[2]],
+                                   self.instances.mesh_bounds[m],
+                                   int(table[m, MESH.index("leaf_shift")])))
+        return out
 
     @classmethod
     def _checked(cls, geometry: Geometry, tree: CompactTree) -> "Scene":
@@ -98,7 +223,22 @@ class Scene:
 
     def wire_arrays(self) -> dict:
         """The arrays of a SCENE_UPLOAD (and of the slave's disk cache), in wire dtypes."""
-        return _wire_arrays(self.geometry, self.tree)
+        if self.instances is None:
+            return _wire_arrays(self.geometry, self.tree)
+        inst = self.instances
+        trees = self.mesh_trees()
+        table = inst.mesh_table
+        counts = np.stack([table[:, MESH.index("tri_count")],
+                           [len(t.nodes) for t in trees], [len(t.leaf_index32) for t in trees],
+                           [len(t.leaf_index16) for t in trees],
+                           table[:, MESH.index("leaf_shift")]], axis=1).astype(np.uint32)
+        arrays = _wire_arrays(self.geometry, self.tree)
+        for name in ("bounds", "leaf_shift"):
+            del arrays[name]
+        arrays.update(mesh_counts=counts, mesh_bounds=np.ascontiguousarray(inst.mesh_bounds, "<f4"),
+                      instance_mesh=inst.mesh, instance_to_world=inst.to_world,
+                      instance_visibility=inst.visibility)
+        return arrays
 
     def check_view(self, view: View) -> None:
         """SceneError unless `view` can shade this scene, so that a frame is refused when it
@@ -129,15 +269,38 @@ class Scene:
         axis = view.camera.to_world[:3, :3] @ np.array([0.0, 0.0, -1.0])
         if not np.isfinite(axis).all() or not np.linalg.norm(axis) > 0:
             raise SceneError("the camera's to_world maps its view axis to zero")
+        if self.instances is not None:
+            self._check_emitters(view)
         missing = sorted(name for name in needed_arrays(self.features(view))
                          if getattr(self.geometry, name) is None)
         if missing:
             raise SceneError(f"the view needs the geometry arrays {missing}, which the scene "
                              f"does not carry")
 
+    def _check_emitters(self, view: View) -> None:
+        """Emissive triangles are sampled as lights in world space: in an instanced scene
+        they must lie in meshes placed once, by the identity (the exporter realises others)."""
+        params = view.shading.material_params
+        emission = params[:, [MATERIAL_PARAMS.index(f"emission_{c}") for c in "rgb"]]
+        emissive = (emission > 0).any(axis=1)
+        if not emissive[self.used_materials].any():
+            return
+        inst = self.instances
+        table = inst.mesh_table
+        tri_mesh = np.repeat(np.arange(len(table)), table[:, MESH.index("tri_count")])
+        lit = np.zeros(len(table), bool)
+        lit[tri_mesh[emissive[self.geometry.material_ids]]] = True
+        uses = np.bincount(inst.mesh, minlength=len(table))
+        identity = (inst.to_world == np.eye(3, 4, dtype=np.float32)).all(axis=(1, 2))
+        placed_once = (uses == 1) & np.bincount(inst.mesh, identity, len(table)).astype(bool)
+        bad = lit & ~placed_once
+        if bad.any():
+            raise SceneError(f"mesh {int(np.flatnonzero(bad)[0])} has emissive triangles and is "
+                             f"not placed once by the identity: emitters must be realised")
+
     def features(self, view: View) -> frozenset:
         """The kernel features this scene needs for `view` (core/scene/features.py)."""
-        return scene_features(self.geometry, view, self.used_materials)
+        return scene_features(self.geometry, view, self.used_materials, self.instances)
 
 
 def _tree_arrays(tree: CompactTree) -> dict:
@@ -164,3 +327,58 @@ def _content_hash(geometry: Geometry, tree: CompactTree) -> str:
         digest.update(f"{name}{array.shape}".encode())
         digest.update(array.tobytes())
     return digest.hexdigest()
+
+
+def _concatenated_meshes(parts) -> dict:
+    """The meshes' geometry and tree arrays one after another (triangles index the joined
+    vertices; each tree stays local to its mesh), with the mesh_counts and mesh_bounds of the
+    wire. Normals and UVs are joined when some mesh has them: flat corner normals and zero
+    UVs stand in for a mesh without."""
+    vertex_bases = np.cumsum([0] + [len(g.vertices) for g, _ in parts])
+    out = {"vertices": np.concatenate([g.vertices for g, _ in parts]),
+           "triangles": np.concatenate([g.triangles + np.uint32(base)
+                                        for (g, _), base in zip(parts, vertex_bases)]),
+           "material_ids": np.concatenate([g.material_ids for g, _ in parts])}
+    if any(g.normals is not None for g, _ in parts):
+        out["normals"] = np.concatenate([g.normals if g.normals is not None
+                                         else full_geometry(g).normals for g, _ in parts])
+    if any(g.uvs is not None for g, _ in parts):
+        out["uvs"] = np.concatenate([g.uvs if g.uvs is not None
+                                     else np.zeros((3 * g.triangle_count, 2)) for g, _ in parts])
+    for name in ("nodes", "leaf_index32", "leaf_index16"):
+        out[name] = np.ascontiguousarray(np.concatenate([getattr(t, name) for _, t in parts]),
+                                         SCENE_ARRAYS[name][0])
+    out["mesh_counts"] = np.array([(g.triangle_count, len(t.nodes), len(t.leaf_index32),
+                                    len(t.leaf_index16), int(t.leaf_shift))
+                                   for g, t in parts], np.uint32)
+    out["mesh_bounds"] = np.array([t.bounds for _, t in parts], np.float32)
+    return out
+
+
+def memory_report(scene: Scene) -> dict:
+    """What the scene costs each slave against its realised version (docs/instances.md):
+    triangles stored and referenced, bytes of the meshes (geometry and kd-trees) and of the top
+    level (BVH nodes and instance records), and the realised scene's bytes estimated at the
+    meshes' bytes per triangle."""
+    inst = scene.instances
+    stored = scene.geometry.triangle_count
+    referenced = stored if inst is None else inst.referenced_triangles
+    mesh_bytes = scene.geometry.nbytes + scene.tree.nbytes
+    top_bytes = 0 if inst is None else int(inst.toplevel.nodes.nbytes) + \
+        inst.count * INSTANCE.size * 16
+    return {"instances": 1 if inst is None else inst.count,
+            "meshes": 1 if inst is None else len(inst.mesh_table),
+            "triangles_stored": stored, "triangles_referenced": referenced,
+            "bytes_meshes": mesh_bytes, "bytes_top_level": top_bytes,
+            "bytes_realised_estimate": int(mesh_bytes * referenced / max(stored, 1))}
+
+
+def memory_summary(report: dict) -> str:
+    """One line of the render's report."""
+    if report["instances"] == 1:
+        return f"{report['triangles_stored']:,} triangles"
+    return (f"{report['instances']:,} instances of {report['meshes']} mesh(es): "
+            f"{report['triangles_referenced']:,} triangles referenced, "
+            f"{report['triangles_stored']:,} stored; {report['bytes_meshes'] / 1e6:.1f} MB meshes "
+            f"+ {report['bytes_top_level'] / 1e6:.2f} MB top level (realised: about "
+            f"{report['bytes_realised_estimate'] / 1e6:.0f} MB)")

@@ -5,18 +5,6 @@
 // The camera buffer is one CAMERA record of the layout header (core/layout.py; packed by
 // slave/buffers.py); the accumulators are ACCUM and STATS records, one per tile pixel.
 
-inline float3 transform_point(__global const float4 *m, float3 p)
-{
-    float4 q = (float4)(p, 1.0f);
-    return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
-}
-
-inline float3 transform_vector(__global const float4 *m, float3 v)
-{
-    float4 q = (float4)(v, 0.0f);
-    return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
-}
-
 #ifdef HAS_DOF
 // A point of the aperture (radius 1) for u in [0, 1)^2, as Cycles samples it: a disc, or the
 // regular polygon of `blades` corners turned by `rotation`.
@@ -82,7 +70,7 @@ inline void go_behind(const Surface *s, const Hit *h, float3 d, bool primary, fl
                       uint *ignore, float *t_before, float *tmin, float *tmax)
 {
     *o = spawn(s, d);
-    *ignore = h->tri;
+    *ignore = h->key;
     if (primary) {
         *t_before += h->t;
         *tmin = fmax(*tmin - h->t, 0.0f);
@@ -166,7 +154,7 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         }
         Surface s = surface_at(sc, &h, d);
 #if defined(HAS_VISIBILITY) || defined(HAS_HOLDOUT)
-        uint visibility = material_visibility(sc, h.tri);
+        uint visibility = hit_visibility(sc, &h);
 #endif
 #ifdef HAS_VISIBILITY
         // An object this kind of ray does not see: the ray goes on behind it (not a bounce).
@@ -269,7 +257,7 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         d = wi;
         tmin = 0.0f;
         tmax = INFINITY;
-        ignore = h.tri;
+        ignore = h.key;
 #else
         break;
 #endif
@@ -289,7 +277,8 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
                              int write_aux,
                              __global const uint2 *nodes, __global const uint *leaf_index32,
                              __global const ushort *leaf_index16, uint leaf_shift,
-                             __global const float4 *tri_verts, __global const float4 *bounds,
+                             __global const float4 *tri_verts, __global const float4 *bounds
+                             TOPLEVEL_PARAMS,
                              __global const ushort *material_ids,
                              __global const float4 *materials, __global const float4 *lights,
                              uint light_count, __global const float *normals,
@@ -310,6 +299,10 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     Scene sc;
     sc.kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
     sc.tri_verts = tri_verts;
+#ifdef HAS_INSTANCES
+    TOPLEVEL_MAKE(top);
+    sc.top = top;
+#endif
     sc.material_ids = material_ids;
     sc.materials = materials;
     sc.lights = lights;
@@ -387,7 +380,7 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
                 break;
             Surface s = surface_at(&sc, &h, d);
 #ifdef HAS_VISIBILITY
-            if (!(material_visibility(&sc, h.tri) & VISIBILITY_CAMERA)) {   // not seen: behind
+            if (!(hit_visibility(&sc, &h) & VISIBILITY_CAMERA)) {   // not seen: behind
                 go_behind(&s, &h, d, true, &o, &ignore, &t_before, &tmin, &tmax);
                 continue;
             }

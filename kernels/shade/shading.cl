@@ -18,6 +18,9 @@
 
 typedef struct {
     KdTree kd;                          // the compact kd-tree (trace.cl)
+#ifdef HAS_INSTANCES
+    TopLevel top;                       // the instances and their BVH (trace.cl)
+#endif
     __global const float4 *tri_verts;
     __global const ushort *material_ids;
     __global const float4 *materials;
@@ -50,6 +53,7 @@ typedef struct {
     float3 p, err, ng, ns;
     bool front;
     uint tri;
+    uint key;                           // the hit's key (Hit.key): what a ray leaving it ignores
     float u, v;
 } Surface;
 
@@ -67,8 +71,30 @@ inline bool trace(const Scene *sc, float3 o, float3 d, float tmin, float tmax, b
                   uint ignore, Hit *h)
 {
     Ray r = make_ray(o, d);
+#ifdef HAS_INSTANCES
+    return trace_instances(&r, tmin, tmax, any_hit, ignore, &sc->kd, &sc->top, sc->tri_verts, h);
+#else
     return trace_ray(&r, tmin, tmax, any_hit, ignore, &sc->kd, sc->tri_verts, h);
+#endif
 }
+
+#ifdef HAS_INSTANCES
+// |m| v: bounds what an error of at most v per component becomes through m's linear part.
+inline float3 transform_abs(__global const float4 *m, float3 v)
+{
+    return (float3)(fabs(m[0].x) * v.x + fabs(m[0].y) * v.y + fabs(m[0].z) * v.z,
+                    fabs(m[1].x) * v.x + fabs(m[1].y) * v.y + fabs(m[1].z) * v.z,
+                    fabs(m[2].x) * v.x + fabs(m[2].y) * v.y + fabs(m[2].z) * v.z);
+}
+
+// A shading normal of the instance's mesh in world space (the inverse transpose), unit.
+inline float3 instance_normal(__global const float4 *to_object, float3 n)
+{
+    float3 w = transform_normal(to_object, n);
+    float len = length(w);
+    return len > 0.0f ? w / len : w;
+}
+#endif
 
 inline Surface surface_at(const Scene *sc, const Hit *h, float3 d)
 {
@@ -82,6 +108,19 @@ inline Surface surface_at(const Scene *sc, const Hit *h, float3 d)
     s.p = b0 * v0 + h->u * v1 + h->v * v2;
     s.err = HIT_ERROR * (fabs(b0 * v0) + fabs(h->u * v1) + fabs(h->v * v2));
     float3 n = cross(v1 - v0, v2 - v0);
+#ifdef HAS_INSTANCES
+    // The instance's mesh is in object space: the point to world space (its error through
+    // |M|, plus the transform's own rounding), the normal by the inverse transpose, flipped
+    // where the transform mirrors (as the realised triangle's winding is).
+    __global const float4 *I = sc->top.instances + INSTANCE_SIZE * h->inst;
+    __global const float4 *to_world = INSTANCE_TO_WORLD(I), *to_object = INSTANCE_TO_OBJECT(I);
+    s.err = transform_abs(to_world, s.err)
+            + HIT_ERROR * (transform_abs(to_world, fabs(s.p)) + fabs((float3)(to_world[0].w,
+                                                                          to_world[1].w,
+                                                                          to_world[2].w)));
+    s.p = transform_point(to_world, s.p);
+    n = transform_normal(to_object, n) * INSTANCE_ORIENTATION(I);
+#endif
     float len = length(n);
     n = len > 0.0f && isfinite(len) ? n / len : -normalize(d);   // slivers: face the ray
     s.front = dot(n, d) < 0.0f;
@@ -90,6 +129,11 @@ inline Surface surface_at(const Scene *sc, const Hit *h, float3 d)
 #ifdef HAS_SMOOTH
     float3 n0 = vload3(3 * tri, sc->normals), n1 = vload3(3 * tri + 1, sc->normals);
     float3 n2 = vload3(3 * tri + 2, sc->normals);
+#ifdef HAS_INSTANCES
+    n0 = instance_normal(to_object, n0);    // per corner, as the realised mesh's normals
+    n1 = instance_normal(to_object, n1);
+    n2 = instance_normal(to_object, n2);
+#endif
     float3 ns = b0 * n0 + h->u * n1 + h->v * n2;
     float ls = length(ns);
     if (ls > 0.0f && isfinite(ls)) {
@@ -102,6 +146,7 @@ inline Surface surface_at(const Scene *sc, const Hit *h, float3 d)
     }
 #endif
     s.tri = tri;
+    s.key = h->key;
     s.u = h->u;
     s.v = h->v;
     return s;
@@ -806,6 +851,18 @@ inline Material surface_material(const Scene *sc, Surface *s, float3 d)
 inline uint material_visibility(const Scene *sc, uint tri)
 {
     return (uint)MATERIAL_VISIBILITY(sc->materials + MATERIAL_SIZE * sc->material_ids[tri]);
+}
+
+// The same for a hit: with instances, rays see it when both its material and its instance
+// let them; either one makes it a holdout.
+inline uint hit_visibility(const Scene *sc, const Hit *h)
+{
+    uint bits = material_visibility(sc, h->tri);
+#ifdef HAS_INSTANCES
+    uint own = (uint)INSTANCE_VISIBILITY(sc->top.instances + INSTANCE_SIZE * h->inst);
+    bits = (bits & own & ~VISIBILITY_HOLDOUT) | ((bits | own) & VISIBILITY_HOLDOUT);
+#endif
+    return bits;
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1561,7 +1618,7 @@ inline float3 shadow(const Scene *sc, float3 o, float3 w, float dist, float3 tar
         if (!trace(sc, o, w, 0.0f, tmax, false, ignore, &h))
             return T;
 #ifdef HAS_VISIBILITY
-        if (material_visibility(sc, h.tri) & VISIBILITY_SHADOW) {
+        if (hit_visibility(sc, &h) & VISIBILITY_SHADOW) {
 #endif
 #ifdef HAS_ALPHA
             Material m = material_at(sc, h.tri, h.u, h.v);
@@ -1576,7 +1633,7 @@ inline float3 shadow(const Scene *sc, float3 o, float3 w, float dist, float3 tar
 #endif
         Surface s = surface_at(sc, &h, w);
         o = spawn(&s, w);
-        ignore = h.tri;
+        ignore = h.key;
         if (!isinf(dist))
             dist = length(target - o);
     }
@@ -1616,7 +1673,7 @@ inline float3 light_contribution(const Scene *sc, const Surface *s, const Materi
 #else
     float w = 1.0f;     // no BSDF rays: light samples alone
 #endif
-    float3 V = shadow(sc, spawn(s, wi), wi, dist, target, s->tri);
+    float3 V = shadow(sc, spawn(s, wi), wi, dist, target, s->key);
     return f * L * (fabs(wi_l.z) * w) * V;
 }
 

@@ -14,14 +14,24 @@ KD_INLINE Ray load_ray(__global const float *origins, __global const float *dire
                     (float3)(directions[3 * i], directions[3 * i + 1], directions[3 * i + 2]));
 }
 
+// With instances the host is given the hit's key (core/scene/instances.py hit_instance).
 KD_INLINE void write_hit(const Hit *h, uint i, __global float *out_t, __global int *out_tri,
                          __global float *out_u, __global float *out_v)
 {
     out_t[i] = h->t;
+#ifdef HAS_INSTANCES
+    out_tri[i] = h->tri == NO_HIT ? -1 : (int)h->key;
+#else
     out_tri[i] = h->tri == NO_HIT ? -1 : (int)h->tri;
+#endif
     out_u[i] = h->u;
     out_v[i] = h->v;
 }
+
+// Instanced scenes trace one ray per work-item (packets are for flat scenes so far).
+#if defined(KD_PACKET) && defined(HAS_INSTANCES)
+#undef KD_PACKET
+#endif
 
 #ifdef KD_PACKET
 // Whether the live rays of a packet go the same way: their directions share the octant (the
@@ -79,11 +89,13 @@ __kernel void intersect_rays(__global const float *origins, __global const float
                              float tmin, float tmax, uint ray_count,
                              __global const uint2 *nodes, __global const uint *leaf_index32,
                              __global const ushort *leaf_index16, uint leaf_shift,
-                             __global const float4 *tri_verts, __global const float4 *bounds,
+                             __global const float4 *tri_verts, __global const float4 *bounds
+                             TOPLEVEL_PARAMS,
                              __global float *out_t, __global int *out_tri,
                              __global float *out_u, __global float *out_v)
 {
     KdTree kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
+    TOPLEVEL_MAKE(top);
 #ifdef KD_PACKET
     uint item = get_global_id(0);
     if (item * KD_PACKET >= ray_count)
@@ -99,7 +111,7 @@ __kernel void intersect_rays(__global const float *origins, __global const float
         return;
     Ray r = load_ray(origins, directions, i);
     Hit h;
-    trace_ray(&r, tmin, tmax, false, NO_HIT, &kd, tri_verts, &h);
+    trace_scene(&r, tmin, tmax, false, NO_HIT, &kd, TOPLEVEL_ARG, tri_verts, &h);
     write_hit(&h, i, out_t, out_tri, out_u, out_v);
 #endif
 }
@@ -109,10 +121,12 @@ __kernel void occluded_rays(__global const float *origins, __global const float 
                             float tmin, float tmax, uint ray_count,
                             __global const uint2 *nodes, __global const uint *leaf_index32,
                             __global const ushort *leaf_index16, uint leaf_shift,
-                            __global const float4 *tri_verts, __global const float4 *bounds,
+                            __global const float4 *tri_verts, __global const float4 *bounds
+                            TOPLEVEL_PARAMS,
                             __global uchar *out_hit)
 {
     KdTree kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
+    TOPLEVEL_MAKE(top);
 #ifdef KD_PACKET
     uint item = get_global_id(0);
     if (item * KD_PACKET >= ray_count)
@@ -128,6 +142,6 @@ __kernel void occluded_rays(__global const float *origins, __global const float 
         return;
     Ray r = load_ray(origins, directions, i);
     Hit h;
-    out_hit[i] = trace_ray(&r, tmin, tmax, true, NO_HIT, &kd, tri_verts, &h);
+    out_hit[i] = trace_scene(&r, tmin, tmax, true, NO_HIT, &kd, TOPLEVEL_ARG, tri_verts, &h);
 #endif
 }

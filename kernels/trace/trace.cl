@@ -50,12 +50,29 @@ typedef struct {
 typedef struct {
     float t, u, v;
     uint tri;               // NO_HIT on a miss
+    uint key;               // the hit's key: tri in a flat scene; with instances the key of
+                            // (instance, triangle), as its realised scene's triangle index
+    uint inst;              // with instances: the INSTANCE record hit
 } Hit;
 
 typedef struct {
     uint node;
     float t0, t1;
 } StackEntry;
+
+// p and v through the 3x4 transform of rows m (a point with the translation, a vector without):
+// the camera's (render.cl) and instances'.
+inline float3 transform_point(__global const float4 *m, float3 p)
+{
+    float4 q = (float4)(p, 1.0f);
+    return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
+}
+
+inline float3 transform_vector(__global const float4 *m, float3 v)
+{
+    float4 q = (float4)(v, 0.0f);
+    return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
+}
 
 KD_INLINE Ray make_ray(float3 o, float3 d)
 {
@@ -303,6 +320,8 @@ KD_INLINE void store_hit(const Best *b, Hit *hit)
     hit->u = b->u;
     hit->v = b->v;
     hit->tri = b->tri;
+    hit->key = b->tri;
+    hit->inst = 0u;
 }
 
 // Nearest hit with t in [tmin, tmax] (ties to the lower triangle index), or, when any_hit,
@@ -447,3 +466,158 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
     store_hit(&b, hit);
     return b.tri != NO_HIT;
 }
+
+#ifdef HAS_INSTANCES
+// ---------------------------------------------------------------------------------------------
+// Instanced scenes (docs/instances.md): a top-level BVH over the instances' world boxes
+// (TOPLEVEL records), each instance a mesh's compact kd-tree in object space (its nodes, leaf
+// lists and triangles from the mesh's bases: MESH columns), placed by its INSTANCE record.
+
+typedef struct {
+    __global const float4 *nodes;       // TOPLEVEL records, node 0 the root
+    __global const float4 *instances;   // INSTANCE records in the top level's leaf order
+    __global const uint *meshes;        // MESH rows
+    __global const float4 *mesh_bounds; // one BOUNDS record per mesh (object space)
+} TopLevel;
+
+// v through the transpose of the linear part of m: a normal of object space to world space
+// when m is the world -> object transform (the inverse transpose of object -> world).
+KD_INLINE float3 transform_normal(__global const float4 *m, float3 n)
+{
+    return (float3)(m[0].x * n.x + m[1].x * n.y + m[2].x * n.z,
+                    m[0].y * n.x + m[1].y * n.y + m[2].y * n.z,
+                    m[0].z * n.x + m[1].z * n.y + m[2].z * n.z);
+}
+
+// The entry distance of the ray into box [lo, hi] within [t0, t1], or INFINITY when it misses
+// (slabs as trace_ray's root clip, the far distance widened by pbrt's error bound).
+KD_INLINE float box_entry(const Ray *r, float3 lo, float3 hi, float t0, float t1)
+{
+    float3 tn = (lo - r->o) * r->inv_d, tf = (hi - r->o) * r->inv_d;
+    float3 near = fmin(tn, tf), far = fmax(tn, tf);
+    // fmin/fmax drop a NaN (origin on a face, ray parallel to it): that slab is ignored.
+    float enter = fmax(t0, fmax(near.x, fmax(near.y, near.z)));
+    float leave = fmin(t1, fmin(far.x, fmin(far.y, far.z)) * (1.0f + 2.0f * GAMMA3));
+    return enter <= leave ? enter : INFINITY;
+}
+
+// The mesh's compact tree, from its bases in the scene's concatenated tree arrays.
+KD_INLINE KdTree mesh_kdtree(const KdTree *all, const TopLevel *top, uint mesh)
+{
+    __global const uint *row = top->meshes + MESH_COLUMNS * mesh;
+    return make_kdtree(all->nodes + row[MESH_NODE_BASE], all->leaf32 + row[MESH_LEAF32_BASE],
+                       all->leaf16 + row[MESH_LEAF16_BASE], row[MESH_LEAF_SHIFT],
+                       top->mesh_bounds + BOUNDS_SIZE * mesh);
+}
+
+// Instance `k` against the ray: its mesh's tree traversed with the ray in object space (the
+// direction is not renormalised, so t stays the world t). Keeps a hit that is nearer than
+// hit->t, or as near with a lower key (ties as in the realised scene). `ignore_key`: the key
+// never reported (the surface a secondary ray leaves).
+KD_INLINE bool consider_instance(const Ray *r, uint k, float tmin, bool any_hit, uint ignore_key,
+                                 const KdTree *all, const TopLevel *top,
+                                 __global const float4 *tri_verts, Hit *hit)
+{
+    __global const float4 *I = top->instances + INSTANCE_SIZE * k;
+    __global const float4 *to_object = INSTANCE_TO_OBJECT(I);
+    uint mesh = as_uint(INSTANCE_MESH(I));
+    __global const uint *row = top->meshes + MESH_COLUMNS * mesh;
+    uint key_base = as_uint(INSTANCE_KEY_BASE(I));
+    uint ignore = ignore_key - key_base;         // wraps past tri_count: not this instance's
+    if (ignore >= row[MESH_TRI_COUNT])
+        ignore = NO_HIT;
+    // The origin relative to the instance's own origin first: A (o - T) rather than A o + b,
+    // so the rounding scales with the ray's distance from the instance, not with where the
+    // instance lies in the world (equal in exact arithmetic).
+    __global const float4 *to_world = INSTANCE_TO_WORLD(I);
+    float3 from_origin = r->o - (float3)(to_world[0].w, to_world[1].w, to_world[2].w);
+    Ray ro = make_ray(transform_vector(to_object, from_origin), transform_vector(to_object, r->d));
+    KdTree kd = mesh_kdtree(all, top, mesh);
+    Hit h;
+    if (!trace_ray(&ro, tmin, hit->t, any_hit, ignore, &kd, tri_verts + TRIANGLE_SIZE * row[MESH_TRI_BASE], &h))
+        return false;
+    uint key = key_base + h.tri;
+    if (!(h.t < hit->t || key < hit->key))
+        return false;
+    hit->t = h.t;
+    hit->u = h.u;
+    hit->v = h.v;
+    hit->tri = row[MESH_TRI_BASE] + h.tri;
+    hit->key = key;
+    hit->inst = k;
+    return true;
+}
+
+// trace_ray for an instanced scene: the nearest hit (ties to the lower key) over all
+// instances, or with any_hit the first found. Front-to-back over the top level: the nearer
+// child first, the other on a stack with its entry distance; nodes entered beyond the best
+// hit (by more than the tie tolerance) are skipped.
+inline bool trace_instances(const Ray *r, float tmin, float tmax, bool any_hit, uint ignore_key,
+                            const KdTree *all, const TopLevel *top,
+                            __global const float4 *tri_verts, Hit *hit)
+{
+    hit->tri = NO_HIT;
+    hit->key = NO_HIT;
+    hit->inst = 0u;
+    hit->t = tmax;
+    hit->u = hit->v = 0.0f;
+    uint stack[TOPLEVEL_MAX_DEPTH];
+    float stack_t[TOPLEVEL_MAX_DEPTH];
+    int sp = 0;
+    uint node = 0;
+    float t_node = box_entry(r, TOPLEVEL_MIN(top->nodes), TOPLEVEL_MAX(top->nodes), tmin, tmax);
+    bool found = false;
+    while (true) {
+        if (t_node < INFINITY && t_node <= hit->t + KD_TIE_EPS * hit->t) {
+            __global const float4 *N = top->nodes + TOPLEVEL_SIZE * node;
+            uint first = as_uint(TOPLEVEL_FIRST(N)), count = as_uint(TOPLEVEL_COUNT(N));
+            if (count == 0u) {
+                __global const float4 *A = top->nodes + TOPLEVEL_SIZE * first;
+                __global const float4 *B = A + TOPLEVEL_SIZE;
+                float limit = hit->t + KD_TIE_EPS * hit->t;
+                float ta = box_entry(r, TOPLEVEL_MIN(A), TOPLEVEL_MAX(A), tmin, limit);
+                float tb = box_entry(r, TOPLEVEL_MIN(B), TOPLEVEL_MAX(B), tmin, limit);
+                bool a_first = ta <= tb;
+                float t_far = a_first ? tb : ta;
+                if (t_far < INFINITY) {
+                    stack[sp] = a_first ? first + 1u : first;
+                    stack_t[sp] = t_far;
+                    ++sp;
+                }
+                node = a_first ? first : first + 1u;
+                t_node = a_first ? ta : tb;
+                continue;
+            }
+            for (uint k = first; k < first + count && !found; ++k)
+                found = consider_instance(r, k, tmin, any_hit, ignore_key, all, top, tri_verts,
+                                          hit) && any_hit;
+            if (found)
+                break;
+        }
+        if (sp == 0)
+            break;
+        --sp;
+        node = stack[sp];
+        t_node = stack_t[sp];
+    }
+    if (hit->tri == NO_HIT)
+        hit->t = INFINITY;
+    return hit->tri != NO_HIT;
+}
+#endif
+
+// The kernels' top-level arguments and the one traversal call of a scene, flat or instanced.
+#ifdef HAS_INSTANCES
+#define TOPLEVEL_PARAMS , __global const float4 *toplevel, __global const float4 *instances, \
+    __global const uint *meshes, __global const float4 *mesh_bounds
+#define TOPLEVEL_MAKE(name) TopLevel name = {toplevel, instances, meshes, mesh_bounds}
+#define TOPLEVEL_ARG (&top)
+#define trace_scene(r, tmin, tmax, any_hit, ignore, kd, top, tri_verts, hit) \
+    trace_instances(r, tmin, tmax, any_hit, ignore, kd, top, tri_verts, hit)
+#else
+#define TOPLEVEL_PARAMS
+#define TOPLEVEL_MAKE(name)
+#define TOPLEVEL_ARG 0
+#define trace_scene(r, tmin, tmax, any_hit, ignore, kd, top, tri_verts, hit) \
+    trace_ray(r, tmin, tmax, any_hit, ignore, kd, tri_verts, hit)
+#endif
