@@ -12,11 +12,12 @@ exported only when the scene needs them (core/scene/features.py).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from ..core.layout import VISIBILITY_CODES, VISIBLE_TO_ALL
-from ..core.scene.features import scene_features, strip_geometry
+from ..core.scene.features import needed_arrays, scene_features, strip_geometry
 from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
                                 MAX_MATERIALS, RenderSettings, SceneError, Shading, View,
                                 WorldTexture)
@@ -27,21 +28,51 @@ HALF_MAX = 65504.0          # the largest float16: texels travel as half floats
 
 
 def export_view(depsgraph) -> tuple[Geometry, View, dict]:
-    """Export everything a render needs. Returns (geometry, view, info): info has
-    "warnings" (a list of messages for the user)."""
+    """Export everything a render needs, every instance realised in world space. Returns
+    (geometry, view, info): info has "warnings" (a list of messages for the user)."""
+    geometry, view, warnings, _ = _export(depsgraph, instanced=False)
+    # Only what the scene needs travels (and the kernel compiles only that).
+    geometry = strip_geometry(geometry, scene_features(geometry, view))
+    return geometry, view, {"warnings": warnings}
+
+
+class InstancedExport(NamedTuple):
+    """The geometry of an instanced export (docs/instances.md): object-space meshes (mesh 0
+    the realised triangles, where there are any) placed by instances, and the textures;
+    core.scene.scene.Scene.from_instances takes them with a tree per mesh."""
+    meshes: list                # Geometry per mesh, without textures
+    instance_mesh: np.ndarray   # (I,) mesh of each instance
+    to_world: np.ndarray        # (I, 4, 4) float64
+    texels: np.ndarray | None
+    texture_sizes: np.ndarray | None
+
+
+def export_instanced_view(depsgraph) -> tuple[InstancedExport, View, dict]:
+    """export_view with the instances of shared meshes kept as instances (each mesh
+    exported once, in object space)."""
+    (meshes, instance_mesh, to_world), view, warnings, materials = _export(depsgraph, True)
+    texels, sizes = materials.texture_arrays()
+    features = frozenset().union(*(scene_features(
+        Geometry(m.vertices, m.triangles, m.material_ids, m.normals, m.uvs, texels, sizes), view)
+        for m in meshes))
+    if "texels" not in needed_arrays(features):
+        texels = sizes = None
+    return (InstancedExport([strip_geometry(m, features) for m in meshes], instance_mesh,
+                            to_world, texels, sizes), view, {"warnings": warnings})
+
+
+def _export(depsgraph, instanced: bool):
     scene = depsgraph.scene
     warnings = []
     materials = _MaterialTable(warnings)
     # The world first: its Environment Texture joins the material textures in one table.
     world_color, world_texture = export_world(scene, materials, warnings)
-    geometry = _export_geometry(depsgraph, materials, warnings)
+    geometry = _export_geometry(depsgraph, materials, warnings, instanced)
     shading = Shading(materials.colors(), _export_lights(depsgraph, warnings), world_color,
                       materials.params(), world_texture, np.array(materials.node_rows, np.float32))
     view = View(_export_camera(depsgraph, warnings), *render_size(scene), shading,
                 render_region(scene), render_settings(scene), bool(scene.render.film_transparent))
-    # Only what the scene needs travels (and the kernel compiles only that).
-    geometry = strip_geometry(geometry, scene_features(geometry, view))
-    return geometry, view, {"warnings": warnings}
+    return geometry, view, warnings, materials
 
 
 def render_settings(scene) -> RenderSettings:
@@ -137,6 +168,16 @@ class _MaterialTable:
             self._colors.append(color)
             self._params.append(tuple(params[name] for name in MATERIAL_PARAMS))
         return self._index[key]
+
+    def emissive(self, index: int) -> bool:
+        """Whether material record `index` emits light."""
+        params = self._params[index]
+        return any(params[MATERIAL_PARAMS.index(f"emission_{c}")] > 0 for c in "rgb")
+
+    def reads_position(self, material) -> bool:
+        """Whether the material's node program reads the hit's Object or Generated
+        coordinates (each placement then has a program of its own)."""
+        return (material.name_full if material is not None else None) in self._spatial
 
     def uses_texture(self, material) -> bool:
         """Whether the material reads UVs (an image texture, or a node program that does)."""
@@ -243,14 +284,98 @@ def _has_smooth_faces(mesh) -> bool:
     return not values.all()
 
 
-def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list) -> Geometry:
-    """All visible mesh geometry (objects and instances) as world-space triangles. NaN/inf
-    vertices are rejected (naming the object); empty meshes are skipped and zero-area faces
-    dropped, each with a warning naming the object."""
+class _MeshParts:
+    """Triangles gathered from objects into one Geometry: the world-space triangles of the
+    realised objects, or one mesh in object space. `add` drops zero-area faces (in float32,
+    in the space stored: what the kernel sees, never hit, only noise), with a warning."""
+
+    def __init__(self, warnings: list, warned: set):
+        self.parts = {"v": [], "t": [], "m": [], "n": [], "uv": []}
+        self.vertex_count = 0
+        self.warnings, self.warned = warnings, warned
+
+    def add(self, obj, arrays, slot_materials, matrix, textured) -> None:
+        vertices, triangles, slots = arrays["vertices"], arrays["triangles"], arrays["slots"]
+        placed = vertices.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
+        if not np.isfinite(placed).all():
+            raise SceneError(f"object '{obj.name}' has vertices that are NaN or infinite")
+        placed32 = placed.astype(np.float32)
+        corners = placed32[triangles]
+        keep = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).any(axis=1)
+        if not keep.all():
+            self._warn(obj, f"object '{obj.name}': {int((~keep).sum())} zero-area face(s) dropped")
+            if not keep.any():
+                return
+        else:
+            keep = slice(None)
+        parts = self.parts
+        parts["v"].append(placed32)
+        parts["t"].append(triangles[keep].astype(np.uint32) + np.uint32(self.vertex_count))
+        parts["m"].append(slot_materials[np.clip(slots[keep], 0, len(slot_materials) - 1)])
+        normals = arrays["normals"]
+        if normals is not None:
+            normal_matrix = np.linalg.inv(matrix[:3, :3]).T.astype(np.float32)
+            n = normals[keep].reshape(-1, 3)
+            if not np.allclose(normal_matrix, np.eye(3)):
+                n = n @ normal_matrix.T
+                length = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
+                n = n / np.where(length > 0, length, 1.0)
+        else:
+            n = None
+        parts["n"].append((n, keep))
+        uvs = arrays["uvs"]
+        if textured and uvs is None:
+            self._warn(obj, f"object '{obj.name}' has a textured material but no UV map")
+        parts["uv"].append(None if uvs is None else uvs[keep].reshape(-1, 2))
+        self.vertex_count += len(vertices)
+
+    def _warn(self, obj, message):
+        if obj.name not in self.warned:
+            self.warned.add(obj.name)
+            self.warnings.append(message)
+
+    @property
+    def empty(self) -> bool:
+        return not self.parts["t"]
+
+    def geometry(self, with_uvs: bool, texels=None, sizes=None) -> Geometry:
+        """The gathered triangles; `with_uvs`: UVs for every triangle (zeros where an object
+        has none: textures and node programs read them)."""
+        parts = self.parts
+        if not parts["t"]:
+            return Geometry(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32),
+                            np.zeros(0, np.uint16), texels=texels, texture_sizes=sizes)
+        counts = [len(t) for t in parts["t"]]
+        normals = None
+        if any(n is not None for n, _ in parts["n"]):
+            normals = np.concatenate([
+                n if n is not None else _flat_normals(v, t, offset)
+                for (n, _), v, t, offset in zip(parts["n"], parts["v"], parts["t"],
+                                                np.cumsum([0] + [len(v) for v in parts["v"][:-1]]))])
+        uvs = None
+        if with_uvs:
+            uvs = np.concatenate([uv if uv is not None else np.zeros((3 * c, 2), np.float32)
+                                  for uv, c in zip(parts["uv"], counts)])
+        return Geometry(np.concatenate(parts["v"]), np.concatenate(parts["t"]),
+                        np.concatenate(parts["m"]), normals, uvs, texels, sizes)
+
+
+def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
+                     instanced: bool = False):
+    """All visible mesh geometry (objects and instances). NaN/inf vertices are rejected
+    (naming the object); empty meshes are skipped and zero-area faces dropped, each with a
+    warning naming the object.
+
+    Not `instanced`: one Geometry of world-space triangles. `instanced` (docs/instances.md):
+    (meshes, instance_mesh, to_world): the instances of one evaluated mesh with the same
+    materials share one object-space Geometry (read and exported once); mesh 0 holds the
+    world-space triangles of everything realised (placed by the identity): meshes used by one
+    instance only, and objects that cannot share a mesh (emissive materials, sampled as
+    lights in world space; node programs that read the hit's Object or Generated
+    coordinates, which are the object's own). The textures are in none of the meshes."""
     mesh_cache = {}  # evaluated mesh pointer -> arrays, so instances of one mesh are read once
-    parts = {"v": [], "t": [], "m": [], "n": [], "uv": []}
-    vertex_count = 0
     warned = set()
+    placed = []      # (object, arrays, slot materials, matrix, textured, shared key or None)
     for instance in depsgraph.object_instances:
         obj = instance.object
         if obj.type != "MESH" or not instance.show_self:
@@ -267,65 +392,45 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list) -> Ge
         if key not in mesh_cache:
             mesh_cache[key] = _mesh_arrays(mesh, True, textured)
         arrays = mesh_cache[key]
-        vertices, triangles, slots = arrays["vertices"], arrays["triangles"], arrays["slots"]
-        if len(triangles) == 0:
+        if len(arrays["triangles"]) == 0:
             if obj.name not in warned:
                 warned.add(obj.name)
                 warnings.append(f"object '{obj.name}' has no faces; skipped")
             continue
         matrix = np.array(instance.matrix_world, np.float64)
-        world = vertices.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
-        if not np.isfinite(world).all():
-            raise SceneError(f"object '{obj.name}' has vertices that are NaN or infinite")
-        world32 = world.astype(np.float32)
-        # Zero area in float32 world space (what the kernel sees: never hit, only noise).
-        corners = world32[triangles]
-        keep = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).any(axis=1)
-        if not keep.all():
-            if obj.name not in warned:
-                warned.add(obj.name)
-                warnings.append(f"object '{obj.name}': {int((~keep).sum())} zero-area face(s) dropped")
-            if not keep.any():
-                continue
-        else:
-            keep = slice(None)
-        parts["v"].append(world32)
-        parts["t"].append(triangles[keep].astype(np.uint32) + np.uint32(vertex_count))
-        parts["m"].append(slot_materials[np.clip(slots[keep], 0, len(slot_materials) - 1)])
-        normals = arrays["normals"]
-        if normals is not None:
-            normal_matrix = np.linalg.inv(matrix[:3, :3]).T.astype(np.float32)
-            n = normals[keep].reshape(-1, 3)
-            if not np.allclose(normal_matrix, np.eye(3)):
-                n = n @ normal_matrix.T
-                length = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
-                n = n / np.where(length > 0, length, 1.0)
-        else:
-            n = None
-        parts["n"].append((n, keep))
-        uvs = arrays["uvs"]
-        if textured and uvs is None and obj.name not in warned:
-            warned.add(obj.name)
-            warnings.append(f"object '{obj.name}' has a textured material but no UV map")
-        parts["uv"].append(None if uvs is None else uvs[keep].reshape(-1, 2))
-        vertex_count += len(vertices)
-    if not parts["t"]:
-        return Geometry(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32),
-                        np.zeros(0, np.uint16))
-    counts = [len(t) for t in parts["t"]]
-    normals = None
-    if any(n is not None for n, _ in parts["n"]):
-        normals = np.concatenate([
-            n if n is not None else _flat_normals(v, t, offset)
-            for (n, _), v, t, offset in zip(parts["n"], parts["v"], parts["t"],
-                                            np.cumsum([0] + [len(v) for v in parts["v"][:-1]]))])
-    uvs = None
+        shareable = instanced and np.isfinite(matrix).all() and \
+            abs(np.linalg.det(matrix[:3, :3])) > 0 and \
+            not any(materials.emissive(i) for i in slot_materials) and \
+            not any(materials.reads_position(slot.material) for slot in obj.material_slots)
+        placed.append((obj, arrays, slot_materials, matrix, textured,
+                       (key, slot_materials.tobytes()) if shareable else None))
+    uses = {}
+    for *_, shared in placed:
+        uses[shared] = uses.get(shared, 0) + 1
+    world = _MeshParts(warnings, warned)
+    meshes, instance_mesh, to_world = {}, [], []    # shared key -> its parts, in order made
+    for obj, arrays, slot_materials, matrix, textured, shared in placed:
+        if shared is None or uses[shared] < 2:
+            world.add(obj, arrays, slot_materials, matrix, textured)
+            continue
+        if shared not in meshes:
+            meshes[shared] = _MeshParts(warnings, warned)
+            meshes[shared].add(obj, arrays, slot_materials, np.eye(4), textured)
+        if not meshes[shared].empty:
+            instance_mesh.append(shared)
+            to_world.append(matrix)
     texels, sizes = materials.texture_arrays()
-    if texels is not None or materials.node_rows:       # textures and node programs read UVs
-        uvs = np.concatenate([uv if uv is not None else np.zeros((3 * c, 2), np.float32)
-                              for uv, c in zip(parts["uv"], counts)])
-    return Geometry(np.concatenate(parts["v"]), np.concatenate(parts["t"]),
-                    np.concatenate(parts["m"]), normals, uvs, texels, sizes)
+    with_uvs = texels is not None or bool(materials.node_rows)  # textures, node programs
+    if not instanced:
+        return world.geometry(with_uvs, texels, sizes)
+    kept = {k: i for i, k in enumerate(k for k, parts in meshes.items() if not parts.empty)}
+    instance_mesh = [kept[k] for k in instance_mesh]
+    out = [meshes[k].geometry(with_uvs) for k in kept]
+    if not world.empty or not out:      # the realised triangles: mesh 0, placed by the identity
+        out.insert(0, world.geometry(with_uvs))
+        instance_mesh = [0] + [m + 1 for m in instance_mesh]
+        to_world = [np.eye(4)] + to_world
+    return out, np.array(instance_mesh, np.int64), np.array(to_world, np.float64).reshape(-1, 4, 4)
 
 
 def object_visibility(obj) -> int:

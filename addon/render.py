@@ -11,10 +11,10 @@ from ..core.accel.compact import user_settings
 from ..core.net.master import Master, MasterError
 from ..core.net.protocol import AuthError, ProtocolError, load_secret
 from ..core.scene.model import SceneError
-from ..core.scene.scene import Scene
+from ..core.scene.scene import Scene, memory_report, memory_summary
 from ..core.net.slave_colors import slave_color
 from . import session
-from .export import export_view
+from .export import export_instanced_view
 from .properties import preferences
 
 POLL_SECONDS = 0.05  # how often the render thread checks for Esc while waiting for tiles
@@ -134,7 +134,8 @@ def render(engine, depsgraph):
         if settings.use_zeroconf:
             state.browser()   # if not running yet: it looks while the scene exports and builds
         engine.update_stats("", "KD Trace | Exporting scene")
-        geometry, view, info = export_view(depsgraph)
+        exported_geometry, view, info = export_instanced_view(depsgraph)
+        meshes = exported_geometry.meshes
         for warning in info["warnings"]:
             engine.report({"WARNING"}, f"KD Trace: {warning}")
         exported = time.perf_counter()
@@ -145,13 +146,24 @@ def render(engine, depsgraph):
             engine.update_progress(0.5 * fraction)
             engine.update_stats("", f"KD Trace | Building kd-tree: {message}")
 
-        engine.update_stats("", f"KD Trace | Building kd-tree over {geometry.triangle_count:,} triangles")
+        stored = sum(m.triangle_count for m in meshes)
+        engine.update_stats("", f"KD Trace | Building kd-trees over {stored:,} triangles "
+                                f"({len(meshes)} mesh(es))")
         tree_settings = user_settings(settings.kdtree_mode, settings.tau_occu,
                                       settings.tau_freq, settings.refs_per_path)
-        tree, built = state.trees.get(geometry, settings.kdtree_mode, tree_settings,
-                                      tree_progress, device=prefs.slave_device)
-        scene = Scene.from_parts(geometry, tree)
+        # One tree per mesh (docs/instances.md), each cached by its mesh's content.
+        trees, built = [], False
+        for mesh in meshes:
+            tree, new = state.trees.get(mesh, settings.kdtree_mode, tree_settings,
+                                        tree_progress, device=prefs.slave_device)
+            trees.append(tree)
+            built |= new
+        scene = Scene.from_instances(list(zip(meshes, trees)), exported_geometry.instance_mesh,
+                                     exported_geometry.to_world,
+                                     texels=exported_geometry.texels,
+                                     texture_sizes=exported_geometry.texture_sizes)
         scene.check_view(view)
+        memory = memory_report(scene)
         tree_done = time.perf_counter()
         if engine.test_break():
             return
@@ -187,16 +199,18 @@ def render(engine, depsgraph):
     per_slave = legend.tiles_per_slave()
     state.last_render = {
         "export_seconds": exported - started, "tree_seconds": tree_done - exported,
-        "tree_built": built, "tree_stats": dict(tree.stats), "render_seconds": finished - tree_done,
-        "triangles": geometry.triangle_count, "tiles_per_slave": per_slave,
+        "tree_built": built, "tree_stats": dict(trees[0].stats), "render_seconds": finished - tree_done,
+        "triangles": memory["triangles_referenced"], "memory": memory,
+        "tiles_per_slave": per_slave,
         "slave_colors": {name: slave_color(name) for name in per_slave},
         "uploaded_to": uploaded_to, "cancelled": job.cancelled,
         "local_reason": state.local_reason,
         "joined_during_frame": [f"{host}:{port}" for host, port in state.joined]}
     summary = (f"export {exported - started:.2f} s, kd-tree {'built' if built else 'reused'} "
-               f"{tree_done - exported:.2f} s ({tree.stats['mode']}: {tree.stats['nodes']:,} nodes, "
-               f"{tree.nbytes / 1e6:.1f} MB; {tree.stats['builder']} builder on "
-               f"{tree.stats['device']}), render "
+               f"{tree_done - exported:.2f} s ({trees[0].stats['mode']}: "
+               f"{sum(t.stats['nodes'] for t in trees):,} nodes, "
+               f"{sum(t.nbytes for t in trees) / 1e6:.1f} MB; {trees[0].stats['builder']} builder on "
+               f"{trees[0].stats['device']}); {memory_summary(memory)}; render "
                f"{finished - tree_done:.2f} s; tiles: "
                + ", ".join(f"{name} {count}" for name, count in sorted(per_slave.items()))
                + (f"; local slaves started: {state.local_reason}" if state.local_reason else "")

@@ -17,9 +17,10 @@ class TreeCache:
     """Built kd-trees in the compact layout, by (geometry hash, mode, the settings the mode uses),
     so a re-render of unchanged geometry with unchanged kd-tree settings does not rebuild. The
     standard SAH tree of a geometry is kept too, so another mode or threshold only redoes the
-    compaction."""
+    compaction. An instanced scene keeps a tree per mesh (docs/instances.md): the capacity
+    counts trees."""
 
-    def __init__(self, capacity: int = 2):
+    def __init__(self, capacity: int = 8):
         self.capacity = capacity
         self.builds = 0        # how many standard trees were built (tests count rebuilds with it)
         self.compactions = 0   # how many compact trees were made from them

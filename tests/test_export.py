@@ -30,4 +30,51 @@ def test_particle_instances_replace_their_hidden_emitter(exported):
     assert np.all(np.array(particles["min"])[:2] >= [-1.1, 8.9]) and np.all(np.array(particles["max"])[:2] <= [1.1, 11.1])
     # The viewport depsgraph the test exports also shows the ico sphere itself (a render's does not).
     assert exported["groups"]["instanced object"]["triangles"] == 20
-    assert exported["triangles"] == 3 * 12 + 2 * 12 + 5 * 20 + 20
+    assert exported["triangles"] == 3 * 12 + 2 * 12 + 5 * 20 + 20 + 4 * 12 + 2
+
+
+def _geometry(arrays):
+    from core.scene.model import Geometry
+    return Geometry(np.array(arrays["vertices"], np.float32).reshape(-1, 3),
+                    np.array(arrays["triangles"], np.uint32).reshape(-1, 3),
+                    np.array(arrays["material_ids"], np.uint16),
+                    None if arrays["normals"] is None else np.array(arrays["normals"]))
+
+
+def test_shared_meshes_are_exported_once_and_instanced(exported):
+    """Meshes of several instances (collection instances, nested ones, particles) once in
+    object space; the others (the arrayed cube, the floor) realised in mesh 0."""
+    meshes = [_geometry(m) for m in exported["meshes"]]
+    which = np.array(exported["instance_mesh"])
+    assert sorted(m.triangle_count for m in meshes) == [12, 12, 20, 3 * 12 + 2]
+    assert meshes[0].triangle_count == 3 * 12 + 2 and which[0] == 0
+    assert sorted(np.bincount(which)[1:].tolist()) == [2, 4, 6]
+    referenced = sum(meshes[m].triangle_count for m in which)
+    assert referenced == exported["triangles"]
+
+
+def test_nested_collection_instances_render_as_realised(exported):
+    """The exporter's instanced scene renders as its realised one (the same Blender scene
+    exported both ways)."""
+    from core.accel.kdtree import build_kdtree
+    from core.scene.model import RenderSettings, View
+    from core.scene.scene import Scene
+    from slave.tracer import Tracer
+    realised_geometry = _geometry(exported["realised"])
+    realised = Scene.from_parts(realised_geometry, build_kdtree(realised_geometry.vertices,
+                                                                realised_geometry.triangles))
+    meshes = [_geometry(m) for m in exported["meshes"]]
+    instanced = Scene.from_instances([(m, build_kdtree(m.vertices, m.triangles)) for m in meshes],
+                                     exported["instance_mesh"], exported["to_world"])
+    assert instanced.instances.referenced_triangles == realised_geometry.triangle_count
+    view = View.from_dict(exported["view"])
+    view.settings = RenderSettings(samples_per_axis=2, adaptive=False, max_bounces=1)
+    tracer = Tracer()
+    images = []
+    for scene in (realised, instanced):
+        tracer.load(scene)
+        images.append(tracer.render_tile(view, 0, 0, view.width, view.height))
+    a, b = images[0]["combined"][..., :3], images[1]["combined"][..., :3]
+    nested = (images[0]["depth"] < 1e9).mean()
+    assert nested > 0.3                           # the camera sees the nested instances
+    assert np.abs(a - b).max(axis=2).mean() < 1e-3 and (np.abs(a - b).max(axis=2) < 1e-2).mean() > 0.99

@@ -41,19 +41,63 @@ settings.physics_type = "NO"
 # The test exports the viewport depsgraph (a render uses the render one): hide it in both.
 emitter.show_instancer_for_render = emitter.show_instancer_for_viewport = False
 
+# Nested collection instances (y < -20): a collection "inner" of one cube (rotated, scaled
+# with a mirror), instanced twice in "outer", which is instanced twice: 4 copies of one mesh.
+inner = bpy.data.collections.new("inner")
+nested = bpy.data.objects.new("nested-cube", bpy.data.meshes.new("nested-cube"))
+bpy.ops.mesh.primitive_cube_add(size=1.0)
+nested.data = bpy.context.object.data
+bpy.data.objects.remove(bpy.context.object)
+nested.rotation_euler = (0.3, 0.5, 0.2)
+nested.scale = (1.0, -0.6, 1.3)
+inner.objects.link(nested)
+outer = bpy.data.collections.new("outer")
+for k, x in enumerate((0.0, 2.5)):
+    empty = bpy.data.objects.new(f"inner-instancer-{k}", None)
+    empty.instance_type, empty.instance_collection = "COLLECTION", inner
+    empty.location = (x, 0.0, 0.5 * k)
+    outer.objects.link(empty)
+for k, x in enumerate((0.0, 6.0)):
+    empty = bpy.data.objects.new(f"outer-instancer-{k}", None)
+    empty.instance_type, empty.instance_collection = "COLLECTION", outer
+    empty.location, empty.rotation_euler = (x, -30.0, 0.0), (0.0, 0.0, 0.4 * k)
+    scene.collection.objects.link(empty)
+floor = bpy.data.objects.new("floor", bpy.data.meshes.new("floor"))
+floor.data.from_pydata([(-5, -36, -1.5), (14, -36, -1.5), (14, -24, -1.5), (-5, -24, -1.5)], [],
+                       [(0, 1, 2, 3)])
+scene.collection.objects.link(floor)
+sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
+sun.rotation_euler = (0.5, 0.3, 0.0)
+scene.collection.objects.link(sun)
+
 camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
+camera.location, camera.rotation_euler = (4.0, -44.0, 7.0), (1.1, 0.0, 0.0)
 scene.collection.objects.link(camera)
 scene.camera = camera
+scene.render.resolution_x, scene.render.resolution_y = 64, 48
 scene.frame_set(1)
-geometry = addon.addon.export.export_view(bpy.context.evaluated_depsgraph_get())[0]
+depsgraph = bpy.context.evaluated_depsgraph_get()
+geometry, view, _ = addon.addon.export.export_view(depsgraph)
+instanced = addon.addon.export.export_instanced_view(depsgraph)[0]
 v = geometry.vertices[geometry.triangles].reshape(-1, 3, 3)
 centres = v.mean(axis=1)
-groups = {"arrayed": (centres[:, 0] < 5) & (centres[:, 1] < 5) & (centres[:, 2] > -10),
-          "instances": centres[:, 0] > 5, "particles": centres[:, 1] > 5,
-          "instanced object": centres[:, 2] < -10}
+groups = {"arrayed": (centres[:, 0] < 5) & (np.abs(centres[:, 1]) < 5) & (centres[:, 2] > -10),
+          "instances": (centres[:, 0] > 5) & (centres[:, 1] > -10),
+          "particles": centres[:, 1] > 5, "instanced object": centres[:, 2] < -10,
+          "nested": centres[:, 1] < -20}
+
+
+def arrays(g):
+    return {"vertices": g.vertices.tolist(), "triangles": g.triangles.tolist(),
+            "material_ids": g.material_ids.tolist(),
+            "normals": None if g.normals is None else g.normals.tolist()}
 write_result(result_path, {
     "triangles": int(geometry.triangle_count),
     "groups": {name: {"triangles": int(mask.sum()),
                       "min": v[mask].reshape(-1, 3).min(0).tolist() if mask.any() else None,
                       "max": v[mask].reshape(-1, 3).max(0).tolist() if mask.any() else None}
-               for name, mask in groups.items()}})
+               for name, mask in groups.items()},
+    "realised": arrays(geometry), "view": view.to_dict(),
+    "meshes": [arrays(m) for m in instanced.meshes],
+    "instance_mesh": instanced.instance_mesh.tolist(),
+    "to_world": instanced.to_world.tolist()})
