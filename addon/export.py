@@ -169,15 +169,13 @@ class _MaterialTable:
             self._params.append(tuple(params[name] for name in MATERIAL_PARAMS))
         return self._index[key]
 
-    def emissive(self, index: int) -> bool:
-        """Whether material record `index` emits light."""
+    def world_space(self, index: int) -> bool:
+        """Whether material record `index` needs its triangles in world space: it emits
+        (emitters are sampled as lights there) or runs a node program (which reads the hit's
+        position and the triangle's frame)."""
         params = self._params[index]
-        return any(params[MATERIAL_PARAMS.index(f"emission_{c}")] > 0 for c in "rgb")
-
-    def reads_position(self, material) -> bool:
-        """Whether the material's node program reads the hit's Object or Generated
-        coordinates (each placement then has a program of its own)."""
-        return (material.name_full if material is not None else None) in self._spatial
+        return params[MATERIAL_PARAMS.index("program")] >= 0 or \
+            any(params[MATERIAL_PARAMS.index(f"emission_{c}")] > 0 for c in "rgb")
 
     def uses_texture(self, material) -> bool:
         """Whether the material reads UVs (an image texture, or a node program that does)."""
@@ -370,9 +368,8 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
     (meshes, instance_mesh, to_world): the instances of one evaluated mesh with the same
     materials share one object-space Geometry (read and exported once); mesh 0 holds the
     world-space triangles of everything realised (placed by the identity): meshes used by one
-    instance only, and objects that cannot share a mesh (emissive materials, sampled as
-    lights in world space; node programs that read the hit's Object or Generated
-    coordinates, which are the object's own). The textures are in none of the meshes."""
+    instance only, and objects whose materials need world space (MaterialTable.world_space:
+    emission, node programs). The textures are in none of the meshes."""
     mesh_cache = {}  # evaluated mesh pointer -> arrays, so instances of one mesh are read once
     warned = set()
     placed = []      # (object, arrays, slot materials, matrix, textured, shared key or None)
@@ -400,8 +397,7 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
         matrix = np.array(instance.matrix_world, np.float64)
         shareable = instanced and np.isfinite(matrix).all() and \
             abs(np.linalg.det(matrix[:3, :3])) > 0 and \
-            not any(materials.emissive(i) for i in slot_materials) and \
-            not any(materials.reads_position(slot.material) for slot in obj.material_slots)
+            not any(materials.world_space(i) for i in slot_materials)
         placed.append((obj, arrays, slot_materials, matrix, textured,
                        (key, slot_materials.tobytes()) if shareable else None))
     uses = {}

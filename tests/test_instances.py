@@ -12,7 +12,8 @@ from core.accel.kdtree import build_kdtree
 from core.accel.toplevel import build_toplevel
 from core.layout import TOPLEVEL_LEAF_MAX, TOPLEVEL_MAX_DEPTH
 from core.scene.instances import MAX_INSTANCES
-from core.scene.model import Camera, Geometry, Light, RenderSettings, SceneError, Shading, View
+from core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings,
+                              SceneError, Shading, View)
 from core.scene.scene import Scene
 from slave.tracer import Tracer
 from tests.meshes import grid_plane, load_bunny, look_at, uv_sphere
@@ -203,11 +204,12 @@ def test_too_many_instances_are_refused(bunny_and_sphere):
                              np.broadcast_to(np.eye(4), (MAX_INSTANCES + 1, 4, 4)))
 
 
-def test_emissive_instanced_meshes_are_refused(bunny_and_sphere):
+@pytest.mark.parametrize("column", ["emission_r", "program"])
+def test_world_space_materials_on_instanced_meshes_are_refused(bunny_and_sphere, column):
     scene = Scene.from_instances(bunny_and_sphere, [0, 1], _transforms(2, seed=4))
-    shading = Shading()
-    shading.material_params[0, 4:7] = 1.0
-    with pytest.raises(SceneError, match="emissive triangles"):
+    shading = Shading(node_program=[[0, 0, 0, 0], [0, 0, 0, 0]])    # END
+    shading.material_params[0, MATERIAL_PARAMS.index(column)] = 1.0 if column != "program" else 0.0
+    with pytest.raises(SceneError, match="emissive or node-program materials"):
         scene.check_view(View(Camera("PERSP", np.eye(4)), 4, 4, shading))
 
 

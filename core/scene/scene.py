@@ -270,33 +270,36 @@ class Scene:
         if not np.isfinite(axis).all() or not np.linalg.norm(axis) > 0:
             raise SceneError("the camera's to_world maps its view axis to zero")
         if self.instances is not None:
-            self._check_emitters(view)
+            self._check_world_space(view)
         missing = sorted(name for name in needed_arrays(self.features(view))
                          if getattr(self.geometry, name) is None)
         if missing:
             raise SceneError(f"the view needs the geometry arrays {missing}, which the scene "
                              f"does not carry")
 
-    def _check_emitters(self, view: View) -> None:
-        """Emissive triangles are sampled as lights in world space: in an instanced scene
-        they must lie in meshes placed once, by the identity (the exporter realises others)."""
+    def _check_world_space(self, view: View) -> None:
+        """Emissive triangles are sampled as lights in world space, and node programs read
+        the hit's position and the triangle's frame from the triangle buffer: in an instanced
+        scene, triangles with such materials must lie in meshes placed once, by the identity
+        (the exporter realises them)."""
         params = view.shading.material_params
         emission = params[:, [MATERIAL_PARAMS.index(f"emission_{c}") for c in "rgb"]]
-        emissive = (emission > 0).any(axis=1)
-        if not emissive[self.used_materials].any():
+        world_space = (emission > 0).any(axis=1) | (params[:, MATERIAL_PARAMS.index("program")] >= 0)
+        if not world_space[self.used_materials].any():
             return
         inst = self.instances
         table = inst.mesh_table
         tri_mesh = np.repeat(np.arange(len(table)), table[:, MESH.index("tri_count")])
-        lit = np.zeros(len(table), bool)
-        lit[tri_mesh[emissive[self.geometry.material_ids]]] = True
+        needs = np.zeros(len(table), bool)
+        needs[tri_mesh[world_space[self.geometry.material_ids]]] = True
         uses = np.bincount(inst.mesh, minlength=len(table))
         identity = (inst.to_world == np.eye(3, 4, dtype=np.float32)).all(axis=(1, 2))
         placed_once = (uses == 1) & np.bincount(inst.mesh, identity, len(table)).astype(bool)
-        bad = lit & ~placed_once
+        bad = needs & ~placed_once
         if bad.any():
-            raise SceneError(f"mesh {int(np.flatnonzero(bad)[0])} has emissive triangles and is "
-                             f"not placed once by the identity: emitters must be realised")
+            raise SceneError(f"mesh {int(np.flatnonzero(bad)[0])} has emissive or node-program "
+                             f"materials and is not placed once by the identity: such "
+                             f"triangles must be realised")
 
     def features(self, view: View) -> frozenset:
         """The kernel features this scene needs for `view` (core/scene/features.py)."""
