@@ -413,7 +413,8 @@ def test_normal_map_and_bump_set_the_shading_normal_as_numpy_does(tracer):
     """A tangent-space Normal Map of the colour (u, 0.5, 1) at Strength 0.7 and a Bump of the
     height u^2 (Distance 0.5; inverted too) on a UV-mapped plane (u, v = (x, y + 1) / 2: the
     tangent is +x), under a slanted sun: each pixel is max(n . L, 0) E / pi for the normal
-    numpy computes as Cycles' nodes do."""
+    numpy computes as Cycles' nodes do, times Cycles' bump shadowing (the GGX shadowing of
+    alpha^2 = tan^2(tilt) / 8 at the light's angle to the unperturbed normal)."""
     from core.layout import (NODE_MATH_CODES, NODE_NORMAL_SPACE_CODES, NODE_OP_CODES as OP,
                              NODE_OUT_CODES, NODE_REF_REGISTER as R)
     vertices, triangles = grid_plane(2.0, 1, 0.0)
@@ -441,6 +442,11 @@ def test_normal_map_and_bump_set_the_shading_normal_as_numpy_does(tracer):
     x, _ = np.meshgrid(centres, centres[::-1])
     u = (x + 1) / 2
     light = -sun / np.linalg.norm(sun)
+
+    def lit(n):
+        alpha2 = np.clip(0.125 * (1 / n[..., 2] ** 2 - 1), 0, 1)
+        shadowing = 2 / (1 + np.sqrt(1 + alpha2 * (1 / light[2] ** 2 - 1)))
+        return (np.maximum(n @ light, 0) * shadowing * 2 / np.pi)[..., None].repeat(3, -1)
     for invert in (0, 1):
         program = bump + [(OP["COMBINE"], 8, lane(3, 0), lane(5, 0)), (lane(7, 0), 0, 0, 0),
                           (OP["CONST"], 10, 0, 0), (1.0, 0.5, 0.0, 1.0),
@@ -450,16 +456,15 @@ def test_normal_map_and_bump_set_the_shading_normal_as_numpy_does(tracer):
         # Cycles' bump: n = normalize(N - distance x the surface gradient of the height)
         n = np.stack([-(0.5 if not invert else -0.5) * u, np.zeros_like(u), np.ones_like(u)], -1)
         n /= np.linalg.norm(n, axis=-1, keepdims=True)
-        expected = np.maximum(n @ light, 0) * 2 / np.pi
-        np.testing.assert_allclose(image, expected[..., None].repeat(3, -1), rtol=2e-3, atol=2e-4)
+        np.testing.assert_allclose(image, lit(n), rtol=2e-3, atol=2e-4)
     image = render_program_under_sun(tracer, np.array(normal_map, np.float32), size, sun)
     assert {"NODES", "NORMAL_MAP"} <= set(tracer.last_render["features"])
     mapped = np.stack([2 * u - 1, np.zeros_like(u), np.ones_like(u)], -1)
     mapped /= np.linalg.norm(mapped, axis=-1, keepdims=True)
     n = np.array([0, 0, 1.0]) + (mapped - [0, 0, 1.0]) * 0.7
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    expected = np.maximum(n @ light, 0) * 2 / np.pi
-    np.testing.assert_allclose(image, expected[..., None].repeat(3, -1), rtol=2e-3, atol=2e-4)
+    expected = lit(n)
+    np.testing.assert_allclose(image, expected, rtol=2e-3, atol=2e-4)
     assert expected.max() - expected.min() > 0.1
 
 

@@ -217,6 +217,9 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         if (limits->filter_glossy > 0.0f && min_pdf * (1.0f / limits->filter_glossy) < 1.0f)
             alpha_min = 0.5f * sqrt(1.0f - min_pdf * (1.0f / limits->filter_glossy));
         Lobes lobes = lobes_at(&m, wo_l.z, s.front, alpha_min);
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+        lobes.unbumped = to_local(&fr, m.unbumped);
+#endif
         radiance += direct_light(sc, &s, &m, &lobes, &fr, wo_l, beta, limit, rng);
 #ifdef HAS_BOUNCES
         float3 wi_l, weight;

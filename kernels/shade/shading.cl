@@ -45,6 +45,9 @@ typedef struct {
     float metallic, roughness, transmission, ior;
     float3 emission;
     float specular;
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+    float3 unbumped;                    // the shading normal before Normal Map / Bump (world)
+#endif
 } Material;
 
 // A surface point: position, its error bound, the geometric normal facing the incoming ray,
@@ -802,6 +805,9 @@ inline Material material_eval(const Scene *sc, uint tri, float u, float v, Surfa
     m.ior = MATERIAL_IOR(M);
     m.emission = MATERIAL_EMISSION(M);
     m.specular = MATERIAL_SPECULAR(M);
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+    m.unbumped = s ? s->ns : (float3)(0.0f, 0.0f, 1.0f);
+#endif
 #ifdef HAS_TEXTURES
     int tex = (int)MATERIAL_TEXTURE(M);
     if (tex >= 0) {
@@ -832,13 +838,38 @@ inline Material material_at(const Scene *sc, uint tri, float u, float v)
     return material_eval(sc, tri, u, v, 0);
 }
 
-// The material where a ray of direction d hit s. Normal Map and Bump nodes set s->ns; one
-// that faces away from the ray keeps the unperturbed normal.
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+// Cycles' ensure_valid_specular_reflection: a shading normal n whose mirror reflection of wi
+// (unit, toward the viewer) would go below the geometric normal ng is tilted toward ng just
+// enough that the reflection stays above the surface.
+inline float3 valid_reflection_normal(float3 ng, float3 wi, float3 n)
+{
+    float3 r = 2.0f * dot(n, wi) * n - wi;
+    float iz = dot(wi, ng);
+    float threshold = fmin(0.9f * iz, 0.01f);
+    if (dot(ng, r) >= threshold)
+        return n;
+    float3 x = safe_normalize(n - dot(n, ng) * ng);
+    if (all(x == 0.0f))
+        x = n;
+    float ix = dot(wi, x);
+    float a = ix * ix + iz * iz, b = 2.0f * (a + iz * threshold);
+    float c = (threshold + iz) * (threshold + iz);
+    float root = sqrt(fmax(b * b - 4.0f * a * c, 0.0f));
+    float nz2 = 0.25f * (ix < 0.0f ? b + root : b - root) / a;
+    return sqrt(fmax(1.0f - nz2, 0.0f)) * x + sqrt(fmax(nz2, 0.0f)) * ng;
+}
+#endif
+
+// The material where a ray of direction d hit s. Normal Map and Bump nodes set s->ns, tilted
+// as Cycles tilts it where it would reflect the ray below the surface.
 inline Material surface_material(const Scene *sc, Surface *s, float3 d)
 {
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
     float3 ns = s->ns;
     Material m = material_eval(sc, s->tri, s->u, s->v, s);
+    if (any(s->ns != ns))
+        s->ns = valid_reflection_normal(s->ng, -normalize(d), s->ns);
     if (!(dot(s->ns, d) < 0.0f))
         s->ns = ns;
     return m;
@@ -1025,6 +1056,9 @@ typedef struct {
     float diffuse_weight;                       // 1 - the specular layer's albedo at wo
     float3 metal_scale;                         // multiple-scattering compensation of metal
     float glass_scale;                          // ... and of glass
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+    float3 unbumped;                            // Material.unbumped in the local frame
+#endif
 } Lobes;
 
 inline float3 metal_fresnel(float3 f0, float cos_h)
@@ -1062,6 +1096,9 @@ inline Lobes lobes_at(const Material *m, float cos_o, bool front, float alpha_mi
                                                                    l.eta_specular));
     l.metal_scale = (float3)(1.0f, 1.0f, 1.0f);
     l.glass_scale = 1.0f;
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+    l.unbumped = (float3)(0.0f, 0.0f, 1.0f);
+#endif
 #ifdef HAS_TRANSMISSION
     if (l.w_glass > 0.0f && !sharp)
         l.glass_scale = 1.0f / fmax(glass_albedo(cos_o, roughness, l.eta_glass), 0.05f);
@@ -1095,6 +1132,23 @@ inline Lobes lobes_at(const Material *m, float cos_o, bool front, float alpha_mi
     return l;
 }
 
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+// Cycles' bump shadowing of diffuse light (wi local; n: the unperturbed normal, local, where wi
+// is on its side): the GGX shadowing of a roughness that grows with the normal's tilt, which
+// softens the terminator (Conty Estevez et al., "A Microfacet-Based Shadowing Function to
+// Solve the Bump Terminator Problem").
+inline float bump_shadowing(float3 n, float3 wi)
+{
+    float cos_i = fabs(dot(n, wi)), cos_d = fabs(n.z);
+    if (cos_d >= 1.0f || cos_i >= 1.0f)
+        return 1.0f;
+    if (cos_i < 1e-6f)
+        return 0.0f;
+    float alpha2 = clamp(0.125f * (1.0f / (cos_d * cos_d) - 1.0f), 0.0f, 1.0f);
+    return 2.0f / (1.0f + sqrt(1.0f + alpha2 * (1.0f / (cos_i * cos_i) - 1.0f)));
+}
+#endif
+
 // The non-delta part of the BSDF for wo -> wi (local), without the cosine; *pdf: the
 // density of bsdf_sample choosing wi (solid angle).
 inline float3 bsdf_eval_local(const Material *m, const Lobes *l, float3 wo, float3 wi, float *pdf)
@@ -1102,8 +1156,18 @@ inline float3 bsdf_eval_local(const Material *m, const Lobes *l, float3 wo, floa
     float3 f = (float3)(0.0f, 0.0f, 0.0f);
     *pdf = 0.0f;
     float cos_o = wo.z, cos_i = wi.z;
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+    // Light on the other side of the unperturbed surface than the perturbed normal says (as
+    // Cycles: no light leaks through bumps to the back of opaque geometry).
+    if (dot(l->unbumped, wi) * l->unbumped.z * cos_i < 0.0f)
+        return f;
+#endif
     if (cos_i > 0.0f) {
-        f += m->base * (l->w_dielectric * l->diffuse_weight * M_1_PI_F);
+        float diffuse = l->w_dielectric * l->diffuse_weight * M_1_PI_F;
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+        diffuse *= bump_shadowing(l->unbumped, wi);
+#endif
+        f += m->base * diffuse;
         *pdf += l->p_diffuse * cos_i * M_1_PI_F;
     }
     if (l->delta)
