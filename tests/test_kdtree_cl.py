@@ -19,6 +19,7 @@ import pytest
 from core.accel.compact import (MODES, _standard_reencoded, compact_params, compact_tree,
                                  level_ranges)
 from core.accel.kdtree import KDTree, KDTreeParams, build_kdtree
+from core.accel import compact_cl
 from core.accel.kdtree_cl import KDTreeBuilderCL
 from core.layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
 from core.opencl import kernel_source
@@ -203,6 +204,7 @@ def test_tree_does_not_depend_on_subtrees_chunks_or_work_groups(builder, name):
     for subtree_refs, chunk_refs, local_size in ((16, 7, 1), (100, 4096, 4), (1 << 20, 64, 1)):
         other = KDTreeBuilderCL("cpu", subtree_refs=subtree_refs, chunk_refs=chunk_refs,
                                 local_size=local_size)
+        other.batch_seconds = 0.0       # subtree launches as small as they go
         same_tree(reference, other.build(vertices, triangles))
         assert other.build(vertices, triangles).stats["sah_cost"] == reference.stats["sah_cost"]
 
@@ -216,6 +218,7 @@ def test_software_double_gives_the_same_tree(builder, soft_builder, name):
 THREADS_SCRIPT = """
 import hashlib, sys
 sys.path.insert(0, {root!r})
+from core.accel import compact_cl
 from core.accel.kdtree_cl import KDTreeBuilderCL
 from tests.test_kdtree_cl import architecture_small, digest
 from tests.meshes import load_bunny
@@ -481,6 +484,20 @@ def test_kernel_compaction_is_compact_tree(builder, name):
     for mode, options in variants:
         same_compact(compact_tree(tree, triangle_count, mode, device=builder, **options),
                      compact_tree(tree, triangle_count, mode, **options))
+
+
+@pytest.mark.parametrize("roots, stack", [(1, 64), (1 << 30, 64), (1, 4)])
+def test_kernel_compaction_topology_level_by_level_or_depth_first(builder, monkeypatch, roots,
+                                                                  stack):
+    # The topology goes level by level down to the first level of TOPO_ROOTS nodes, then
+    # depth first below it (at most TOPO_STACK levels): from the root, never, or only for the
+    # last 4 levels, the compact tree is the same.
+    monkeypatch.setattr(compact_cl, "TOPO_ROOTS", roots)
+    monkeypatch.setattr(compact_cl, "TOPO_STACK", stack)
+    monkeypatch.setattr(builder, "_compactor", compact_cl.CompactorCL(builder), raising=False)
+    tree, triangle_count = compact_scene("bunny")
+    same_compact(compact_tree(tree, triangle_count, "ours", device=builder),
+                 compact_tree(tree, triangle_count, "ours"))
 
 
 def test_kernel_compaction_with_software_double(soft_builder):

@@ -17,6 +17,8 @@ from . import compact as host
 KERNEL_FILES = ("build/fp64.cl", "build/common.cl", "build/compact.cl")
 U4 = np.uint32
 PRIVATE_GAPS = 64         # a triangle with more references keeps its lift stacks in the scratch
+TOPO_STACK = 64           # topo_subtrees' stack: more than the levels below its start
+TOPO_ROOTS = 4096         # topo_subtrees starts at the first level this wide
 
 
 def _exclusive(counts) -> np.ndarray:
@@ -54,7 +56,7 @@ class CompactorCL:
         self.b = builder
         # Many small work-items: work-groups of them (PoCL pays per work-group).
         self.local_size = local_size or (256 if builder.is_cpu else 64)
-        options = [f"-DPRIVATE_GAPS={PRIVATE_GAPS}u"]
+        options = [f"-DPRIVATE_GAPS={PRIVATE_GAPS}u", f"-DTOPO_STACK={TOPO_STACK}"]
         if builder.soft_fp64:
             options.append("-DKDTRACE_SOFT_FP64")
         self.k = builder._programs.kernels(kernel_source(KERNEL_FILES), options)
@@ -143,14 +145,29 @@ class CompactorCL:
             b.heartbeat()
         pre = b._buffer(nbytes=4 * n)
         climb, walk = b._buffer(nbytes=16 * n), b._buffer(nbytes=16 * n)
-        widest = max(e - a for a, e in ranges)
+        # Level by level down to the first wide level, then each of its subtrees depth first
+        # (topo_subtrees: the records in preorder, one after another).
+        wide = next((k for k, (a, e) in enumerate(ranges) if e - a >= TOPO_ROOTS), len(ranges))
+        wide = max(wide, len(ranges) - TOPO_STACK)
+        widest = max(e - a for a, e in ranges[:wide + 1])
         cells = [b._buffer(nbytes=24 * widest), b._buffer(nbytes=24 * widest)]
         self.k["topo_root"](b.queue, (1,), None,
                             b._buffer(np.ascontiguousarray(bounds, np.float32).reshape(-1)),
                             cells[0], size, nonempty, pre, climb, walk)
-        for level, (first, end) in enumerate(ranges):
+        for level, (first, end) in enumerate(ranges[:wide]):
             self.run("topo_down", end - first, nodes, cells[level % 2], cells[(level + 1) % 2],
                      size, nonempty, pre, climb, walk, U4(first), U4(end), U4(level))
+            b.heartbeat()
+        if wide < len(ranges):
+            from .kdtree_cl import PIECE_ITEMS
+            first, end = ranges[wide]
+            roots = end - first
+            # Small work-groups, as the subtrees differ in size; pieces of about PIECE_ITEMS
+            # nodes.
+            b._run(self.k["topo_subtrees"], roots, nodes, cells[wide % 2], size, nonempty, pre,
+                   climb, walk, U4(first), U4(end), U4(wide),
+                   local_size=8 if b.is_cpu else self.local_size,
+                   piece=max(1, PIECE_ITEMS * roots // (n - first)))
             b.heartbeat()
         return pre, climb, walk
 

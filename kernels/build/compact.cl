@@ -85,7 +85,8 @@ __kernel void topo_up(__global const uint2* restrict nodes, __global uint* restr
     }
 }
 
-inline void put_records(uint x, uint p, uint parent_pre, uint depth, int parent_stops,
+/* Returns whether the area never shrinks from x up to the root (its children's parent_stops). */
+inline int put_records(uint x, uint p, uint parent_pre, uint depth, int parent_stops,
                         dbl parent_area, dbl A, __global const uint* size,
                         __global const uint* nonempty, __global uint4* climb,
                         __global WalkRecord* walk)
@@ -97,6 +98,7 @@ inline void put_records(uint x, uint p, uint parent_pre, uint depth, int parent_
     w.parent = parent_pre;
     w.nonempty_stops = nonempty[x] | ((uint)stops << 31);
     walk[p] = w;
+    return stops;
 }
 
 __kernel void topo_root(__global const float* restrict bounds, __global float* restrict cells,
@@ -155,6 +157,73 @@ __kernel void topo_down(__global const uint2* restrict nodes, __global const flo
         pre[child] = pc;
         put_records(child, pc, p, level + 1u, stops, parent.area, cell_area(lo, hi), size,
                     nonempty, climb, walk);
+    }
+}
+
+/* Per node of level [first, end): the rest of topo_down for its whole subtree, depth first,
+   so that the records go out in preorder, one after another (a subtree is a contiguous range
+   of preorder numbers; level by level they would land spread over the whole range, each
+   write touching a cache line of its own). The node's own record and cell come from the
+   level above. */
+typedef struct {
+    float lo[3], hi[3];
+    dbl area;
+    uint node, pre, depth;
+    int stops;
+} TopoEntry;
+
+__kernel void topo_subtrees(__global const uint2* restrict nodes, __global const float* restrict cells,
+                            __global const uint* restrict size, __global const uint* restrict nonempty,
+                            __global uint* restrict pre, __global uint4* restrict climb,
+                            __global WalkRecord* restrict walk, uint first, uint end, uint level)
+{
+    uint i;
+    if (!level_node(first, end, &i))
+        return;
+    TopoEntry stack[TOPO_STACK];
+    int sp = 0;
+    TopoEntry e;
+    __global const float* cell = cells + 6 * (i - first);
+    for (int a = 0; a < 3; a++) {
+        e.lo[a] = cell[a];
+        e.hi[a] = cell[3 + a];
+    }
+    e.node = i;
+    e.pre = pre[i];
+    e.depth = level;
+    WalkRecord own = walk[e.pre];
+    e.area = own.area;
+    e.stops = own.nonempty_stops >> 31;
+    stack[sp++] = e;
+    while (sp > 0) {
+        TopoEntry parent = stack[--sp];
+        uint c = first_child(nodes[parent.node]);
+        if (c == NONE)
+            continue;
+        uint2 w = nodes[parent.node];
+        int axis = (int)KD_PLAIN_TAG(w.x);
+        float split = as_float(w.y);
+        /* The above child is pushed first: the below child (preorder p + 1) comes out next. */
+        for (int side = 1; side >= 0; side--) {
+            TopoEntry child;
+            for (int a = 0; a < 3; a++) {
+                child.lo[a] = parent.lo[a];
+                child.hi[a] = parent.hi[a];
+            }
+            if (side)
+                child.lo[axis] = split;
+            else
+                child.hi[axis] = split;
+            child.node = c + (uint)side;
+            child.pre = side ? parent.pre + 1u + size[c] : parent.pre + 1u;
+            child.depth = parent.depth + 1u;
+            child.area = cell_area(child.lo, child.hi);
+            pre[child.node] = child.pre;
+            child.stops = put_records(child.node, child.pre, parent.pre, child.depth,
+                                      parent.stops, parent.area, child.area, size, nonempty,
+                                      climb, walk);
+            stack[sp++] = child;
+        }
     }
 }
 
