@@ -319,7 +319,7 @@ def test_channel_deadlines_for_whole_messages(monkeypatch):
         channel.recv(deadline=time.monotonic() + 0.6)
 
 
-# -- case 5: any exception in a worker thread drops that peer, never leaves a frame waiting ----
+# -- case 5: any exception while handling a peer drops that peer, never leaves a frame waiting
 def test_array_spec_with_a_list_or_object_dtype_is_refused(slaves, scene, reference):
     for spec_dtype in ([["f4"]], [{"x": 1}]):
         specs = [{"name": "a", "dtype": spec_dtype[0], "shape": [2]}]
@@ -346,16 +346,17 @@ def test_array_spec_with_a_list_or_object_dtype_is_refused(slaves, scene, refere
         fake.close()
 
 
-def test_an_exception_in_a_worker_thread_drops_that_slave(slaves, scene, reference, monkeypatch):
-    real_decode = protocol.decode_tile
+def test_an_exception_while_handling_a_slave_drops_that_slave(slaves, scene, reference, monkeypatch):
+    from core.net import master as master_module
+    real_handle = master_module._SlaveWorker._handle
     victim_port = slaves[1].port
 
-    def decode(*args, **kwargs):
-        if threading.current_thread().name.endswith(f":{victim_port})"):
+    def handle(worker, msg):
+        if worker.connection.port == victim_port and msg.type == MsgType.TILE_RESULT:
             raise RuntimeError("a bug in the master")
-        return real_decode(*args, **kwargs)
+        return real_handle(worker, msg)
 
-    monkeypatch.setattr(protocol, "decode_tile", decode)
+    monkeypatch.setattr(master_module._SlaveWorker, "_handle", handle)
     with Master([s.endpoint for s in slaves], secret=None, retry_delays=()) as master:
         master.connect()
         master.load_scene(scene)
@@ -421,7 +422,6 @@ def test_a_slave_with_nothing_left_stays_in_a_long_frame(scene, reference, monke
     """The last tile of a frame takes longer than the slave's idle deadline: the other slave,
     which has nothing left to render, is kept in the frame by the master's HEARTBEAT, not
     closed as an idle master (2 tiles, one slave much slower; deadlines scaled down)."""
-    from core.net import master as master_module
     from slave.server import SlaveServer
     from slave.tracer import Tracer
 
@@ -433,7 +433,6 @@ def test_a_slave_with_nothing_left_stays_in_a_long_frame(scene, reference, monke
     def frame(keepalive_s):
         monkeypatch.setattr(protocol, "IDLE_S", 1.0)
         monkeypatch.setattr(protocol, "KEEPALIVE_S", keepalive_s)
-        monkeypatch.setattr(master_module, "IDLE_POLL_S", 0.1)     # how often it looks
         servers = [SlaveServer(tracer, name, bind="127.0.0.1", port=0)
                    for tracer, name in ((Tracer(), "kdt-quick"), (SlowTracer(), "kdt-slow"))]
         for server in servers:

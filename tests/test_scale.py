@@ -177,10 +177,10 @@ def test_8_bit_preview_is_exact_to_its_quantisation():
         np.testing.assert_array_equal(again[name], decoded[name])
 
 
-def test_auto_tile_size_gives_each_slave_about_four_tiles():
+def test_auto_tile_size_gives_each_slave_about_eight_tiles():
     region = (0, 0, 1024, 1024)
     assert [auto_tile_size(region, n) for n in (1, 2, 4, 8, 16, 32, 64, 256, 4096)] == \
-        [(256, 256)] * 3 + [(128, 128)] * 2 + [(64, 64)] * 2 + [(32, 32)] * 2
+        [(256, 256)] * 2 + [(128, 128)] * 2 + [(64, 64)] * 2 + [(32, 32)] * 3
     assert auto_tile_size((0, 0, 64, 64), 8) == (32, 32)       # never below the smallest
 
 

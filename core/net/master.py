@@ -1,10 +1,11 @@
 """The master: connects to slaves, uploads the scene where needed, and renders frames.
 
-Usable without Blender (plain threads, no bpy). The paper's Fig. 3b on this side: per slave one
-sender thread that hands out the next tile index as soon as the slave has a free slot (several
-tiles in flight hide the network latency) and one receiver thread that validates finished tiles
-and puts them on the job's results queue. The caller's thread (Blender's render thread) only
-polls that queue with a timeout, so it can check for cancel in between:
+Usable without Blender (plain threads, no bpy). One thread per master, its frame loop, runs
+every frame for all slaves at once: it waits on their sockets with a selector, hands out the
+next tile index as soon as a slave has a free slot (the paper's Fig. 3b: several tiles in
+flight hide the network latency), validates finished tiles, writes them into the frame and puts
+them on the job's results queue. The caller's thread (Blender's render thread) only polls that
+queue with a timeout, so it can check for cancel in between:
 
     master = Master([("127.0.0.1", 47600)]); master.connect()
     master.load_scene(scene)               # a core.scene.scene.Scene
@@ -22,11 +23,14 @@ restarted) into the frame in progress. The frame fails only when no slave is lef
 """
 from __future__ import annotations
 
+import collections
 import math
 import queue
+import selectors
 import socket
 import threading
 import time
+import traceback
 import uuid
 from dataclasses import dataclass
 
@@ -38,8 +42,7 @@ from ..scene.model import SCENE_FORMAT_VERSION, SceneError, View
 from ..scene.scene import Scene
 from .tiles import TileGrid, TilePool, partition_tile_size, tile_dims
 
-POLL_S = 0.2             # how often worker threads look at the job's state
-IDLE_POLL_S = 2.0        # a sender with every slot taken waits this long (it is woken for work)
+POLL_S = 0.2             # how often waiting for a scene to load looks at its deadlines
 DEFAULT_TILE_SIZE = 64
 DEFAULT_TILES_IN_FLIGHT = 2
 MAX_TILES_IN_FLIGHT = protocol.MAX_TILES_IN_FLIGHT
@@ -50,9 +53,11 @@ MAX_TILES_IN_FLIGHT = protocol.MAX_TILES_IN_FLIGHT
 AUTO_IN_FLIGHT = 2
 AUTO_MAX_IN_FLIGHT = 8
 # tile_size="auto": the largest of these edges that gives each slave about
-# AUTO_TILES_PER_SLAVE tiles (AUTO_SLACK: 64 slaves on 1024 x 1024 get 64-pixel tiles).
+# AUTO_TILES_PER_SLAVE tiles (AUTO_SLACK: 16 slaves on 1024 x 1024 get 64-pixel tiles, 64
+# slaves 32-pixel ones). Eight, not fewer: with fewer, the most expensive tile of a frame
+# takes as long as a slave's whole share of it (docs/distributed.md, "Many slaves").
 AUTO_TILE_EDGES = (32, 64, 128, 256)
-AUTO_TILES_PER_SLAVE = 4
+AUTO_TILES_PER_SLAVE = 8
 AUTO_SLACK = 1.25
 DEPTH_MISS = 1e10        # the tracer's depth where a pixel sees nothing (kernels/shade/render.cl)
 RETRY_DELAYS_S = (0.5, 1.0, 2.0, 4.0, 8.0)   # reconnecting to a lost (or busy) slave
@@ -307,6 +312,7 @@ class Master:
         self._states: dict = {}          # endpoint -> SlaveState
         self._joining: set = set()       # endpoints a thread is connecting to
         self._tile_ms: dict = {}         # (region, tile dims) -> render ms per tile, last frame
+        self._frames: _FrameLoop | None = None   # the thread that runs every frame
         self._lock = threading.RLock()
         self._closed = False
 
@@ -455,7 +461,7 @@ class Master:
         """Make the scene present on every slave, uploading only where its hash is unknown.
         Slaves that fail are dropped (see .errors). Returns the scene hash."""
         if self._job is not None:
-            self._job.wait()  # its threads may still read the sockets (copies being cancelled)
+            self._job.wait()  # its frame may still read the sockets (copies being cancelled)
         self.scene = scene
         self.uploaded_to = []
         for connection, outcome in _in_parallel(lambda c: self._ensure_scene(c, scene), self.slaves):
@@ -523,8 +529,8 @@ class Master:
         about AUTO_TILES_PER_SLAVE tiles per slave); partition=N instead cuts the
         render region into N x N tiles (Table 5b). tiles_in_flight: requests outstanding per
         slave (model 3b), or "auto": per slave, enough to cover a round trip (AUTO_IN_FLIGHT).
-        model: "3b" (sender + receiver thread per slave, the default) or "3a"
-        (one thread per slave that asks for a tile and waits for it: for comparison).
+        model: "3b" (requests overlap the results, the default) or "3a" (each slave is
+        asked for one tile and for the next once that one has arrived: for comparison).
         payload: "f32", "f16" (combined and normal as float16) or "u8" (an 8-bit preview:
         sRGB colour, see protocol); compress: zlib when it pays. passes: the passes the frame
         needs (combined, plus depth and/or normal); only those travel. The tiles are written
@@ -564,7 +570,7 @@ class Master:
             raise MasterError(f"{len(tiles)} tiles in the frame, at most {protocol.MAX_FRAME_TILES}: "
                               f"use larger tiles")
         if self._job is not None:
-            self._job.wait()  # one receiver per socket: the previous job's threads must be gone
+            self._job.wait()  # one reader per socket: the previous frame must be quiet
         problems = self._heal()
         with self._lock:
             slaves = [c for c in self.slaves if c.scene_hash == self.scene.hash]
@@ -574,8 +580,8 @@ class Master:
         # last and holds up the end of the frame.
         costs = self._tile_ms.get((tuple(view.region), dims))
         order = None if costs is None else sorted(range(len(tiles)), key=lambda i: -(costs[i] or 0.0))
-        job = RenderJob(slaves, view, tiles, tiles_in_flight, self.scene.hash, master=self,
-                        order=order,
+        job = RenderJob(slaves, view, tiles, tiles_in_flight, self.scene.hash,
+                        self._frame_loop(), master=self, order=order,
                         model=model, payload=payload, compress=bool(compress), passes=passes,
                         duplicates=duplicates, silence_timeout=self.silence_timeout,
                         tile_budget=self.tile_budget, hold_when_stranded=hold_when_stranded)
@@ -583,6 +589,12 @@ class Master:
             self._job = job
         job.start()
         return job
+
+    def _frame_loop(self) -> "_FrameLoop":
+        with self._lock:
+            if self._frames is None:
+                self._frames = _FrameLoop(self.name)
+            return self._frames
 
     def _auto_tile_size(self, view: View) -> tuple:
         with self._lock:
@@ -626,6 +638,8 @@ class Master:
             job.wait(5)
         for connection in list(self.connections):
             connection.close(say_bye=True)
+        if self._frames is not None:
+            self._frames.stop()
 
     def __enter__(self):
         return self
@@ -640,147 +654,266 @@ class _SlaveLost(Exception):
         self.reason, self.retry = reason, retry
 
 
+class _FrameLoop:
+    """The master's one thread for every frame: it waits on the sockets of all slaves in a
+    frame at once (a selector), receives and checks their messages as bytes arrive (a message
+    under way waits in its Channel), composes tiles, sends the requests, and wakes for the
+    next deadline of any slave (silence, a step's budget, a message arriving too slowly, a
+    keep-alive, a held tile becoming overdue for a copy). Other threads hand it work with
+    call(). It lives as long as its Master: no thread is started per frame or per slave."""
+
+    def __init__(self, name: str):
+        self._selector = selectors.DefaultSelector()
+        self._wake_in, self._wake_out = socket.socketpair()
+        for end in (self._wake_in, self._wake_out):
+            end.setblocking(False)
+        self._selector.register(self._wake_in, selectors.EVENT_READ, None)
+        self._calls: collections.deque = collections.deque()
+        self._workers: set = set()      # the slaves whose sockets it reads now
+        self._due = math.inf            # the next sweep over the slaves' deadlines
+        self._stopped = False
+        self.thread = threading.Thread(target=self._run, name=f"frames of {name}", daemon=True)
+        self.thread.start()
+
+    def call(self, function, *args) -> None:
+        """Run function(*args) on the loop's thread, after what it is doing now."""
+        self._calls.append((function, args))
+        try:
+            self._wake_out.send(b"\0")
+        except OSError:          # full (a wake-up is pending anyway) or closed (stopped)
+            pass
+
+    def register(self, worker: "_SlaveWorker") -> None:
+        self._selector.register(worker.connection.channel.sock, selectors.EVENT_READ, worker)
+        self._workers.add(worker)
+
+    def unregister(self, worker: "_SlaveWorker") -> None:
+        if worker in self._workers:
+            self._workers.discard(worker)
+            self._selector.unregister(worker.connection.channel.sock)
+
+    def wake_by(self, when: float | None) -> None:
+        if when is not None and when < self._due:
+            self._due = when
+
+    def stop(self) -> None:
+        self._stopped = True
+        self.call(lambda: None)
+        self.thread.join(5)
+        self._selector.close()
+        self._wake_in.close()
+        self._wake_out.close()
+
+    def _run(self) -> None:
+        while not self._stopped:
+            timeout = None if self._due == math.inf else max(0.0, self._due - time.monotonic())
+            for key, _ in self._selector.select(timeout):
+                if key.data is None:
+                    try:
+                        while self._wake_in.recv(4096):
+                            pass
+                    except BlockingIOError:
+                        pass
+                elif key.data in self._workers:     # not released by an earlier event
+                    self._safely(key.data.readable)
+            while self._calls:
+                function, args = self._calls.popleft()
+                self._safely(function, *args)
+            if time.monotonic() >= self._due:
+                self._safely(self._sweep)
+
+    @staticmethod
+    def _safely(function, *args) -> None:
+        # A slave's steps drop that slave on any exception (_SlaveWorker._guarded); anything
+        # else that fails is a bug, reported, and must not stop every later frame.
+        try:
+            function(*args)
+        except Exception:
+            traceback.print_exc()
+
+    def _sweep(self) -> None:
+        now, due = time.monotonic(), math.inf
+        for worker in list(self._workers):
+            worker.sweep(now)
+            when = worker.due()
+            if when is not None:
+                due = min(due, when)
+        self._due = due
+
+
 class _SlaveWorker:
-    """One slave's part in one job: its threads (model 3b: a sender and a receiver; model 3a:
-    one that does both), its tiles in flight and what it says it is doing."""
+    """One slave's part in one job, run on the master's frame loop: its tiles in flight, what
+    it says it is doing and the deadlines it owes. Model 3b keeps `window` requests
+    outstanding and sends the next request as a tile arrives, before it is composed; model 3a
+    asks for one tile and the next only once that one has been composed."""
 
     def __init__(self, job: "RenderJob", connection: SlaveConnection):
         self.job, self.connection = job, connection
         self.in_flight: set = set()
         self.alive = True
+        self.released = False           # its socket no longer read for this job
         self.cancelling = False         # waiting for the slave to confirm a cancel
+        self.cancel_sent = False
         self.last_heard = time.monotonic()
-        self.step = None                # (state, tile) the slave last said it was at
-        self.step_since = time.monotonic()
+        self._new_step(None, self.last_heard)   # (state, tile) the slave last said it was at
         self.tiles_done = 0
         self.render_s, self.tiles_rendered = 0.0, 0     # this frame: seconds of render, tiles
         self.requested_at: dict = {}    # tile -> when its request went out
         self.round_trip_s = None        # least (result - request - render) this frame
-        self.window = DEFAULT_TILES_IN_FLIGHT if job.tiles_in_flight == "auto" else job.tiles_in_flight
-        self.state = threading.Condition()
-        label = connection.label
         if job.model == "3a":
-            self.threads = [threading.Thread(target=self._guarded, args=(self._simple_loop,),
-                                             name=f"slave {label}", daemon=True)]
+            self.window = 1
         else:
-            self.threads = [
-                threading.Thread(target=self._guarded, args=(self._send_loop,),
-                                 name=f"send {label}", daemon=True),
-                threading.Thread(target=self._guarded, args=(self._receive_loop,),
-                                 name=f"recv {label}", daemon=True)]
+            self.window = DEFAULT_TILES_IN_FLIGHT if job.tiles_in_flight == "auto" else job.tiles_in_flight
 
-    def _guarded(self, loop) -> None:
-        """Any exception in a worker thread drops this slave, with the reason: a frame never
-        waits on a thread that died."""
-        try:
-            loop()
-        except _SlaveLost as exc:
-            self.lose(exc.reason, exc.retry)
-        except Exception as exc:
-            self.lose(_describe(exc), protocol.is_transient(exc))
-        finally:
-            master = self.job.master
-            if self.alive and master is not None and loop != self._send_loop:
-                master._set_state(self.connection.endpoint, "idle", connection=self.connection)
+    # -- what the frame loop calls
 
-    def _frame_start(self) -> None:
+    def begin(self) -> None:
+        if self.job.over:
+            self._release()
+            return
+        self._guarded(self._start)
+
+    def _start(self) -> None:
         job = self.job
+        job.loop.register(self)
         self.connection.send(MsgType.FRAME_START, {
             "frame_id": job.frame_id, "scene_hash": job.scene_hash, "view": job.view_dict,
             "tile_size": job.tile_w, "tile_height": job.tile_h, "model": job.model,
             "payload": job.payload, "compress": job.compress, "passes": list(job.passes)})
+        self._fill()
 
-    def _keep_alive(self) -> None:
-        """A slave with nothing to render while the frame goes on elsewhere (the last tiles
-        take long) stays in the frame: tell it before its idle deadline closes the connection."""
-        if time.monotonic() - self.connection.channel.last_sent > protocol.KEEPALIVE_S:
-            self.connection.send(MsgType.HEARTBEAT, {})
+    def readable(self) -> None:
+        self._guarded(self._receive)
 
-    def _take(self, timeout: float = POLL_S, copies: bool = True, busy: bool = None) -> int | None:
-        """The next tile for this slave; `busy`: a slot filled beside another at the start of
-        the frame, to hide the request's latency (it gets a cheap tile, see TilePool's order).
-        None: judged from its tiles in flight (the sender)."""
-        job = self.job
-        if busy is None:
-            with self.state:
-                busy = bool(self.in_flight)
-        index = job.pool.take(timeout, holder=self, duplicates=copies and job.duplicates,
-                              cheap=busy)
-        if index is None:
-            return None
-        with self.state:
+    def _receive(self) -> None:
+        for msg in self.connection.channel.recv_available(self.job.limits, protocol.SLAVE_TO_MASTER):
+            self._handle(msg)
             if not self.alive:
-                job.pool.put_back(index, self)
-                return None
+                return
+
+    def sweep(self, now: float) -> None:
+        self._guarded(self._check, now)
+
+    def _check(self, now: float) -> None:
+        self._check_deadlines(now)
+        self.connection.channel.check_incoming()
+        if not self.job.over:
+            if len(self.in_flight) < self.window:
+                self._fill()
+            self._keep_alive()
+
+    def due(self) -> float | None:
+        """When this slave needs looking at next, unless a message comes first."""
+        if self.released:
+            return None
+        job, arriving = self.job, self.connection.channel.incoming_due()
+        times = [arriving]
+        if self.in_flight or self.cancelling:
+            times.append(self.step_since + self.step_budget)
+            if arriving is None:
+                times.append(self.last_heard + job.silence_timeout)
+        if not job.over:
+            if not self.in_flight:
+                times.append(self.connection.channel.last_sent + protocol.KEEPALIVE_S)
+            if len(self.in_flight) < self.window and job.duplicates and not job.pool.has_pending:
+                times.append(job.pool.copy_due(self))
+        times = [t for t in times if t is not None]
+        return min(times) if times else None
+
+    def _guarded(self, step, *args) -> None:
+        """Any exception in a step for this slave drops this slave, with the reason: a frame
+        never waits on a slave whose handling failed."""
+        try:
+            step(*args)
+        except _SlaveLost as exc:
+            self.lose(exc.reason, exc.retry)
+        except Exception as exc:
+            self.lose(_describe(exc), protocol.is_transient(exc))
+        self._settle()
+        self.job.loop.wake_by(self.due())
+
+    def _settle(self) -> None:
+        """Once the frame is over: cancel copies still out (and everything on a cancel), and
+        stop reading once nothing is owed."""
+        job = self.job
+        if self.released or not job.over:
+            if not self.alive:
+                self._release()
+            return
+        if self.alive and not self.cancelling and not self.cancel_sent and (
+                self.in_flight or job.cancelled):
+            self.cancel()
+        if not self.alive or not (self.in_flight or self.cancelling):
+            self._release()
+
+    def _release(self) -> None:
+        if self.released:
+            return
+        self.released = True
+        self.job.loop.unregister(self)
+        master = self.job.master
+        if self.alive and master is not None:
+            master._set_state(self.connection.endpoint, "idle", connection=self.connection)
+        self.job._worker_released()
+
+    # -- tiles
+
+    def _fill(self) -> None:
+        """Requests up to the window: the most expensive pending tiles, a cheap one for a slot
+        beside another at the start of the frame (to hide the request's latency, see
+        TilePool's order), copies of overdue tiles once nothing is pending."""
+        job = self.job
+        while self.alive and not job.over and len(self.in_flight) < self.window:
+            index = self._take(copies=True, cheap=bool(self.in_flight))
+            if index is None:
+                return
+            self._request(index)
+
+    def _take(self, copies: bool, cheap: bool) -> int | None:
+        job = self.job
+        index = job.pool.take(0, holder=self, duplicates=copies and job.duplicates, cheap=cheap)
+        if index is not None:
             if not self.in_flight:      # the deadlines run from the first request
-                self.last_heard = self.step_since = time.monotonic()
+                self.last_heard = time.monotonic()
+                self._new_step(None, self.last_heard)
             self.in_flight.add(index)
         return index
-
-    # -- model 3b
-
-    def _send_loop(self) -> None:
-        job = self.job
-        self._frame_start()
-        while self.alive and not job.over:
-            with self.state:
-                # Woken when a slot frees, the slave is lost or the job ends: with many slaves,
-                # polling here cost more of the master's CPU than the tiles did.
-                if not self.state.wait_for(
-                        lambda: len(self.in_flight) < self.window or not self.alive or job.over,
-                        IDLE_POLL_S):
-                    continue
-            index = self._take(IDLE_POLL_S)   # the pool wakes it for work, copies and the end
-            if index is not None:
-                self._request(index)
-            else:
-                self._keep_alive()
 
     def _request(self, index: int) -> None:
         self.requested_at[index] = time.monotonic()
         self.connection.send(MsgType.TILE_REQUEST, {"frame_id": self.job.frame_id, "tile": index})
+
+    def _keep_alive(self) -> None:
+        """A slave with nothing to render while the frame goes on elsewhere (the last tiles
+        take long) stays in the frame: tell it before its idle deadline closes the connection."""
+        if not self.in_flight and time.monotonic() - self.connection.channel.last_sent >= protocol.KEEPALIVE_S:
+            self.connection.send(MsgType.HEARTBEAT, {})
 
     def _auto_window(self) -> None:
         """tiles_in_flight="auto" (see AUTO_IN_FLIGHT)."""
         tile_s = self.render_s / max(1, self.tiles_rendered)
         trip = max(0.0, self.round_trip_s or 0.0)
         window = 1 + math.ceil(trip / tile_s) if tile_s > 0 else AUTO_MAX_IN_FLIGHT
-        window = min(AUTO_MAX_IN_FLIGHT, max(AUTO_IN_FLIGHT, window))
-        if window != self.window:
-            with self.state:
-                self.window = window
-                self.state.notify_all()
+        self.window = min(AUTO_MAX_IN_FLIGHT, max(AUTO_IN_FLIGHT, window))
 
-    def _receive_loop(self) -> None:
-        job = self.job
-        while True:
-            with self.state:
-                waiting = bool(self.in_flight) or self.cancelling
-                if not self.alive or (job.over and not waiting):
-                    return
-                # copies of tiles another slave finished first
-                stale = job.over and self.in_flight and not self.cancelling
-            if stale:
-                self.cancel()
-            # What arrived first, then the deadlines: a receiver that the machine kept from
-            # running must not take the heartbeats waiting in its socket for silence.
-            msg = self.connection.recv(job.limits, wait=POLL_S)
-            if msg is not None:
-                self._handle(msg)
-            self._check_deadlines(waiting)
+    # -- deadlines
 
-    def _check_deadlines(self, waiting: bool) -> None:
+    def _check_deadlines(self, now: float) -> None:
         # A cancel is confirmed after the tile being rendered: owed like a tile, so the same
         # liveness rules apply (a slave finishing a long tile says so in its heartbeats).
-        now = time.monotonic()
-        if not waiting:
+        if not (self.in_flight or self.cancelling):
             return
+        # A message under way is not silence: its own transfer deadline applies to it.
         silence = self.job.silence_timeout
-        if now - self.last_heard > silence:
+        if now - self.last_heard > silence and self.connection.channel.incoming_due() is None:
             raise _SlaveLost(f"did not answer within {silence:g} s", retry=True)
-        budget, what = self._budget()
-        if now - self.step_since > budget:
+        if now - self.step_since > self.step_budget:
+            budget, what = self._budget()
             raise _SlaveLost(f"{what} took longer than its budget of {budget:.0f} s", retry=False)
+
+    def _new_step(self, step, now: float) -> None:
+        self.step, self.step_since = step, now
+        self.step_budget = self._budget()[0]
 
     def _budget(self) -> tuple:
         """(seconds, what) the current step may take."""
@@ -793,32 +926,7 @@ class _SlaveWorker:
             return job.tile_budget.seconds(job.view, w, h), f"tile {tile}"
         return job.tile_budget.seconds(job.view, job.tile_w, job.tile_h), "a tile"
 
-    # -- model 3a
-
-    def _simple_loop(self) -> None:
-        """Fig. 3a: ask for one tile, wait for it, deliver it, ask for the next."""
-        job = self.job
-        self._frame_start()
-        while self.alive and not job.over:
-            index = self._take()
-            if index is None:
-                self._keep_alive()
-                continue
-            self.connection.send(MsgType.TILE_REQUEST, {"frame_id": job.frame_id, "tile": index})
-            while self.alive and index in self.in_flight:
-                if job.over and not self.cancelling:
-                    self.cancel()
-                msg = self.connection.recv(job.limits, wait=POLL_S)
-                if msg is not None:
-                    self._handle(msg)
-                self._check_deadlines(True)
-        while self.alive and self.cancelling:  # a cancel being confirmed
-            msg = self.connection.recv(job.limits, wait=POLL_S)
-            if msg is not None:
-                self._handle(msg)
-            self._check_deadlines(True)
-
-    # -- both
+    # -- messages
 
     def _handle(self, msg: protocol.Message) -> None:
         job, h = self.job, msg.header
@@ -828,12 +936,10 @@ class _SlaveWorker:
             return
         if msg.type == MsgType.CANCEL:
             if h.get("frame_id") == job.frame_id:
-                with self.state:
-                    self.cancelling = False
-                    for index in self.in_flight:  # the slave dropped what it had not rendered
-                        job.pool.put_back(index, self)
-                    self.in_flight.clear()
-                    self.state.notify_all()
+                self.cancelling = False
+                for index in self.in_flight:  # the slave dropped what it had not rendered
+                    job.pool.put_back(index, self)
+                self.in_flight.clear()
             return
         if msg.type == MsgType.ERROR:
             raise ProtocolError(f"slave error: {h.get('message')}")
@@ -842,27 +948,21 @@ class _SlaveWorker:
         if protocol.get_int(h, "frame_id") != job.frame_id:
             return  # a late tile of an earlier, cancelled frame
         index = protocol.get_int(h, "tile", 0, len(job.tiles) - 1)
-        with self.state:
-            if index not in self.in_flight:
-                if self.cancelling or job.cancelled:
-                    return
-                raise ProtocolError(f"sent tile {index}, which was not asked of it")
+        if index not in self.in_flight:
+            if self.cancelling or job.cancelled:
+                return
+            raise ProtocolError(f"sent tile {index}, which was not asked of it")
         x, y, w, h_ = job.tiles[index]
         if [h.get(k) for k in ("x", "y", "w", "h")] != [x, y, w, h_]:
             raise ProtocolError(f"tile {index} has the wrong rectangle")
         render_ms = protocol.get_float(h, "render_ms")
-        # Model 3b: the next request goes out from here, before this tile is decoded, so the
-        # slave's queue refills at once and the sender thread is not woken for each tile (it
-        # fills slots at the start, and hands out copies at the end).
-        refilled = False
-        if job.model == "3b" and not job.over:
-            with self.state:
-                others = len(self.in_flight) - 1      # besides this tile
-            # the most expensive pending tile: it starts after the ones queued there
-            following = self._take(0, copies=False, busy=False) if others < self.window else None
+        # Model 3b: the next request goes out before this tile is composed, so the slave's
+        # queue refills at once (the most expensive pending tile: it starts after the ones
+        # queued there).
+        if job.model == "3b" and not job.over and len(self.in_flight) - 1 < self.window:
+            following = self._take(copies=False, cheap=False)
             if following is not None:
                 self._request(following)
-                refilled = True
         # Checked, then written straight into the frame; a copy of a tile another slave
         # delivered first is checked only (an honest copy has the same bits anyway).
         windows = job.windows(x, y, w, h_)
@@ -870,16 +970,13 @@ class _SlaveWorker:
                              out=None if job.pool.is_done(index) else windows)
         self.render_s += max(render_ms, 0.0) / 1000.0
         self.tiles_rendered += 1
-        with self.state:
-            self.in_flight.discard(index)
-            self.step, self.step_since = None, now
-            if not refilled:
-                self.state.notify_all()
+        self.in_flight.discard(index)
+        self._new_step(None, now)
         sent = self.requested_at.pop(index, None)
         if sent is not None:
             trip = now - sent - max(render_ms, 0.0) / 1000.0
             self.round_trip_s = trip if self.round_trip_s is None else min(self.round_trip_s, trip)
-        if job.tiles_in_flight == "auto" and self.render_s > 0:
+        if job.tiles_in_flight == "auto" and job.model == "3b" and self.render_s > 0:
             self._auto_window()
         if job.cancelled:
             return
@@ -889,6 +986,9 @@ class _SlaveWorker:
             job._rejoined.discard(self.connection.endpoint)
             job._deliver(TileResult(index, x, y, w, h_, windows, self.connection.name,
                                     self.connection.id, render_ms))
+        self._fill()
+        if job.duplicates and not job.over and not job.pool.has_pending:
+            job.loop.wake_by(job.pool.copy_due())   # the typical tile time changed
 
     def _heartbeat(self, h: dict, now: float) -> None:
         state = h.get("state")
@@ -899,18 +999,18 @@ class _SlaveWorker:
             return   # still busy with an earlier frame: alive, but no step of ours
         tile = protocol.get_int(h, "tile", 0, len(self.job.tiles) - 1) if "tile" in h else None
         if (state, tile) != self.step:
-            self.step, self.step_since = (state, tile), now
+            self._new_step((state, tile), now)
             master = self.job.master
             if master is not None:
                 master._set_state(self.connection.endpoint, state, connection=self.connection)
 
     def cancel(self) -> None:
-        with self.state:
-            if not self.alive or self.cancelling:
-                return
-            self.cancelling = True
-            if not self.in_flight:      # owed from now on
-                self.last_heard = self.step_since = time.monotonic()
+        if not self.alive or self.cancelling:
+            return
+        self.cancelling = self.cancel_sent = True
+        if not self.in_flight:      # owed from now on
+            self.last_heard = time.monotonic()
+            self._new_step(None, self.last_heard)
         try:
             self.connection.send(MsgType.CANCEL, {"frame_id": self.job.frame_id})
         except (OSError, ProtocolError) as exc:
@@ -919,37 +1019,39 @@ class _SlaveWorker:
     def lose(self, reason: str, retry: bool = False) -> None:
         """Drop this slave: its tiles go back to the pool for the others; with `retry` the
         master tries to reconnect and bring it back into the frame."""
-        with self.state:
-            if not self.alive:
-                return
-            self.alive = False
-            lost = sorted(self.in_flight)
-            self.in_flight.clear()
-            self.cancelling = False
-            self.state.notify_all()
+        if not self.alive:
+            return
+        self.alive = False
+        lost = sorted(self.in_flight)
+        self.in_flight.clear()
+        self.cancelling = False
+        self.job.loop.unregister(self)
         self.connection.close()
         for index in lost:
             self.job.pool.put_back(index, self)
         self.job._slave_lost(self, reason, retry)
+        self._release()      # after the loss is recorded: wait() may return from here on
+        if lost:
+            self.job._offer()
 
 
 class RenderJob:
-    """One frame in progress. Thread-safe; the caller polls next_result()."""
+    """One frame in progress, run by the master's frame loop; the caller polls next_result()."""
 
     def __init__(self, connections: list, view: View, tiles: TileGrid, tiles_in_flight,
-                 scene_hash: str, master: Master | None = None,
+                 scene_hash: str, loop: _FrameLoop, master: Master | None = None,
                  model: str = protocol.DEFAULT_MODEL, payload: str = "f32",
                  compress: bool = False, passes=protocol.ALL_PASSES, duplicates: bool = True,
                  silence_timeout: float = protocol.SILENCE_S,
                  tile_budget: TileBudget = TileBudget(), hold_when_stranded: bool = False,
                  order=None):
-        self.master = master
+        self.master, self.loop = master, loop
         self.view, self.view_dict, self.tiles_in_flight = view, view.to_dict(), tiles_in_flight
         self.tiles = tiles
         self.tile_w, self.tile_h = tiles.tile_w, tiles.tile_h
         self.model, self.payload, self.compress = model, payload, compress
         self.passes = protocol.check_passes(passes)
-        # The frame, composed by the receivers as tiles arrive (what is not rendered stays
+        # The frame, composed by the frame loop as tiles arrive (what is not rendered stays
         # empty: zero colour, no surface).
         x0, y0, x1, y1 = view.region
         self.origin, shape = (x0, y0), (y1 - y0, x1 - x0)
@@ -977,6 +1079,7 @@ class RenderJob:
         self._joins = 0              # reconnections under way that may still bring a slave
         self._rejoined: set = set()  # endpoints reconnected after a loss, no tile since
         self._over = threading.Event()
+        self._quiet = threading.Event()   # over, and no slave's socket read for it any more
         self._lock = threading.Lock()
         self._workers = [_SlaveWorker(self, c) for c in connections]
 
@@ -993,8 +1096,7 @@ class RenderJob:
         if self.master is not None:
             self.master._set_state(worker.connection.endpoint, "waiting",
                                    connection=worker.connection)
-        for thread in worker.threads:
-            thread.start()
+        self.loop.call(worker.begin)
 
     def add_connection(self, connection: SlaveConnection) -> bool:
         """Let a slave that connected after the start (reconnected, or found later) take tiles
@@ -1059,8 +1161,6 @@ class RenderJob:
                 return
             self.cancelled = True
         self._end()
-        for worker in list(self._workers):
-            worker.cancel()
 
     def give_up(self) -> None:
         """End a stranded frame (hold_when_stranded) with its error."""
@@ -1071,17 +1171,11 @@ class RenderJob:
         self._end()
 
     def wait(self, timeout: float | None = None) -> bool:
-        """Wait for the job's threads to end (after the frame or a cancel); True if they did."""
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while True:
-            threads = [t for w in list(self._workers) for t in w.threads]
-            for thread in threads:
-                thread.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
-            alive = any(t.is_alive() for t in threads)
-            if alive or len(threads) == sum(len(w.threads) for w in list(self._workers)):
-                return not alive
+        """Wait until the frame is over and no slave owes it anything more (copies and
+        cancels confirmed); True if so."""
+        return self._quiet.wait(timeout)
 
-    # -- the workers' side
+    # -- the frame loop's side
 
     def _deliver(self, result: TileResult) -> None:
         with self._lock:
@@ -1096,6 +1190,17 @@ class RenderJob:
                 self.master._tile_ms[(tuple(self.view.region), (self.tile_w, self.tile_h))] = \
                     list(self.tile_ms)
             self._end()
+
+    def _offer(self) -> None:
+        """Tiles went back to the pool: slaves with a free slot take them."""
+        for worker in list(self._workers):
+            if worker.alive and not worker.released:
+                worker._guarded(worker._fill)
+
+    def _worker_released(self) -> None:
+        with self._lock:
+            if self._over.is_set() and all(w.released for w in self._workers):
+                self._quiet.set()
 
     def _slave_lost(self, worker: _SlaveWorker, reason: str, retry: bool) -> None:
         """A slave that drops is reconnected to, once per loss; one that drops again before
@@ -1140,10 +1245,20 @@ class RenderJob:
         self._end()
 
     def _end(self) -> None:
-        if not self._over.is_set():
+        with self._lock:
+            if self._over.is_set():
+                return
             self._over.set()
-            self.pool.close()
-            self._results.put(None)
-            for worker in list(self._workers):   # senders waiting for a free slot
-                with worker.state:
-                    worker.state.notify_all()
+        self.pool.close()
+        self._results.put(None)
+        self.loop.call(self._wind_down)
+
+    def _wind_down(self) -> None:
+        """On the frame loop, once the frame is over: each slave cancels what it still has
+        (copies, or everything on a cancel) and is let go once it owes nothing."""
+        for worker in list(self._workers):
+            if not worker.released:
+                worker._settle()
+                if not worker.released:
+                    self.loop.wake_by(worker.due())
+        self._worker_released()

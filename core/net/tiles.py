@@ -98,30 +98,40 @@ class TilePool:
         self._changed = threading.Condition()
         self.duplicates_handed_out = 0
 
+    # _holders is in hand-out order (a tile given back and handed out again is a new entry),
+    # which is the order of _taken_at: the oldest held tiles come first, and a scan for a tile
+    # to copy stops at the first that is not yet overdue.
+
     def _copyable(self, holder):
         best = None
         # Before any tile is done there is no typical time: anything may be copied.
         overdue = (time.monotonic() - COPY_AFTER * self._durations[len(self._durations) // 2]
                    if self._durations else math.inf)
         for index, holders in self._holders.items():
-            if holder in holders or len(holders) >= self.max_copies or self._taken_at[index] > overdue:
+            if self._taken_at[index] > overdue:
+                break
+            if holder in holders or len(holders) >= self.max_copies:
                 continue
-            key = (len(holders), self._taken_at[index])  # fewest copies, then the oldest
-            if best is None or key < best[0]:
-                best = (key, index)
-        return None if best is None else best[1]
+            if best is None or len(holders) < len(self._holders[best]):   # fewest copies, then the oldest
+                best = index
+                if len(holders) == 1:
+                    break
+        return best
 
-    def _next_overdue(self, holder):
-        """When the first tile `holder` could copy becomes overdue (None: none can)."""
-        if not self._durations:
+    def copy_due(self, holder=None):
+        """When the first tile `holder` (None: anyone) could copy becomes overdue (monotonic
+        time; None: none can, or nothing is done yet to tell)."""
+        with self._changed:
+            if not self._durations:
+                return None
+            for index, holders in self._holders.items():
+                if holder not in holders and len(holders) < self.max_copies:
+                    return self._taken_at[index] + COPY_AFTER * self._durations[len(self._durations) // 2]
             return None
-        after = COPY_AFTER * self._durations[len(self._durations) // 2]
-        times = [self._taken_at[i] for i, holders in self._holders.items()
-                 if holder not in holders and len(holders) < self.max_copies]
-        return min(times) + after if times else None
 
     @property
-    def _has_pending(self) -> bool:
+    def has_pending(self) -> bool:
+        """Tiles wait to be handed out (copies are handed out only when none does)."""
         return bool(self._returned) or self._next < self._last
 
     def _pop_pending(self, cheap: bool) -> int:
@@ -142,7 +152,7 @@ class TilePool:
         `duplicates`, when nothing is pending, a copy of a tile that other holders still have.
         Waits up to `timeout`; None if none."""
         def ready():
-            return (self._has_pending or self._closed or self.all_done
+            return (self.has_pending or self._closed or self.all_done
                     or (duplicates and self._copyable(holder) is not None))
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._changed:
@@ -152,7 +162,7 @@ class TilePool:
                 now = time.monotonic()
                 wake = deadline
                 if duplicates:
-                    overdue = self._next_overdue(holder)
+                    overdue = self.copy_due(holder)
                     if overdue is not None:
                         wake = overdue if wake is None else min(wake, overdue)
                 if deadline is not None and now >= deadline:
@@ -160,7 +170,7 @@ class TilePool:
                 self._changed.wait(None if wake is None else max(0.001, wake - now))
             if self._closed or self.all_done:
                 return None
-            if self._has_pending:
+            if self.has_pending:
                 index = self._pop_pending(cheap)
                 self._taken_at[index] = time.monotonic()
             elif duplicates:
