@@ -14,7 +14,7 @@ from core.layout import TOPLEVEL_LEAF_MAX, TOPLEVEL_MAX_DEPTH
 from core.scene.instances import MAX_INSTANCES
 from core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings,
                               SceneError, Shading, View)
-from core.scene.scene import Scene
+from core.scene.scene import Scene, memory_report
 from slave.tracer import Tracer
 from tests.meshes import grid_plane, load_bunny, look_at, uv_sphere
 
@@ -98,14 +98,14 @@ def _key(scene, hits):
 
 def test_instanced_hits_match_the_realised_scene(tracer, bunny_and_sphere):
     meshes = bunny_and_sphere
-    matrices = _transforms(12, seed=3)
-    which = [i % 2 for i in range(12)]
+    matrices = _transforms(8, seed=3)
+    which = [i % 2 for i in range(8)]
     scene = Scene.from_instances(meshes, which, matrices)
     assert scene.instances is not None and "INSTANCES" in scene.features(
         View(Camera("PERSP", np.eye(4)), 4, 4, Shading()))
     realised = _realised(meshes, which, matrices)
     rng = np.random.default_rng(7)
-    n = 20000
+    n = 12000
     origins = rng.uniform(-20, 20, (n, 3)).astype(np.float32)
     targets = realised.geometry.vertices[rng.integers(0, len(realised.geometry.vertices), n)]
     directions = (targets + rng.normal(0, 0.2, (n, 3)) - origins).astype(np.float32)
@@ -178,6 +178,22 @@ def test_instanced_scene_survives_the_wire(bunny_and_sphere):
     assert np.array_equal(again.instances.toplevel.nodes, scene.instances.toplevel.nodes)
     assert again.instances.referenced_triangles == \
         bunny_and_sphere[0][0].triangle_count + 2 * bunny_and_sphere[1][0].triangle_count
+    report = memory_report(scene)
+    assert report["triangles_stored"] == scene.geometry.triangle_count
+    assert report["triangles_referenced"] == again.instances.referenced_triangles
+    assert report["bytes_top_level"] == scene.instances.toplevel.nodes.nbytes + 3 * 7 * 16
+
+
+def test_moved_instances_are_the_scene_with_those_transforms(bunny_and_sphere):
+    scene = Scene.from_instances(bunny_and_sphere, [0, 1, 1], _transforms(3, seed=1))
+    moved_to = _transforms(3, seed=9)
+    moved = scene.moved(moved_to)
+    fresh = Scene.from_instances(bunny_and_sphere, [0, 1, 1], moved_to)
+    assert moved.hash == fresh.hash != scene.hash and moved.meshes_hash == scene.meshes_hash
+    assert np.array_equal(moved.instances.toplevel.nodes, fresh.instances.toplevel.nodes)
+    assert moved.geometry is scene.geometry and moved.tree.nodes is scene.tree.nodes
+    with pytest.raises(SceneError, match="2 transforms for 3 instances"):
+        scene.moved(moved_to[:2])
 
 
 @pytest.mark.parametrize("change, message", [

@@ -69,6 +69,7 @@ class Scene:
     depth: int                     # levels of the tree (root = 1)
     used_materials: np.ndarray     # sorted material ids that some triangle uses
     instances: InstanceSet | None = None    # None: a flat scene (world-space geometry)
+    meshes_hash: str | None = None  # instanced: the hash of the meshes and their trees alone
 
     @classmethod
     def from_parts(cls, geometry: Geometry, tree) -> "Scene":
@@ -179,15 +180,31 @@ class Scene:
                            instances.bounds(), 0)
         used = np.unique(geometry.material_ids) if geometry.triangle_count else \
             np.zeros(0, geometry.material_ids.dtype)
-        wire = {**{name: arrays[name] for name in INSTANCE_ARRAYS},
-                **{name: np.ascontiguousarray(arrays[name], dtype=SCENE_ARRAYS[name][0])
-                   for name in ("nodes", "leaf_index32", "leaf_index16")}}
-        digest = hashlib.blake2b(digest_size=16)
-        digest.update(b"instanced" + geometry.content_hash().encode())
-        for name, array in wire.items():
-            digest.update(f"{name}{array.shape}".encode())
-            digest.update(np.ascontiguousarray(array).tobytes())
-        return cls(geometry, tree, digest.hexdigest(), depth, used, instances)
+        meshes = {name: np.ascontiguousarray(arrays[name], dtype=INSTANCED_SCENE_ARRAYS[name][0])
+                  for name in ("nodes", "leaf_index32", "leaf_index16", "mesh_counts",
+                               "mesh_bounds")}
+        meshes_hash = _digest(b"meshes" + geometry.content_hash().encode(), meshes)
+        return cls(geometry, tree, _instanced_hash(meshes_hash, instances), depth, used,
+                   instances, meshes_hash)
+
+    def moved(self, to_world, visibility=None) -> "Scene":
+        """This instanced scene with its instances placed by `to_world` ((I, 4, 4) or
+        (I, 3, 4), one per instance, each keeping its mesh) and `visibility` (default: as
+        now): only the instances are checked again and the top level rebuilt; the meshes and
+        their trees are shared. The same scene as from_instances with these transforms."""
+        if self.instances is None:
+            raise SceneError("only an instanced scene has instances to move")
+        old = self.instances
+        matrices = as_3x4(to_world).astype(np.float32)
+        visibility = old.visibility if visibility is None else np.asarray(visibility, np.uint8)
+        if len(matrices) != old.count:
+            raise SceneError(f"{len(matrices)} transforms for {old.count} instances")
+        instances = InstanceSet.checked(old.mesh, matrices, visibility, old.mesh_table,
+                                        old.mesh_bounds)
+        tree = CompactTree(self.tree.nodes, self.tree.leaf_index32, self.tree.leaf_index16,
+                           instances.bounds(), 0)
+        return Scene(self.geometry, tree, _instanced_hash(self.meshes_hash, instances),
+                     self.depth, self.used_materials, instances, self.meshes_hash)
 
     def mesh_trees(self) -> list:
         """An instanced scene's mesh trees (CompactTree views into the scene's tree arrays)."""
@@ -385,3 +402,19 @@ def memory_summary(report: dict) -> str:
             f"{report['triangles_stored']:,} stored; {report['bytes_meshes'] / 1e6:.1f} MB meshes "
             f"+ {report['bytes_top_level'] / 1e6:.2f} MB top level (realised: about "
             f"{report['bytes_realised_estimate'] / 1e6:.0f} MB)")
+
+
+def _digest(prefix: bytes, arrays: dict) -> str:
+    digest = hashlib.blake2b(prefix, digest_size=16)
+    for name, array in arrays.items():
+        digest.update(f"{name}{array.shape}".encode())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
+
+
+def _instanced_hash(meshes_hash: str, instances: InstanceSet) -> str:
+    """An instanced scene's hash: its meshes' (which stay when only instances change) and
+    the instance arrays."""
+    return _digest(b"instanced" + meshes_hash.encode(),
+                   {"instance_mesh": instances.mesh, "instance_to_world": instances.to_world,
+                    "instance_visibility": instances.visibility})
