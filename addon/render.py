@@ -152,12 +152,17 @@ def render(engine, depsgraph):
         tree_settings = user_settings(settings.kdtree_mode, settings.tau_occu,
                                       settings.tau_freq, settings.refs_per_path)
         # One tree per mesh (docs/instances.md), each cached by its mesh's content.
-        trees, built = [], False
+        trees, built, done = [], False, 0.0
         for mesh in meshes:
+            share = mesh.triangle_count / max(stored, 1)     # of the progress bar
+
+            def mesh_progress(fraction, message, done=done, share=share):
+                tree_progress(done + share * fraction, message)
             tree, new = state.trees.get(mesh, settings.kdtree_mode, tree_settings,
-                                        tree_progress, device=prefs.slave_device)
+                                        mesh_progress, device=prefs.slave_device)
             trees.append(tree)
             built |= new
+            done += share
         scene = Scene.from_instances(list(zip(meshes, trees)), exported_geometry.instance_mesh,
                                      exported_geometry.to_world,
                                      texels=exported_geometry.texels,

@@ -30,7 +30,9 @@ def test_particle_instances_replace_their_hidden_emitter(exported):
     assert np.all(np.array(particles["min"])[:2] >= [-1.1, 8.9]) and np.all(np.array(particles["max"])[:2] <= [1.1, 11.1])
     # The viewport depsgraph the test exports also shows the ico sphere itself (a render's does not).
     assert exported["groups"]["instanced object"]["triangles"] == 20
-    assert exported["triangles"] == 3 * 12 + 2 * 12 + 5 * 20 + 20 + 4 * 12 + 2
+    assert exported["groups"]["scattered"]["triangles"] == 6 * 12
+    # The viewport also shows the scattered cube (z -80) and the nested and the floor.
+    assert exported["triangles"] == 3 * 12 + 2 * 12 + 5 * 20 + 20 + 6 * 12 + 12 + 4 * 12 + 2
 
 
 def _geometry(arrays):
@@ -42,13 +44,15 @@ def _geometry(arrays):
 
 
 def test_shared_meshes_are_exported_once_and_instanced(exported):
-    """Meshes of several instances (collection instances, nested ones, particles) once in
-    object space; the others (the arrayed cube, the floor) realised in mesh 0."""
+    """Meshes of several instances (collection instances, nested ones, particles with the
+    viewport's own ico sphere, geometry nodes' Instance on Points) once in object space; the
+    others realised in mesh 0: the arrayed cube, the floor and the cube that geometry nodes
+    scatter (its instances share an evaluated copy of its mesh, not its own)."""
     meshes = [_geometry(m) for m in exported["meshes"]]
     which = np.array(exported["instance_mesh"])
-    assert sorted(m.triangle_count for m in meshes) == [12, 12, 20, 3 * 12 + 2]
-    assert meshes[0].triangle_count == 3 * 12 + 2 and which[0] == 0
-    assert sorted(np.bincount(which)[1:].tolist()) == [2, 4, 6]
+    assert sorted(m.triangle_count for m in meshes) == [12, 12, 12, 20, 3 * 12 + 2 + 12]
+    assert meshes[0].triangle_count == 3 * 12 + 2 + 12 and which[0] == 0
+    assert sorted(np.bincount(which)[1:].tolist()) == [2, 4, 6, 6]
     referenced = sum(meshes[m].triangle_count for m in which)
     assert referenced == exported["triangles"]
 

@@ -62,6 +62,26 @@ for k, x in enumerate((0.0, 6.0)):
     empty.instance_type, empty.instance_collection = "COLLECTION", outer
     empty.location, empty.rotation_euler = (x, -30.0, 0.0), (0.0, 0.0, 0.4 * k)
     scene.collection.objects.link(empty)
+# Geometry-nodes instances (y > 90): Instance on Points puts 6 copies of a small cube (hidden
+# in renders, at z -80 in the viewport) on a 3 x 2 grid; the host plane itself has no faces then.
+bpy.ops.mesh.primitive_cube_add(size=0.2, location=(0, 0, -80))
+scattered = bpy.context.object
+scattered.hide_render = True
+bpy.ops.mesh.primitive_plane_add(size=2.0, location=(0, 100, 0))
+host = bpy.context.object
+tree = bpy.data.node_groups.new("scatter", "GeometryNodeTree")
+tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+grid = tree.nodes.new("GeometryNodeMeshGrid")
+grid.inputs["Vertices X"].default_value, grid.inputs["Vertices Y"].default_value = 3, 2
+info = tree.nodes.new("GeometryNodeObjectInfo")
+info.inputs["Object"].default_value = scattered
+on_points = tree.nodes.new("GeometryNodeInstanceOnPoints")
+tree.links.new(grid.outputs["Mesh"], on_points.inputs["Points"])
+tree.links.new(info.outputs["Geometry"], on_points.inputs["Instance"])
+tree.links.new(on_points.outputs["Instances"], tree.nodes.new("NodeGroupOutput").inputs["Geometry"])
+host.modifiers.new("scatter", "NODES").node_group = tree
+
 floor = bpy.data.objects.new("floor", bpy.data.meshes.new("floor"))
 floor.data.from_pydata([(-5, -36, -1.5), (14, -36, -1.5), (14, -24, -1.5), (-5, -24, -1.5)], [],
                        [(0, 1, 2, 3)])
@@ -83,7 +103,9 @@ v = geometry.vertices[geometry.triangles].reshape(-1, 3, 3)
 centres = v.mean(axis=1)
 groups = {"arrayed": (centres[:, 0] < 5) & (np.abs(centres[:, 1]) < 5) & (centres[:, 2] > -10),
           "instances": (centres[:, 0] > 5) & (centres[:, 1] > -10),
-          "particles": centres[:, 1] > 5, "instanced object": centres[:, 2] < -10,
+          "particles": (centres[:, 1] > 5) & (centres[:, 1] < 90),
+          "instanced object": (centres[:, 2] < -10) & (centres[:, 2] > -60),
+          "scattered": centres[:, 1] > 90,
           "nested": centres[:, 1] < -20}
 
 
