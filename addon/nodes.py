@@ -47,7 +47,7 @@ class NodeProgram:
     (float, colour and vector; Mix, Add, Multiply, Subtract, Screen, Difference, Darken,
     Lighten), Math (the NODE_MATH_CODES operations), Invert, Checker Texture, Noise Texture (3D
     fBm), Color Ramp, Value and RGB; into a BSDF's Normal: Normal Map (tangent, object, world
-    space) and Bump. Another node makes its input keep its value, and the problem names it."""
+    space) and Bump; emission as colour x strength. Another node makes its input keep its value, and the problem names it."""
 
     def __init__(self, texture_index):
         self._texture_index = texture_index     # image -> texture table index
@@ -67,19 +67,26 @@ class NodeProgram:
         return any(op == "UV" or (op == "NORMAL_MAP" and params[1] == tangent)
                    for op, _, _, _, _, params in self._code)
 
-    def output(self, socket, field, problems) -> bool:
-        """Evaluate the graph linked to `socket` into BSDF input `field`; False (with a
-        problem naming the node) when it cannot."""
+    def output(self, socket, field, problems, strength=None) -> bool:
+        """Evaluate the graph linked to `socket` into BSDF input `field` (times the socket
+        `strength`, linked or not, when given: emission); False (with a problem naming the
+        node) when it cannot."""
         saved = (list(self._code), list(self._ramps), dict(self._values), dict(self._kinds),
                  self._next, list(self.transforms))
         try:
-            ref = self._linked(socket)
+            ref = self._operand(socket)
+            if strength is not None:
+                scale = self._as_float(self._operand(strength))
+                register = self._register()
+                self._emit("VECTOR_MATH", register, ref, 0, scale,
+                           params=(NODE_VECTOR_MATH_CODES["SCALE"],))
+                ref = self._whole(register)
         except _Unsupported as error:
             self._code, self._ramps, self._values, self._kinds, self._next, self.transforms = saved
             keeps = "the surface's own normal" if field == "NORMAL" else f"its value {socket_value(socket)}"
             problems.append(f"input '{socket.name}': {error}; using {keeps}")
             return False
-        if field not in ("BASE_COLOR", "NORMAL"):
+        if field not in ("BASE_COLOR", "NORMAL", "EMISSION"):
             ref = self._as_float(ref)
         self._emit("OUT", 0, ref, params=(NODE_OUT_CODES[field],))
         self.outputs.append(field)
@@ -150,8 +157,12 @@ class NodeProgram:
         """The operand of a node's input (by name or index), converted as Blender converts
         between colours, vectors and values."""
         socket = node.inputs[key]
-        ref = self._linked(socket) if socket.is_linked else self._constant(socket_value(socket))
+        ref = self._operand(socket)
         return self._as_float(ref) if socket.type == "VALUE" else ref
+
+    def _operand(self, socket):
+        """The operand of a socket: the graph linked to it, or its own value."""
+        return self._linked(socket) if socket.is_linked else self._constant(socket_value(socket))
 
     def _as_float(self, ref):
         """A single value from `ref`: a colour's luminance (Rec. 709, Cycles' conversion), a
@@ -435,6 +446,23 @@ def _linked_stand_in(output, value):
             "ALPHA": 0.5}.get(output, value)
 
 
+def _emission(node, color_name, strength_name, params, problems, program):
+    """Emission colour x strength into params: through the node program when either input is
+    linked (the params keep a stand-in that makes the object a light), else constants."""
+    color, strength = node.inputs[color_name], node.inputs[strength_name]
+    if program is not None and (color.is_linked or strength.is_linked) and \
+            program.output(color, "EMISSION", problems, strength):
+        value = socket_value(color)[:3] if not color.is_linked else (1.0, 1.0, 1.0)
+        scale = socket_value(strength) if not strength.is_linked else 1.0
+        params["emission_r"], params["emission_g"], params["emission_b"] = (
+            max(0.0, c * scale) for c in value)
+        return
+    emission, _ = _color_input(node, color_name, problems)
+    strength = input_value(node, strength_name, problems) or 0.0
+    params["emission_r"], params["emission_g"], params["emission_b"] = (
+        max(0.0, c * strength) for c in emission[:3])
+
+
 def _normal_input(node, problems, program):
     """A linked Normal input through the node program (Normal Map, Bump)."""
     socket = node.inputs.get("Normal")
@@ -508,10 +536,7 @@ def material_parameters(material, program=None):
                 params[name] = value
         alpha = input_value(node, "Alpha", problems, program, "ALPHA")
         color = color[:3] + (alpha if alpha is not None else 1.0,)
-        emission, _ = _color_input(node, "Emission Color", problems)
-        strength = input_value(node, "Emission Strength", problems) or 0.0
-        params["emission_r"], params["emission_g"], params["emission_b"] = (
-            max(0.0, c * strength) for c in emission[:3])
+        _emission(node, "Emission Color", "Emission Strength", params, problems, program)
         for other in ("Coat Weight", "Sheen Weight", "Subsurface Weight", "Anisotropic",
                       "Diffuse Roughness", "Thin Film Thickness"):
             socket = node.inputs.get(other)
@@ -550,12 +575,9 @@ def material_parameters(material, program=None):
         params["ior"] = input_value(node, "IOR", problems) or 1.45
         _unhandled_links(node, ("Color", "Roughness", "IOR"), problems)
     elif kind == "EMISSION":
-        emission, _ = _color_input(node, "Color", problems)
-        strength = input_value(node, "Strength", problems) or 0.0
+        _emission(node, "Color", "Strength", params, problems, program)
         color = (0.0, 0.0, 0.0, 1.0)
         params["specular"] = 0.0
-        params["emission_r"], params["emission_g"], params["emission_b"] = (
-            max(0.0, c * strength) for c in emission[:3])
     else:
         what = f"'{node.name}' ({node.bl_idname})" if node is not None else "nothing"
         return fallback, params, None, [

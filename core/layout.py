@@ -222,7 +222,7 @@ NODE_GRADIENT_CODES = {"LINEAR": 0, "QUADRATIC": 1, "EASING": 2, "DIAGONAL": 3, 
                        "QUADRATIC_SPHERE": 5, "SPHERICAL": 6}
 NODE_EXTENSION_CODES = {"REPEAT": 0, "EXTEND": 1, "CLIP": 2, "MIRROR": 3}   # Image Texture
 NODE_OUT_CODES = {"BASE_COLOR": 0, "ALPHA": 1, "METALLIC": 2, "ROUGHNESS": 3,
-                  "TRANSMISSION": 4, "IOR": 5, "SPECULAR": 6, "NORMAL": 7}
+                  "TRANSMISSION": 4, "IOR": 5, "SPECULAR": 6, "NORMAL": 7, "EMISSION": 8}
 NODE_NORMAL_SPACE_CODES = {"TANGENT": 0, "OBJECT": 1, "WORLD": 2, "BLENDER_OBJECT": 3,
                            "BLENDER_WORLD": 4}      # Normal Map (NORMAL_MAP p1)
 NODE_OBJECT_NORMAL_SPACES = ("OBJECT", "BLENDER_OBJECT")    # these read the object's rows (p0)

@@ -34,8 +34,8 @@ SCENES = {
     "nodes": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "nodes_more": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "generated": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "WORLD"}),
-    "procedural": (12, {"AREA", "BOUNCES", "BUMP", "NODES", "NOISE", "NORMAL_MAP", "SMOOTH",
-                        "SPECULAR", "TEXTURES", "WORLD"}),
+    "procedural": (12, {"AREA", "BOUNCES", "BUMP", "EMISSION", "NODES", "NOISE", "NORMAL_MAP",
+                        "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
 }
 # Cycles' Light Paths defaults (also ours), uniform sampling, the samples of each scene.
 MATCHED = {name: value for name, value in RenderSettings().to_dict().items()

@@ -776,6 +776,8 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Su
                 m->ior = clamp(a.x, 0.01f, 100.0f);
             else if (field == NODE_OUT_SPECULAR)
                 m->specular = fmax(a.x, 0.0f);
+            else if (field == NODE_OUT_EMISSION)
+                m->emission = fmax(a.xyz, 0.0f);
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
             else if (field == NODE_OUT_NORMAL && s) {
                 float3 n = safe_normalize(a.xyz);

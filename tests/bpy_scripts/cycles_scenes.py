@@ -543,7 +543,8 @@ def build(name):
     elif name == "procedural":
         # Cycles' Noise Texture (its own Perlin noise and fBm): Color at the default Generated
         # coordinates, with distortion and a fractional detail; Fac through a Color Ramp at
-        # Object coordinates, and as Roughness; Bump and Normal Map (tangent, object space).
+        # Object coordinates, and as Roughness; Bump and Normal Map (tangent, object space);
+        # node-driven emission.
         world((0.3, 0.32, 0.36))
         m, nodes, links, bsdf = node_material("noise colour")
         noise = nodes.new("ShaderNodeTexNoise")
@@ -607,9 +608,22 @@ def build(name):
         mapped.inputs["Strength"].default_value = 0.8
         links.new(mix.outputs["Color"], mapped.inputs["Color"])
         links.new(mapped.outputs["Normal"], bsdf.inputs["Normal"])
-        ball = add(bpy.ops.mesh.primitive_ico_sphere_add, m, radius=0.3, subdivisions=2,
-                   location=(1.25, -0.6, 0.3), rotation=(math.radians(40), 0, math.radians(-25)))
-        ball.scale = (1.0, 1.0, 1.0)
+        add(bpy.ops.mesh.primitive_ico_sphere_add, m, radius=0.3, subdivisions=2,
+            location=(1.25, -0.6, 0.3), rotation=(math.radians(40), 0, math.radians(-25)))
+        # Emission driven by nodes: a noise colour, its Fac through Math as the strength.
+        m, nodes, links, bsdf = node_material("noise glow")
+        nodes.remove(bsdf)
+        glow = nodes.new("ShaderNodeEmission")
+        links.new(glow.outputs[0], nodes["Material Output"].inputs["Surface"])
+        noise = nodes.new("ShaderNodeTexNoise")
+        noise.inputs["Scale"].default_value = 3.0
+        strength = nodes.new("ShaderNodeMath")
+        strength.operation = "MULTIPLY"
+        strength.inputs[1].default_value = 1.5
+        links.new(noise.outputs["Fac"], strength.inputs[0])
+        links.new(noise.outputs["Color"], glow.inputs["Color"])
+        links.new(strength.outputs["Value"], glow.inputs["Strength"])
+        add(bpy.ops.mesh.primitive_cube_add, m, size=0.35, location=(-1.45, -0.5, 0.18))
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "warned":
