@@ -53,16 +53,20 @@ def warm_up(builder, mode):
     its first launch of each kind: work-group size, zero or non-zero global offset, and under
     or over 65,536 work-items ("goffs0", "smallgrid" in its cache); a big scene's first
     compaction otherwise compiles some 40 variants (about 2.6 s CPU on a cold cache). So the
-    warm-up scene has more nodes, references, triangles and lifted references than twice
-    65,536 (thin triangles: many references each), a degenerate triangle (the kept ones are
-    moved), and its launches go in small pieces (non-zero offsets; the tree does not depend
-    on them)."""
+    warm-up builds and compacts two scenes: a sphere of 8,064 triangles (more references than
+    a subtree: every kernel, small launches at zero offset), and one with more nodes,
+    references, triangles and lifted references than twice 65,536 (thin triangles: many
+    references each) and a degenerate triangle (the kept ones are moved), its launches in
+    small pieces (non-zero offsets; the tree does not depend on them)."""
     import core.accel.kdtree_cl as kcl
     from core.accel.compact import compact_tree
     from tests.meshes import uv_sphere
+    ball = uv_sphere(64, 64)
+    assert len(ball[1]) > builder.subtree_refs
+    compact_tree(builder.build(*ball), len(ball[1]), mode, device=builder)
     vertices, triangles = uv_sphere(1000, 80)        # 158,000 triangles, 84 K lifted
     triangles = np.vstack([triangles, triangles[:1, [0, 0, 1]]]).astype(np.uint32)
-    assert len(triangles) > 2 * 65536 > builder.subtree_refs
+    assert len(triangles) > 2 * 65536
     pieces = kcl.PIECE_REFS, kcl.PIECE_ITEMS
     kcl.PIECE_REFS, kcl.PIECE_ITEMS = 8 * builder.chunk_refs, 65536
     try:
