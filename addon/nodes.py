@@ -45,8 +45,8 @@ class NodeProgram:
     register; constants for unlinked inputs. Nodes: Image Texture (UV, Linear/Closest,
     Repeat), Texture Coordinate and UV Map (UV), Separate/Combine Color (RGB) and XYZ, Mix
     (float, colour and vector; Mix, Add, Multiply, Subtract, Screen, Difference, Darken,
-    Lighten), Math (the NODE_MATH_CODES operations), Invert, Checker Texture, Noise Texture (3D
-    fBm), Color Ramp, Value and RGB; into a BSDF's Normal: Normal Map (tangent, object, world
+    Lighten), Math (the NODE_MATH_CODES operations), Invert, Checker Texture, Noise Texture (fBm,
+    1D to 4D), Color Ramp, Value and RGB; into a BSDF's Normal: Normal Map (tangent, object, world
     space) and Bump; emission as colour x strength. Another node makes its input keep its value, and the problem names it."""
 
     def __init__(self, texture_index):
@@ -329,24 +329,29 @@ class NodeProgram:
         raise _Unsupported(f"node '{node.name}' ({node.bl_idname}) is not evaluated")
 
     def _noise(self, node, name):
-        """Noise Texture (3D fBm): one instruction for both outputs; its Color (two more
-        fBm sums) only when that output is linked."""
-        if node.noise_dimensions != "3D" or node.noise_type != "FBM":
-            raise _Unsupported(f"node '{node.name}' (Noise Texture, {node.noise_dimensions} "
-                               f"{node.noise_type}) is not evaluated")
+        """Noise Texture (fBm, 1D to 4D): one instruction for both outputs; its Color (two
+        more fBm sums) only when that output is linked."""
+        if node.noise_type != "FBM":
+            raise _Unsupported(f"node '{node.name}' (Noise Texture, {node.noise_type}) is not evaluated")
+        dims = int(node.noise_dimensions[0])
         distortion = node.inputs["Distortion"]
-        if distortion.is_linked:
-            raise _Unsupported(f"node '{node.name}' (Noise Texture, linked Distortion) is not evaluated")
+        w = next(socket for socket in node.inputs if socket.name == "W")    # hidden in 2D, 3D
+        for socket in (distortion, w):
+            if socket.is_linked and (socket is distortion or dims in (1, 4)):
+                raise _Unsupported(f"node '{node.name}' (Noise Texture, linked {socket.name}) "
+                                   "is not evaluated")
         key = (node.name, "noise", self._step)
         if key not in self._values:
-            vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked \
-                else self._coordinates("GENERATED")
+            vector = 0
+            if dims > 1:
+                vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked \
+                    else self._coordinates("GENERATED")
             settings = self._pack(node, ("Detail", "Roughness", "Lacunarity"))
             scale = self._input(node, "Scale")
             register = self._register()
+            flags = int(node.normalize) + 2 * int(node.outputs["Color"].is_linked) + 4 * dims
             self._emit("NOISE", register, vector, settings, scale,
-                       params=(float(node.normalize), float(node.outputs["Color"].is_linked),
-                               float(distortion.default_value)))
+                       params=(float(flags), float(distortion.default_value), float(w.default_value)))
             self._values[key] = register
         register = self._values[key]
         return self._lane(register, 0) if name == "Fac" else self._whole(register)

@@ -325,39 +325,63 @@ def test_node_program_evaluates_per_hit_as_numpy_does(tracer):
     assert fac.min() == 0 and fac.max() == 1
 
 
-def lookup3_final(a, b, c):
-    """Bob Jenkins' lookup3 final mix on uint32 arrays (as Cycles' hash_uint2/3)."""
+def lookup3(*words):
+    """Bob Jenkins' lookup3 of one to four uint32 words (arrays), as Cycles' hash_uint to
+    hash_uint4."""
     def rot(x, k):
         return (x << np.uint32(k)) | (x >> np.uint32(32 - k))
-    a, b, c = (np.asarray(v, np.uint32).copy() for v in (a, b, c))
+    seed = np.uint32(0xdeadbeef + (len(words) << 2) + 13)
     with np.errstate(over="ignore"):
-        for x, y, z, k in ((c, b, None, 14), (a, c, None, 11), (b, a, None, 25), (c, b, None, 16),
-                           (a, c, None, 4), (b, a, None, 14), (c, b, None, 24)):
+        a, b, c = (seed + (np.asarray(words[j], np.uint32) if j < len(words) else np.uint32(0))
+                   for j in range(3))
+        a, b, c = (np.array(v, np.uint32) for v in np.broadcast_arrays(a, b, c))
+        if len(words) == 4:             # lookup3's mix, then the fourth word
+            for x, y, z, k in ((a, c, b, 4), (b, a, c, 6), (c, b, a, 8), (a, c, b, 16),
+                               (b, a, c, 19), (c, b, a, 4)):
+                x -= y
+                x ^= rot(y, k)
+                y += z
+            a += np.asarray(words[3], np.uint32)
+        for x, y, k in ((c, b, 14), (a, c, 11), (b, a, 25), (c, b, 16), (a, c, 4), (b, a, 14),
+                        (c, b, 24)):
             x ^= y
             x -= rot(y, k)
     return c
 
 
 def perlin_fbm(p, detail, roughness, lacunarity, distortion, colour):
-    """Cycles' Noise Texture (3D fBm, normalised) at points p (..., 3), in numpy (float64)."""
+    """Cycles' Noise Texture (fBm, normalised) at points p (..., dims), in numpy (float64)."""
+    dims = p.shape[-1]
+
+    def gradient(h, f):
+        if dims == 1:
+            h = h & np.uint32(15)
+            g = 1.0 + (h & np.uint32(7))
+            return np.where(h & 8, -g, g) * f[0]
+        if dims == 2:
+            h = h & np.uint32(7)
+            u, v = np.where(h < 4, f[0], f[1]), 2 * np.where(h < 4, f[1], f[0])
+            return np.where(h & 1, -u, u) + np.where(h & 2, -v, v)
+        if dims == 3:
+            h = h & np.uint32(15)
+            u = np.where(h < 8, f[0], f[1])
+            v = np.where(h < 4, f[1], np.where((h == 12) | (h == 14), f[0], f[2]))
+            return np.where(h & 1, -u, u) + np.where(h & 2, -v, v)
+        h = h & np.uint32(31)
+        u, v, t = np.where(h < 24, f[0], f[1]), np.where(h < 16, f[1], f[2]), np.where(h < 8, f[2], f[3])
+        return np.where(h & 1, -u, u) + np.where(h & 2, -v, v) + np.where(h & 4, -t, t)
+
     def signed(q):
         cell = np.floor(q)
         f, i = q - cell, cell.astype(np.int64)
         fade = f * f * f * (f * (f * 6 - 15) + 10)
-        seed = np.uint32(0xdeadbeef + (3 << 2) + 13)
         total = 0.0
-        for k in range(8):
-            d = np.array([k & 1, (k >> 1) & 1, k >> 2])
-            words = [(i[..., j] + d[j]).astype(np.uint32) + seed for j in range(3)]
-            with np.errstate(over="ignore"):
-                h = lookup3_final(*words) & np.uint32(15)
-            x, y, z = (f[..., j] - d[j] for j in range(3))
-            u = np.where(h < 8, x, y)
-            v = np.where(h < 4, y, np.where((h == 12) | (h == 14), x, z))
-            g = np.where(h & 1, -u, u) + np.where(h & 2, -v, v)
-            weight = np.prod([fade[..., j] if d[j] else 1 - fade[..., j] for j in range(3)], axis=0)
-            total = total + weight * g
-        return 0.982 * total
+        for k in range(1 << dims):
+            d = [(k >> j) & 1 for j in range(dims)]
+            h = lookup3(*[(i[..., j] + d[j]).astype(np.uint32) for j in range(dims)])
+            weight = np.prod([fade[..., j] if d[j] else 1 - fade[..., j] for j in range(dims)], axis=0)
+            total = total + weight * gradient(h, [f[..., j] - d[j] for j in range(dims)])
+        return {1: 0.25, 2: 0.6616, 3: 0.982, 4: 0.8344}[dims] * total
 
     def fbm(q):
         amp, scale, sums, total = 1.0, 1.0, [], 0.0
@@ -370,51 +394,74 @@ def perlin_fbm(p, detail, roughness, lacunarity, distortion, colour):
         return norm[int(detail)] + rest * (norm[int(detail) + 1] - norm[int(detail)])
 
     def offset(seed):
-        init = np.uint32(0xdeadbeef + (2 << 2) + 13)
-        bits = [np.float32(v).view(np.uint32) for v in (seed, 0.0, 1.0, 2.0)]
-        with np.errstate(over="ignore"):
-            h = [lookup3_final(init + bits[0], init + bits[k], init) for k in (1, 2, 3)]
+        bits = lambda v: np.float32(v).view(np.uint32)
+        h = [lookup3(bits(seed))] if dims == 1 else [lookup3(bits(seed), bits(k)) for k in range(dims)]
         return 100.0 + np.array([float(v) for v in h]) * (100.0 / 4294967296.0)
-    p = p + distortion * np.stack([signed(p + offset(k)) for k in range(3)], -1)
+    p = p + distortion * np.stack([signed(p + offset(k)) for k in range(dims)], -1)
     value = fbm(p)
-    return np.stack([value] + ([fbm(p + offset(3)), fbm(p + offset(4))] if colour else [value] * 2), -1)
+    return np.stack([value] + ([fbm(p + offset(dims)), fbm(p + offset(dims + 1))] if colour
+                               else [value] * 2), -1)
 
 
 def test_noise_texture_is_cycles_perlin_fbm(tracer):
-    """The Noise Texture instruction (3D fBm with a fractional detail, distortion and its
-    Color) on a plane's Object coordinates, as the base colour under a sun: each pixel is the
-    numpy evaluation of Cycles' noise x E / pi."""
+    """The Noise Texture instruction (fBm in 1D to 4D with a fractional detail, distortion and
+    its Color) on a plane's Object coordinates (and W), as the base colour under a sun: each
+    pixel is the numpy evaluation of Cycles' noise x E / pi."""
     from core.layout import NODE_OP_CODES as OP, NODE_OUT_CODES, NODE_REF_REGISTER as R
     vertices, triangles = grid_plane(2.0, 1, 0.37)
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16),
                         uvs=np.zeros((3 * len(triangles), 2), np.float32))
     tracer.load(Scene.from_parts(geometry, build_kdtree(vertices, triangles)))
     whole = lambda r: r * R + 4
-    detail, roughness, lacunarity, distortion, scale = 2.5, 0.6, 2.1, 0.4, 3.0
-    code = [(OP["TRANSFORM"], 0, 0, 0), (0, 12, 0, 0),                # identity rows after END
-            (OP["CONST"], 1, 0, 0), (detail, roughness, lacunarity, 1.0),
-            (OP["CONST"], 2, 0, 0), (scale,) * 4,
-            (OP["NOISE"], 3, whole(0), whole(1)), (2 * R, 1, 1, distortion),
-            (OP["OUT"], 0, whole(3), 0), (0, NODE_OUT_CODES["BASE_COLOR"], 0, 0),
-            (OP["END"], 0, 0, 0), (0, 0, 0, 0),
-            (1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 0)]
+    detail, roughness, lacunarity, distortion, scale, w = 2.5, 0.6, 2.1, 0.4, 3.0, 0.3
     size = 24
-    image = render_program_under_sun(tracer, np.array(code, np.float32), size)
-    assert {"NODES", "NOISE"} <= set(tracer.last_render["features"])
     centres = (np.arange(size) + 0.5) / size * 2 - 1
     x, y = np.meshgrid(centres, centres[::-1])
-    p = np.stack([x, y, np.full_like(x, 0.37)], -1) * scale
-    expected = perlin_fbm(p, detail, roughness, lacunarity, distortion, colour=True)
-    np.testing.assert_allclose(image, expected * 2.0 / np.pi, rtol=1e-3, atol=2e-4)
-    assert expected.std() > 0.05 and np.abs(expected[..., 1] - expected[..., 0]).mean() > 0.03
+    point = np.stack([x, y, np.full_like(x, 0.37), np.full_like(x, w)], -1)
+    for dims in (1, 2, 3, 4):
+        flags = 1 + 2 + 4 * dims                        # normalize, Color, dimensions
+        code = [(OP["TRANSFORM"], 0, 0, 0), (0, 12, 0, 0),          # identity rows after END
+                (OP["CONST"], 1, 0, 0), (detail, roughness, lacunarity, 1.0),
+                (OP["CONST"], 2, 0, 0), (scale,) * 4,
+                (OP["NOISE"], 3, whole(0), whole(1)), (2 * R, flags, distortion, w),
+                (OP["OUT"], 0, whole(3), 0), (0, NODE_OUT_CODES["BASE_COLOR"], 0, 0),
+                (OP["END"], 0, 0, 0), (0, 0, 0, 0),
+                (1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 0)]
+        image = render_program_under_sun(tracer, np.array(code, np.float32), size)
+        assert {"NODES", "NOISE"} <= set(tracer.last_render["features"])
+        p = (point[..., 3:] if dims == 1 else point[..., :dims]) * scale
+        expected = perlin_fbm(p, detail, roughness, lacunarity, distortion, colour=True)
+        np.testing.assert_allclose(image, expected * 2.0 / np.pi, rtol=1e-3, atol=2e-4,
+                                   err_msg=f"{dims}D")
+        if dims > 1:
+            assert expected.std() > 0.05 and np.abs(expected[..., 1] - expected[..., 0]).mean() > 0.03
+
+
+def valid_reflection_normal(n, wi, ng=np.array([0, 0, 1.0])):
+    """Cycles' ensure_valid_specular_reflection of normals n (..., 3) for the unit direction wi
+    to the viewer over the geometric normal ng: tilted toward ng until the mirror reflection
+    of wi is 0.01 (or 0.9 wi . ng) above the surface."""
+    iz = wi @ ng
+    threshold = min(0.9 * iz, 0.01)
+    r = 2 * (n @ wi)[..., None] * n - wi
+    x = n - (n @ ng)[..., None] * ng
+    x /= np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-30)
+    ix = x @ wi
+    a, b = ix * ix + iz * iz, 2 * (ix * ix + iz * iz + iz * threshold)
+    root = np.sqrt(np.maximum(b * b - 4 * a * (threshold + iz) ** 2, 0))
+    nz2 = 0.25 * np.where(ix < 0, b + root, b - root) / a
+    tilted = np.sqrt(np.maximum(1 - nz2, 0))[..., None] * x + np.sqrt(nz2)[..., None] * ng
+    return np.where((r @ ng >= threshold)[..., None], n, tilted)
 
 
 def test_normal_map_and_bump_set_the_shading_normal_as_numpy_does(tracer):
-    """A tangent-space Normal Map of the colour (u, 0.5, 1) at Strength 0.7 and a Bump of the
-    height u^2 (Distance 0.5; inverted too) on a UV-mapped plane (u, v = (x, y + 1) / 2: the
-    tangent is +x), under a slanted sun: each pixel is max(n . L, 0) E / pi for the normal
-    numpy computes as Cycles' nodes do, times Cycles' bump shadowing (the GGX shadowing of
-    alpha^2 = tan^2(tilt) / 8 at the light's angle to the unperturbed normal)."""
+    """A tangent-space Normal Map of the colour (u, 0.5, 1) at Strength 0.7, then a Bump of the
+    height u^2 on it (its Normal input; Distance 0, 0.5 and inverted) on a UV-mapped plane (u,
+    v = (x, y + 1) / 2: the tangent is +x), under a slanted sun: each pixel is max(n . L, 0)
+    E / pi for the normal numpy computes as Cycles' nodes do, times Cycles' bump shadowing (the
+    GGX shadowing of alpha^2 = tan^2(tilt) / 8 at the light's angle to the unperturbed
+    normal), the strongest tilts lifted as Cycles lifts normals that would mirror the view
+    below the surface. One kernel for the three renders."""
     from core.layout import (NODE_MATH_CODES, NODE_NORMAL_SPACE_CODES, NODE_OP_CODES as OP,
                              NODE_OUT_CODES, NODE_REF_REGISTER as R)
     vertices, triangles = grid_plane(2.0, 1, 0.0)
@@ -423,49 +470,50 @@ def test_normal_map_and_bump_set_the_shading_normal_as_numpy_does(tracer):
                         uvs=uvs.astype(np.float32))
     tracer.load(Scene.from_parts(geometry, build_kdtree(vertices, triangles)))
     whole, lane = (lambda r: r * R + 4), (lambda r, k: r * R + k)
-    out = (OP["OUT"], 0, whole(9), 0), (0, NODE_OUT_CODES["NORMAL"], 0, 0)
-    end = (OP["END"], 0, 0, 0), (0, 0, 0, 0)
     normal_map = [(OP["UV"], 0, 0, 0), (0, 0, 0, 0),
                   (OP["CONST"], 1, 0, 0), (0.5, 0.5, 0.5, 0.5),
                   (OP["CONST"], 2, 0, 0), (1.0, 1.0, 1.0, 1.0),
                   (OP["COMBINE"], 3, lane(0, 0), lane(1, 0)), (lane(2, 0), 0, 0, 0),
                   (OP["CONST"], 4, 0, 0), (0.7, 0.7, 0.7, 0.7),
                   (OP["NORMAL_MAP"], 9, whole(3), lane(4, 0)),
-                  (0, 0, NODE_NORMAL_SPACE_CODES["TANGENT"], 0), *out, *end]
-    bump = [(OP["CONST"], 1, 0, 0), (2.0, 2.0, 2.0, 2.0)]
+                  (0, 0, NODE_NORMAL_SPACE_CODES["TANGENT"], 0)]
+    heights = [(OP["CONST"], 5, 0, 0), (2.0, 2.0, 2.0, 2.0)]
     for step in range(3):           # u at the hit and at the two steps, squared
-        bump += [(OP["UV"], 2 + 2 * step, 0, 0), (0, step, 0, 0),
-                 (OP["MATH"], 3 + 2 * step, lane(2 + 2 * step, 0), lane(1, 0)),
-                 (0, NODE_MATH_CODES["POWER"], 0, 0)]
+        heights += [(OP["UV"], 10 + 2 * step, 0, 0), (0, step, 0, 0),
+                    (OP["MATH"], 11 + 2 * step, lane(10 + 2 * step, 0), lane(5, 0)),
+                    (0, NODE_MATH_CODES["POWER"], 0, 0)]
     size, sun = 24, np.array([-0.5, 0.2, -1.0])
     centres = (np.arange(size) + 0.5) / size * 2 - 1
     x, _ = np.meshgrid(centres, centres[::-1])
     u = (x + 1) / 2
     light = -sun / np.linalg.norm(sun)
-
-    def lit(n):
-        alpha2 = np.clip(0.125 * (1 / n[..., 2] ** 2 - 1), 0, 1)
-        shadowing = 2 / (1 + np.sqrt(1 + alpha2 * (1 / light[2] ** 2 - 1)))
-        return (np.maximum(n @ light, 0) * shadowing * 2 / np.pi)[..., None].repeat(3, -1)
-    for invert in (0, 1):
-        program = bump + [(OP["COMBINE"], 8, lane(3, 0), lane(5, 0)), (lane(7, 0), 0, 0, 0),
-                          (OP["CONST"], 10, 0, 0), (1.0, 0.5, 0.0, 1.0),
-                          (OP["BUMP"], 9, whole(8), 0), (whole(10), invert, 0, 0), *out, *end]
-        image = render_program_under_sun(tracer, np.array(program, np.float32), size, sun)
-        assert {"NODES", "BUMP"} <= set(tracer.last_render["features"])
-        # Cycles' bump: n = normalize(N - distance x the surface gradient of the height)
-        n = np.stack([-(0.5 if not invert else -0.5) * u, np.zeros_like(u), np.ones_like(u)], -1)
-        n /= np.linalg.norm(n, axis=-1, keepdims=True)
-        np.testing.assert_allclose(image, lit(n), rtol=2e-3, atol=2e-4)
-    image = render_program_under_sun(tracer, np.array(normal_map, np.float32), size, sun)
-    assert {"NODES", "NORMAL_MAP"} <= set(tracer.last_render["features"])
     mapped = np.stack([2 * u - 1, np.zeros_like(u), np.ones_like(u)], -1)
     mapped /= np.linalg.norm(mapped, axis=-1, keepdims=True)
-    n = np.array([0, 0, 1.0]) + (mapped - [0, 0, 1.0]) * 0.7
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    expected = lit(n)
-    np.testing.assert_allclose(image, expected, rtol=2e-3, atol=2e-4)
-    assert expected.max() - expected.min() > 0.1
+    normal_in = np.array([0, 0, 1.0]) + (mapped - [0, 0, 1.0]) * 0.7
+    normal_in /= np.linalg.norm(normal_in, axis=-1, keepdims=True)
+    for distance, invert in ((0.0, 0), (0.5, 0), (0.5, 1)):
+        program = normal_map + heights + [
+            (OP["COMBINE"], 6, lane(11, 0), lane(13, 0)), (lane(15, 0), 0, 0, 0),
+            (OP["CONST"], 7, 0, 0), (1.0, distance, 0.0, 1.0),
+            (OP["BUMP"], 8, whole(6), whole(9)), (whole(7), invert, 1, 0),
+            (OP["OUT"], 0, whole(8), 0), (0, NODE_OUT_CODES["NORMAL"], 0, 0),
+            (OP["END"], 0, 0, 0), (0, 0, 0, 0)]
+        image = render_program_under_sun(tracer, np.array(program, np.float32), size, sun)
+        assert {"NODES", "NORMAL_MAP", "BUMP"} <= set(tracer.last_render["features"])
+        # Cycles' bump with the steps along x and y: Rx = y x N, Ry = N x x, det = N.z, and
+        # the height's gradient (u, 0): n = normalize(|N.z| N - distance sign(N.z) u Rx).
+        n_x, n_z = normal_in[..., 0], normal_in[..., 2]
+        rx = np.stack([n_z, np.zeros_like(u), -n_x], -1)
+        n = np.abs(n_z)[..., None] * normal_in - \
+            ((-1) ** invert * distance * np.sign(n_z) * u)[..., None] * rx
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        n = valid_reflection_normal(n, np.array([0, 0, 1.0]))      # seen straight from above
+        alpha2 = np.clip(0.125 * (1 / n[..., 2] ** 2 - 1), 0, 1)
+        shadowing = 2 / (1 + np.sqrt(1 + alpha2 * (1 / light[2] ** 2 - 1)))
+        expected = (np.maximum(n @ light, 0) * shadowing * 2 / np.pi)[..., None].repeat(3, -1)
+        np.testing.assert_allclose(image, expected, rtol=2e-3, atol=2e-4,
+                                   err_msg=f"distance {distance} invert {invert}")
+        assert expected.max() - expected.min() > 0.1
 
 
 @pytest.mark.parametrize("bad", [
@@ -473,6 +521,8 @@ def test_normal_map_and_bump_set_the_shading_normal_as_numpy_does(tracer):
     lambda rows: rows.__setitem__(10, [6, 4, 8 * 40, 1]),             # register out of range
     lambda rows: rows.__setitem__(13, [0, 5000, 1, 0]),               # ramp table outside
     lambda rows: rows.__setitem__(16, [1, 0, 0, 0]),                  # no END
+    lambda rows: rows.__setitem__(slice(0, 2), [[18, 0, 4, 4], [0, 0, 9, 0]]),  # normal map space
+    lambda rows: rows.__setitem__(slice(0, 2), [[18, 0, 4, 4], [0, 900, 1, 0]]),  # its rows outside
 ])
 def test_bad_node_programs_are_refused(bad):
     from core.scene.model import SceneError, check_node_program

@@ -441,8 +441,9 @@ inline float node_gradient(int kind, float4 p)
 }
 
 #ifdef HAS_NOISE
-// Cycles' Noise Texture (3D, fBm): Perlin noise with Cycles' hash (Bob Jenkins' lookup3) and
-// gradients, so that the pattern is Cycles' own, not merely alike.
+// Cycles' Noise Texture (fBm, 1D to 4D): Perlin noise with Cycles' hash (Bob Jenkins' lookup3)
+// and gradients, so that the pattern is Cycles' own, not merely alike. Points are float4 with
+// the unused lanes 0.
 inline uint lookup3_final(uint a, uint b, uint c)
 {
     c ^= b; c -= rotate(b, 14u);
@@ -455,95 +456,122 @@ inline uint lookup3_final(uint a, uint b, uint c)
     return c;
 }
 
-// A lattice point's hash: lookup3 of three words (its integer coordinates).
-inline uint noise_hash(int x, int y, int z)
+// lookup3 of `n` words (Cycles' hash_uint, hash_uint2, hash_uint3, hash_uint4).
+inline uint lookup3(int n, uint4 k)
 {
-    uint seed = 0xdeadbeefu + (3u << 2) + 13u;
-    return lookup3_final(seed + (uint)x, seed + (uint)y, seed + (uint)z);
-}
-
-// One of 12 edge directions of a cube (4 of them twice) dotted with the offset to the point.
-inline float noise_gradient(uint hash, float x, float y, float z)
-{
-    uint h = hash & 15u;
-    float u = h < 8u ? x : y;
-    float v = h < 4u ? y : (h == 12u || h == 14u) ? x : z;
-    return ((h & 1u) ? -u : u) + ((h & 2u) ? -v : v);
-}
-
-inline float noise_fade(float t)
-{
-    return t * t * t * (t * (t * 6.0f - 15.0f) + 10.0f);
-}
-
-// Signed Perlin noise in about [-1, 1] (Cycles' snoise_3d): repeats every 100000 units, as
-// Cycles' does, to keep float precision.
-inline float signed_noise(float3 p)
-{
-    float3 big = (float3)(fabs(p.x) >= 1e6f ? 0.5f : 0.0f, fabs(p.y) >= 1e6f ? 0.5f : 0.0f,
-                          fabs(p.z) >= 1e6f ? 0.5f : 0.0f);
-    p = fmod(p, 100000.0f) + big;
-    float3 cell = floor(p), f = p - cell;
-    int X = (int)cell.x, Y = (int)cell.y, Z = (int)cell.z;
-    float u = noise_fade(f.x), v = noise_fade(f.y), w = noise_fade(f.z);
-    float g[8];
-    for (int k = 0; k < 8; ++k) {
-        int dx = k & 1, dy = (k >> 1) & 1, dz = k >> 2;
-        g[k] = noise_gradient(noise_hash(X + dx, Y + dy, Z + dz), f.x - (float)dx,
-                              f.y - (float)dy, f.z - (float)dz);
+    uint seed = 0xdeadbeefu + ((uint)n << 2) + 13u;
+    uint a = seed + k.x, b = seed + (n > 1 ? k.y : 0u), c = seed + (n > 2 ? k.z : 0u);
+    if (n == 4) {                       // lookup3's mix of the first three, then the fourth
+        a -= c; a ^= rotate(c, 4u); c += b;
+        b -= a; b ^= rotate(a, 6u); a += c;
+        c -= b; c ^= rotate(b, 8u); b += a;
+        a -= c; a ^= rotate(c, 16u); c += b;
+        b -= a; b ^= rotate(a, 19u); a += c;
+        c -= b; c ^= rotate(b, 4u); b += a;
+        a += k.w;
     }
-    float u1 = 1.0f - u, v1 = 1.0f - v, w1 = 1.0f - w;
-    float r = w1 * (v1 * (g[0] * u1 + g[1] * u) + v * (g[2] * u1 + g[3] * u)) +
-              w * (v1 * (g[4] * u1 + g[5] * u) + v * (g[6] * u1 + g[7] * u));
-    return 0.9820f * r;             // Cycles' (OSL's) scale of 3D Perlin noise
+    return lookup3_final(a, b, c);
+}
+
+// Cycles' gradients (grad1 to grad4) of a lattice point's hash, dotted with the offset f.
+inline float noise_gradient(int dims, uint hash, float4 f)
+{
+    if (dims == 1) {
+        uint h = hash & 15u;
+        float g = (float)(1u + (h & 7u));
+        return ((h & 8u) ? -g : g) * f.x;
+    }
+    if (dims == 2) {
+        uint h = hash & 7u;
+        float u = h < 4u ? f.x : f.y, v = 2.0f * (h < 4u ? f.y : f.x);
+        return ((h & 1u) ? -u : u) + ((h & 2u) ? -v : v);
+    }
+    if (dims == 3) {
+        uint h = hash & 15u;
+        float u = h < 8u ? f.x : f.y;
+        float v = h < 4u ? f.y : (h == 12u || h == 14u) ? f.x : f.z;
+        return ((h & 1u) ? -u : u) + ((h & 2u) ? -v : v);
+    }
+    uint h = hash & 31u;
+    float u = h < 24u ? f.x : f.y, v = h < 16u ? f.y : f.z, t = h < 8u ? f.z : f.w;
+    return ((h & 1u) ? -u : u) + ((h & 2u) ? -v : v) + ((h & 4u) ? -t : t);
+}
+
+// Signed Perlin noise in about [-1, 1] (Cycles' snoise_1d to snoise_4d and their OSL scales):
+// the gradients at the cell's corners blended by the quintic fade; coordinates wrap every
+// 100000 units, as Cycles' do, to keep float precision.
+inline float signed_noise(int dims, float4 p)
+{
+    float4 big = (float4)(fabs(p.x) >= 1e6f ? 0.5f : 0.0f, fabs(p.y) >= 1e6f ? 0.5f : 0.0f,
+                          fabs(p.z) >= 1e6f ? 0.5f : 0.0f, fabs(p.w) >= 1e6f ? 0.5f : 0.0f);
+    p = fmod(p, 100000.0f) + big;
+    float4 cell = floor(p), f = p - cell;
+    int4 i = convert_int4(cell);
+    float4 w = f * f * f * (f * (f * 6.0f - 15.0f) + 10.0f);
+    float r = 0.0f;
+    for (int k = 0; k < (1 << dims); ++k) {
+        int4 d = (int4)(k & 1, (k >> 1) & 1, (k >> 2) & 1, (k >> 3) & 1);
+        float4 t = select(1.0f - w, w, d != 0);
+        float weight = t.x * (dims > 1 ? t.y : 1.0f) * (dims > 2 ? t.z : 1.0f) * (dims > 3 ? t.w : 1.0f);
+        r += weight * noise_gradient(dims, lookup3(dims, as_uint4(i + d)), f - convert_float4(d));
+    }
+    return r * (dims == 1 ? 0.25f : dims == 2 ? 0.6616f : dims == 3 ? 0.9820f : 0.8344f);
 }
 
 // Fractal Brownian motion: octaves at `lacunarity` times the frequency and `roughness` times
 // the amplitude, the fraction of `detail` blending in the last; normalised to [0, 1] or not.
-inline float noise_fbm(float3 p, float detail, float roughness, float lacunarity, bool normalize)
+inline float noise_fbm(int dims, float4 p, float detail, float roughness, float lacunarity,
+                       bool normalize)
 {
     float scale = 1.0f, amp = 1.0f, max_amp = 0.0f, sum = 0.0f;
     for (int i = 0; i <= (int)detail; ++i) {
-        sum += signed_noise(scale * p) * amp;
+        sum += signed_noise(dims, scale * p) * amp;
         max_amp += amp;
         amp *= roughness;
         scale *= lacunarity;
     }
     float rest = detail - floor(detail);
     if (rest != 0.0f) {
-        float sum2 = sum + signed_noise(scale * p) * amp;
+        float sum2 = sum + signed_noise(dims, scale * p) * amp;
         return normalize ? mix(0.5f * sum / max_amp + 0.5f, 0.5f * sum2 / (max_amp + amp) + 0.5f, rest)
                          : mix(sum, sum2, rest);
     }
     return normalize ? 0.5f * sum / max_amp + 0.5f : sum;
 }
 
-// Cycles' seed offsets for the distortion and colour channels: 100 + 100 x hash(seed, axis),
-// the hash of the two floats' bits (lookup3 of two words).
-inline float3 noise_offset(float seed)
+// Cycles' seed offsets for the distortion and colour channels: 100 + 100 x hash(seed, lane)
+// per used lane, the hash of the two floats' bits (1D: of the seed alone).
+inline float4 noise_offset(int dims, float seed)
 {
-    uint init = 0xdeadbeefu + (2u << 2) + 13u;
-    float3 r;
-    r.x = (float)lookup3_final(init + as_uint(seed), init + as_uint(0.0f), init);
-    r.y = (float)lookup3_final(init + as_uint(seed), init + as_uint(1.0f), init);
-    r.z = (float)lookup3_final(init + as_uint(seed), init + as_uint(2.0f), init);
-    return 100.0f + r * (100.0f / (float)0xFFFFFFFFu);
+    float r[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+    for (int k = 0; k < dims; ++k) {
+        uint h = dims == 1 ? lookup3(1, (uint4)(as_uint(seed), 0u, 0u, 0u))
+                           : lookup3(2, (uint4)(as_uint(seed), as_uint((float)k), 0u, 0u));
+        r[k] = 100.0f + (float)h * (100.0f / (float)0xFFFFFFFFu);
+    }
+    return (float4)(r[0], r[1], r[2], r[3]);
 }
 
-// The Noise Texture at p (already times Scale): (Fac, Fac, Fac) or, with `colour`, its Color.
-inline float4 node_noise(float3 p, float detail, float roughness, float lacunarity,
+// The Noise Texture at p (already times Scale; `dims` lanes used): (Fac, Fac, Fac) or, with
+// `colour`, its Color (the seeds after the distortion's).
+inline float4 node_noise(int dims, float4 p, float detail, float roughness, float lacunarity,
                          float distortion, bool normalize, bool colour)
 {
     detail = clamp(detail, 0.0f, 15.0f);
     roughness = fmax(roughness, 0.0f);
-    if (distortion != 0.0f)
-        p += (float3)(signed_noise(p + noise_offset(0.0f)), signed_noise(p + noise_offset(1.0f)),
-                      signed_noise(p + noise_offset(2.0f))) * distortion;
-    float f = noise_fbm(p, detail, roughness, lacunarity, normalize);
+    if (distortion != 0.0f) {
+        float shift[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+        for (int k = 0; k < dims; ++k)
+            shift[k] = signed_noise(dims, p + noise_offset(dims, (float)k)) * distortion;
+        p += (float4)(shift[0], shift[1], shift[2], shift[3]);
+    }
+    float f = noise_fbm(dims, p, detail, roughness, lacunarity, normalize);
     float4 out = (float4)(f, f, f, 1.0f);
     if (colour) {
-        out.y = noise_fbm(p + noise_offset(3.0f), detail, roughness, lacunarity, normalize);
-        out.z = noise_fbm(p + noise_offset(4.0f), detail, roughness, lacunarity, normalize);
+        out.y = noise_fbm(dims, p + noise_offset(dims, (float)dims), detail, roughness,
+                          lacunarity, normalize);
+        out.z = noise_fbm(dims, p + noise_offset(dims, (float)(dims + 1)), detail, roughness,
+                          lacunarity, normalize);
     }
     return out;
 }
@@ -739,7 +767,11 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Su
             out = (float4)(f, f, f, f);
 #ifdef HAS_NOISE
         } else if (op == NODE_OP_NOISE) {      // a: vector; b: detail, roughness, lacunarity; c: scale
-            out = node_noise(a.xyz * c.x, b.x, b.y, b.z, w1.w, w1.y > 0.0f, w1.z > 0.0f);
+            // p0: normalize + 2 colour + 4 dimensions; p1: distortion; p2: W
+            int flags = (int)w1.y, dims = clamp(flags >> 2, 1, 4);
+            float4 q = dims == 1 ? (float4)(w1.w, 0.0f, 0.0f, 0.0f)
+                     : dims == 2 ? (float4)(a.xy, 0.0f, 0.0f) : (float4)(a.xyz, dims == 4 ? w1.w : 0.0f);
+            out = node_noise(dims, q * c.x, b.x, b.y, b.z, w1.z, flags & 1, flags & 2);
 #endif
         } else if (op == NODE_OP_TRANSFORM) {  // Generated / Object coordinates of the hit
             __global const float4 *rows = code + pc + (int)w1.y;

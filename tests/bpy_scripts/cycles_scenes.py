@@ -580,9 +580,14 @@ def build(name):
         links.new(noise.outputs["Fac"], bump.inputs["Height"])
         links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
         sphere(m, (0.75, 0.35, 0.6))
-        # Normal Map, tangent space: ripples from an image on the UV map of a turned cube.
+        # Normal Map, tangent space: ripples from an image on the UV map of a turned cube (its
+        # colour a 2D noise of the UVs).
         m, nodes, links, bsdf = node_material("rippled")
-        bsdf.inputs["Base Color"].default_value = (0.3, 0.5, 0.8, 1)
+        flat = nodes.new("ShaderNodeTexNoise")          # 2D noise of the UVs as the colour
+        flat.noise_dimensions = "2D"
+        flat.inputs["Scale"].default_value = 4.0
+        links.new(nodes.new("ShaderNodeTexCoord").outputs["UV"], flat.inputs["Vector"])
+        links.new(flat.outputs["Color"], bsdf.inputs["Base Color"])
         image = nodes.new("ShaderNodeTexImage")
         image.image = ripple_normals()
         mapped = nodes.new("ShaderNodeNormalMap")
@@ -610,12 +615,14 @@ def build(name):
         links.new(mapped.outputs["Normal"], bsdf.inputs["Normal"])
         add(bpy.ops.mesh.primitive_ico_sphere_add, m, radius=0.3, subdivisions=2,
             location=(1.25, -0.6, 0.3), rotation=(math.radians(40), 0, math.radians(-25)))
-        # Emission driven by nodes: a noise colour, its Fac through Math as the strength.
+        # Emission driven by nodes: a 4D noise colour, its Fac through Math as the strength.
         m, nodes, links, bsdf = node_material("noise glow")
         nodes.remove(bsdf)
         glow = nodes.new("ShaderNodeEmission")
         links.new(glow.outputs[0], nodes["Material Output"].inputs["Surface"])
         noise = nodes.new("ShaderNodeTexNoise")
+        noise.noise_dimensions = "4D"
+        noise.inputs["W"].default_value = 0.7
         noise.inputs["Scale"].default_value = 3.0
         strength = nodes.new("ShaderNodeMath")
         strength.operation = "MULTIPLY"
