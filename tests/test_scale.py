@@ -4,6 +4,7 @@ sleeps a fixed time per tile and returns the real tracer's tile bytes)."""
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -91,6 +92,14 @@ def test_32_stand_in_slaves_finish_a_frame_with_every_tile_once(scene, calibrati
                 assert np.shares_memory(r.passes["combined"], job.image["combined"])
             # 48 tiles of 50 ms on 32 slaves: two rounds (0.1 s), far from 48 x 50 ms
             assert job.elapsed_s < 48 * TILE_MS / 1000 / 4, job.elapsed_s
+            # The next frame starts no thread, here or in the slaves: one frame loop serves
+            # all 32 slaves, frame after frame.
+            before = set(threading.enumerate())
+            job = master.render(view, tile_size=TILE, tiles_in_flight=1)
+            assert job.next_result(30) is not None
+            assert set(threading.enumerate()) <= before
+            assert [t.name for t in before if t.name.startswith("frames of")] == ["frames of master"]
+            assert job.wait(30) and job.error is None
     finally:
         slaves.close()
 
@@ -177,10 +186,11 @@ def test_8_bit_preview_is_exact_to_its_quantisation():
         np.testing.assert_array_equal(again[name], decoded[name])
 
 
-def test_auto_tile_size_gives_each_slave_about_eight_tiles():
+def test_auto_tile_size_gives_each_slave_about_eight_tiles_and_a_frame_at_most_256():
     region = (0, 0, 1024, 1024)
     assert [auto_tile_size(region, n) for n in (1, 2, 4, 8, 16, 32, 64, 256, 4096)] == \
-        [(256, 256)] * 2 + [(128, 128)] * 2 + [(64, 64)] * 2 + [(32, 32)] * 3
+        [(256, 256)] * 2 + [(128, 128)] * 2 + [(64, 64)] * 5
+    assert auto_tile_size((0, 0, 1920, 1080), 64) == (128, 128)   # 135 tiles; 64 px: 510
     assert auto_tile_size((0, 0, 64, 64), 8) == (32, 32)       # never below the smallest
 
 

@@ -53,11 +53,15 @@ MAX_TILES_IN_FLIGHT = protocol.MAX_TILES_IN_FLIGHT
 AUTO_IN_FLIGHT = 2
 AUTO_MAX_IN_FLIGHT = 8
 # tile_size="auto": the largest of these edges that gives each slave about
-# AUTO_TILES_PER_SLAVE tiles (AUTO_SLACK: 16 slaves on 1024 x 1024 get 64-pixel tiles, 64
-# slaves 32-pixel ones). Eight, not fewer: with fewer, the most expensive tile of a frame
-# takes as long as a slave's whole share of it (docs/distributed.md, "Many slaves").
+# AUTO_TILES_PER_SLAVE tiles (AUTO_SLACK: 16 slaves on 1024 x 1024 get 64-pixel tiles), but
+# no smaller than needed to keep a frame within AUTO_MAX_TILES. Eight a slave, not fewer: with
+# fewer, the most expensive tile of the bench frame takes as long as a slave's whole share of
+# it; at most 256 a frame: the master's own time per tile (about 0.26 ms of a core on the
+# bench machine) then stays below a tenth of a 1024 x 1024 frame's (docs/distributed.md,
+# "Many slaves": 64 slaves, 1024 tiles of 32 px made the frame slower than 256 of 64 px).
 AUTO_TILE_EDGES = (32, 64, 128, 256)
 AUTO_TILES_PER_SLAVE = 8
+AUTO_MAX_TILES = 256
 AUTO_SLACK = 1.25
 DEPTH_MISS = 1e10        # the tracer's depth where a pixel sees nothing (kernels/shade/render.cl)
 RETRY_DELAYS_S = (0.5, 1.0, 2.0, 4.0, 8.0)   # reconnecting to a lost (or busy) slave
@@ -65,14 +69,18 @@ RETRY_DELAYS_S = (0.5, 1.0, 2.0, 4.0, 8.0)   # reconnecting to a lost (or busy) 
 
 def auto_tile_size(region, slaves: int) -> tuple:
     """tile_size="auto": square tiles as large as possible while each of `slaves` still gets
-    about AUTO_TILES_PER_SLAVE of them. By count, not by measured speed: a slave's pixels per
+    about AUTO_TILES_PER_SLAVE of them, then larger if the frame would have more than about
+    AUTO_MAX_TILES. By count, not by measured speed: a slave's pixels per
     second depend as much on which tiles it drew (background or the model: 100 x apart here)
     as on the slave; per-slave speed sets its tiles in flight instead."""
     x0, y0, x1, y1 = region
     share = (x1 - x0) * (y1 - y0) / max(1, slaves)
     fitting = [e for e in AUTO_TILE_EDGES if e * e * AUTO_TILES_PER_SLAVE <= share * AUTO_SLACK]
     edge = max(fitting) if fitting else AUTO_TILE_EDGES[0]
-    return (edge, edge)
+    for larger in AUTO_TILE_EDGES:
+        if larger >= edge and len(TileGrid(region, larger)) <= AUTO_MAX_TILES * AUTO_SLACK:
+            return (larger, larger)
+    return (AUTO_TILE_EDGES[-1],) * 2
 
 
 class MasterError(Exception):
