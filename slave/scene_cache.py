@@ -1,5 +1,7 @@
 """Scenes a slave holds, by content hash: a small LRU in memory and, optionally, a folder on
-disk with a size limit, so a restarted slave or a second master uploads nothing.
+disk with a size limit, so a restarted slave or a second master uploads nothing. The scenes in
+memory are also found by their meshes' hash (`with_meshes`), so a frame whose instances alone
+changed travels as instance arrays (docs/instances.md, "Scene deltas").
 
 The disk copy is read back through the same validation as an upload (`Scene.from_wire`) and
 its hash is recomputed: a damaged or tampered file is deleted, never trusted. Files are .npz
@@ -46,9 +48,20 @@ class SceneCache:
             self._remember(scene_hash, scene)
         return scene
 
-    def put(self, scene: Scene) -> None:
+    def with_meshes(self, meshes_hash: str):
+        """A scene in memory whose meshes (geometry and trees) hash to `meshes_hash`: an
+        instanced scene of other instances shares them (Scene.placed_from_wire)."""
+        with self._lock:
+            for scene in reversed(self._scenes.values()):
+                if scene.meshes_hash == meshes_hash:
+                    return scene
+        return None
+
+    def put(self, scene: Scene, to_disk: bool = True) -> None:
+        """Keep `scene`; on disk too unless `to_disk` is False (a scene placed from instances:
+        its meshes went to disk with the scene that brought them)."""
         self._remember(scene.hash, scene)
-        if self.disk_dir is not None:
+        if self.disk_dir is not None and to_disk:
             try:
                 self._save_to_disk(scene)
             except OSError as exc:  # a full disk costs a future upload, nothing else

@@ -500,19 +500,16 @@ class MasterConnection:
         if msg.type == MsgType.SCENE_QUERY:
             scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
             present = self.server.scenes.get(scene_hash) is not None
-            self.outbox.put((MsgType.SCENE_READY, {"scene_hash": scene_hash, "present": present}, None))
+            answer = {"scene_hash": scene_hash, "present": present}
+            if not present and "meshes_hash" in h:
+                meshes_hash = protocol.check_scene_hash(h.get("meshes_hash"))
+                answer["meshes_present"] = self.server.scenes.with_meshes(meshes_hash) is not None
+            self.outbox.put((MsgType.SCENE_READY, answer, None))
+        elif msg.type == MsgType.SCENE_INSTANCES:
+            self._place_instances(h, msg.arrays)
         elif msg.type == MsgType.SCENE_UPLOAD:
             scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
-            self.reader_doing = ("loading", None, None)
-            try:
-                scene = Scene.from_wire(msg.arrays)
-            except SceneError as exc:
-                raise ProtocolError(f"invalid scene upload: {exc}") from None
-            finally:
-                self.reader_doing = None
-            if scene.hash != scene_hash:
-                raise ProtocolError(f"scene upload hash mismatch: announced {scene_hash}, "
-                                    f"content hashes to {scene.hash}")
+            scene = self._checked_scene(scene_hash, "upload", lambda: Scene.from_wire(msg.arrays))
             self.server.scenes.put(scene)
             log.info("master %s uploaded scene %s (%d triangles)", self.peer, scene_hash,
                      scene.geometry.triangle_count)
@@ -537,6 +534,36 @@ class MasterConnection:
             pass        # the master is still there (last_heard): nothing to answer
         else:
             raise ProtocolError(f"unexpected {msg.type.name} after the handshake")
+
+    def _place_instances(self, h: dict, arrays: dict) -> None:
+        """SCENE_INSTANCES: the meshes of `meshes_hash` (held here) placed by the instance
+        arrays, checked once; only the top level is built. SCENE_READY present=false when the
+        meshes went since the query (the master then uploads the whole scene)."""
+        scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
+        base = self.server.scenes.with_meshes(protocol.check_scene_hash(h.get("meshes_hash")))
+        if base is not None:
+            scene = self._checked_scene(scene_hash, "instances",
+                                        lambda: base.placed_from_wire(arrays))
+            self.server.scenes.put(scene, to_disk=False)
+            log.info("master %s placed scene %s (%d instances of held meshes)", self.peer,
+                     scene_hash, scene.instances.count)
+        self.outbox.put((MsgType.SCENE_READY, {"scene_hash": scene_hash,
+                                               "present": base is not None}, None))
+
+    def _checked_scene(self, scene_hash: str, what: str, make) -> Scene:
+        """make() (validating what arrived; the keeper heartbeats `loading` meanwhile), whose
+        hash must be the one announced; ProtocolError otherwise."""
+        self.reader_doing = ("loading", None, None)
+        try:
+            scene = make()
+        except SceneError as exc:
+            raise ProtocolError(f"invalid scene {what}: {exc}") from None
+        finally:
+            self.reader_doing = None
+        if scene.hash != scene_hash:
+            raise ProtocolError(f"scene {what} hash mismatch: announced {scene_hash}, "
+                                f"content hashes to {scene.hash}")
+        return scene
 
     def _start_frame(self, h: dict) -> None:
         """Validate the whole frame now (scene, view against the scene, tiles, formats): a

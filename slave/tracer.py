@@ -93,6 +93,7 @@ class Tracer:
         self._scene = None
         self._stack_size = MIN_STACK_SIZE
         self._loaded = None         # the Scene whose buffers self._scene holds
+        self.mesh_loads_skipped = 0  # loads that kept the meshes' buffers (only instances moved)
         self._toplevel = ()         # an instanced scene's top-level buffers (kernel arguments)
         self._checked_view = None   # the last view checked against it
         self._light_tables = None   # (key, buffers) of the world importance map and emitters
@@ -149,6 +150,17 @@ class Tracer:
                 array = np.zeros(1, array.dtype)
             return cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=array)
 
+        loaded = self._loaded
+        if scene.instances is not None and loaded is not None and loaded.instances is not None \
+                and loaded.meshes_hash == scene.meshes_hash:
+            # The same meshes placed anew (a transform-only frame): their buffers stay, only
+            # the top level and the world box are uploaded.
+            self._toplevel = tuple(upload(a) for a in pack_instances(scene.instances).values())
+            self._scene["bounds"] = upload(pack_bounds(scene.tree.bounds))
+            self.mesh_loads_skipped += 1
+            self._loaded_as(scene)
+            return
+
         def optional(array, dtype):
             return upload(np.zeros(4, dtype) if array is None else np.ascontiguousarray(array, dtype))
 
@@ -174,6 +186,9 @@ class Tracer:
                        "uvs": optional(geometry.uvs, np.float32),
                        "texels": optional(geometry.texels, np.float16),
                        "texture_sizes": optional(geometry.texture_sizes, np.uint32)}
+        self._loaded_as(scene)
+
+    def _loaded_as(self, scene: Scene) -> None:
         self._loaded = scene
         self._checked_view = None
         self._light_tables = None

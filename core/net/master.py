@@ -316,6 +316,8 @@ class Master:
         self.errors: list = []           # connection and upload problems, readable
         self.scene: Scene | None = None
         self.uploaded_to: list = []      # labels of the slaves the last load_scene uploaded to
+                                         # (whole: meshes and instances)
+        self.scene_bytes: dict = {}      # label -> bytes sent to make the last scene present
         self._job: RenderJob | None = None
         self._states: dict = {}          # endpoint -> SlaveState
         self._joining: set = set()       # endpoints a thread is connecting to
@@ -472,6 +474,7 @@ class Master:
             self._job.wait()  # its frame may still read the sockets (copies being cancelled)
         self.scene = scene
         self.uploaded_to = []
+        self.scene_bytes = {}
         for connection, outcome in _in_parallel(lambda c: self._ensure_scene(c, scene), self.slaves):
             if outcome is True:
                 self.uploaded_to.append(connection.label)
@@ -485,22 +488,35 @@ class Master:
         return scene.hash
 
     def _ensure_scene(self, connection: SlaveConnection, scene: Scene) -> bool:
-        """Make `scene` present on the slave; True if it had to be uploaded."""
-        connection.send(MsgType.SCENE_QUERY, {"scene_hash": scene.hash})
+        """Make `scene` present on the slave; True if it had to be uploaded whole. An instanced scene
+        whose meshes the slave holds (the same meshes_hash: only instances changed) gets the
+        instance arrays alone (SCENE_INSTANCES); the slave builds only its top level."""
+        sent_before = connection.channel.bytes_sent
+        query = {"scene_hash": scene.hash}
+        if scene.meshes_hash is not None:
+            query["meshes_hash"] = scene.meshes_hash
+        connection.send(MsgType.SCENE_QUERY, query)
+        present, meshes_present = self._scene_ready(connection, scene.hash)
         uploaded = False
-        if not self._scene_ready(connection, scene.hash):
+        if not present and meshes_present:
+            self._set_state(connection.endpoint, "uploading", connection=connection)
+            connection.send(MsgType.SCENE_INSTANCES, query, scene.instance_arrays())
+            # Not present: the slave let the meshes go since it answered; upload them.
+            present, _ = self._scene_ready(connection, scene.hash)
+        if not present:
             self._set_state(connection.endpoint, "uploading", connection=connection)
             connection.send(MsgType.SCENE_UPLOAD, {"scene_hash": scene.hash}, scene.wire_arrays())
-            if not self._scene_ready(connection, scene.hash):
+            if not self._scene_ready(connection, scene.hash)[0]:
                 raise MasterError("slave did not accept the scene")
             uploaded = True
         connection.scene_hash = scene.hash
+        self.scene_bytes[connection.label] = connection.channel.bytes_sent - sent_before
         self._set_state(connection.endpoint, "idle", connection=connection)
         return uploaded
 
-    def _scene_ready(self, connection: SlaveConnection, scene_hash: str) -> bool:
-        """Wait for SCENE_READY; the slave heartbeats while it validates a large upload, within
-        the budget of a step (TileBudget.base_s)."""
+    def _scene_ready(self, connection: SlaveConnection, scene_hash: str) -> tuple:
+        """(present, meshes present) from SCENE_READY; the slave heartbeats while it validates
+        a large upload, within the budget of a step (TileBudget.base_s)."""
         started = heard = time.monotonic()
         while True:
             reply = connection.recv(wait=POLL_S)
@@ -522,7 +538,7 @@ class Master:
                 raise MasterError(f"slave error: {reply.header.get('message')}")
             if reply.type != MsgType.SCENE_READY or reply.header.get("scene_hash") != scene_hash:
                 raise ProtocolError(f"expected SCENE_READY for {scene_hash}, got {reply.type.name}")
-            return reply.header.get("present") is True
+            return reply.header.get("present") is True, reply.header.get("meshes_present") is True
 
     # -- frames
 

@@ -32,11 +32,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..scene.instances import MAX_INSTANCES
 
 # 2: HMAC handshake, float16/zlib tiles, N x M tiles; 3: compact kd-tree arrays; 4: HEARTBEAT,
 # heartbeat_s in HELLO, "busy" refusals, session MACs after an authenticated handshake;
-# 5: FRAME_START "passes" (a tile carries only those) and the 8-bit preview payload "u8".
-PROTOCOL_VERSION = 5
+# 5: FRAME_START "passes" (a tile carries only those) and the 8-bit preview payload "u8";
+# 6: SCENE_QUERY "meshes_hash", SCENE_READY "meshes_present" and SCENE_INSTANCES.
+PROTOCOL_VERSION = 6
 MAGIC = b"KDTR"
 HEADER = struct.Struct("!4sHHIQ")
 DEFAULT_PORT = 47600
@@ -90,10 +92,12 @@ class MsgType(enum.IntEnum):
     AUTH = 13          # master -> slave: the master's proof; WELCOME follows if it is right
     HEARTBEAT = 14     # slave -> master: what a busy slave is doing (state, frame id, tile);
                        # master -> slave: it is still in a frame that has nothing for the slave
+    SCENE_INSTANCES = 15   # master -> slave: scene hash, meshes hash + the instance arrays
+                           # alone (the slave holds the meshes); the slave answers SCENE_READY
 
 
 MASTER_TO_SLAVE = frozenset({MsgType.HELLO, MsgType.SCENE_QUERY, MsgType.SCENE_UPLOAD,
-                             MsgType.FRAME_START, MsgType.TILE_REQUEST, MsgType.CANCEL,
+                             MsgType.SCENE_INSTANCES, MsgType.FRAME_START, MsgType.TILE_REQUEST, MsgType.CANCEL,
                              MsgType.ERROR, MsgType.BYE, MsgType.AUTH, MsgType.HEARTBEAT})
 SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_RESULT,
                              MsgType.CANCEL, MsgType.ERROR, MsgType.CHALLENGE, MsgType.HEARTBEAT})
@@ -101,6 +105,8 @@ SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_
 # Tile passes: name -> (channels, dtype); (h, w) or (h, w, channels).
 TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3}
 TILE_BYTES_PER_PIXEL = 4 * sum(TILE_PASSES.values())   # the most a tile pixel may take
+# An instance on the wire: its mesh (u4), 3x4 transform (f4) and visibility (u1).
+INSTANCE_WIRE_BYTES = 4 + 12 * 4 + 1
 
 class ProtocolError(Exception):
     """The peer sent something that is not a valid message; the connection cannot go on."""
@@ -148,6 +154,8 @@ class Limits:
     def payload_limit(self, msg_type: MsgType) -> int:
         if msg_type == MsgType.SCENE_UPLOAD:
             return self.max_scene_bytes
+        if msg_type == MsgType.SCENE_INSTANCES:
+            return MAX_INSTANCES * INSTANCE_WIRE_BYTES
         if msg_type == MsgType.TILE_RESULT:
             return self.max_tile_pixels * self.tile_bytes_per_pixel
         return 0  # control messages carry no arrays
@@ -362,6 +370,7 @@ class Channel:
         self._rcvlowat = 1
         self._send_lock = threading.Lock()
         self.last_sent = self.last_received = time.monotonic()
+        self.bytes_sent = 0     # every byte this side has written to the socket
         self.closed = False
 
     @property
@@ -410,6 +419,7 @@ class Channel:
                 except socket.timeout:
                     count = 0
                 view, sent = view[count:], sent + count
+                self.bytes_sent += count
                 if len(view):
                     self._check_rate(started, sent, total, "sent", "the peer stopped reading")
         self.last_sent = time.monotonic()

@@ -55,6 +55,8 @@ INSTANCE_ARRAYS = {
     "instance_to_world": (np.dtype("<f4"), (-1, 3, 4)),
     "instance_visibility": (np.dtype("u1"), (-1,)),
 }
+# What a SCENE_INSTANCES message carries: the instances alone, for meshes the slave holds.
+PLACEMENT_ARRAYS = ("instance_mesh", "instance_to_world", "instance_visibility")
 INSTANCED_SCENE_ARRAYS = {**{name: SCENE_ARRAYS[name] for name in ("vertices", "triangles",
                                                                   "material_ids", "nodes",
                                                                   "leaf_index32", "leaf_index16")},
@@ -92,13 +94,7 @@ class Scene:
         if not set(required) <= set(arrays) <= set(required) | set(OPTIONAL_SCENE_ARRAYS):
             raise SceneError(f"a scene must carry the arrays {sorted(required)} and optionally "
                              f"{sorted(OPTIONAL_SCENE_ARRAYS)}, got {sorted(arrays)}")
-        specs = {**required, **OPTIONAL_SCENE_ARRAYS}
-        for name, array in arrays.items():
-            dtype, pattern = specs[name]
-            if array.dtype != dtype or array.ndim != len(pattern) or any(
-                    p != -1 and p != n for p, n in zip(pattern, array.shape)):
-                raise SceneError(f"scene array {name!r} must be {dtype.str} of shape {pattern}, "
-                                 f"got {array.dtype.str} {array.shape}")
+        _check_array_specs(arrays, {**required, **OPTIONAL_SCENE_ARRAYS})
         geometry = Geometry(arrays["vertices"], arrays["triangles"], arrays["material_ids"],
                             **{name: arrays.get(name) for name in OPTIONAL_SCENE_ARRAYS})
         geometry.validate()
@@ -195,16 +191,54 @@ class Scene:
         if self.instances is None:
             raise SceneError("only an instanced scene has instances to move")
         old = self.instances
+        if len(as_3x4(to_world)) != old.count:
+            raise SceneError(f"{len(as_3x4(to_world))} transforms for {old.count} instances")
+        return self.placed(old.mesh, to_world, old.visibility if visibility is None else visibility)
+
+    def placed(self, instance_mesh, to_world, visibility=None) -> "Scene":
+        """This instanced scene's meshes placed by other instances (any number: instance_mesh
+        (I,) mesh indices, to_world (I, 4, 4) or (I, 3, 4), visibility (I,), default: every
+        ray): only the instances are checked and the top level built; the meshes and their
+        trees are shared (same meshes_hash). The same scene as from_instances with these
+        instances (but never flattened)."""
+        if self.instances is None:
+            raise SceneError("only an instanced scene has instances to place")
+        old = self.instances
+        mesh = np.asarray(instance_mesh, np.int64).reshape(-1)
         matrices = as_3x4(to_world).astype(np.float32)
-        visibility = old.visibility if visibility is None else np.asarray(visibility, np.uint8)
-        if len(matrices) != old.count:
-            raise SceneError(f"{len(matrices)} transforms for {old.count} instances")
-        instances = InstanceSet.checked(old.mesh, matrices, visibility, old.mesh_table,
+        if visibility is None:
+            visibility = np.full(len(mesh), VISIBLE_TO_ALL, np.uint8)
+        if len(mesh) and mesh.min() < 0:
+            raise SceneError("an instance uses a negative mesh index")
+        return self._placed(mesh.astype(np.uint32), matrices, np.asarray(visibility, np.uint8))
+
+    def placed_from_wire(self, arrays: dict) -> "Scene":
+        """This scene's meshes placed by the instance arrays of a SCENE_INSTANCES message
+        (`instance_arrays` of a sender), after checking their names, dtypes and shapes and
+        then the instances (InstanceSet.checked); SceneError names the problem."""
+        if self.instances is None:
+            raise SceneError("only an instanced scene has instances to place")
+        if set(arrays) != set(PLACEMENT_ARRAYS):
+            raise SceneError(f"instance arrays must be {sorted(PLACEMENT_ARRAYS)}, got "
+                             f"{sorted(arrays)}")
+        _check_array_specs(arrays, INSTANCE_ARRAYS)
+        return self._placed(arrays["instance_mesh"], arrays["instance_to_world"],
+                            arrays["instance_visibility"])
+
+    def _placed(self, mesh, to_world, visibility) -> "Scene":
+        old = self.instances
+        instances = InstanceSet.checked(mesh, to_world, visibility, old.mesh_table,
                                         old.mesh_bounds)
         tree = CompactTree(self.tree.nodes, self.tree.leaf_index32, self.tree.leaf_index16,
                            instances.bounds(), 0)
         return Scene(self.geometry, tree, _instanced_hash(self.meshes_hash, instances),
                      self.depth, self.used_materials, instances, self.meshes_hash)
+
+    def instance_arrays(self) -> dict:
+        """An instanced scene's instance arrays as they travel (SCENE_INSTANCES, SCENE_UPLOAD)."""
+        inst = self.instances
+        return {"instance_mesh": inst.mesh, "instance_to_world": inst.to_world,
+                "instance_visibility": inst.visibility}
 
     def mesh_trees(self) -> list:
         """An instanced scene's mesh trees (CompactTree views into the scene's tree arrays)."""
@@ -253,8 +287,7 @@ class Scene:
         for name in ("bounds", "leaf_shift"):
             del arrays[name]
         arrays.update(mesh_counts=counts, mesh_bounds=np.ascontiguousarray(inst.mesh_bounds, "<f4"),
-                      instance_mesh=inst.mesh, instance_to_world=inst.to_world,
-                      instance_visibility=inst.visibility)
+                      **self.instance_arrays())
         return arrays
 
     def check_view(self, view: View) -> None:
@@ -321,6 +354,15 @@ class Scene:
     def features(self, view: View) -> frozenset:
         """The kernel features this scene needs for `view` (core/scene/features.py)."""
         return scene_features(self.geometry, view, self.used_materials, self.instances)
+
+
+def _check_array_specs(arrays: dict, specs: dict) -> None:
+    for name, array in arrays.items():
+        dtype, pattern = specs[name]
+        if array.dtype != dtype or array.ndim != len(pattern) or any(
+                p != -1 and p != n for p, n in zip(pattern, array.shape)):
+            raise SceneError(f"scene array {name!r} must be {dtype.str} of shape {pattern}, "
+                             f"got {array.dtype.str} {array.shape}")
 
 
 def _tree_arrays(tree: CompactTree) -> dict:
