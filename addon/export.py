@@ -47,10 +47,13 @@ class InstancedExport(NamedTuple):
     texture_sizes: np.ndarray | None
 
 
-def export_instanced_view(depsgraph) -> tuple[InstancedExport, View, dict]:
+def export_instanced_view(depsgraph, every_object: bool = False
+                          ) -> tuple[InstancedExport, View, dict]:
     """export_view with the instances of shared meshes kept as instances (each mesh
-    exported once, in object space)."""
-    (meshes, instance_mesh, to_world), view, warnings, materials = _export(depsgraph, True)
+    exported once, in object space). `every_object` (an animation render): an object of its
+    own mesh is an instance too, so when it only moves its mesh and kd-tree stay the same."""
+    (meshes, instance_mesh, to_world), view, warnings, materials = _export(
+        depsgraph, True, every_object)
     texels, sizes = materials.texture_arrays()
     features = frozenset().union(*(scene_features(
         Geometry(m.vertices, m.triangles, m.material_ids, m.normals, m.uvs, texels, sizes), view)
@@ -61,13 +64,13 @@ def export_instanced_view(depsgraph) -> tuple[InstancedExport, View, dict]:
                             to_world, texels, sizes), view, {"warnings": warnings})
 
 
-def _export(depsgraph, instanced: bool):
+def _export(depsgraph, instanced: bool, every_object: bool = False):
     scene = depsgraph.scene
     warnings = []
     materials = _MaterialTable(warnings)
     # The world first: its Environment Texture joins the material textures in one table.
     world_color, world_texture = export_world(scene, materials, warnings)
-    geometry = _export_geometry(depsgraph, materials, warnings, instanced)
+    geometry = _export_geometry(depsgraph, materials, warnings, instanced, every_object)
     shading = Shading(materials.colors(), _export_lights(depsgraph, warnings), world_color,
                       materials.params(), world_texture, np.array(materials.node_rows, np.float32))
     view = View(_export_camera(depsgraph, warnings), *render_size(scene), shading,
@@ -359,7 +362,7 @@ class _MeshParts:
 
 
 def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
-                     instanced: bool = False):
+                     instanced: bool = False, every_object: bool = False):
     """All visible mesh geometry (objects and instances). NaN/inf vertices are rejected
     (naming the object); empty meshes are skipped and zero-area faces dropped, each with a
     warning naming the object.
@@ -368,8 +371,9 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
     (meshes, instance_mesh, to_world): the instances of one evaluated mesh with the same
     materials share one object-space Geometry (read and exported once); mesh 0 holds the
     world-space triangles of everything realised (placed by the identity): meshes used by one
-    instance only, and objects whose materials need world space (MaterialTable.world_space:
-    emission, node programs). The textures are in none of the meshes."""
+    instance only (unless `every_object`), and objects whose materials need world space
+    (MaterialTable.world_space: emission, node programs). The textures are in none of the
+    meshes."""
     mesh_cache = {}  # evaluated mesh pointer -> arrays, so instances of one mesh are read once
     warned = set()
     placed = []      # (object, arrays, slot materials, matrix, textured, shared key or None)
@@ -406,7 +410,7 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
     world = _MeshParts(warnings, warned)
     meshes, instance_mesh, to_world = {}, [], []    # shared key -> its parts, in order made
     for obj, arrays, slot_materials, matrix, textured, shared in placed:
-        if shared is None or uses[shared] < 2:
+        if shared is None or uses[shared] < (1 if every_object else 2):
             world.add(obj, arrays, slot_materials, matrix, textured)
             continue
         if shared not in meshes:

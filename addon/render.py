@@ -3,6 +3,7 @@ arrive. Runs on Blender's render thread; all socket work happens on the master's
 comes back through job.next_result()."""
 from __future__ import annotations
 
+import hashlib
 import time
 
 import numpy as np
@@ -134,7 +135,8 @@ def render(engine, depsgraph):
         if settings.use_zeroconf:
             state.browser()   # if not running yet: it looks while the scene exports and builds
         engine.update_stats("", "KD Trace | Exporting scene")
-        exported_geometry, view, info = export_instanced_view(depsgraph)
+        exported_geometry, view, info = export_instanced_view(
+            depsgraph, every_object=bool(engine.is_animation))
         meshes = exported_geometry.meshes
         for warning in info["warnings"]:
             engine.report({"WARNING"}, f"KD Trace: {warning}")
@@ -163,10 +165,8 @@ def render(engine, depsgraph):
             trees.append(tree)
             built |= new
             done += share
-        scene = Scene.from_instances(list(zip(meshes, trees)), exported_geometry.instance_mesh,
-                                     exported_geometry.to_world,
-                                     texels=exported_geometry.texels,
-                                     texture_sizes=exported_geometry.texture_sizes)
+        scene = frame_scene(state, meshes, trees, exported_geometry,
+                            (settings.kdtree_mode, tuple(sorted(tree_settings.items()))))
         scene.check_view(view)
         memory = memory_report(scene)
         tree_done = time.perf_counter()
@@ -193,7 +193,7 @@ def render(engine, depsgraph):
                 engine.report({"WARNING"}, f"KD Trace: {problem}")
             if job.error and not job.cancelled:
                 raise RenderFailed(job.error)
-            uploaded_to = list(master.uploaded_to)
+            uploaded_to, scene_bytes = list(master.uploaded_to), dict(master.scene_bytes)
         finished = time.perf_counter()
     except RenderCancelled:
         return
@@ -208,7 +208,7 @@ def render(engine, depsgraph):
         "triangles": memory["triangles_referenced"], "memory": memory,
         "tiles_per_slave": per_slave,
         "slave_colors": {name: slave_color(name) for name in per_slave},
-        "uploaded_to": uploaded_to, "cancelled": job.cancelled,
+        "uploaded_to": uploaded_to, "scene_bytes": scene_bytes, "cancelled": job.cancelled,
         "local_reason": state.local_reason,
         "joined_during_frame": [f"{host}:{port}" for host, port in state.joined]}
     summary = (f"export {exported - started:.2f} s, kd-tree {'built' if built else 'reused'} "
@@ -223,6 +223,26 @@ def render(engine, depsgraph):
                   if state.joined else ""))
     engine.update_stats("", f"KD Trace | Done: {summary}")
     engine.report({"INFO"}, f"KD Trace: {summary}")
+
+
+def frame_scene(state, meshes, trees, exported, tree_key) -> Scene:
+    """This frame's scene. Where its meshes, their kd-tree settings and the textures are the
+    last render's (an animation frame in which objects only moved), the last scene placed by
+    this frame's instances: the meshes' arrays and their checks are reused, only the instances
+    are checked and the top level built, and the slaves that hold the meshes are sent only the
+    instances (docs/instances.md, "Scene deltas")."""
+    textures = hashlib.blake2b(digest_size=16)
+    for array in (exported.texels, exported.texture_sizes):
+        textures.update(b"-" if array is None else np.ascontiguousarray(array).tobytes())
+    key = (tuple(m.content_hash() for m in meshes), tree_key, textures.hexdigest())
+    last_key, last = state.last_scene or (None, None)
+    if key == last_key and last.instances is not None:
+        return last.placed(exported.instance_mesh, exported.to_world)
+    scene = Scene.from_instances(list(zip(meshes, trees)), exported.instance_mesh,
+                                 exported.to_world, texels=exported.texels,
+                                 texture_sizes=exported.texture_sizes)
+    state.last_scene = (key, scene)
+    return scene
 
 
 def local_takeover(engine, settings, prefs, secret, master):

@@ -118,6 +118,7 @@ class Session:
         self.legend: Legend | None = None
         self.local_reason = ""       # why the last render started local slaves ("": it did not)
         self.joined: list = []       # endpoints the LAN browser found during the last frame
+        self.last_scene = None       # (key, Scene) of the last render (render.frame_scene)
 
     def start_legend(self, master) -> Legend:
         self.legend = Legend(master)

@@ -1,6 +1,7 @@
 """Render 5 frames: the sphere moves over frames 1-3, the camera over frames 3-5. Record per
-frame whether the kd-tree was rebuilt and whether the scene was uploaded; then render frames
-2 and 5 again as stills to compare with the animation's frames."""
+frame whether a kd-tree was rebuilt, whether the scene was uploaded and the bytes sent to each
+slave for it; then render frames 2 and 5 again as stills to compare with the animation's
+frames."""
 import bpy
 import numpy as np
 
@@ -29,7 +30,9 @@ frames = []
 def record(scene, *_):
     report = dict(addon.addon.session.current().last_render)
     frames.append({"frame": scene.frame_current, "tree_built": report.get("tree_built"),
-                   "uploaded_to": report.get("uploaded_to"), "tiles": report.get("tiles_per_slave")})
+                   "uploaded_to": report.get("uploaded_to"), "tiles": report.get("tiles_per_slave"),
+                   "scene_bytes": report.get("scene_bytes"),
+                   "builds": addon.addon.session.current().trees.builds - builds_before})
 
 
 bpy.app.handlers.render_post.append(record)
@@ -40,12 +43,14 @@ scene.render.filepath = args["out"] + "/anim_"
 bpy.ops.render.render(animation=True)
 builds = state.trees.builds - builds_before
 bpy.app.handlers.render_post.remove(record)
+stills = []
 
 for frame in (2, 5):
     scene.frame_set(frame)
     scene.render.filepath = f"{args['out']}/still_{frame:04d}.png"
     bpy.ops.render.render(write_still=True)
+    stills.append(dict(addon.addon.session.current().last_render)["tree_built"])
 for name in [f"anim_{f:04d}" for f in range(1, 6)] + ["still_0002", "still_0005"]:
     image = bpy.data.images.load(f"{args['out']}/{name}.png")
     np.save(f"{args['out']}/{name}.npy", np.array(image.pixels[:], np.float32))
-write_result(result_path, {"frames": frames, "builds": builds})
+write_result(result_path, {"frames": frames, "builds": builds, "stills_built": stills})
