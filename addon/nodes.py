@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.layout import (NODE_EXTENSION_CODES, NODE_GRADIENT_CODES, NODE_MATH_CODES, NODE_MIX_CODES,
-                           NODE_NORMAL_SPACE_CODES, NODE_OBJECT_NORMAL_SPACES, NODE_OP_CODES,
+                           NODE_NOISE_TYPE_CODES, NODE_NORMAL_SPACE_CODES,
+                           NODE_OBJECT_NORMAL_SPACES, NODE_OP_CODES,
                            NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS,
                            NODE_TRANSFORM_SIZE, NODE_VECTOR_MATH_CODES)
 from ..core.scene.model import DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS
@@ -26,6 +27,12 @@ _PRINCIPLED = {"Metallic": "metallic", "Roughness": "roughness", "IOR": "ior",
 
 _NODE_OUTPUTS = {"metallic": "METALLIC", "roughness": "ROUGHNESS", "ior": "IOR",
                  "transmission": "TRANSMISSION", "specular": "SPECULAR"}
+
+
+def _named_input(node, name):
+    """The input called `name`, also where the node hides it (Noise's W in 2D and 3D, Offset
+    and Gain in fBm: inputs[name] does not find those)."""
+    return next(socket for socket in node.inputs if socket.name == name)
 
 
 class _Unsupported(Exception):
@@ -45,8 +52,8 @@ class NodeProgram:
     register; constants for unlinked inputs. Nodes: Image Texture (UV, Linear/Closest,
     Repeat), Texture Coordinate and UV Map (UV), Separate/Combine Color (RGB) and XYZ, Mix
     (float, colour and vector; Mix, Add, Multiply, Subtract, Screen, Difference, Darken,
-    Lighten), Math (the NODE_MATH_CODES operations), Invert, Checker Texture, Noise Texture (fBm,
-    1D to 4D), Color Ramp, Value and RGB; into a BSDF's Normal: Normal Map (tangent, object, world
+    Lighten), Math (the NODE_MATH_CODES operations), Invert, Checker Texture, Noise Texture (every
+    type, 1D to 4D), Color Ramp, Value and RGB; into a BSDF's Normal: Normal Map (tangent, object, world
     space) and Bump; emission as colour x strength. Another node makes its input keep its value, and the problem names it."""
 
     def __init__(self, texture_index):
@@ -329,13 +336,11 @@ class NodeProgram:
         raise _Unsupported(f"node '{node.name}' ({node.bl_idname}) is not evaluated")
 
     def _noise(self, node, name):
-        """Noise Texture (fBm, 1D to 4D): one instruction for both outputs; its Color (two
-        more fBm sums) only when that output is linked."""
-        if node.noise_type != "FBM":
-            raise _Unsupported(f"node '{node.name}' (Noise Texture, {node.noise_type}) is not evaluated")
+        """Noise Texture (every type, 1D to 4D): one instruction for both outputs; its Color
+        (two more fractal sums) only when that output is linked."""
         dims = int(node.noise_dimensions[0])
         distortion = node.inputs["Distortion"]
-        w = next(socket for socket in node.inputs if socket.name == "W")    # hidden in 2D, 3D
+        w = _named_input(node, "W")
         for socket in (distortion, w):
             if socket.is_linked and (socket is distortion or dims in (1, 4)):
                 raise _Unsupported(f"node '{node.name}' (Noise Texture, linked {socket.name}) "
@@ -347,9 +352,10 @@ class NodeProgram:
                 vector = self._input(node, "Vector") if node.inputs["Vector"].is_linked \
                     else self._coordinates("GENERATED")
             settings = self._pack(node, ("Detail", "Roughness", "Lacunarity"))
-            scale = self._input(node, "Scale")
+            scale = self._pack(node, ("Scale", "Offset", "Gain"))
             register = self._register()
-            flags = int(node.normalize) + 2 * int(node.outputs["Color"].is_linked) + 4 * dims
+            flags = int(node.normalize) + 2 * int(node.outputs["Color"].is_linked) + 4 * dims \
+                + 32 * NODE_NOISE_TYPE_CODES[node.noise_type]
             self._emit("NOISE", register, vector, settings, scale,
                        params=(float(flags), float(distortion.default_value), float(w.default_value)))
             self._values[key] = register
@@ -381,10 +387,12 @@ class NodeProgram:
     def _pack(self, node, names):
         """Up to three float inputs in the lanes of one register: a constant when none is
         linked."""
-        if not any(node.inputs[k].is_linked for k in names):
-            return self._constant(tuple(socket_value(node.inputs[k]) for k in names)
+        sockets = [_named_input(node, k) for k in names]
+        if not any(socket.is_linked for socket in sockets):
+            return self._constant(tuple(socket_value(socket) for socket in sockets)
                                   + (0.0,) * (3 - len(names)))
-        a, b, c = [self._input(node, k) for k in names] + [self._constant(0.0)] * (3 - len(names))
+        a, b, c = [self._as_float(self._operand(socket)) for socket in sockets] \
+            + [self._constant(0.0)] * (3 - len(names))
         register = self._register()
         self._emit("COMBINE", register, a, b, c)
         return self._whole(register)

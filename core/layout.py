@@ -221,6 +221,9 @@ NODE_VECTOR_MATH_CODES = {"ADD": 0, "SUBTRACT": 1, "MULTIPLY": 2, "DIVIDE": 3, "
 NODE_GRADIENT_CODES = {"LINEAR": 0, "QUADRATIC": 1, "EASING": 2, "DIAGONAL": 3, "RADIAL": 4,
                        "QUADRATIC_SPHERE": 5, "SPHERICAL": 6}
 NODE_EXTENSION_CODES = {"REPEAT": 0, "EXTEND": 1, "CLIP": 2, "MIRROR": 3}   # Image Texture
+# Noise Texture types (NOISE p0 = normalize + 2 colour + 4 dimensions + 32 type)
+NODE_NOISE_TYPE_CODES = {"FBM": 0, "MULTIFRACTAL": 1, "HYBRID_MULTIFRACTAL": 2,
+                         "RIDGED_MULTIFRACTAL": 3, "HETERO_TERRAIN": 4}
 NODE_OUT_CODES = {"BASE_COLOR": 0, "ALPHA": 1, "METALLIC": 2, "ROUGHNESS": 3,
                   "TRANSMISSION": 4, "IOR": 5, "SPECULAR": 6, "NORMAL": 7, "EMISSION": 8}
 NODE_NORMAL_SPACE_CODES = {"TANGENT": 0, "OBJECT": 1, "WORLD": 2, "BLENDER_OBJECT": 3,
@@ -250,6 +253,7 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("NODE_GRADIENT", "Gradient Texture types (GRADIENT p0)", NODE_GRADIENT_CODES),
          Codes("NODE_EXTENSION", "Image Texture extensions (IMAGE p2)", NODE_EXTENSION_CODES),
          Codes("NODE_NORMAL_SPACE", "Normal Map spaces (NORMAL_MAP p1)", NODE_NORMAL_SPACE_CODES),
+         Codes("NODE_NOISE_TYPE", "Noise Texture types (NOISE p0 / 32)", NODE_NOISE_TYPE_CODES),
          Codes("TOPLEVEL", "Top-level BVH sizes",
                {"LEAF_MAX": TOPLEVEL_LEAF_MAX, "MAX_DEPTH": TOPLEVEL_MAX_DEPTH}),
          Codes("NODE", "Shader node program sizes",

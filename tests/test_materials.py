@@ -349,8 +349,10 @@ def lookup3(*words):
     return c
 
 
-def perlin_fbm(p, detail, roughness, lacunarity, distortion, colour):
-    """Cycles' Noise Texture (fBm, normalised) at points p (..., dims), in numpy (float64)."""
+def noise_texture(p, detail, roughness, lacunarity, distortion, colour, kind="FBM", offset=0.0,
+                  gain=1.0):
+    """Cycles' Noise Texture (fBm normalised, or the other types) at points p (..., dims), in
+    numpy (float64)."""
     dims = p.shape[-1]
 
     def gradient(h, f):
@@ -383,56 +385,95 @@ def perlin_fbm(p, detail, roughness, lacunarity, distortion, colour):
             total = total + weight * gradient(h, [f[..., j] - d[j] for j in range(dims)])
         return {1: 0.25, 2: 0.6616, 3: 0.982, 4: 0.8344}[dims] * total
 
+    octaves, rest = int(detail), detail - np.floor(detail)
+
     def fbm(q):
+        if kind != "FBM":
+            return fractal(q)
         amp, scale, sums, total = 1.0, 1.0, [], 0.0
-        for _ in range(int(detail) + 2):
+        for _ in range(octaves + 2):
             total = total + amp * signed(scale * q)
             sums.append((total, amp))
             amp, scale = amp * roughness, scale * lacunarity
         norm = [0.5 * t / sum(a for _, a in sums[:n + 1]) + 0.5 for n, (t, _) in enumerate(sums)]
-        rest = detail - np.floor(detail)
-        return norm[int(detail)] + rest * (norm[int(detail) + 1] - norm[int(detail)])
+        return norm[octaves] + rest * (norm[octaves + 1] - norm[octaves])
 
-    def offset(seed):
+    def fractal(q):
+        """The other types, as Cycles' fractal_noise.h sums them (weights with the hybrid's
+        early stop per point)."""
+        values = [signed(q * lacunarity ** i) for i in range(octaves + 2)]
+        if kind == "MULTIFRACTAL":
+            value = np.prod([roughness ** i * values[i] + 1 for i in range(octaves + 1)], axis=0)
+            return value * (rest * roughness ** (octaves + 1) * values[octaves + 1] + 1)
+        if kind == "HETERO_TERRAIN":
+            value = offset + values[0]
+            for i in range(1, octaves + 1):
+                value = value + (values[i] + offset) * roughness ** i * value
+            return value + rest * (values[octaves + 1] + offset) * roughness ** (octaves + 1) * value
+        if kind == "HYBRID_MULTIFRACTAL":
+            value, weight, alive = 0.0, np.ones_like(values[0]), np.ones(values[0].shape, bool)
+            for i in range(octaves + 1):
+                alive &= weight > 0.001
+                weight = np.minimum(weight, 1.0)
+                signal = (values[i] + offset) * roughness ** i
+                value = value + np.where(alive, weight * signal, 0.0)
+                weight = np.where(alive, weight * gain * signal, weight)
+            alive &= weight > 0.001
+            signal = (values[octaves + 1] + offset) * roughness ** (octaves + 1)
+            return value + np.where(alive, rest * np.minimum(weight, 1.0) * signal, 0.0)
+        signal = (offset - np.abs(values[0])) ** 2              # ridged multifractal
+        value = signal
+        for i in range(1, octaves + 1):
+            weight = np.clip(signal * gain, 0, 1)
+            signal = (offset - np.abs(values[i])) ** 2 * weight
+            value = value + signal * roughness ** i
+        return value
+
+    def seed_offset(seed):
         bits = lambda v: np.float32(v).view(np.uint32)
         h = [lookup3(bits(seed))] if dims == 1 else [lookup3(bits(seed), bits(k)) for k in range(dims)]
         return 100.0 + np.array([float(v) for v in h]) * (100.0 / 4294967296.0)
-    p = p + distortion * np.stack([signed(p + offset(k)) for k in range(dims)], -1)
+    p = p + distortion * np.stack([signed(p + seed_offset(k)) for k in range(dims)], -1)
     value = fbm(p)
-    return np.stack([value] + ([fbm(p + offset(dims)), fbm(p + offset(dims + 1))] if colour
+    return np.stack([value] + ([fbm(p + seed_offset(dims)), fbm(p + seed_offset(dims + 1))] if colour
                                else [value] * 2), -1)
 
 
 def test_noise_texture_is_cycles_perlin_fbm(tracer):
-    """The Noise Texture instruction (fBm in 1D to 4D with a fractional detail, distortion and
-    its Color) on a plane's Object coordinates (and W), as the base colour under a sun: each
-    pixel is the numpy evaluation of Cycles' noise x E / pi."""
-    from core.layout import NODE_OP_CODES as OP, NODE_OUT_CODES, NODE_REF_REGISTER as R
+    """The Noise Texture instruction (fBm in 1D to 4D, and the other types in 3D, with a
+    fractional detail, distortion and its Color) on a plane's Object coordinates (and W), as
+    the base colour under a sun: each pixel is the numpy evaluation of Cycles' noise x E / pi."""
+    from core.layout import NODE_NOISE_TYPE_CODES, NODE_OP_CODES as OP, NODE_OUT_CODES
+    from core.layout import NODE_REF_REGISTER as R
     vertices, triangles = grid_plane(2.0, 1, 0.37)
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16),
                         uvs=np.zeros((3 * len(triangles), 2), np.float32))
     tracer.load(Scene.from_parts(geometry, build_kdtree(vertices, triangles)))
     whole = lambda r: r * R + 4
     detail, roughness, lacunarity, distortion, scale, w = 2.5, 0.6, 2.1, 0.4, 3.0, 0.3
+    offset, gain = 0.9, 1.3
     size = 24
     centres = (np.arange(size) + 0.5) / size * 2 - 1
     x, y = np.meshgrid(centres, centres[::-1])
     point = np.stack([x, y, np.full_like(x, 0.37), np.full_like(x, w)], -1)
-    for dims in (1, 2, 3, 4):
-        flags = 1 + 2 + 4 * dims                        # normalize, Color, dimensions
+    for dims, kind in [(1, "FBM"), (2, "FBM"), (3, "FBM"), (4, "FBM")] + \
+            [(3, kind) for kind in NODE_NOISE_TYPE_CODES if kind != "FBM"]:
+        # normalize, Color, dimensions, type
+        flags = 1 + 2 + 4 * dims + 32 * NODE_NOISE_TYPE_CODES[kind]
         code = [(OP["TRANSFORM"], 0, 0, 0), (0, 12, 0, 0),          # identity rows after END
                 (OP["CONST"], 1, 0, 0), (detail, roughness, lacunarity, 1.0),
-                (OP["CONST"], 2, 0, 0), (scale,) * 4,
-                (OP["NOISE"], 3, whole(0), whole(1)), (2 * R, flags, distortion, w),
+                (OP["CONST"], 2, 0, 0), (scale, offset, gain, 1.0),
+                (OP["NOISE"], 3, whole(0), whole(1)), (whole(2), flags, distortion, w),
                 (OP["OUT"], 0, whole(3), 0), (0, NODE_OUT_CODES["BASE_COLOR"], 0, 0),
                 (OP["END"], 0, 0, 0), (0, 0, 0, 0),
                 (1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 0)]
         image = render_program_under_sun(tracer, np.array(code, np.float32), size)
         assert {"NODES", "NOISE"} <= set(tracer.last_render["features"])
         p = (point[..., 3:] if dims == 1 else point[..., :dims]) * scale
-        expected = perlin_fbm(p, detail, roughness, lacunarity, distortion, colour=True)
-        np.testing.assert_allclose(image, expected * 2.0 / np.pi, rtol=1e-3, atol=2e-4,
-                                   err_msg=f"{dims}D")
+        expected = noise_texture(p, detail, roughness, lacunarity, distortion, True, kind, offset,
+                                 gain)
+        np.testing.assert_allclose(image, np.maximum(expected, 0) * 2.0 / np.pi, rtol=1e-3,
+                                   atol=2e-4, err_msg=f"{dims}D {kind}")
         if dims > 1:
             assert expected.std() > 0.05 and np.abs(expected[..., 1] - expected[..., 0]).mean() > 0.03
 

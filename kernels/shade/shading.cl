@@ -441,7 +441,7 @@ inline float node_gradient(int kind, float4 p)
 }
 
 #ifdef HAS_NOISE
-// Cycles' Noise Texture (fBm, 1D to 4D): Perlin noise with Cycles' hash (Bob Jenkins' lookup3)
+// Cycles' Noise Texture (every type, 1D to 4D): Perlin noise with Cycles' hash (Bob Jenkins' lookup3)
 // and gradients, so that the pattern is Cycles' own, not merely alike. Points are float4 with
 // the unused lanes 0.
 inline uint lookup3_final(uint a, uint b, uint c)
@@ -518,25 +518,72 @@ inline float signed_noise(int dims, float4 p)
     return r * (dims == 1 ? 0.25f : dims == 2 ? 0.6616f : dims == 3 ? 0.9820f : 0.8344f);
 }
 
-// Fractal Brownian motion: octaves at `lacunarity` times the frequency and `roughness` times
-// the amplitude, the fraction of `detail` blending in the last; normalised to [0, 1] or not.
-inline float noise_fbm(int dims, float4 p, float detail, float roughness, float lacunarity,
-                       bool normalize)
+// A Noise Texture's settings (detail clamped to [0, 15], roughness to >= 0, as Cycles').
+typedef struct {
+    int dims, type;
+    float detail, roughness, lacunarity, offset, gain;
+    bool normalize;
+} NoiseSettings;
+
+// Cycles' fractals of octaves at `lacunarity` times the frequency and `roughness` times the
+// amplitude, the fraction of `detail` blending in the last octave: fBm (normalised to [0, 1]
+// or not), multifractal, hybrid multifractal, ridged multifractal, heterogeneous terrain.
+inline float noise_fractal(const NoiseSettings *n, float4 p)
 {
-    float scale = 1.0f, amp = 1.0f, max_amp = 0.0f, sum = 0.0f;
-    for (int i = 0; i <= (int)detail; ++i) {
+    int octaves = (int)n->detail, dims = n->dims;
+    float rest = n->detail - floor(n->detail), r = n->roughness, l = n->lacunarity;
+    if (n->type == NODE_NOISE_TYPE_MULTIFRACTAL) {
+        float value = 1.0f, pwr = 1.0f;
+        for (int i = 0; i <= octaves; ++i, pwr *= r, p *= l)
+            value *= pwr * signed_noise(dims, p) + 1.0f;
+        return rest != 0.0f ? value * (rest * pwr * signed_noise(dims, p) + 1.0f) : value;
+    }
+    if (n->type == NODE_NOISE_TYPE_HETERO_TERRAIN) {
+        float pwr = r, value = n->offset + signed_noise(dims, p);
+        p *= l;
+        for (int i = 1; i <= octaves; ++i, pwr *= r, p *= l)
+            value += (signed_noise(dims, p) + n->offset) * pwr * value;
+        if (rest != 0.0f)
+            value += rest * (signed_noise(dims, p) + n->offset) * pwr * value;
+        return value;
+    }
+    if (n->type == NODE_NOISE_TYPE_HYBRID_MULTIFRACTAL) {
+        float pwr = 1.0f, value = 0.0f, weight = 1.0f;
+        for (int i = 0; weight > 0.001f && i <= octaves; ++i, p *= l) {
+            weight = fmin(weight, 1.0f);
+            float signal = (signed_noise(dims, p) + n->offset) * pwr;
+            pwr *= r;
+            value += weight * signal;
+            weight *= n->gain * signal;
+        }
+        if (rest != 0.0f && weight > 0.001f)
+            value += rest * fmin(weight, 1.0f) * (signed_noise(dims, p) + n->offset) * pwr;
+        return value;
+    }
+    if (n->type == NODE_NOISE_TYPE_RIDGED_MULTIFRACTAL) {
+        float pwr = r, signal = n->offset - fabs(signed_noise(dims, p));
+        signal *= signal;
+        float value = signal;
+        for (int i = 1; i <= octaves; ++i, pwr *= r) {
+            p *= l;
+            float weight = clamp(signal * n->gain, 0.0f, 1.0f);
+            signal = n->offset - fabs(signed_noise(dims, p));
+            signal *= signal * weight;
+            value += signal * pwr;
+        }
+        return value;
+    }
+    float scale = 1.0f, amp = 1.0f, max_amp = 0.0f, sum = 0.0f;      // fBm
+    for (int i = 0; i <= octaves; ++i, amp *= r, scale *= l) {
         sum += signed_noise(dims, scale * p) * amp;
         max_amp += amp;
-        amp *= roughness;
-        scale *= lacunarity;
     }
-    float rest = detail - floor(detail);
     if (rest != 0.0f) {
         float sum2 = sum + signed_noise(dims, scale * p) * amp;
-        return normalize ? mix(0.5f * sum / max_amp + 0.5f, 0.5f * sum2 / (max_amp + amp) + 0.5f, rest)
-                         : mix(sum, sum2, rest);
+        return n->normalize ? mix(0.5f * sum / max_amp + 0.5f, 0.5f * sum2 / (max_amp + amp) + 0.5f, rest)
+                            : mix(sum, sum2, rest);
     }
-    return normalize ? 0.5f * sum / max_amp + 0.5f : sum;
+    return n->normalize ? 0.5f * sum / max_amp + 0.5f : sum;
 }
 
 // Cycles' seed offsets for the distortion and colour channels: 100 + 100 x hash(seed, lane)
@@ -552,26 +599,22 @@ inline float4 noise_offset(int dims, float seed)
     return (float4)(r[0], r[1], r[2], r[3]);
 }
 
-// The Noise Texture at p (already times Scale; `dims` lanes used): (Fac, Fac, Fac) or, with
+// The Noise Texture at p (already times Scale; n->dims lanes used): (Fac, Fac, Fac) or, with
 // `colour`, its Color (the seeds after the distortion's).
-inline float4 node_noise(int dims, float4 p, float detail, float roughness, float lacunarity,
-                         float distortion, bool normalize, bool colour)
+inline float4 node_noise(const NoiseSettings *n, float4 p, float distortion, bool colour)
 {
-    detail = clamp(detail, 0.0f, 15.0f);
-    roughness = fmax(roughness, 0.0f);
+    int dims = n->dims;
     if (distortion != 0.0f) {
         float shift[4] = {0.0f, 0.0f, 0.0f, 0.0f};
         for (int k = 0; k < dims; ++k)
             shift[k] = signed_noise(dims, p + noise_offset(dims, (float)k)) * distortion;
         p += (float4)(shift[0], shift[1], shift[2], shift[3]);
     }
-    float f = noise_fbm(dims, p, detail, roughness, lacunarity, normalize);
+    float f = noise_fractal(n, p);
     float4 out = (float4)(f, f, f, 1.0f);
     if (colour) {
-        out.y = noise_fbm(dims, p + noise_offset(dims, (float)dims), detail, roughness,
-                          lacunarity, normalize);
-        out.z = noise_fbm(dims, p + noise_offset(dims, (float)(dims + 1)), detail, roughness,
-                          lacunarity, normalize);
+        out.y = noise_fractal(n, p + noise_offset(dims, (float)dims));
+        out.z = noise_fractal(n, p + noise_offset(dims, (float)(dims + 1)));
     }
     return out;
 }
@@ -766,12 +809,15 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Su
             float f = node_gradient((int)w1.y, a);
             out = (float4)(f, f, f, f);
 #ifdef HAS_NOISE
-        } else if (op == NODE_OP_NOISE) {      // a: vector; b: detail, roughness, lacunarity; c: scale
-            // p0: normalize + 2 colour + 4 dimensions; p1: distortion; p2: W
-            int flags = (int)w1.y, dims = clamp(flags >> 2, 1, 4);
-            float4 q = dims == 1 ? (float4)(w1.w, 0.0f, 0.0f, 0.0f)
-                     : dims == 2 ? (float4)(a.xy, 0.0f, 0.0f) : (float4)(a.xyz, dims == 4 ? w1.w : 0.0f);
-            out = node_noise(dims, q * c.x, b.x, b.y, b.z, w1.z, flags & 1, flags & 2);
+        } else if (op == NODE_OP_NOISE) {  // a: vector; b: detail, roughness, lacunarity; c: scale, offset, gain
+            // p0: normalize + 2 colour + 4 dimensions + 32 type; p1: distortion; p2: W
+            int flags = (int)w1.y;
+            NoiseSettings n = {clamp((flags >> 2) & 7, 1, 4), flags >> 5, clamp(b.x, 0.0f, 15.0f),
+                               fmax(b.y, 0.0f), b.z, c.y, c.z, (flags & 1) != 0};
+            float4 q = n.dims == 1 ? (float4)(w1.w, 0.0f, 0.0f, 0.0f)
+                     : n.dims == 2 ? (float4)(a.xy, 0.0f, 0.0f)
+                                   : (float4)(a.xyz, n.dims == 4 ? w1.w : 0.0f);
+            out = node_noise(&n, q * c.x, w1.z, (flags & 2) != 0);
 #endif
         } else if (op == NODE_OP_TRANSFORM) {  // Generated / Object coordinates of the hit
             __global const float4 *rows = code + pc + (int)w1.y;

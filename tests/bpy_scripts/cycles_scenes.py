@@ -581,10 +581,12 @@ def build(name):
         links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
         sphere(m, (0.75, 0.35, 0.6))
         # Normal Map, tangent space: ripples from an image on the UV map of a turned cube (its
-        # colour a 2D noise of the UVs).
+        # colour a 2D ridged multifractal noise of the UVs).
         m, nodes, links, bsdf = node_material("rippled")
-        flat = nodes.new("ShaderNodeTexNoise")          # 2D noise of the UVs as the colour
+        flat = nodes.new("ShaderNodeTexNoise")          # 2D ridged noise of the UVs as the colour
         flat.noise_dimensions = "2D"
+        flat.noise_type = "RIDGED_MULTIFRACTAL"
+        flat.inputs["Offset"].default_value = 0.8
         flat.inputs["Scale"].default_value = 4.0
         links.new(nodes.new("ShaderNodeTexCoord").outputs["UV"], flat.inputs["Vector"])
         links.new(flat.outputs["Color"], bsdf.inputs["Base Color"])
