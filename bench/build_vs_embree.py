@@ -7,7 +7,8 @@ For every scene, each in a child process of its own (so that its peak memory is 
 - ours: core.accel.kdtree_cl's build on PoCL's CPU device (all its threads), then compact_tree
   (--mode) on the same device; wall and process CPU seconds (PoCL's threads included), peak
   RSS (mesh included), the longest stretch between two progress calls (how long Esc can take);
-  every kernel is compiled and launched once by a small build first (warm_up), timed apart;
+  every kernel is compiled in every variant the timed runs launch by two builds first
+  (warm_up), timed apart;
 - Embree: the BVH build of the same triangles (embreex: the scene's first ray query commits
   it), on the same threads (Embree's default: every hardware thread);
 - numpy (--numpy scenes): core.accel.kdtree.build_kdtree and compact_tree without a device,
