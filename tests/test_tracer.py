@@ -114,7 +114,7 @@ MESHES = {
     "sphere_on_plane": lambda rng: merge(uv_sphere(24, 12, 1.0, (0, 0, 1.0)), grid_plane(6.0, 8, 0.0)),
     "soup": lambda rng: triangle_soup(400, rng),
 }
-RAYS = {"uv_sphere": 30_000, "bunny": 25_000, "sphere_on_plane": 25_000, "soup": 20_000}
+RAYS = {"uv_sphere": 15_000, "bunny": 12_000, "sphere_on_plane": 12_000, "soup": 10_000}
 
 
 @pytest.mark.parametrize("name", list(MESHES))
