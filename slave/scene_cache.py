@@ -30,6 +30,7 @@ class SceneCache:
         self.disk_dir = pathlib.Path(disk_dir) if disk_dir else None
         self.disk_limit_bytes = int(disk_limit_bytes)
         self._scenes = collections.OrderedDict()
+        self._mesh_index = {}       # scene hash -> {mesh hash: mesh} of the scenes in memory
         self._lock = threading.Lock()
         if self.disk_dir is not None:
             self.disk_dir.mkdir(parents=True, exist_ok=True)
@@ -57,6 +58,25 @@ class SceneCache:
                     return scene
         return None
 
+    def held_mesh(self, mesh_hash: bytes):
+        """(Geometry, CompactTree) of a mesh with this hash (Scene.mesh_hashes) in a scene in
+        memory, or None: a scene whose other meshes changed takes it from there."""
+        with self._lock:
+            scenes = list(self._scenes.values())
+        for scene in reversed(scenes):
+            if scene.instances is None:
+                continue
+            index = self._mesh_index.get(scene.hash)
+            if index is None:
+                hashes = scene.mesh_hashes
+                index = {} if hashes is None else {bytes(h): m for m, h in enumerate(hashes)}
+                with self._lock:
+                    if scene.hash in self._scenes:
+                        self._mesh_index[scene.hash] = index
+            if mesh_hash in index:
+                return scene.mesh_parts[index[mesh_hash]]
+        return None
+
     def put(self, scene: Scene, to_disk: bool = True) -> None:
         """Keep `scene`; on disk too unless `to_disk` is False (a scene placed from instances:
         its meshes went to disk with the scene that brought them)."""
@@ -72,7 +92,7 @@ class SceneCache:
             self._scenes[scene_hash] = scene
             self._scenes.move_to_end(scene_hash)
             while len(self._scenes) > self.size:
-                self._scenes.popitem(last=False)
+                self._mesh_index.pop(self._scenes.popitem(last=False)[0], None)
 
     def _save_to_disk(self, scene: Scene) -> None:
         arrays = scene.wire_arrays()

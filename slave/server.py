@@ -32,6 +32,8 @@ import time
 import uuid
 from dataclasses import dataclass
 
+import numpy as np
+
 from core.net import protocol
 from core.net.protocol import MsgType, ProtocolError
 from core.net.tiles import TileGrid
@@ -500,13 +502,17 @@ class MasterConnection:
         if msg.type == MsgType.SCENE_QUERY:
             scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
             present = self.server.scenes.get(scene_hash) is not None
-            answer = {"scene_hash": scene_hash, "present": present}
+            answer, held = {"scene_hash": scene_hash, "present": present}, None
             if not present and "meshes_hash" in h:
                 meshes_hash = protocol.check_scene_hash(h.get("meshes_hash"))
                 answer["meshes_present"] = self.server.scenes.with_meshes(meshes_hash) is not None
-            self.outbox.put((MsgType.SCENE_READY, answer, None))
+            if not present and not answer.get("meshes_present") and "mesh_hashes" in msg.arrays:
+                held = {"mesh_held": self._held_meshes(msg.arrays["mesh_hashes"])}
+            self.outbox.put((MsgType.SCENE_READY, answer, held))
         elif msg.type == MsgType.SCENE_INSTANCES:
             self._place_instances(h, msg.arrays)
+        elif msg.type == MsgType.SCENE_MESHES:
+            self._assemble_meshes(h, msg.arrays)
         elif msg.type == MsgType.SCENE_UPLOAD:
             scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
             scene = self._checked_scene(scene_hash, "upload", lambda: Scene.from_wire(msg.arrays))
@@ -549,6 +555,32 @@ class MasterConnection:
                      scene_hash, scene.instances.count)
         self.outbox.put((MsgType.SCENE_READY, {"scene_hash": scene_hash,
                                                "present": base is not None}, None))
+
+    def _held_meshes(self, hashes) -> np.ndarray:
+        """u1 (M,): which of the mesh hashes (u1 (M, 16)) a scene held here has."""
+        if hashes.dtype != np.uint8 or hashes.ndim != 2 or hashes.shape[1] != 16:
+            raise ProtocolError("mesh_hashes must be u1 (M, 16)")
+        return np.array([self.server.scenes.held_mesh(bytes(h)) is not None for h in hashes],
+                        np.uint8)
+
+    def _assemble_meshes(self, h: dict, arrays: dict) -> None:
+        """SCENE_MESHES: the meshes carried, the others taken from the scenes held here by
+        their hashes, checked as an upload. SCENE_READY present=false when a mesh not carried
+        went since the query (the master then uploads the whole scene)."""
+        scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
+        cache = self.server.scenes
+        new, hashes = arrays.get("mesh_new"), arrays.get("mesh_hashes")
+        if hashes is None or new is None or new.dtype != np.uint8 or new.shape != hashes.shape[:1]:
+            raise ProtocolError("SCENE_MESHES needs mesh_hashes u1 (M, 16) and mesh_new u1 (M,)")
+        lacking = bool(((new == 0) & (self._held_meshes(hashes) == 0)).any())
+        if not lacking:
+            scene = self._checked_scene(scene_hash, "meshes",
+                                        lambda: Scene.from_mesh_wire(arrays, cache.held_mesh))
+            cache.put(scene)
+            log.info("master %s sent %d of the %d meshes of scene %s", self.peer,
+                     int(new.sum()), len(new), scene_hash)
+        self.outbox.put((MsgType.SCENE_READY, {"scene_hash": scene_hash,
+                                               "present": not lacking}, None))
 
     def _checked_scene(self, scene_hash: str, what: str, make) -> Scene:
         """make() (validating what arrived; the keeper heartbeats `loading` meanwhile), whose

@@ -37,11 +37,15 @@ def _placement(moved=()):
 
 @pytest.fixture(scope="module")
 def scenes():
-    meshes = [_mesh(*grid_plane(12.0, 2), material=0), _mesh(*uv_sphere(24, 12), material=1),
+    """The ten objects; two of them moved; then one of the sphere meshes changed too."""
+    meshes = [_mesh(*grid_plane(12.0, 2), material=0), _mesh(*uv_sphere(48, 24), material=1),
               _mesh(*uv_sphere(12, 6), material=1)]
     which, matrices = _placement()
     first = Scene.from_instances(meshes, which, matrices)
-    return first, first.moved(_placement(moved=(2, 7))[1])
+    moved = _placement(moved=(2, 7))[1]
+    changed = Scene.from_instances(meshes[:2] + [_mesh(*uv_sphere(10, 5), material=1)], which,
+                                   moved)
+    return first, first.moved(moved), changed
 
 
 def _view():
@@ -54,7 +58,7 @@ def _view():
 
 
 def test_moving_two_of_ten_objects_sends_only_the_instances(scenes):
-    first, second = scenes
+    first, second, changed = scenes
     assert second.meshes_hash == first.meshes_hash and second.hash != first.hash
     slaves = [SlaveProcess(f"kdt-delta-{n}-{os.getpid()}") for n in "ab"]
     try:
@@ -78,17 +82,27 @@ def test_moving_two_of_ten_objects_sends_only_the_instances(scenes):
                 assert instance_bytes < sent < instance_bytes + 1500, sent
             images, _ = render_all(master.render(view, tile_size=16))
 
+            # One mesh changed: only it travels (SCENE_MESHES), the others are taken by hash.
+            master.load_scene(changed)
+            mesh_bytes = sum(a.nbytes for a in changed.mesh_wire_arrays([0, 0, 1]).values())
+            assert master.uploaded_to == []
+            for sent in master.scene_bytes.values():
+                assert mesh_bytes < sent < mesh_bytes + 2000, (sent, mesh_bytes)
+            assert mesh_bytes < sum(a.nbytes for a in changed.wire_arrays().values()) / 5
+            changed_images, _ = render_all(master.render(view, tile_size=16))
+
             # A slave that lost the meshes since it answered says so; the master then uploads.
             connection = master.slaves[0]
             connection.send(MsgType.SCENE_INSTANCES, {"scene_hash": second.hash,
                                                       "meshes_hash": "0" * 32},
                             second.instance_arrays())
-            assert master._scene_ready(connection, second.hash) == (False, False)
+            assert master._scene_ready(connection, second.hash)[:2] == (False, False)
     finally:
         for slave in slaves:
             slave.stop()
     for slave in slaves:
-        assert "placed scene" in slave.log and "Traceback" not in slave.log, slave.log
+        assert "placed scene" in slave.log and "sent 1 of the 3 meshes" in slave.log, slave.log
+        assert "Traceback" not in slave.log, slave.log
     # The slaves placed `second` on the meshes they held and kept their buffers: the same bits
     # as `second` loaded whole here.
     from slave.tracer import Tracer
@@ -97,6 +111,12 @@ def test_moving_two_of_ten_objects_sends_only_the_instances(scenes):
     expected = tracer.render_tile(view, 0, 0, view.width, view.height)
     for name in ("combined", "depth", "normal"):
         np.testing.assert_array_equal(images[name], expected[name], err_msg=name)
+    tracer.load(changed)
+    changed_expected = tracer.render_tile(view, 0, 0, view.width, view.height)
+    for name in ("combined", "depth", "normal"):
+        np.testing.assert_array_equal(changed_images[name], changed_expected[name], err_msg=name)
+    assert not np.array_equal(changed_expected["combined"], expected["combined"])
+    tracer.load(second)
     tracer.load(first)      # the same meshes: only the top level goes to the device, twice
     tracer.load(second)
     assert tracer.mesh_loads_skipped == 2
@@ -105,7 +125,7 @@ def test_moving_two_of_ten_objects_sends_only_the_instances(scenes):
 
 
 def test_instances_from_the_wire_are_checked(scenes):
-    first, second = scenes
+    first, second, _ = scenes
     assert first.placed_from_wire(second.instance_arrays()).hash == second.hash
     arrays = second.instance_arrays()
     bad = [({**arrays, "instance_mesh": np.full(10, 3, np.uint32)}, "uses mesh 3"),
@@ -117,5 +137,29 @@ def test_instances_from_the_wire_are_checked(scenes):
         with pytest.raises(SceneError, match=message):
             first.placed_from_wire(changed)
     # Other instances of the same meshes: another count, other meshes.
+    hashes = first.mesh_hashes
     placed = first.placed([1, 2, 2], _placement()[1][1:4])
     assert placed.meshes_hash == first.meshes_hash and placed.instances.count == 3
+    assert placed.mesh_hashes is hashes      # the same meshes: hashed once
+
+
+def test_meshes_from_the_wire_are_checked(scenes):
+    first, _, changed = scenes
+    held = {bytes(h): part for h, part in zip(first.mesh_hashes, first.mesh_parts)}
+    assert (changed.mesh_hashes[:2] == first.mesh_hashes[:2]).all()
+    assert (changed.mesh_hashes[2] != first.mesh_hashes[2]).any()
+    arrays = changed.mesh_wire_arrays([0, 0, 1])
+    assert Scene.from_mesh_wire(arrays, held.get).hash == changed.hash
+    assert Scene.from_mesh_wire(changed.mesh_wire_arrays([1, 1, 1]), {}.get).hash == changed.hash
+    counts = arrays["mesh_counts"].copy()
+    counts[0, 1] += 1
+    bad = [({**arrays, "mesh_new": np.array([0, 1, 1], np.uint8)}, "do not add up"),
+           ({**arrays, "mesh_new": np.array([0, 0, 2], np.uint8)}, "0/1"),
+           ({**arrays, "mesh_counts": counts}, "do not add up"),
+           ({**arrays, "triangles": arrays["triangles"] + 5}, "triangle|vert"),
+           ({k: v for k, v in arrays.items() if k != "nodes"}, "must carry")]
+    for changed_arrays, message in bad:
+        with pytest.raises(SceneError, match=message):
+            Scene.from_mesh_wire(changed_arrays, held.get)
+    with pytest.raises(SceneError, match="neither carried nor held"):
+        Scene.from_mesh_wire(arrays, {}.get)

@@ -490,19 +490,28 @@ class Master:
     def _ensure_scene(self, connection: SlaveConnection, scene: Scene) -> bool:
         """Make `scene` present on the slave; True if it had to be uploaded whole. An instanced scene
         whose meshes the slave holds (the same meshes_hash: only instances changed) gets the
-        instance arrays alone (SCENE_INSTANCES); the slave builds only its top level."""
+        instance arrays alone (SCENE_INSTANCES; the slave builds only its top level); one of
+        whose meshes the slave holds some gets the others (SCENE_MESHES, by mesh hash)."""
         sent_before = connection.channel.bytes_sent
         query = {"scene_hash": scene.hash}
         if scene.meshes_hash is not None:
             query["meshes_hash"] = scene.meshes_hash
-        connection.send(MsgType.SCENE_QUERY, query)
-        present, meshes_present = self._scene_ready(connection, scene.hash)
+        hashes = {"mesh_hashes": scene.mesh_hashes} if scene.meshes_travel_alone else None
+        connection.send(MsgType.SCENE_QUERY, query, hashes)
+        present, meshes_present, held = self._scene_ready(connection, scene.hash)
         uploaded = False
+        # Not present after SCENE_INSTANCES or SCENE_MESHES: the slave let meshes go since it
+        # answered; the whole scene is uploaded.
         if not present and meshes_present:
             self._set_state(connection.endpoint, "uploading", connection=connection)
             connection.send(MsgType.SCENE_INSTANCES, query, scene.instance_arrays())
-            # Not present: the slave let the meshes go since it answered; upload them.
-            present, _ = self._scene_ready(connection, scene.hash)
+            present = self._scene_ready(connection, scene.hash)[0]
+        elif not present and hashes is not None and held is not None and \
+                held.shape == (len(scene.mesh_hashes),) and held.any():
+            self._set_state(connection.endpoint, "uploading", connection=connection)
+            connection.send(MsgType.SCENE_MESHES, {"scene_hash": scene.hash},
+                            scene.mesh_wire_arrays(held == 0))
+            present = self._scene_ready(connection, scene.hash)[0]
         if not present:
             self._set_state(connection.endpoint, "uploading", connection=connection)
             connection.send(MsgType.SCENE_UPLOAD, {"scene_hash": scene.hash}, scene.wire_arrays())
@@ -515,7 +524,8 @@ class Master:
         return uploaded
 
     def _scene_ready(self, connection: SlaveConnection, scene_hash: str) -> tuple:
-        """(present, meshes present) from SCENE_READY; the slave heartbeats while it validates
+        """(present, meshes present, which meshes are held: u1 (M,) or None) from SCENE_READY;
+        the slave heartbeats while it validates
         a large upload, within the budget of a step (TileBudget.base_s)."""
         started = heard = time.monotonic()
         while True:
@@ -538,7 +548,10 @@ class Master:
                 raise MasterError(f"slave error: {reply.header.get('message')}")
             if reply.type != MsgType.SCENE_READY or reply.header.get("scene_hash") != scene_hash:
                 raise ProtocolError(f"expected SCENE_READY for {scene_hash}, got {reply.type.name}")
-            return reply.header.get("present") is True, reply.header.get("meshes_present") is True
+            held = reply.arrays.get("mesh_held")
+            return (reply.header.get("present") is True,
+                    reply.header.get("meshes_present") is True,
+                    held if held is not None and held.dtype == np.uint8 else None)
 
     # -- frames
 

@@ -32,12 +32,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..scene.instances import MAX_INSTANCES
+from ..scene.instances import MAX_INSTANCES, MAX_MESHES
 
 # 2: HMAC handshake, float16/zlib tiles, N x M tiles; 3: compact kd-tree arrays; 4: HEARTBEAT,
 # heartbeat_s in HELLO, "busy" refusals, session MACs after an authenticated handshake;
 # 5: FRAME_START "passes" (a tile carries only those) and the 8-bit preview payload "u8";
-# 6: SCENE_QUERY "meshes_hash", SCENE_READY "meshes_present" and SCENE_INSTANCES.
+# 6: SCENE_QUERY "meshes_hash" and mesh_hashes, SCENE_READY "meshes_present" and mesh_held,
+# SCENE_INSTANCES and SCENE_MESHES; at most 20 arrays a message.
 PROTOCOL_VERSION = 6
 MAGIC = b"KDTR"
 HEADER = struct.Struct("!4sHHIQ")
@@ -46,7 +47,7 @@ SERVICE_TYPE = "_kdtrace._tcp.local."
 
 # Only these dtypes may appear on the wire; all little-endian.
 ALLOWED_DTYPES = {name: np.dtype("<" + name) for name in ("f4", "f2", "u4", "u2", "u1", "i4")}
-MAX_ARRAYS = 16
+MAX_ARRAYS = 20
 MAX_DIMS = 4
 MAX_TILE_SIZE = 1024
 MAX_FRAME_TILES = 1 << 20       # tiles of one frame (65536 x 65536 pixels in 64-pixel tiles)
@@ -94,10 +95,12 @@ class MsgType(enum.IntEnum):
                        # master -> slave: it is still in a frame that has nothing for the slave
     SCENE_INSTANCES = 15   # master -> slave: scene hash, meshes hash + the instance arrays
                            # alone (the slave holds the meshes); the slave answers SCENE_READY
+    SCENE_MESHES = 16      # master -> slave: scene hash + the meshes the slave lacks, every
+                           # mesh's hash, textures, instances; the slave answers SCENE_READY
 
 
 MASTER_TO_SLAVE = frozenset({MsgType.HELLO, MsgType.SCENE_QUERY, MsgType.SCENE_UPLOAD,
-                             MsgType.SCENE_INSTANCES, MsgType.FRAME_START, MsgType.TILE_REQUEST, MsgType.CANCEL,
+                             MsgType.SCENE_INSTANCES, MsgType.SCENE_MESHES, MsgType.FRAME_START, MsgType.TILE_REQUEST, MsgType.CANCEL,
                              MsgType.ERROR, MsgType.BYE, MsgType.AUTH, MsgType.HEARTBEAT})
 SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_RESULT,
                              MsgType.CANCEL, MsgType.ERROR, MsgType.CHALLENGE, MsgType.HEARTBEAT})
@@ -107,6 +110,7 @@ TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3}
 TILE_BYTES_PER_PIXEL = 4 * sum(TILE_PASSES.values())   # the most a tile pixel may take
 # An instance on the wire: its mesh (u4), 3x4 transform (f4) and visibility (u1).
 INSTANCE_WIRE_BYTES = 4 + 12 * 4 + 1
+MESH_HASH_BYTES = 16
 
 class ProtocolError(Exception):
     """The peer sent something that is not a valid message; the connection cannot go on."""
@@ -152,10 +156,14 @@ class Limits:
         return self.max_frame_json if msg_type == MsgType.FRAME_START else self.max_json
 
     def payload_limit(self, msg_type: MsgType) -> int:
-        if msg_type == MsgType.SCENE_UPLOAD:
+        if msg_type in (MsgType.SCENE_UPLOAD, MsgType.SCENE_MESHES):
             return self.max_scene_bytes
         if msg_type == MsgType.SCENE_INSTANCES:
             return MAX_INSTANCES * INSTANCE_WIRE_BYTES
+        if msg_type == MsgType.SCENE_QUERY:
+            return MAX_MESHES * MESH_HASH_BYTES      # mesh_hashes
+        if msg_type == MsgType.SCENE_READY:
+            return MAX_MESHES                        # mesh_held
         if msg_type == MsgType.TILE_RESULT:
             return self.max_tile_pixels * self.tile_bytes_per_pixel
         return 0  # control messages carry no arrays

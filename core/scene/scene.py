@@ -14,6 +14,7 @@ mesh tree's. A scene of one identity instance is made flat: the same scene as fr
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 from dataclasses import dataclass
 
@@ -24,7 +25,7 @@ from ..accel.kdtree import KDTree
 from ..accel.validate import validate_compact
 from ..layout import INSTANCE, MESH, VISIBLE_TO_ALL
 from .features import full_geometry, needed_arrays, program_textures, scene_features
-from .instances import InstanceSet, as_3x4
+from .instances import MAX_MESHES, InstanceSet, as_3x4
 from .model import (INDEX_DTYPE, MATERIAL_ID_DTYPE, MATERIAL_PARAMS, MAX_LIGHTS, VERTEX_DTYPE,
                     Geometry, SceneError, View)
 
@@ -231,14 +232,114 @@ class Scene:
                                         old.mesh_bounds)
         tree = CompactTree(self.tree.nodes, self.tree.leaf_index32, self.tree.leaf_index16,
                            instances.bounds(), 0)
-        return Scene(self.geometry, tree, _instanced_hash(self.meshes_hash, instances),
-                     self.depth, self.used_materials, instances, self.meshes_hash)
+        scene = Scene(self.geometry, tree, _instanced_hash(self.meshes_hash, instances),
+                      self.depth, self.used_materials, instances, self.meshes_hash)
+        for name in ("mesh_parts", "mesh_hashes"):    # the same meshes: computed once
+            if name in self.__dict__:
+                scene.__dict__[name] = self.__dict__[name]
+        return scene
 
     def instance_arrays(self) -> dict:
         """An instanced scene's instance arrays as they travel (SCENE_INSTANCES, SCENE_UPLOAD)."""
         inst = self.instances
         return {"instance_mesh": inst.mesh, "instance_to_world": inst.to_world,
                 "instance_visibility": inst.visibility}
+
+    @functools.cached_property
+    def mesh_parts(self) -> list | None:
+        """An instanced scene's meshes as from_instances takes them, (object-space Geometry,
+        CompactTree) sliced from the scene's arrays (textures stay the scene's); None where
+        the meshes' vertices are not one block per mesh in mesh order (a scene from_instances
+        made always has them so), as they could not travel one by one."""
+        table = self.instances.mesh_table
+        counts = table[:, MESH.index("tri_count")].astype(np.int64)
+        return _split_meshes(self.geometry, counts, self.mesh_trees())
+
+    @functools.cached_property
+    def mesh_hashes(self) -> np.ndarray | None:
+        """(M, 16) uint8: each mesh's hash (its geometry and tree, as `mesh_parts`); None
+        where the meshes cannot travel one by one."""
+        parts = self.mesh_parts
+        if parts is None:
+            return None
+        return np.array([list(bytes.fromhex(_content_hash(g, t))) for g, t in parts], np.uint8)
+
+    @property
+    def meshes_travel_alone(self) -> bool:
+        """Whether SCENE_MESHES can carry this scene (some meshes only): instanced, its meshes
+        one block each, and not the one identity instance that from_instances makes flat."""
+        inst = self.instances
+        if inst is None or self.mesh_hashes is None:
+            return False
+        return not (inst.count == 1 and len(inst.mesh_table) == 1 and
+                    np.array_equal(inst.to_world[0], np.eye(3, 4)) and
+                    inst.visibility[0] == VISIBLE_TO_ALL)
+
+    def mesh_wire_arrays(self, new) -> dict:
+        """The arrays of a SCENE_MESHES message: every mesh's hash, which meshes travel (`new`,
+        (M,) bool) and their arrays (as an upload's, concatenated), the textures and the
+        instances. The receiver takes the other meshes from the scenes it holds."""
+        new = np.asarray(new, bool)
+        parts = [part for part, sent in zip(self.mesh_parts, new) if sent]
+        arrays = _concatenated_meshes(parts) if parts else {}
+        specs = {**SCENE_ARRAYS, **OPTIONAL_SCENE_ARRAYS, **INSTANCE_ARRAYS}
+        arrays = {name: np.ascontiguousarray(a, specs[name][0]) for name, a in arrays.items()}
+        for name in ("texels", "texture_sizes"):
+            if getattr(self.geometry, name) is not None:
+                arrays[name] = np.ascontiguousarray(getattr(self.geometry, name), specs[name][0])
+        return {"mesh_hashes": self.mesh_hashes, "mesh_new": new.astype(np.uint8), **arrays,
+                **self.instance_arrays()}
+
+    @classmethod
+    def from_mesh_wire(cls, arrays: dict, held) -> "Scene":
+        """The scene of a SCENE_MESHES message (`mesh_wire_arrays` of a sender): the meshes it
+        carries, checked as an upload's, and the others from `held` (mesh hash bytes -> the
+        (Geometry, CompactTree) of a scene this side holds, or None); SceneError names the
+        problem (a mesh not held among them)."""
+        hashes, new = arrays.get("mesh_hashes"), arrays.get("mesh_new")
+        if hashes is None or new is None or hashes.dtype != np.uint8 or new.dtype != np.uint8 \
+                or hashes.ndim != 2 or hashes.shape[1] != 16 or new.shape != hashes.shape[:1] \
+                or not 1 <= len(new) <= MAX_MESHES or (new > 1).any():
+            raise SceneError("SCENE_MESHES needs mesh_hashes u1 (M, 16) and mesh_new u1 (M,) of "
+                             f"0/1, 1 <= M <= {MAX_MESHES}")
+        carried = {name: a for name, a in arrays.items() if name not in ("mesh_hashes", "mesh_new")}
+        mesh_arrays = ("vertices", "triangles", "material_ids", "nodes", "leaf_index32",
+                       "leaf_index16", "mesh_counts", "mesh_bounds")
+        required = set(PLACEMENT_ARRAYS) | (set(mesh_arrays) if new.any() else set())
+        allowed = required | set(OPTIONAL_SCENE_ARRAYS)
+        if not required <= set(carried) <= allowed:
+            raise SceneError(f"SCENE_MESHES must carry {sorted(required)} and optionally "
+                             f"{sorted(OPTIONAL_SCENE_ARRAYS)}, got {sorted(carried)}")
+        _check_array_specs(carried, {**SCENE_ARRAYS, **OPTIONAL_SCENE_ARRAYS, **INSTANCE_ARRAYS})
+        sent = []
+        if new.any():
+            geometry = Geometry(*(carried[n] for n in ("vertices", "triangles", "material_ids")),
+                                carried.get("normals"), carried.get("uvs"))
+            geometry.validate()
+            counts = carried["mesh_counts"].astype(np.int64)
+            sizes = (geometry.triangle_count, len(carried["nodes"]), len(carried["leaf_index32"]),
+                     len(carried["leaf_index16"]))
+            if len(counts) != int(new.sum()) or len(carried["mesh_bounds"]) != len(counts) or \
+                    tuple(int(v) for v in counts[:, :4].sum(axis=0)) != sizes:
+                raise SceneError(f"the carried meshes' counts do not add up to their arrays "
+                                 f"({int(new.sum())} meshes marked new)")
+            ends = np.cumsum(counts[:, 1:4], axis=0)
+            starts = ends - counts[:, 1:4]
+            trees = [CompactTree(carried["nodes"][a[0]:b[0]], carried["leaf_index32"][a[1]:b[1]],
+                                 carried["leaf_index16"][a[2]:b[2]], carried["mesh_bounds"][m],
+                                 int(counts[m, 4])) for m, (a, b) in enumerate(zip(starts, ends))]
+            sent = _split_meshes(geometry, counts[:, 0], trees)
+            if sent is None:
+                raise SceneError("the carried meshes' vertices are not one block per mesh")
+        parts, sent = [], iter(sent)
+        for m, (digest, is_new) in enumerate(zip(hashes, new)):
+            part = next(sent) if is_new else held(bytes(digest))
+            if part is None:
+                raise SceneError(f"mesh {m} is neither carried nor held here")
+            parts.append(part)
+        return cls.from_instances(parts, carried["instance_mesh"], carried["instance_to_world"],
+                                  carried["instance_visibility"], carried.get("texels"),
+                                  carried.get("texture_sizes"))
 
     def mesh_trees(self) -> list:
         """An instanced scene's mesh trees (CompactTree views into the scene's tree arrays)."""
@@ -354,6 +455,25 @@ class Scene:
     def features(self, view: View) -> frozenset:
         """The kernel features this scene needs for `view` (core/scene/features.py)."""
         return scene_features(self.geometry, view, self.used_materials, self.instances)
+
+
+def _split_meshes(geometry: Geometry, tri_counts, trees) -> list | None:
+    """(Geometry, tree) per mesh of concatenated meshes (tri_counts triangles each, in order),
+    each mesh's vertices the block its triangles use; None where those blocks do not follow
+    one another through the whole vertex array."""
+    tri_ends = np.cumsum(tri_counts)
+    parts, vertex_end = [], 0
+    for tree, hi, count in zip(trees, tri_ends, tri_counts):
+        lo = hi - count
+        triangles = geometry.triangles[lo:hi]
+        if count == 0 or int(triangles.min()) != vertex_end:
+            return None
+        start, vertex_end = vertex_end, int(triangles.max()) + 1
+        corner = {name: None if getattr(geometry, name) is None else
+                  getattr(geometry, name)[3 * lo:3 * hi] for name in ("normals", "uvs")}
+        parts.append((Geometry(geometry.vertices[start:vertex_end], triangles - np.uint32(start),
+                               geometry.material_ids[lo:hi], **corner), tree))
+    return parts if vertex_end == len(geometry.vertices) else None
 
 
 def _check_array_specs(arrays: dict, specs: dict) -> None:
