@@ -1,6 +1,7 @@
 """Issue 15's benchmark: a forest of Stanford dragons as instances of one mesh, at 1024x1024.
 
     .venv/bin/python bench/instances.py [--instances 1000] [--realised 4] [--size 1024]
+    .venv/bin/python bench/instances.py --animation [--frames 24] [--instances 1000] [--size 256]
 
 The dragon's kd-tree is built once (mode ours) and placed --instances times on a grid (random
 turns and scales, every third mirrored); the top level is built over them. Recorded: the build
@@ -10,6 +11,12 @@ diffuse shading: max_bounces 0, one sample per pixel, one PoCL thread). The real
 equivalent (every dragon's triangles in world space, one kd-tree) is built and rendered side
 by side for the first --realised dragons, where it fits; the instanced scene of those same
 dragons is rendered in the same run for the ratio.
+
+--animation: the forest through a real slave (`python -m slave` on loopback, one PoCL thread)
+and the master, --frames frames in which every dragon turns and drifts: frame 0 uploads the
+whole scene, each later frame sends only the instances (SCENE_INSTANCES). Per frame: the
+master's Scene.moved, load_scene (send, the slave's check and top level) and the render, and
+the bytes sent on the socket.
 """
 import argparse
 import os
@@ -65,6 +72,9 @@ def main():
     parser.add_argument("--realised", type=int, default=4,
                         help="dragons also realised in world space for the comparison (0: none)")
     parser.add_argument("--size", type=int, default=1024)
+    parser.add_argument("--animation", action="store_true",
+                        help="frames of moving instances through a real slave (see above)")
+    parser.add_argument("--frames", type=int, default=24)
     args = parser.parse_args()
     print("command:", " ".join(["python"] + sys.argv))
     print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs); one PoCL thread;",
@@ -113,6 +123,9 @@ def main():
         seconds, passes = best_time(lambda: tracer.render_tile(view, 0, 0, args.size, args.size), 2)
         return seconds, (passes["depth"] < 1e9).mean(), passes
 
+    if args.animation:
+        animate(scene, matrices, view_of(args.instances), args.frames, 1.3 * extent)
+        return
     render_s, hit, _ = render(scene, view_of(args.instances))
     print(f"render {args.size}x{args.size}, {args.instances} instances: {render_s:.2f} s "
           f"({hit:.1%} of pixels hit)")
@@ -138,6 +151,59 @@ def main():
               f"instanced {wire_bytes(instanced) / 2**20:.1f} MiB sent, render {inst_s:.2f} s "
               f"({inst_s / real_s:.2f}x the realised); {real_hit:.1%} of pixels hit; pixels "
               f"within 1e-3: {(diff < 1e-3).mean():.2%}")
+
+
+def animate(scene, matrices, view, frames, cell):
+    """Frames of the forest in which every dragon turns and circles within its grid cell (`cell`
+    wide), on a real slave; prints per frame the seconds of each step and the bytes sent."""
+    from core.net.master import Master
+    from tests.processes import SlaveProcess
+    slave = SlaveProcess(f"bench-animation-{os.getpid()}")
+    rng = np.random.default_rng(1)
+    spin = rng.uniform(-0.05, 0.05, len(matrices))             # radians per frame
+    phase = rng.uniform(0, 2 * np.pi, len(matrices))
+    rows = []
+    try:
+        with Master([slave.endpoint]) as master:
+            master.connect()
+            for frame in range(frames):
+                started = time.perf_counter()
+                if frame:
+                    c, s = np.cos(spin * frame), np.sin(spin * frame)
+                    turn = np.zeros((len(matrices), 4, 4))
+                    turn[:, 0, 0], turn[:, 0, 1], turn[:, 1, 0], turn[:, 1, 1] = c, -s, s, c
+                    turn[:, 2, 2] = turn[:, 3, 3] = 1.0
+                    moved = matrices @ turn
+                    angle = phase + 2 * np.pi * frame / frames
+                    moved[:, 0, 3] += 0.15 * cell * (np.cos(angle) - np.cos(phase))
+                    moved[:, 1, 3] += 0.15 * cell * (np.sin(angle) - np.sin(phase))
+                    scene = scene.moved(moved)
+                placed = time.perf_counter()
+                master.load_scene(scene)
+                loaded = time.perf_counter()
+                job = master.render(view, tile_size=64)
+                while not job.finished:
+                    job.next_result(0.5)
+                if job.error:
+                    raise RuntimeError(job.error)
+                done = time.perf_counter()
+                sent = sum(master.scene_bytes.values())
+                rows.append((placed - started, loaded - placed, done - loaded, sent))
+                print(f"frame {frame:2d}: moved {1e3 * rows[-1][0]:7.1f} ms, load_scene "
+                      f"{1e3 * rows[-1][1]:8.1f} ms, render {rows[-1][2]:.2f} s "
+                      f"({(job.image['depth'] < 1e9).mean():.1%} of pixels hit), {sent:,} bytes "
+                      f"sent" + (" (whole scene)" if master.uploaded_to else ""), flush=True)
+    finally:
+        slave.stop()
+    later = np.array(rows[1:])
+    if len(later):
+        first = rows[0]
+        print(f"frames 1-{frames - 1} (median): moved {1e3 * np.median(later[:, 0]):.1f} ms, "
+              f"load_scene {1e3 * np.median(later[:, 1]):.1f} ms, render "
+              f"{np.median(later[:, 2]):.2f} s, {int(np.median(later[:, 3])):,} bytes a frame; "
+              f"frame 0 (whole upload): load_scene {first[1]:.2f} s, {first[3]:,} bytes "
+              f"({first[3] / np.median(later[:, 3]):,.0f}x the bytes, "
+              f"{first[1] / np.median(later[:, 1]):.0f}x the load time)")
 
 
 if __name__ == "__main__":
