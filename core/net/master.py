@@ -813,11 +813,10 @@ class _SlaveWorker:
     def _start(self) -> None:
         job = self.job
         job.loop.register(self)
-        self.connection.send(MsgType.FRAME_START, {
-            "frame_id": job.frame_id, "scene_hash": job.scene_hash, "view": job.view_dict,
-            "tile_size": job.tile_w, "tile_height": job.tile_h, "model": job.model,
-            "payload": job.payload, "compress": job.compress, "passes": list(job.passes)})
-        self._fill()
+        channel = self.connection.channel
+        with channel.batch():       # FRAME_START and the first requests in one write
+            channel.send_encoded(job.frame_start)
+            self._fill()
 
     def readable(self) -> None:
         self._guarded(self._receive)
@@ -1099,6 +1098,10 @@ class RenderJob:
         self.tile_budget, self.hold_when_stranded = tile_budget, hold_when_stranded
         self.scene_hash = scene_hash
         self.frame_id = uuid.uuid4().int >> 65   # unique across masters and renders; fits JSON ints
+        self.frame_start = protocol.encode_message(MsgType.FRAME_START, {   # the same for all
+            "frame_id": self.frame_id, "scene_hash": scene_hash, "view": self.view_dict,
+            "tile_size": self.tile_w, "tile_height": self.tile_h, "model": model,
+            "payload": payload, "compress": compress, "passes": list(self.passes)})
         self.pool = TilePool(len(self.tiles), max_copies=2 if duplicates else 1, order=order)
         self.tile_ms = [None] * len(self.tiles)   # render ms of each delivered tile
         self.limits = protocol.Limits(

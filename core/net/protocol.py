@@ -15,6 +15,7 @@ session key and an implicit sequence number (no injection, replay or reordering)
 """
 from __future__ import annotations
 
+import contextlib
 import enum
 import functools
 import hashlib
@@ -376,7 +377,8 @@ class Channel:
         self._ahead, self._ahead_pos = b"", 0   # received, not yet read (read-ahead)
         self._incoming: _Incoming | None = None  # the message under way
         self._rcvlowat = 1
-        self._send_lock = threading.Lock()
+        self._send_lock = threading.RLock()   # re-entered by sends inside batch()
+        self._batch: list | None = None        # buffers of a batch() under way
         self.last_sent = self.last_received = time.monotonic()
         self.bytes_sent = 0     # every byte this side has written to the socket
         self.closed = False
@@ -399,24 +401,46 @@ class Channel:
     # -- sending
 
     def send(self, msg_type: MsgType, header: dict | None = None, arrays: dict | None = None) -> None:
+        self.send_encoded(encode_message(msg_type, header, arrays))
+
+    def send_encoded(self, buffers: list) -> None:
+        """Send a message as encode_message returned it (one encoding for many peers: the
+        master's FRAME_START)."""
         with self._send_lock:
-            self._send_locked(msg_type, header, arrays)
+            self._send_locked(buffers)
 
     def try_send(self, msg_type: MsgType, header: dict | None = None) -> bool:
         """Send unless another send is under way (then bytes are flowing anyway): heartbeats."""
         if not self._send_lock.acquire(blocking=False):
             return False
         try:
-            self._send_locked(msg_type, header, None)
+            self._send_locked(encode_message(msg_type, header))
         finally:
             self._send_lock.release()
         return True
 
-    def _send_locked(self, msg_type, header, arrays) -> None:
-        buffers = encode_message(msg_type, header, arrays)
+    @contextlib.contextmanager
+    def batch(self):
+        """The messages this thread sends inside go out together in one write at the end (one
+        system call and one push instead of one each: a frame's start on many slaves)."""
+        with self._send_lock:
+            self._batch = []
+            try:
+                yield
+            finally:
+                buffers, self._batch = self._batch, None
+                self._write(buffers)
+
+    def _send_locked(self, buffers: list) -> None:
         if self._key is not None:
-            buffers.append(self._mac(self._send_label, self._send_seq, buffers))
+            buffers = buffers + [self._mac(self._send_label, self._send_seq, buffers)]
             self._send_seq += 1
+        if self._batch is not None:
+            self._batch += buffers
+        else:
+            self._write(buffers)
+
+    def _write(self, buffers: list) -> None:
         total = sum(len(b) for b in buffers)
         started, sent = time.monotonic(), 0
         for buffer in _coalesce(buffers):
