@@ -362,7 +362,7 @@ EMITTER = Record("EMITTER", "An emissive triangle (emitters buffer, emitter_coun
 # Instanced scenes (core/scene/instances.py; docs/instances.md): instances of meshes, each
 # mesh a compact kd-tree in object space, and a top-level BVH over the instances' world boxes
 # (core/accel/toplevel.py). Integers travel as uint bits of float slots.
-INSTANCE = Record("INSTANCE", "An instance (instances buffer, in the top level's leaf order)", 7, (
+INSTANCE = Record("INSTANCE", "An instance (instances buffer, in the top level's leaf order)", 10, (
     Slot("to_object", 0, "xyzw", "rows of the 3x4 world -> object transform", rows=3),
     Slot("to_world", 3, "xyzw", "rows of the 3x4 object -> world transform", rows=3),
     Slot("mesh", 6, "x", "its mesh: a row of the MESH table (uint bits)"),
@@ -370,6 +370,8 @@ INSTANCE = Record("INSTANCE", "An instance (instances buffer, in the top level's
          "before it (uint bits); key = key_base + triangle within the mesh"),
     Slot("visibility", 6, "z", "VISIBILITY_<RAY> bits of the rays that see it, and HOLDOUT"),
     Slot("orientation", 6, "w", "sign of det(to_world): -1 flips the geometric normal"),
+    Slot("to_world_end", 7, "xyzw", "rows of the object -> world transform at shutter close "
+         "(HAS_OBJECT_MOTION: blended with to_world at the ray's time)", rows=3),
 ))
 
 TOPLEVEL_NODE = Record("TOPLEVEL", "A top-level BVH node (toplevel buffer; node 0 the root)", 2, (

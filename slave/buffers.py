@@ -91,6 +91,8 @@ def pack_instances(instances) -> dict:
     records = np.zeros((len(order), INSTANCE.size, 4), np.float32)
     INSTANCE.put(records, "to_object", instances.to_object[order])
     INSTANCE.put(records, "to_world", instances.to_world[order])
+    end = instances.to_world if instances.to_world_end is None else instances.to_world_end
+    INSTANCE.put(records, "to_world_end", end[order])
     INSTANCE.put(records, "mesh", instances.mesh[order].view(np.float32))
     INSTANCE.put(records, "key_base", instances.key_base[order].view(np.float32))
     INSTANCE.put(records, "visibility", instances.visibility[order].astype(np.float32))

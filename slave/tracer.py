@@ -193,16 +193,25 @@ class Tracer:
         self._checked_view = None
         self._light_tables = None
 
+    def _toplevel_args(self, moment: float, flags) -> tuple:
+        """The top-level kernel arguments (TOPLEVEL_PARAMS): the buffers and, with
+        OBJECT_MOTION, the rays' moment in the shutter (the render kernel draws its own per
+        sample)."""
+        return (*self._toplevel, np.float32(moment)) if "OBJECT_MOTION" in flags else self._toplevel
+
     def _scene_buffers(self):
         if self._scene is None:
             raise TracerError("call load(scene) before tracing")
         return self._scene
 
     # -- ray queries ---------------------------------------------------------------------
-    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf) -> RayHits | InstanceHits:
-        """Nearest hit of each ray with t in [tmin, tmax], t in units of the direction's length."""
+    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf,
+                  time=0.0) -> RayHits | InstanceHits:
+        """Nearest hit of each ray with t in [tmin, tmax], t in units of the direction's length.
+        `time`: the rays' moment in the shutter interval [0, 1], where objects move (the
+        instances' transforms blended from shutter open to close)."""
         t, tri, u, v = self._query("intersect_rays", origins, directions, tmin, tmax,
-                                   (np.float32, np.int32, np.float32, np.float32))
+                                   (np.float32, np.int32, np.float32, np.float32), time)
         instances = self._loaded.instances
         if instances is None:
             return RayHits(t, tri, u, v)
@@ -212,14 +221,14 @@ class Tracer:
         triangle = np.where(inst < 0, -1, base.astype(np.int64) + local).astype(np.int32)
         return InstanceHits(t, triangle, u, v, inst)
 
-    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf, time=0.0) -> np.ndarray:
         """Whether each ray has a hit with t in [tmin, tmax] (a bool array): shadow rays. The
         traversal stops at the first hit it finds (trace_ray's any_hit), so this is faster
         than intersect() and says exactly whether intersect() would find a hit."""
-        (hit,) = self._query("occluded_rays", origins, directions, tmin, tmax, (np.uint8,))
+        (hit,) = self._query("occluded_rays", origins, directions, tmin, tmax, (np.uint8,), time)
         return hit.view(np.bool_)
 
-    def _query(self, kernel_name, origins, directions, tmin, tmax, out_dtypes) -> list:
+    def _query(self, kernel_name, origins, directions, tmin, tmax, out_dtypes, time) -> list:
         """Run a ray-query kernel of intersect.cl: checked rays in, one array per output."""
         cl = self._cl
         origins = np.ascontiguousarray(origins, dtype=np.float32)
@@ -234,6 +243,8 @@ class Tracer:
             raise ValueError("a ray direction is the zero vector")
         if math.isnan(tmin) or math.isnan(tmax):
             raise ValueError("tmin and tmax must not be NaN")
+        if not 0.0 <= time <= 1.0:
+            raise ValueError(f"a ray's time is in the shutter interval [0, 1], got {time}")
         scene = self._scene_buffers()
         n = len(origins)
         outs = [np.empty(n, dtype) for dtype in out_dtypes]
@@ -255,12 +266,14 @@ class Tracer:
         instanced = self._loaded.instances is not None
         packet = 0 if instanced else self.packet
         flags = ("INSTANCES",) if instanced else ()
+        if instanced and self._loaded.instances.moving:
+            flags += ("OBJECT_MOTION",)
         kernel = self._program(self._features(flags, packet=packet))[kernel_name]
         work_items = -(-n // packet) if packet else n
         kernel(self.queue, self._global_size(work_items), self._local(), o_buf, d_buf,
                np.float32(tmin), np.float32(tmax), np.uint32(n), scene["nodes"],
                scene["leaf_index32"], scene["leaf_index16"], scene["leaf_shift"],
-               scene["tri_verts"], scene["bounds"], *self._toplevel, *out_bufs)
+               scene["tri_verts"], scene["bounds"], *self._toplevel_args(time, flags), *out_bufs)
         for host, buf in zip(outs, out_bufs):
             cl.enqueue_copy(self.queue, host, buf)
         self.queue.finish()
@@ -305,7 +318,8 @@ class Tracer:
         fixed = (upload(pack_camera(view)), np.int32(x), np.int32(y), np.int32(w))
         world, env_cdf, emitters, emitter_count, emitter_power = self._lights_for(shading, flags)
         scene_args = (scene["nodes"], scene["leaf_index32"], scene["leaf_index16"],
-                      scene["leaf_shift"], scene["tri_verts"], scene["bounds"], *self._toplevel,
+                      scene["leaf_shift"], scene["tri_verts"], scene["bounds"],
+                      *self._toplevel_args(0.5, flags),
                       scene["material_ids"], upload(pack_materials(shading)),
                       upload(pack_lights(shading.lights)), np.uint32(len(shading.lights)),
                       scene["normals"], scene["uvs"], scene["texels"], scene["texture_sizes"],

@@ -10,7 +10,7 @@ import pytest
 from core.accel.compact import compact_tree
 from core.accel.kdtree import build_kdtree
 from core.accel.toplevel import build_toplevel
-from core.layout import TOPLEVEL_LEAF_MAX, TOPLEVEL_MAX_DEPTH
+from core.layout import INSTANCE, TOPLEVEL_LEAF_MAX, TOPLEVEL_MAX_DEPTH
 from core.scene.instances import MAX_INSTANCES
 from core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings,
                               SceneError, Shading, View)
@@ -181,7 +181,7 @@ def test_instanced_scene_survives_the_wire(bunny_and_sphere):
     report = memory_report(scene)
     assert report["triangles_stored"] == scene.geometry.triangle_count
     assert report["triangles_referenced"] == again.instances.referenced_triangles
-    assert report["bytes_top_level"] == scene.instances.toplevel.nodes.nbytes + 3 * 7 * 16
+    assert report["bytes_top_level"] == scene.instances.toplevel.nodes.nbytes + 3 * INSTANCE.size * 16
 
 
 def test_moved_instances_are_the_scene_with_those_transforms(bunny_and_sphere):

@@ -35,6 +35,7 @@ FEATURES = {
     "NORMAL_MAP": (),         # a node program evaluates a Normal Map (sets the shading normal)
     "BUMP": (),               # a node program evaluates a Bump (heights at three points)
     "INSTANCES": (),          # instanced meshes under a top-level BVH (docs/instances.md)
+    "OBJECT_MOTION": (),      # object motion blur: instances move while the shutter is open
 }
 ALL_FEATURES = frozenset(FEATURES)
 
@@ -96,6 +97,8 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
             features.add("HOLDOUT")
         if ((bits & VISIBLE_TO_ALL) != VISIBLE_TO_ALL).any():
             features.add("VISIBILITY")
+        if instances.moving:
+            features.add("OBJECT_MOTION")
     if view.film_transparent:
         features.add("TRANSPARENT_FILM")
     camera = view.camera

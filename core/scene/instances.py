@@ -8,6 +8,11 @@ that see it. `InstanceSet.checked` validates them once, where the scene enters, 
 what the kernels need: the inverse transforms (float64, stored float32), the instances' world
 boxes, their hit keys and the top-level BVH (core/accel/toplevel.py).
 
+Object motion blur: an instance may also carry its transform at shutter close (to_world_end);
+the kernels blend the two linearly at the ray's time and invert the blend. A point under
+linearly blended transforms moves linearly in time, so the union of the open and close world
+boxes bounds the instance over the whole shutter.
+
 Hit keys: an instance's triangles are numbered after those of the instances before it, as the
 triangles of the realised scene (every instance's triangles in world space, in instance order)
 would be; kernels report and break ties by this key, so an instanced scene gives the same
@@ -16,6 +21,7 @@ hits as its realised one.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from math import comb
 
 import numpy as np
 
@@ -48,6 +54,13 @@ class InstanceSet:
     mesh_bounds: np.ndarray     # (M, 2, 3) float32 object-space root boxes
     world_bounds: np.ndarray    # (I, 2, 3) float32 world boxes (rounded outward, widened)
     toplevel: TopLevel
+    to_world_end: np.ndarray | None = None  # (I, 3, 4) float32 at shutter close; None: still
+
+    @property
+    def moving(self) -> bool:
+        """Whether some instance's transform differs at shutter close (object motion blur)."""
+        return self.to_world_end is not None and \
+            not np.array_equal(self.to_world_end, self.to_world)
 
     @property
     def count(self) -> int:
@@ -59,9 +72,11 @@ class InstanceSet:
         return int(self.mesh_table[self.mesh, MESH.index("tri_count")].astype(np.int64).sum())
 
     @classmethod
-    def checked(cls, mesh, to_world, visibility, mesh_table, mesh_bounds) -> "InstanceSet":
+    def checked(cls, mesh, to_world, visibility, mesh_table, mesh_bounds,
+                to_world_end=None) -> "InstanceSet":
         """Validate instance arrays (as from the wire: mesh (I,) uint32, to_world (I, 3, 4)
-        float32, visibility (I,) uint8) against the mesh table; SceneError names the problem."""
+        float32, visibility (I,) uint8, to_world_end None or as to_world: the transforms at
+        shutter close) against the mesh table; SceneError names the problem."""
         count, meshes = len(mesh), len(mesh_table)
         if not 1 <= count <= MAX_INSTANCES:
             raise SceneError(f"an instanced scene has 1 to {MAX_INSTANCES} instances, got {count}")
@@ -97,13 +112,19 @@ class InstanceSet:
             raise SceneError(f"the instances reference {int(key_base[-1])} triangles, at most "
                              f"{MAX_REFERENCED_TRIANGLES}")
         world = world_boxes(matrix, mesh_bounds[mesh].astype(np.float64))
+        if to_world_end is not None:
+            end = _checked_motion(matrix, to_world_end, count)
+            end_world = world_boxes(end, mesh_bounds[mesh].astype(np.float64))
+            world = np.stack([np.minimum(world[:, 0], end_world[:, 0]),
+                              np.maximum(world[:, 1], end_world[:, 1])], axis=1)
+            to_world_end = to_world_end.astype(np.float32)
         if not np.isfinite(world).all() or np.abs(world).max() >= np.finfo(np.float32).max:
             raise SceneError("an instance's world box does not fit in float32")
         world32 = _outward(world)
         return cls(mesh.astype(np.uint32), to_world.astype(np.float32),
                    to_object.astype(np.float32), visibility.astype(np.uint8),
                    key_base[:-1].astype(np.uint32), mesh_table, mesh_bounds, world32,
-                   build_toplevel(world32[:, 0], world32[:, 1]))
+                   build_toplevel(world32[:, 0], world32[:, 1]), to_world_end)
 
     def bounds(self) -> np.ndarray:
         """(2, 3) float32: the world box of all instances."""
@@ -115,6 +136,41 @@ class InstanceSet:
         inst = np.where(key < 0, -1, inst)
         local = np.where(key < 0, -1, key - self.key_base[np.maximum(inst, 0)].astype(np.int64))
         return inst, local
+
+
+def _checked_motion(start: np.ndarray, to_world_end, count: int) -> np.ndarray:
+    """The (I, 3, 4) float64 transforms at shutter close, checked: finite, and every blend
+    (1 - t) start + t end for t in [0, 1] invertible. det of the blend is a cubic in t; it
+    keeps away from zero where its four Bernstein coefficients (from its values at t = 0,
+    1/3, 2/3, 1) have one sign and exceed MIN_RELATIVE_DET of the largest entry cubed (a
+    sufficient test: a blend through a half turn is refused)."""
+    if to_world_end.shape != (count, 3, 4):
+        raise SceneError(f"{len(to_world_end)} shutter-close transforms for {count} instances")
+    if not np.isfinite(to_world_end).all():
+        raise SceneError(f"instance {_first(~np.isfinite(to_world_end).all(axis=(1, 2)))}'s "
+                         f"shutter-close transform has NaN or infinite entries")
+    end = to_world_end.astype(np.float64)
+    a, b = start[:, :, :3], end[:, :, :3]
+    values = np.stack([np.linalg.det((1 - t) * a + t * b) for t in (0, 1 / 3, 2 / 3, 1)], axis=1)
+    bernstein = values @ _VALUES_TO_BERNSTEIN.T
+    scale = np.maximum(np.abs(a).max(axis=(1, 2)), np.abs(b).max(axis=(1, 2)))
+    limit = (MIN_RELATIVE_DET * scale ** 3)[:, None]
+    kept = (bernstein > limit).all(axis=1) | (bernstein < -limit).all(axis=1)
+    if not kept.all():
+        raise SceneError(f"instance {_first(~kept)}'s transform may become singular between "
+                         f"shutter open and close (it turns or scales through zero)")
+    return end
+
+
+def _values_to_bernstein() -> np.ndarray:
+    """The matrix that takes a cubic's values at t = 0, 1/3, 2/3, 1 to its Bernstein
+    coefficients."""
+    t = np.array([0, 1 / 3, 2 / 3, 1])
+    basis = np.stack([comb(3, k) * t ** k * (1 - t) ** (3 - k) for k in range(4)], axis=1)
+    return np.linalg.inv(basis)
+
+
+_VALUES_TO_BERNSTEIN = _values_to_bernstein()
 
 
 def _first(mask) -> int:

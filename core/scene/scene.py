@@ -56,7 +56,10 @@ INSTANCE_ARRAYS = {
     "instance_to_world": (np.dtype("<f4"), (-1, 3, 4)),
     "instance_visibility": (np.dtype("u1"), (-1,)),
 }
-# What a SCENE_INSTANCES message carries: the instances alone, for meshes the slave holds.
+# The instances' transforms at shutter close, carried only where some object moves (motion blur).
+MOTION_ARRAYS = {"instance_to_world_end": (np.dtype("<f4"), (-1, 3, 4))}
+# What a SCENE_INSTANCES message carries: the instances alone, for meshes the slave holds
+# (and MOTION_ARRAYS where they move).
 PLACEMENT_ARRAYS = ("instance_mesh", "instance_to_world", "instance_visibility")
 INSTANCED_SCENE_ARRAYS = {**{name: SCENE_ARRAYS[name] for name in ("vertices", "triangles",
                                                                   "material_ids", "nodes",
@@ -91,11 +94,13 @@ class Scene:
         """The scene of arrays received or read from disk (`wire_arrays` of a sender), after
         checking every name, dtype and shape, the geometry and the tree (so that no kernel ever
         indexes outside its buffers); SceneError names the problem."""
-        required = INSTANCED_SCENE_ARRAYS if "instance_mesh" in arrays else SCENE_ARRAYS
-        if not set(required) <= set(arrays) <= set(required) | set(OPTIONAL_SCENE_ARRAYS):
+        instanced = "instance_mesh" in arrays
+        required = INSTANCED_SCENE_ARRAYS if instanced else SCENE_ARRAYS
+        optional = {**OPTIONAL_SCENE_ARRAYS, **(MOTION_ARRAYS if instanced else {})}
+        if not set(required) <= set(arrays) <= set(required) | set(optional):
             raise SceneError(f"a scene must carry the arrays {sorted(required)} and optionally "
-                             f"{sorted(OPTIONAL_SCENE_ARRAYS)}, got {sorted(arrays)}")
-        _check_array_specs(arrays, {**required, **OPTIONAL_SCENE_ARRAYS})
+                             f"{sorted(optional)}, got {sorted(arrays)}")
+        _check_array_specs(arrays, {**required, **optional})
         geometry = Geometry(arrays["vertices"], arrays["triangles"], arrays["material_ids"],
                             **{name: arrays.get(name) for name in OPTIONAL_SCENE_ARRAYS})
         geometry.validate()
@@ -107,14 +112,16 @@ class Scene:
 
     @classmethod
     def from_instances(cls, meshes, instance_mesh, to_world, visibility=None, texels=None,
-                       texture_sizes=None) -> "Scene":
+                       texture_sizes=None, to_world_end=None) -> "Scene":
         """The scene of meshes (a list of (Geometry in object space, its KDTree or CompactTree);
         their optional arrays normals/uvs, where some mesh has them) placed by instances:
         instance_mesh (I,) mesh indices, to_world (I, 4, 4) or (I, 3, 4) object-to-world
-        transforms, visibility (I,) VISIBILITY bits (default: every ray). The textures are the
-        scene's. One identity instance of one mesh gives the flat scene (from_parts)."""
+        transforms, visibility (I,) VISIBILITY bits (default: every ray), to_world_end: the
+        transforms at shutter close (motion blur; None, or all equal to to_world: still). The
+        textures are the scene's. One identity instance of one mesh gives the flat scene."""
         instance_mesh = np.asarray(instance_mesh, np.int64).reshape(-1)
         matrices = as_3x4(to_world)
+        motion = _motion_arrays(matrices, to_world_end)
         visibility = np.full(len(instance_mesh), VISIBLE_TO_ALL, np.uint8) if visibility is None \
             else np.asarray(visibility, np.uint8).reshape(-1)
         if len(instance_mesh) and (instance_mesh.min() < 0 or instance_mesh.max() >= len(meshes)):
@@ -126,7 +133,8 @@ class Scene:
                 tree = compact_tree(tree, geometry.triangle_count, mode="standard")
             parts.append((geometry, tree))
         if len(parts) == 1 and len(instance_mesh) == 1 and \
-                np.array_equal(matrices[0], np.eye(3, 4)) and visibility[0] == VISIBLE_TO_ALL:
+                np.array_equal(matrices[0], np.eye(3, 4)) and visibility[0] == VISIBLE_TO_ALL \
+                and not motion:
             geometry, tree = parts[0]
             return cls.from_parts(Geometry(geometry.vertices, geometry.triangles,
                                            geometry.material_ids, geometry.normals,
@@ -138,7 +146,7 @@ class Scene:
         geometry.validate()
         arrays.update(instance_mesh=instance_mesh.astype(np.uint32),
                       instance_to_world=matrices.astype(np.float32),
-                      instance_visibility=visibility)
+                      instance_visibility=visibility, **motion)
         return cls._checked_instances(geometry, arrays)
 
     @classmethod
@@ -172,7 +180,8 @@ class Scene:
             except ValueError as exc:
                 raise SceneError(f"invalid kd-tree of mesh {m}: {exc}") from None
         instances = InstanceSet.checked(arrays["instance_mesh"], arrays["instance_to_world"],
-                                        arrays["instance_visibility"], table, mesh_bounds)
+                                        arrays["instance_visibility"], table, mesh_bounds,
+                                        arrays.get("instance_to_world_end"))
         tree = CompactTree(arrays["nodes"], arrays["leaf_index32"], arrays["leaf_index16"],
                            instances.bounds(), 0)
         used = np.unique(geometry.material_ids) if geometry.triangle_count else \
@@ -196,10 +205,11 @@ class Scene:
             raise SceneError(f"{len(as_3x4(to_world))} transforms for {old.count} instances")
         return self.placed(old.mesh, to_world, old.visibility if visibility is None else visibility)
 
-    def placed(self, instance_mesh, to_world, visibility=None) -> "Scene":
+    def placed(self, instance_mesh, to_world, visibility=None, to_world_end=None) -> "Scene":
         """This instanced scene's meshes placed by other instances (any number: instance_mesh
         (I,) mesh indices, to_world (I, 4, 4) or (I, 3, 4), visibility (I,), default: every
-        ray): only the instances are checked and the top level built; the meshes and their
+        ray), to_world_end (motion blur, as from_instances): only the instances are checked
+        and the top level built; the meshes and their
         trees are shared (same meshes_hash). The same scene as from_instances with these
         instances (but never flattened)."""
         if self.instances is None:
@@ -211,7 +221,8 @@ class Scene:
             visibility = np.full(len(mesh), VISIBLE_TO_ALL, np.uint8)
         if len(mesh) and mesh.min() < 0:
             raise SceneError("an instance uses a negative mesh index")
-        return self._placed(mesh.astype(np.uint32), matrices, np.asarray(visibility, np.uint8))
+        return self._placed(mesh.astype(np.uint32), matrices, np.asarray(visibility, np.uint8),
+                            **_motion_arrays(matrices, to_world_end))
 
     def placed_from_wire(self, arrays: dict) -> "Scene":
         """This scene's meshes placed by the instance arrays of a SCENE_INSTANCES message
@@ -219,17 +230,17 @@ class Scene:
         then the instances (InstanceSet.checked); SceneError names the problem."""
         if self.instances is None:
             raise SceneError("only an instanced scene has instances to place")
-        if set(arrays) != set(PLACEMENT_ARRAYS):
-            raise SceneError(f"instance arrays must be {sorted(PLACEMENT_ARRAYS)}, got "
-                             f"{sorted(arrays)}")
-        _check_array_specs(arrays, INSTANCE_ARRAYS)
+        if not set(PLACEMENT_ARRAYS) <= set(arrays) <= set(PLACEMENT_ARRAYS) | set(MOTION_ARRAYS):
+            raise SceneError(f"instance arrays must be {sorted(PLACEMENT_ARRAYS)} and optionally "
+                             f"{sorted(MOTION_ARRAYS)}, got {sorted(arrays)}")
+        _check_array_specs(arrays, {**INSTANCE_ARRAYS, **MOTION_ARRAYS})
         return self._placed(arrays["instance_mesh"], arrays["instance_to_world"],
-                            arrays["instance_visibility"])
+                            arrays["instance_visibility"], arrays.get("instance_to_world_end"))
 
-    def _placed(self, mesh, to_world, visibility) -> "Scene":
+    def _placed(self, mesh, to_world, visibility, instance_to_world_end=None) -> "Scene":
         old = self.instances
         instances = InstanceSet.checked(mesh, to_world, visibility, old.mesh_table,
-                                        old.mesh_bounds)
+                                        old.mesh_bounds, instance_to_world_end)
         tree = CompactTree(self.tree.nodes, self.tree.leaf_index32, self.tree.leaf_index16,
                            instances.bounds(), 0)
         scene = Scene(self.geometry, tree, _instanced_hash(self.meshes_hash, instances),
@@ -241,9 +252,7 @@ class Scene:
 
     def instance_arrays(self) -> dict:
         """An instanced scene's instance arrays as they travel (SCENE_INSTANCES, SCENE_UPLOAD)."""
-        inst = self.instances
-        return {"instance_mesh": inst.mesh, "instance_to_world": inst.to_world,
-                "instance_visibility": inst.visibility}
+        return _placement_arrays(self.instances)
 
     @functools.cached_property
     def mesh_parts(self) -> list | None:
@@ -306,11 +315,12 @@ class Scene:
         mesh_arrays = ("vertices", "triangles", "material_ids", "nodes", "leaf_index32",
                        "leaf_index16", "mesh_counts", "mesh_bounds")
         required = set(PLACEMENT_ARRAYS) | (set(mesh_arrays) if new.any() else set())
-        allowed = required | set(OPTIONAL_SCENE_ARRAYS)
+        allowed = required | set(OPTIONAL_SCENE_ARRAYS) | set(MOTION_ARRAYS)
         if not required <= set(carried) <= allowed:
             raise SceneError(f"SCENE_MESHES must carry {sorted(required)} and optionally "
                              f"{sorted(OPTIONAL_SCENE_ARRAYS)}, got {sorted(carried)}")
-        _check_array_specs(carried, {**SCENE_ARRAYS, **OPTIONAL_SCENE_ARRAYS, **INSTANCE_ARRAYS})
+        _check_array_specs(carried, {**SCENE_ARRAYS, **OPTIONAL_SCENE_ARRAYS, **INSTANCE_ARRAYS,
+                                     **MOTION_ARRAYS})
         sent = []
         if new.any():
             geometry = Geometry(*(carried[n] for n in ("vertices", "triangles", "material_ids")),
@@ -339,7 +349,8 @@ class Scene:
             parts.append(part)
         return cls.from_instances(parts, carried["instance_mesh"], carried["instance_to_world"],
                                   carried["instance_visibility"], carried.get("texels"),
-                                  carried.get("texture_sizes"))
+                                  carried.get("texture_sizes"),
+                                  carried.get("instance_to_world_end"))
 
     def mesh_trees(self) -> list:
         """An instanced scene's mesh trees (CompactTree views into the scene's tree arrays)."""
@@ -577,6 +588,25 @@ def _digest(prefix: bytes, arrays: dict) -> str:
 def _instanced_hash(meshes_hash: str, instances: InstanceSet) -> str:
     """An instanced scene's hash: its meshes' (which stay when only instances change) and
     the instance arrays."""
-    return _digest(b"instanced" + meshes_hash.encode(),
-                   {"instance_mesh": instances.mesh, "instance_to_world": instances.to_world,
-                    "instance_visibility": instances.visibility})
+    return _digest(b"instanced" + meshes_hash.encode(), _placement_arrays(instances))
+
+
+def _placement_arrays(instances: InstanceSet) -> dict:
+    """The instance arrays as they travel and are hashed (the shutter-close transforms only
+    where the instances move)."""
+    arrays = {"instance_mesh": instances.mesh, "instance_to_world": instances.to_world,
+              "instance_visibility": instances.visibility}
+    if instances.to_world_end is not None:
+        arrays["instance_to_world_end"] = instances.to_world_end
+    return arrays
+
+
+def _motion_arrays(matrices: np.ndarray, to_world_end) -> dict:
+    """{"instance_to_world_end": (I, 3, 4) float32} where the transforms at shutter close
+    differ from `matrices` (I, 3, 4), else {} (a still scene)."""
+    if to_world_end is None:
+        return {}
+    end = as_3x4(to_world_end).astype(np.float32)
+    if end.shape == matrices.shape and np.array_equal(end, matrices.astype(np.float32)):
+        return {}
+    return {"instance_to_world_end": end}

@@ -344,8 +344,11 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
 #ifdef HAS_DOF
         lens = aperture_sample(cam, rng_next(&rng), rng_next(&rng));
 #endif
-#ifdef HAS_CAMERA_MOTION
+#if defined(HAS_CAMERA_MOTION) || defined(HAS_OBJECT_MOTION)
         time = rng_next(&rng);
+#endif
+#ifdef HAS_OBJECT_MOTION
+        sc.top.time = time;         // the objects are where they are at the camera ray's moment
 #endif
         float3 o, d;
         camera_ray(cam, (float)px + jx, (float)py + jy, lens, time, &o, &d);
@@ -369,6 +372,9 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     stats[here] = st;
     if (write_aux && strata > 0) {
         // Depth and normal from the pixel centre, as with one sample.
+#ifdef HAS_OBJECT_MOTION
+        sc.top.time = 0.5f;
+#endif
         float3 o, d;
         camera_ray(cam, (float)px + 0.5f, (float)py + 0.5f, (float2)(0.0f, 0.0f), 0.5f, &o, &d);
         float along = dot(d, CAMERA_VIEW_AXIS(cam));

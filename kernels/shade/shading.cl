@@ -83,7 +83,7 @@ inline bool trace(const Scene *sc, float3 o, float3 d, float tmin, float tmax, b
 
 #ifdef HAS_INSTANCES
 // |m| v: bounds what an error of at most v per component becomes through m's linear part.
-inline float3 transform_abs(__global const float4 *m, float3 v)
+inline float3 transform_abs(const float4 *m, float3 v)
 {
     return (float3)(fabs(m[0].x) * v.x + fabs(m[0].y) * v.y + fabs(m[0].z) * v.z,
                     fabs(m[1].x) * v.x + fabs(m[1].y) * v.y + fabs(m[1].z) * v.z,
@@ -91,7 +91,7 @@ inline float3 transform_abs(__global const float4 *m, float3 v)
 }
 
 // A shading normal of the instance's mesh in world space (the inverse transpose), unit.
-inline float3 instance_normal(__global const float4 *to_object, float3 n)
+inline float3 instance_normal(const float4 *to_object, float3 n)
 {
     float3 w = transform_normal(to_object, n);
     float len = length(w);
@@ -116,13 +116,14 @@ inline Surface surface_at(const Scene *sc, const Hit *h, float3 d)
     // |M|, plus the transform's own rounding), the normal by the inverse transpose, flipped
     // where the transform mirrors (as the realised triangle's winding is).
     __global const float4 *I = sc->top.instances + INSTANCE_SIZE * h->inst;
-    __global const float4 *to_world = INSTANCE_TO_WORLD(I), *to_object = INSTANCE_TO_OBJECT(I);
+    Placement placement = instance_placement(I, &sc->top);
+    const float4 *to_world = placement.to_world, *to_object = placement.to_object;
     s.err = transform_abs(to_world, s.err)
             + HIT_ERROR * (transform_abs(to_world, fabs(s.p)) + fabs((float3)(to_world[0].w,
                                                                           to_world[1].w,
                                                                           to_world[2].w)));
-    s.p = transform_point(to_world, s.p);
-    n = transform_normal(to_object, n) * INSTANCE_ORIENTATION(I);
+    s.p = placed_point(to_world, s.p);
+    n = transform_normal(to_object, n) * placement.orientation;
 #endif
     float len = length(n);
     n = len > 0.0f && isfinite(len) ? n / len : -normalize(d);   // slivers: face the ray

@@ -478,11 +478,70 @@ typedef struct {
     __global const float4 *instances;   // INSTANCE records in the top level's leaf order
     __global const uint *meshes;        // MESH rows
     __global const float4 *mesh_bounds; // one BOUNDS record per mesh (object space)
+#ifdef HAS_OBJECT_MOTION
+    float time;                         // the rays' moment in the shutter interval [0, 1]
+#endif
 } TopLevel;
+
+// Where an instance is at the rays' time: its transforms (rows of 3x4 matrices).
+typedef struct {
+    float4 to_world[3];                 // object -> world
+    float4 to_object[3];                // world -> object
+    float orientation;                  // sign of det(to_world): -1 flips the geometric normal
+} Placement;
+
+// Instance record I's placement. With HAS_OBJECT_MOTION its transform blends linearly from
+// to_world (shutter open) to to_world_end (close) and the blend's linear part is inverted
+// here (the adjugate over the determinant; the scene's validation keeps the determinant away
+// from zero over the shutter). A point then moves linearly in time, so the union of the open
+// and close world boxes (the top level's) bounds it.
+KD_INLINE Placement instance_placement(__global const float4 *I, const TopLevel *top)
+{
+    Placement p;
+    __global const float4 *to_world = INSTANCE_TO_WORLD(I);
+#ifdef HAS_OBJECT_MOTION
+    __global const float4 *to_world_end = INSTANCE_TO_WORLD_END(I);
+    float time = top->time;
+    for (int k = 0; k < 3; ++k)
+        p.to_world[k] = (1.0f - time) * to_world[k] + time * to_world_end[k];
+    float3 r0 = p.to_world[0].xyz, r1 = p.to_world[1].xyz, r2 = p.to_world[2].xyz;
+    float3 c0 = cross(r1, r2), c1 = cross(r2, r0), c2 = cross(r0, r1);
+    float det = dot(r0, c0);
+    float3 t = (float3)(p.to_world[0].w, p.to_world[1].w, p.to_world[2].w);
+    float3 a0 = (float3)(c0.x, c1.x, c2.x) / det, a1 = (float3)(c0.y, c1.y, c2.y) / det;
+    float3 a2 = (float3)(c0.z, c1.z, c2.z) / det;
+    p.to_object[0] = (float4)(a0, -dot(a0, t));
+    p.to_object[1] = (float4)(a1, -dot(a1, t));
+    p.to_object[2] = (float4)(a2, -dot(a2, t));
+    p.orientation = det < 0.0f ? -1.0f : 1.0f;
+#else
+    __global const float4 *to_object = INSTANCE_TO_OBJECT(I);
+    for (int k = 0; k < 3; ++k) {
+        p.to_world[k] = to_world[k];
+        p.to_object[k] = to_object[k];
+    }
+    p.orientation = INSTANCE_ORIENTATION(I);
+#endif
+    return p;
+}
+
+// p and v through the 3x4 transform of rows m (private rows: a placement's), as transform_point
+// and transform_vector.
+KD_INLINE float3 placed_vector(const float4 *m, float3 v)
+{
+    float4 q = (float4)(v, 0.0f);
+    return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
+}
+
+KD_INLINE float3 placed_point(const float4 *m, float3 p)
+{
+    float4 q = (float4)(p, 1.0f);
+    return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
+}
 
 // v through the transpose of the linear part of m: a normal of object space to world space
 // when m is the world -> object transform (the inverse transpose of object -> world).
-KD_INLINE float3 transform_normal(__global const float4 *m, float3 n)
+KD_INLINE float3 transform_normal(const float4 *m, float3 n)
 {
     return (float3)(m[0].x * n.x + m[1].x * n.y + m[2].x * n.z,
                     m[0].y * n.x + m[1].y * n.y + m[2].y * n.z,
@@ -519,7 +578,6 @@ KD_INLINE bool consider_instance(const Ray *r, uint k, float tmin, bool any_hit,
                                  __global const float4 *tri_verts, Hit *hit)
 {
     __global const float4 *I = top->instances + INSTANCE_SIZE * k;
-    __global const float4 *to_object = INSTANCE_TO_OBJECT(I);
     uint mesh = as_uint(INSTANCE_MESH(I));
     __global const uint *row = top->meshes + MESH_COLUMNS * mesh;
     uint key_base = as_uint(INSTANCE_KEY_BASE(I));
@@ -529,9 +587,9 @@ KD_INLINE bool consider_instance(const Ray *r, uint k, float tmin, bool any_hit,
     // The origin relative to the instance's own origin first: A (o - T) rather than A o + b,
     // so the rounding scales with the ray's distance from the instance, not with where the
     // instance lies in the world (equal in exact arithmetic).
-    __global const float4 *to_world = INSTANCE_TO_WORLD(I);
-    float3 from_origin = r->o - (float3)(to_world[0].w, to_world[1].w, to_world[2].w);
-    Ray ro = make_ray(transform_vector(to_object, from_origin), transform_vector(to_object, r->d));
+    Placement p = instance_placement(I, top);
+    float3 from_origin = r->o - (float3)(p.to_world[0].w, p.to_world[1].w, p.to_world[2].w);
+    Ray ro = make_ray(placed_vector(p.to_object, from_origin), placed_vector(p.to_object, r->d));
     KdTree kd = mesh_kdtree(all, top, mesh);
     Hit h;
     if (!trace_ray(&ro, tmin, hit->t, any_hit, ignore, &kd, tri_verts + TRIANGLE_SIZE * row[MESH_TRI_BASE], &h))
@@ -608,9 +666,16 @@ inline bool trace_instances(const Ray *r, float tmin, float tmax, bool any_hit, 
 
 // The kernels' top-level arguments and the one traversal call of a scene, flat or instanced.
 #ifdef HAS_INSTANCES
+#ifdef HAS_OBJECT_MOTION
+// shutter_time: the moment of the rays (the render kernel draws one per sample instead).
+#define TOPLEVEL_PARAMS , __global const float4 *toplevel, __global const float4 *instances, \
+    __global const uint *meshes, __global const float4 *mesh_bounds, float shutter_time
+#define TOPLEVEL_MAKE(name) TopLevel name = {toplevel, instances, meshes, mesh_bounds, shutter_time}
+#else
 #define TOPLEVEL_PARAMS , __global const float4 *toplevel, __global const float4 *instances, \
     __global const uint *meshes, __global const float4 *mesh_bounds
 #define TOPLEVEL_MAKE(name) TopLevel name = {toplevel, instances, meshes, mesh_bounds}
+#endif
 #define TOPLEVEL_ARG (&top)
 #define trace_scene(r, tmin, tmax, any_hit, ignore, kd, top, tri_verts, hit) \
     trace_instances(r, tmin, tmax, any_hit, ignore, kd, top, tri_verts, hit)
