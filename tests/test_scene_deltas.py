@@ -137,6 +137,13 @@ def test_instances_from_the_wire_are_checked(scenes):
         with pytest.raises(SceneError, match=message):
             first.placed_from_wire(changed)
     # Other instances of the same meshes: another count, other meshes.
+    # Moving instances (motion blur) carry their shutter-close transforms.
+    blurred = first.placed(first.instances.mesh, first.instances.to_world,
+                           to_world_end=second.instances.to_world)
+    assert "instance_to_world_end" in blurred.instance_arrays()
+    assert first.placed_from_wire(blurred.instance_arrays()).hash == blurred.hash
+    held = {bytes(h): part for h, part in zip(first.mesh_hashes, first.mesh_parts)}
+    assert Scene.from_mesh_wire(blurred.mesh_wire_arrays([0, 0, 0]), held.get).hash == blurred.hash
     hashes = first.mesh_hashes
     placed = first.placed([1, 2, 2], _placement()[1][1:4])
     assert placed.meshes_hash == first.meshes_hash and placed.instances.count == 3

@@ -109,8 +109,9 @@ SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_
 # Tile passes: name -> (channels, dtype); (h, w) or (h, w, channels).
 TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3}
 TILE_BYTES_PER_PIXEL = 4 * sum(TILE_PASSES.values())   # the most a tile pixel may take
-# An instance on the wire: its mesh (u4), 3x4 transform (f4) and visibility (u1).
-INSTANCE_WIRE_BYTES = 4 + 12 * 4 + 1
+# The most an instance takes on the wire: its mesh (u4), 3x4 transforms at shutter open and
+# close (f4; the close one only with motion blur) and visibility (u1).
+INSTANCE_WIRE_BYTES = 4 + 2 * 12 * 4 + 1
 MESH_HASH_BYTES = 16
 
 class ProtocolError(Exception):
