@@ -788,6 +788,7 @@ class _SlaveWorker:
         self.job, self.connection = job, connection
         self.in_flight: set = set()
         self.alive = True
+        self.begun = False              # FRAME_START sent (or being sent)
         self.released = False           # its socket no longer read for this job
         self.cancelling = False         # waiting for the slave to confirm a cancel
         self.cancel_sent = False
@@ -812,6 +813,7 @@ class _SlaveWorker:
 
     def _start(self) -> None:
         job = self.job
+        self.begun = True
         job.loop.register(self)
         channel = self.connection.channel
         with channel.batch():       # FRAME_START and the first requests in one write
@@ -872,7 +874,9 @@ class _SlaveWorker:
         """Once the frame is over: cancel copies still out (and everything on a cancel), and
         stop reading once nothing is owed."""
         job = self.job
-        if self.released or not job.over:
+        if self.released or not self.begun:    # not begun: begin() lets it go
+            return
+        if not job.over:
             if not self.alive:
                 self._release()
             return
@@ -1234,7 +1238,7 @@ class RenderJob:
     def _offer(self) -> None:
         """Tiles went back to the pool: slaves with a free slot take them."""
         for worker in list(self._workers):
-            if worker.alive and not worker.released:
+            if worker.alive and worker.begun and not worker.released:
                 worker._guarded(worker._fill)
 
     def _worker_released(self) -> None:
