@@ -122,20 +122,23 @@ def test_animation_rebuilds_and_uploads_only_when_geometry_changes(tmp_path):
                             width=96, height=72)
     frames = {f["frame"]: f for f in result["frames"]}
     assert sorted(frames) == [1, 2, 3, 4, 5]
-    # The sphere moves until frame 3; after that only the camera moves. An animation exports
-    # every object as an instance of its object-space mesh (docs/instances.md, "Scene
-    # deltas"): the sphere's mesh and tree stay, frames 2-3 send each slave only the instances
-    # and frames 4-5 (the scene of frame 3) only the query.
-    assert [frames[f]["tree_built"] for f in range(1, 6)] == [True, False, False, False, False]
-    assert result["builds"] == frames[1]["builds"] == 3     # sphere, plane, bunny
+    # The sphere moves until frame 3, the camera over frames 3-5, the plane's mesh changes at
+    # frame 5. An animation exports every object as an instance of its object-space mesh
+    # (docs/instances.md, "Scene deltas"): the sphere's mesh and tree stay, frames 2-3 send each
+    # slave only the instances, frame 4 (the scene of frame 3) only the query, and frame 5
+    # rebuilds and sends only the plane (SCENE_MESHES), not the sphere and the bunny.
+    assert [frames[f]["tree_built"] for f in range(1, 6)] == [True, False, False, False, True]
+    assert frames[1]["builds"] == frames[4]["builds"] == 3     # sphere, plane, bunny
+    assert result["builds"] == frames[5]["builds"] == 4        # and the lifted plane
     assert frames[1]["uploaded_to"] and all(frames[f]["uploaded_to"] == [] for f in range(2, 6))
     first = frames[1]["scene_bytes"]
     assert len(first) == 2 and all(sent > 400_000 for sent in first.values()), first
     for f in (2, 3):     # 3 instances of 53 bytes, the query, SCENE_INSTANCES' JSON
         assert sorted(frames[f]["scene_bytes"]) == sorted(first)
         assert all(160 < sent < 1000 for sent in frames[f]["scene_bytes"].values()), frames[f]
-    for f in (4, 5):
-        assert all(sent < 300 for sent in frames[f]["scene_bytes"].values()), frames[f]
+    assert all(sent < 300 for sent in frames[4]["scene_bytes"].values()), frames[4]
+    # The plane's two triangles and tree, every mesh's hash, the instances.
+    assert all(sent < 3000 for sent in frames[5]["scene_bytes"].values()), frames[5]
     images = {f: np.load(tmp_path / f"anim_{f:04d}.npy") for f in range(1, 6)}
     assert all(not np.array_equal(images[f], images[f + 1]) for f in range(1, 5)), "every frame moves"
     # A still realises the objects that are alone (world-space mesh 0, built anew as it moved);

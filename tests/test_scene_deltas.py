@@ -4,6 +4,7 @@ slaves render it with the pixels of the whole scene loaded afresh."""
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 import pytest
@@ -97,11 +98,15 @@ def test_moving_two_of_ten_objects_sends_only_the_instances(scenes):
                                                       "meshes_hash": "0" * 32},
                             second.instance_arrays())
             assert master._scene_ready(connection, second.hash)[:2] == (False, False)
+            for slave in slaves:    # their output arrives on reader threads: wait for it
+                deadline = time.monotonic() + 10
+                while not ("placed scene" in slave.log and "sent 1 of the 3 meshes" in slave.log):
+                    assert time.monotonic() < deadline, slave.log
+                    time.sleep(0.05)
     finally:
         for slave in slaves:
             slave.stop()
     for slave in slaves:
-        assert "placed scene" in slave.log and "sent 1 of the 3 meshes" in slave.log, slave.log
         assert "Traceback" not in slave.log, slave.log
     # The slaves placed `second` on the meshes they held and kept their buffers: the same bits
     # as `second` loaded whole here.

@@ -1,7 +1,7 @@
-"""Render 5 frames: the sphere moves over frames 1-3, the camera over frames 3-5. Record per
-frame whether a kd-tree was rebuilt, whether the scene was uploaded and the bytes sent to each
-slave for it; then render frames 2 and 5 again as stills to compare with the animation's
-frames."""
+"""Render 5 frames: the sphere moves over frames 1-3, the camera over frames 3-5, and at frame 5
+a shape key lifts a corner of the plane (its mesh changes). Record per frame whether a kd-tree
+was rebuilt, whether the scene was uploaded and the bytes sent to each slave for it; then
+render frames 2 and 5 again as stills to compare with the animation's frames."""
 import bpy
 import numpy as np
 
@@ -23,6 +23,13 @@ for frame, x in ((1, -1.6), (3, -0.6)):
 for frame, x in ((3, 0.5), (5, 1.5)):
     scene.camera.location.x = x
     scene.camera.keyframe_insert("location", frame=frame)
+plane = bpy.data.objects["Plane"]
+plane.shape_key_add(name="Basis")
+lift = plane.shape_key_add(name="Lift")
+lift.data[0].co.z += 1.0
+for frame, value in ((4, 0.0), (5, 1.0)):
+    lift.value = value
+    lift.keyframe_insert("value", frame=frame)
 
 frames = []
 
