@@ -17,6 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..core.layout import VISIBILITY_CODES, VISIBLE_TO_ALL
+from ..core.scene.instances import blend_stays_invertible
 from ..core.scene.features import needed_arrays, scene_features, strip_geometry
 from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
                                 MAX_MATERIALS, RenderSettings, SceneError, Shading, View,
@@ -45,14 +46,17 @@ class InstancedExport(NamedTuple):
     to_world: np.ndarray        # (I, 4, 4) float64
     texels: np.ndarray | None
     texture_sizes: np.ndarray | None
+    to_world_end: np.ndarray | None = None  # (I, 4, 4) at shutter close where objects move
 
 
 def export_instanced_view(depsgraph, every_object: bool = False
                           ) -> tuple[InstancedExport, View, dict]:
     """export_view with the instances of shared meshes kept as instances (each mesh
     exported once, in object space). `every_object` (an animation render): an object of its
-    own mesh is an instance too, so when it only moves its mesh and kd-tree stay the same."""
-    (meshes, instance_mesh, to_world), view, warnings, materials = _export(
+    own mesh is an instance too, so when it only moves its mesh and kd-tree stay the same.
+    With Motion Blur on, an object whose transform changes over the shutter is an instance
+    with its transforms at shutter open and close (docs/instances.md, object motion blur)."""
+    (meshes, instance_mesh, to_world, to_world_end), view, warnings, materials = _export(
         depsgraph, True, every_object)
     texels, sizes = materials.texture_arrays()
     features = frozenset().union(*(scene_features(
@@ -61,7 +65,7 @@ def export_instanced_view(depsgraph, every_object: bool = False
     if "texels" not in needed_arrays(features):
         texels = sizes = None
     return (InstancedExport([strip_geometry(m, features) for m in meshes], instance_mesh,
-                            to_world, texels, sizes), view, {"warnings": warnings})
+                            to_world, texels, sizes, to_world_end), view, {"warnings": warnings})
 
 
 def _export(depsgraph, instanced: bool, every_object: bool = False):
@@ -70,11 +74,14 @@ def _export(depsgraph, instanced: bool, every_object: bool = False):
     materials = _MaterialTable(warnings)
     # The world first: its Environment Texture joins the material textures in one table.
     world_color, world_texture = export_world(scene, materials, warnings)
-    geometry = _export_geometry(depsgraph, materials, warnings, instanced, every_object)
+    motion_handled = set()   # objects whose motion the geometry blurred (or warned of)
+    geometry = _export_geometry(depsgraph, materials, warnings, instanced, every_object,
+                                motion_handled)
     shading = Shading(materials.colors(), _export_lights(depsgraph, warnings), world_color,
                       materials.params(), world_texture, np.array(materials.node_rows, np.float32))
     view = View(_export_camera(depsgraph, warnings), *render_size(scene), shading,
                 render_region(scene), render_settings(scene), bool(scene.render.film_transparent))
+    _motion_warnings(depsgraph, warnings, motion_handled)
     return geometry, view, warnings, materials
 
 
@@ -362,21 +369,27 @@ class _MeshParts:
 
 
 def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
-                     instanced: bool = False, every_object: bool = False):
+                     instanced: bool = False, every_object: bool = False, motion_handled=None):
     """All visible mesh geometry (objects and instances). NaN/inf vertices are rejected
     (naming the object); empty meshes are skipped and zero-area faces dropped, each with a
     warning naming the object.
 
     Not `instanced`: one Geometry of world-space triangles. `instanced` (docs/instances.md):
-    (meshes, instance_mesh, to_world): the instances of one evaluated mesh with the same
+    (meshes, instance_mesh, to_world, to_world_end): the instances of one evaluated mesh with the same
     materials share one object-space Geometry (read and exported once); mesh 0 holds the
     world-space triangles of everything realised (placed by the identity): meshes used by one
     instance only (unless `every_object`), and objects whose materials need world space
     (MaterialTable.world_space: emission, node programs). The textures are in none of the
-    meshes."""
+    meshes. With Motion Blur on, objects whose own transform changes over the shutter are
+    instances (even of a mesh used once) with their transforms at shutter open and close
+    (to_world_end; None when nothing moves), their names added to `motion_handled` (and the
+    names of those it cannot blend, with a warning)."""
     mesh_cache = {}  # evaluated mesh pointer -> arrays, so instances of one mesh are read once
     warned = set()
-    placed = []      # (object, arrays, slot materials, matrix, textured, shared key or None)
+    placed = []      # (object, arrays, slot materials, matrix, end matrix or None, textured,
+    #                   shared key or None)
+    scene = depsgraph.scene
+    blur = instanced and motion_handled is not None and scene.render.use_motion_blur
     for instance in depsgraph.object_instances:
         obj = instance.object
         if obj.type != "MESH" or not instance.show_self:
@@ -402,15 +415,26 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
         shareable = instanced and np.isfinite(matrix).all() and \
             abs(np.linalg.det(matrix[:3, :3])) > 0 and \
             not any(materials.world_space(i) for i in slot_materials)
-        placed.append((obj, arrays, slot_materials, matrix, textured,
+        end = None
+        if blur and shareable and not instance.is_instance and _is_animated(obj):
+            ends, _ = _over_shutter(scene, obj)     # a problem: warned (_motion_warnings)
+            if ends is not None and not np.allclose(ends[0], ends[1], rtol=0, atol=1e-9):
+                if blend_stays_invertible(ends[0][None], ends[1][None])[0]:
+                    matrix, end = ends
+                    motion_handled.add(obj.name)
+                else:
+                    warnings.append(f"object '{obj.name}': motion blur is not rendered (it "
+                                    "turns or scales through zero within the shutter)")
+                    motion_handled.add(obj.name)       # warned here, not again
+        placed.append((obj, arrays, slot_materials, matrix, end, textured,
                        (key, slot_materials.tobytes()) if shareable else None))
     uses = {}
     for *_, shared in placed:
         uses[shared] = uses.get(shared, 0) + 1
     world = _MeshParts(warnings, warned)
-    meshes, instance_mesh, to_world = {}, [], []    # shared key -> its parts, in order made
-    for obj, arrays, slot_materials, matrix, textured, shared in placed:
-        if shared is None or uses[shared] < (1 if every_object else 2):
+    meshes, instance_mesh, to_world, to_world_end = {}, [], [], []   # shared key -> its parts
+    for obj, arrays, slot_materials, matrix, end, textured, shared in placed:
+        if shared is None or (uses[shared] < (1 if every_object else 2) and end is None):
             world.add(obj, arrays, slot_materials, matrix, textured)
             continue
         if shared not in meshes:
@@ -419,6 +443,7 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
         if not meshes[shared].empty:
             instance_mesh.append(shared)
             to_world.append(matrix)
+            to_world_end.append(matrix if end is None else end)
     texels, sizes = materials.texture_arrays()
     with_uvs = texels is not None or bool(materials.node_rows)  # textures, node programs
     if not instanced:
@@ -430,7 +455,11 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
         out.insert(0, world.geometry(with_uvs))
         instance_mesh = [0] + [m + 1 for m in instance_mesh]
         to_world = [np.eye(4)] + to_world
-    return out, np.array(instance_mesh, np.int64), np.array(to_world, np.float64).reshape(-1, 4, 4)
+        to_world_end = [np.eye(4)] + to_world_end
+    moving = any(end is not None for _, _, _, _, end, _, _ in placed)
+    ends = np.array(to_world_end, np.float64).reshape(-1, 4, 4) if moving else None
+    return out, np.array(instance_mesh, np.int64), np.array(to_world, np.float64).reshape(-1, 4, 4), \
+        ends
 
 
 def object_visibility(obj) -> int:
@@ -445,17 +474,30 @@ def object_visibility(obj) -> int:
     return bits
 
 
-def _motion_warnings(depsgraph, warnings: list) -> None:
-    """With motion blur on: objects that move over the shutter are named (issue 15: only the
-    camera's motion is rendered)."""
+def _motion_warnings(depsgraph, warnings: list, motion_handled: set) -> None:
+    """With motion blur on: objects that move over the shutter and are not in `motion_handled`
+    (moved by parents, constraints or drivers, lights, realised objects) are named, and so
+    are meshes that deform (only an object's transform is blurred)."""
     scene = depsgraph.scene
     if not scene.render.use_motion_blur:
         return
     for obj in scene.objects:
         if obj.type in ("MESH", "CURVE", "FONT", "SURFACE", "META", "LIGHT") and \
-                _is_animated(obj):
-            warnings.append(f"object '{obj.name}': object motion blur is not rendered "
-                            "(the object is rendered where it is at the frame)")
+                _is_animated(obj) and obj.name not in motion_handled:
+            _, problem = _over_shutter(scene, obj)
+            warnings.append(f"object '{obj.name}': " + (
+                problem or "object motion blur is not rendered (the object is rendered where "
+                           "it is at the frame)"))
+        elif obj.type == "MESH" and _deforms(obj):
+            warnings.append(f"object '{obj.name}': its deformation over the shutter is not "
+                            "blurred (only the object's transform)")
+
+
+def _deforms(obj) -> bool:
+    """Whether the mesh may deform over time: animated shape keys or an armature."""
+    keys = obj.data.shape_keys
+    return (keys is not None and keys.animation_data is not None) or \
+        any(m.type == "ARMATURE" for m in obj.modifiers)
 
 
 def _is_animated(obj) -> bool:
@@ -513,12 +555,11 @@ def _export_camera(depsgraph, warnings: list) -> Camera:
                 problems.append(f"aperture ratio {dof.aperture_ratio:g} is rendered as 1")
     end = None
     if scene.render.use_motion_blur:
-        shutter, problem = _camera_over_shutter(scene, scene.camera)
+        shutter, problem = _over_shutter(scene, scene.camera)
         if problem:
             problems.append(problem)
         if shutter is not None:
-            to_world, end = shutter
-        _motion_warnings(depsgraph, warnings)
+            to_world, end = (_normalized(m) for m in shutter)
     if problems:
         warnings.append(f"camera '{scene.camera.name}': " + "; ".join(problems))
     return Camera(kind, to_world, (sx, sy), offset, data.clip_start, data.clip_end,
@@ -536,15 +577,16 @@ def _focus_distance(camera, dof) -> float:
     return float(abs(view_axis @ (np.array(m.translation) - target)))
 
 
-def _camera_over_shutter(scene, camera_object):
-    """((to_world at the shutter's open, at its close) or None when the camera does not move,
-    a problem or None). The shutter is open for Motion Blur > Shutter frames, starting at,
-    centred on or ending at the frame (Position); the camera's own keyframed location,
-    rotation and scale are evaluated at both ends (parents, constraints and drivers are not)."""
-    if not _is_animated(camera_object):
+def _over_shutter(scene, obj):
+    """((matrix_world at the shutter's open, at its close) or None when the object (a
+    camera too) does not move, a problem or None). The shutter is open for Motion Blur >
+    Shutter frames, starting at, centred on or ending at the frame (Position); the object's own
+    keyframed location, rotation and scale are evaluated at both ends (parents, constraints
+    and drivers are not)."""
+    if not _is_animated(obj):
         return None, None
-    anim = camera_object.animation_data
-    if camera_object.parent is not None or len(camera_object.constraints) or \
+    anim = obj.animation_data
+    if obj.parent is not None or len(obj.constraints) or \
             anim is None or anim.action is None or len(anim.drivers):
         return None, "motion blur from parents, constraints or drivers is not rendered"
     r = scene.render
@@ -552,10 +594,16 @@ def _camera_over_shutter(scene, camera_object):
     shutter = r.motion_blur_shutter
     start = {"START": frame, "CENTER": frame - 0.5 * shutter, "END": frame - shutter}[
         r.motion_blur_position]
-    ends = [_animated_matrix(camera_object, anim.action, t) for t in (start, start + shutter)]
+    ends = [_animated_matrix(obj, anim.action, t) for t in (start, start + shutter)]
     if ends[0] is None:
-        return None, "motion blur from this camera's animation is not rendered"
+        return None, "motion blur from this animation (delta transforms, axis-angle) is not rendered"
     return tuple(ends), None
+
+
+def _normalized(matrix: np.ndarray) -> np.ndarray:
+    """The 4x4 matrix with unit axes (a camera's transform without its scale)."""
+    from mathutils import Matrix
+    return np.array(Matrix(matrix.tolist()).normalized(), np.float64)
 
 
 def _animated_matrix(obj, action, time):
@@ -577,8 +625,8 @@ def _animated_matrix(obj, action, time):
         return None
     else:
         rotation = Euler(values["rotation_euler"], obj.rotation_mode).to_matrix()
-    matrix = Matrix.LocRotScale(Vector(values["location"]), rotation, Vector(values["scale"]))
-    return np.array(matrix.normalized(), np.float64)
+    return np.array(Matrix.LocRotScale(Vector(values["location"]), rotation,
+                                       Vector(values["scale"])), np.float64)
 
 
 def _action_curves(action, obj):

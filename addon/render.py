@@ -237,10 +237,12 @@ def frame_scene(state, meshes, trees, exported, tree_key) -> Scene:
     key = (tuple(m.content_hash() for m in meshes), tree_key, textures.hexdigest())
     last_key, last = state.last_scene or (None, None)
     if key == last_key and last.instances is not None:
-        return last.placed(exported.instance_mesh, exported.to_world)
+        return last.placed(exported.instance_mesh, exported.to_world,
+                           to_world_end=exported.to_world_end)
     scene = Scene.from_instances(list(zip(meshes, trees)), exported.instance_mesh,
                                  exported.to_world, texels=exported.texels,
-                                 texture_sizes=exported.texture_sizes)
+                                 texture_sizes=exported.texture_sizes,
+                                 to_world_end=exported.to_world_end)
     state.last_scene = (key, scene)
     return scene
 

@@ -2,8 +2,8 @@
 add-on, local slaves) at matched settings (tests/bpy_scripts/cycles_scenes.py): the world as
 a colour (sky fill) and as an HDRI (equirectangular and mirror ball, through a Mapping node),
 a room lit only by an emissive mesh, the BSDF nodes and Principled inputs, glass under an area
-light, Film > Transparent with a holdout, ray visibility, depth of field, camera motion
-blur, shader node programs and procedural textures. Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
+light, Film > Transparent with a holdout, ray visibility, depth of field, camera and
+object motion blur, shader node programs and procedural textures. Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
 uses; what is not supported is named in warnings. docs/cycles_features.md lists the rows."""
 from __future__ import annotations
 
@@ -31,6 +31,8 @@ SCENES = {
                             "WORLD"}),
     "depth_of_field": (12, {"AREA", "BOUNCES", "DOF", "SMOOTH", "WORLD"}),
     "camera_motion": (12, {"BOUNCES", "CAMERA_MOTION", "SMOOTH", "SOFT_LIGHTS", "SUN", "WORLD"}),
+    "object_motion": (12, {"BOUNCES", "INSTANCES", "OBJECT_MOTION", "SMOOTH", "SOFT_LIGHTS",
+                           "SUN", "WORLD"}),
     "nodes": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "nodes_more": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "generated": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "WORLD"}),

@@ -150,16 +150,22 @@ def _checked_motion(start: np.ndarray, to_world_end, count: int) -> np.ndarray:
         raise SceneError(f"instance {_first(~np.isfinite(to_world_end).all(axis=(1, 2)))}'s "
                          f"shutter-close transform has NaN or infinite entries")
     end = to_world_end.astype(np.float64)
-    a, b = start[:, :, :3], end[:, :, :3]
-    values = np.stack([np.linalg.det((1 - t) * a + t * b) for t in (0, 1 / 3, 2 / 3, 1)], axis=1)
-    bernstein = values @ _VALUES_TO_BERNSTEIN.T
-    scale = np.maximum(np.abs(a).max(axis=(1, 2)), np.abs(b).max(axis=(1, 2)))
-    limit = (MIN_RELATIVE_DET * scale ** 3)[:, None]
-    kept = (bernstein > limit).all(axis=1) | (bernstein < -limit).all(axis=1)
+    kept = blend_stays_invertible(start, end)
     if not kept.all():
         raise SceneError(f"instance {_first(~kept)}'s transform may become singular between "
                          f"shutter open and close (it turns or scales through zero)")
     return end
+
+
+def blend_stays_invertible(start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """(I,) bool: whether every blend (1 - t) start + t end, t in [0, 1], of the (I, 3, 4)
+    (or 4x4) transforms is invertible, by the Bernstein test of _checked_motion."""
+    a, b = np.asarray(start, np.float64)[:, :3, :3], np.asarray(end, np.float64)[:, :3, :3]
+    values = np.stack([np.linalg.det((1 - t) * a + t * b) for t in (0, 1 / 3, 2 / 3, 1)], axis=1)
+    bernstein = values @ _VALUES_TO_BERNSTEIN.T
+    scale = np.maximum(np.abs(a).max(axis=(1, 2)), np.abs(b).max(axis=(1, 2)))
+    limit = (MIN_RELATIVE_DET * scale ** 3)[:, None]
+    return (bernstein > limit).all(axis=1) | (bernstein < -limit).all(axis=1)
 
 
 def _values_to_bernstein() -> np.ndarray:

@@ -20,7 +20,20 @@ args, result_path = arguments()
 install_extension(args["zip"])
 import importlib
 export = importlib.import_module("bl_ext.user_default.kdtrace.addon.export")
-features_of = importlib.import_module("bl_ext.user_default.kdtrace.core.scene.features").scene_features
+Scene = importlib.import_module("bl_ext.user_default.kdtrace.core.scene.scene").Scene
+kdtree = importlib.import_module("bl_ext.user_default.kdtrace.core.accel.kdtree")
+
+
+def rendered_scene(depsgraph):
+    """What the render exports (export_instanced_view): the scene, its view and warnings.
+    Its features do not depend on the kd-trees: one level each is enough (and quick)."""
+    exported, view, info = export.export_instanced_view(depsgraph)
+    shallow = kdtree.KDTreeParams(max_depth=1)
+    meshes = [(m, kdtree.build_kdtree(m.vertices, m.triangles, shallow)) for m in exported.meshes]
+    scene = Scene.from_instances(meshes, exported.instance_mesh, exported.to_world,
+                                 texels=exported.texels, texture_sizes=exported.texture_sizes,
+                                 to_world_end=exported.to_world_end)
+    return scene, view, info
 OUT = args["out"]
 SUN = (math.radians(40), math.radians(35))      # azimuth, elevation of the HDRI's sun
 
@@ -380,6 +393,22 @@ def build(name):
         scene.render.motion_blur_shutter = 0.5
         scene.render.motion_blur_position = "CENTER"
         scene.frame_set(1)
+    elif name == "object_motion":
+        # A cube slides sideways and turns a little while the shutter is open (half a frame,
+        # centred); the ball and the camera stay.
+        world((0.25, 0.28, 0.32))
+        floor(material("floor", "DIFFUSE", (0.55, 0.55, 0.55)))
+        sphere(material("ball", "DIFFUSE", (0.8, 0.3, 0.2)), (-0.9, 0.4, 0.5), radius=0.5)
+        box = add(bpy.ops.mesh.primitive_cube_add, material("box", "DIFFUSE", (0.2, 0.5, 0.8)),
+                  size=0.7, location=(0.0, -0.2, 0.35))
+        keyframes(box, "location", {0: (-0.6, -0.2, 0.35), 2: (1.4, -0.2, 0.35)})
+        keyframes(box, "rotation_euler", {0: (0.0, 0.0, 0.0), 2: (0.0, 0.0, 0.4)})
+        light("SUN", (0, 0, 5), (0.8, 1.2, 0), energy=3.0, angle=math.radians(2))
+        camera((0.0, -4.0, 1.8), (0, 0.3, 0.4), lens=35)
+        scene.render.use_motion_blur = True
+        scene.render.motion_blur_shutter = 0.5
+        scene.render.motion_blur_position = "CENTER"
+        scene.frame_set(1)
     elif name == "nodes":
         # Shader nodes evaluated per hit: Checker through a Mix (Multiply) on the floor; an
         # image's channels (Separate Color) as Roughness and, through Math, Metallic, its red
@@ -660,11 +689,14 @@ def build(name):
         add(bpy.ops.mesh.primitive_cube_add, noisy, size=0.4, location=(-1.5, 0.0, 0.2)).name = "noisy cube"
         light("AREA", (0, 0, 3), (0, 0, 0), energy=100.0, size=1.0, spread=math.radians(60))
         bpy.data.objects["area"].name = "narrow area"
-        # Object motion blur (issue 15) is named, not rendered.
+        # Motion blur of an object moved by its parent is named, not rendered.
         mover = add(bpy.ops.mesh.primitive_cube_add, material("box"), size=0.5,
                     location=(1.5, 0.0, 0.25))
         mover.name = "moving box"
-        keyframes(mover, "location", {0: (1.5, 0.0, 0.25), 2: (1.5, 1.0, 0.25)})
+        bpy.ops.object.empty_add(location=(0.0, 0.0, 0.0))
+        carrier = bpy.context.object
+        mover.parent = carrier
+        keyframes(carrier, "location", {0: (0.0, 0.0, 0.0), 2: (0.0, 1.0, 0.0)})
         scene.render.use_motion_blur = True
         scene.frame_set(1)
         camera((0.0, -4.0, 1.5), (0, 0, 0.5))
@@ -705,10 +737,11 @@ for name in args["scenes"]:
     scene.render.image_settings.file_format = "OPEN_EXR"
     scene.render.image_settings.color_depth = "32"
     settings = dict(args["kdtrace"], **args.get("per_scene", {}).get(name, {}))
-    geometry, view, info = export.export_view(bpy.context.evaluated_depsgraph_get())
+    geometry, view, _ = export.export_view(bpy.context.evaluated_depsgraph_get())
+    rendered, rendered_view, info = rendered_scene(bpy.context.evaluated_depsgraph_get())
     warnings[name] = info["warnings"]
     with open(f"{OUT}/{name}-features.json", "w") as f:
-        json.dump(sorted(features_of(geometry, view)), f)
+        json.dump(sorted(rendered.features(rendered_view)), f)
     np.savez(f"{OUT}/{name}-scene.npz", **geometry.arrays())
     with open(f"{OUT}/{name}-view.json", "w") as f:
         json.dump(view.to_dict(), f)
