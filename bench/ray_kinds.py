@@ -14,6 +14,8 @@ hits, the secondary rays a path tracer makes, the same rays for both tracers:
 - shadow_point: towards a point light, any hit up to the light;
 - shadow_area: towards a random point of a square area light, any hit;
 - glossy: a GGX reflection (roughness 0.3) per hit, in pixel order.
+Then the render kernel on the whole view (render_tile: the scene's shading, trace_ray for every
+ray), each tracer's best time and whether their passes are identical (no Embree counterpart).
 Shadow rays are any-hit queries: Embree's occluded query, our `Tracer.occluded`. Times are
 process CPU time, best of --repeat, the tracers and Embree alternating within each repeat, with
 the process pinned to one CPU (PoCL then runs one thread, and Embree's threads share that
@@ -209,6 +211,26 @@ def scene_rays(name, vertices, triangles, size, embree):
     return rays
 
 
+def render_times(tracers, view, repeat):
+    """The render kernel (render_tile of the whole view: trace_ray for every ray) through each
+    tracer, alternating; best process CPU time of each, and whether their passes agree."""
+    passes = {label: tracer.render_tile(view, 0, 0, view.width, view.height)   # compiles
+              for label, tracer in tracers.items()}
+    first = next(iter(passes.values()))
+    identical = all(np.array_equal(p[name], first[name]) for p in passes.values() for name in first)
+    times = {label: [] for label in tracers}
+    for r in range(repeat):
+        for label in (list(tracers) if r % 2 == 0 else list(tracers)[::-1]):
+            started = time.process_time()
+            tracers[label].render_tile(view, 0, 0, view.width, view.height)
+            times[label].append(time.process_time() - started)
+    best = {label: min(t) for label, t in times.items()}
+    print(f"  render {view.width}x{view.height}  " + "  ".join(
+        f"{label} {seconds:.3f} s" for label, seconds in best.items())
+        + f"  (passes {'identical' if identical else 'DIFFER'})", flush=True)
+    return {"seconds": best, "identical": identical}
+
+
 def run_scene(name, args, cache, tracers):
     """Every ray kind of scene `name` through each of `tracers` (label -> Tracer) and Embree,
     alternating in every repeat; best process CPU time of each."""
@@ -262,7 +284,8 @@ def run_scene(name, args, cache, tracers):
         print(f"  {kind:14s} {len(o):>9,} rays  Embree {row['embree_mrays']:6.2f} Mrays/s  " + "  ".join(
             f"{label} {row[label]['mrays']:6.2f} ({row[label]['ratio']:.3f}, "
             f"{100 * row[label]['agreement']:.2f} %)" for label in tracers), flush=True)
-    return {"triangles": len(triangles), "mode": args.mode, "kinds": results,
+    render = render_times(tracers, table3_view(name, vertices, args.size), args.repeat)
+    return {"triangles": len(triangles), "mode": args.mode, "kinds": results, "render": render,
             "treelet_order_s": treelet_s, "ray_order_s": sort_s, "load_s": load_s}
 
 

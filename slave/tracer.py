@@ -63,7 +63,9 @@ def kernel_options(features: dict) -> list:
     -DHAS_<NAME>), "light_kinds" (extra light kinds, for callers that only name those),
     "correct_divide_sqrt" (bool: the device can round / and sqrt correctly, which keeps pixels
     identical across devices), "packet" (rays per work-item of intersect_rays: 8 on CPU
-    devices, 0 elsewhere). Never fast-math: traversal needs inf/NaN/-0.
+    devices, 0 elsewhere), "prefetch" (bool: trace_ray fetches a leaf's triangles ahead of
+    their tests with clang's __builtin_prefetch; CPU devices). Never fast-math: traversal
+    needs inf/NaN/-0.
     """
     options = [f"-DKD_STACK_SIZE={int(features.get('stack_size', MIN_STACK_SIZE))}"]
     flags = set(features.get("flags", ())) | set(features.get("light_kinds", ()))
@@ -72,6 +74,8 @@ def kernel_options(features: dict) -> list:
         options.append("-cl-fp32-correctly-rounded-divide-sqrt")
     if features.get("packet"):
         options.append(f"-DKD_PACKET={int(features['packet'])}")
+    if features.get("prefetch"):
+        options.append("-DKD_PREFETCH")
     return options
 
 
@@ -122,7 +126,7 @@ class Tracer:
         fp = getattr(self.device, "single_fp_config", 0)
         return {"stack_size": self._stack_size, "flags": tuple(sorted(flags)),
                 "correct_divide_sqrt": bool(fp & self._cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT),
-                "packet": packet}
+                "packet": packet, "prefetch": bool(self.device.type & self._cl.device_type.CPU)}
 
     def _program(self, features: dict):
         return self._programs.kernels(self._source, kernel_options(features))

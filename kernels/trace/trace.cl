@@ -6,8 +6,9 @@
 // core/opencl.py kernel_source puts before the kernel files (generated from core/layout.py).
 //
 // Build options (slave/tracer.py kernel_options): KD_STACK_SIZE (>= tree depth + 1),
-// KD_PACKET (packet.cl), HAS_<FEATURE> (shading.cl), and KDTRACE_HASH (core/opencl.py: a hash
-// of source and options, so no driver cache can serve a stale binary).
+// KD_PACKET (packet.cl), KD_PREFETCH (CPU devices: prefetch_triangle), HAS_<FEATURE>
+// (shading.cl), and KDTRACE_HASH (core/opencl.py: a hash of source and options, so no driver
+// cache can serve a stale binary).
 
 // Same rounding on every device: no silent a*b+c -> fma contraction.
 #pragma OPENCL FP_CONTRACT OFF
@@ -160,6 +161,19 @@ KD_INLINE bool intersect_triangle(const TriRay *q, Corners c,
     *u_out = e1 / det;
     *v_out = e2 / det;
     return true;
+}
+
+// Where the host defines KD_PREFETCH (CPU devices): asks for both cache lines the TRIANGLE
+// record of `tri` may span, so that a leaf's records are fetched together before its tests
+// (an incoherent ray's are seldom in cache, and a test's data-dependent branches keep the CPU
+// from running ahead to the next record's loads). Nothing elsewhere.
+KD_INLINE void prefetch_triangle(__global const float4 *tri_verts, uint tri)
+{
+#ifdef KD_PREFETCH
+    __global const float4 *record = tri_verts + TRIANGLE_SIZE * tri;
+    __builtin_prefetch((__global const char *)record);
+    __builtin_prefetch((__global const char *)(record + TRIANGLE_SIZE) - 1);
+#endif
 }
 
 // Tolerance of the stopping test, relative to t and to the scene's size along the ray: a
@@ -446,6 +460,10 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
             // hit found here outside the cell is still a valid candidate, kept until a nearer
             // one appears).
             LeafNode leaf = leaf_node(kd, n);
+            for (uint i = 0; i < leaf.count16; ++i)
+                prefetch_triangle(tri_verts, leaf16_triangle(&leaf, i));
+            for (uint i = 0; i < leaf.count32; ++i)
+                prefetch_triangle(tri_verts, leaf32_triangle(&leaf, i));
             bool found = false;
             for (uint i = 0; i < leaf.count16 && !found; ++i)
                 found = consider(&q, leaf16_triangle(&leaf, i), ignore_tri, tri_verts, tmin, &b)
