@@ -54,9 +54,10 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         default="F32")
     interaction: EnumProperty(
         name="Interaction", description="How the master talks to each slave (the paper's Fig. 3)",
-        items=[("3b", "Overlapped", "Separate threads send tile indices and receive tiles, "
-                "so slaves render while tiles travel", 0),
-               ("3a", "Simple", "One thread per slave sends a tile index, then waits for the tile", 1)],
+        items=[("3b", "Overlapped", "Each slave holds several tiles at once, so it renders "
+                "while finished tiles travel", 0),
+               ("3a", "Simple", "Each slave is given one tile at a time; the next is asked for "
+                "once that tile has arrived", 1)],
         default=DEFAULT_MODEL)
 
     # Sampling and Light Paths, as Cycles' panels (defaults and ranges: core RenderSettings).
