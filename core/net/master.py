@@ -488,10 +488,10 @@ class Master:
         return scene.hash
 
     def _ensure_scene(self, connection: SlaveConnection, scene: Scene) -> bool:
-        """Make `scene` present on the slave; True if it had to be uploaded whole. An instanced scene
-        whose meshes the slave holds (the same meshes_hash: only instances changed) gets the
-        instance arrays alone (SCENE_INSTANCES; the slave builds only its top level); one of
-        whose meshes the slave holds some gets the others (SCENE_MESHES, by mesh hash)."""
+        """Make `scene` present on the slave; True if it was uploaded whole. Where the slave
+        holds an instanced scene's meshes (the same meshes_hash: only instances changed), it is
+        sent the instance arrays alone (SCENE_INSTANCES; it builds only its top level); where
+        it holds some of them, the others (SCENE_MESHES, by mesh hash)."""
         sent_before = connection.channel.bytes_sent
         query = {"scene_hash": scene.hash}
         if scene.meshes_hash is not None:

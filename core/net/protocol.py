@@ -101,7 +101,8 @@ class MsgType(enum.IntEnum):
 
 
 MASTER_TO_SLAVE = frozenset({MsgType.HELLO, MsgType.SCENE_QUERY, MsgType.SCENE_UPLOAD,
-                             MsgType.SCENE_INSTANCES, MsgType.SCENE_MESHES, MsgType.FRAME_START, MsgType.TILE_REQUEST, MsgType.CANCEL,
+                             MsgType.SCENE_INSTANCES, MsgType.SCENE_MESHES, MsgType.FRAME_START,
+                             MsgType.TILE_REQUEST, MsgType.CANCEL,
                              MsgType.ERROR, MsgType.BYE, MsgType.AUTH, MsgType.HEARTBEAT})
 SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_RESULT,
                              MsgType.CANCEL, MsgType.ERROR, MsgType.CHALLENGE, MsgType.HEARTBEAT})
