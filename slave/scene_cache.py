@@ -1,7 +1,8 @@
 """Scenes a slave holds, by content hash: a small LRU in memory and, optionally, a folder on
 disk with a size limit, so a restarted slave or a second master uploads nothing. The scenes in
-memory are also found by their meshes' hash (`with_meshes`), so a frame whose instances alone
-changed travels as instance arrays (docs/instances.md, "Scene deltas").
+memory and on disk are also found by their meshes' hash (`with_meshes`; on disk through a small
+file `meshes-<meshes hash>.txt` naming the scene), so a frame whose instances alone changed
+travels as instance arrays (docs/instances.md, "Scene deltas").
 
 The disk copy is read back through the same validation as an upload (`Scene.from_wire`) and
 its hash is recomputed: a damaged or tampered file is deleted, never trusted. Files are .npz
@@ -38,6 +39,10 @@ class SceneCache:
     def _path(self, scene_hash: str) -> pathlib.Path:
         return self.disk_dir / f"{protocol.check_scene_hash(scene_hash)}.npz"
 
+    def _meshes_path(self, meshes_hash: str) -> pathlib.Path:
+        """The file naming the scene on disk that holds these meshes (its hash)."""
+        return self.disk_dir / f"meshes-{protocol.check_scene_hash(meshes_hash)}.txt"
+
     def get(self, scene_hash: str):
         with self._lock:
             scene = self._scenes.get(scene_hash)
@@ -50,13 +55,24 @@ class SceneCache:
         return scene
 
     def with_meshes(self, meshes_hash: str):
-        """A scene in memory whose meshes (geometry and trees) hash to `meshes_hash`: an
-        instanced scene of other instances shares them (Scene.placed_from_wire)."""
+        """A scene whose meshes (geometry and trees) hash to `meshes_hash`, in memory or on
+        disk: an instanced scene of other instances shares them (Scene.placed_from_wire)."""
         with self._lock:
             for scene in reversed(self._scenes.values()):
                 if scene.meshes_hash == meshes_hash:
                     return scene
-        return None
+        if self.disk_dir is None:
+            return None
+        pointer = self._meshes_path(meshes_hash)
+        try:
+            scene_hash = protocol.check_scene_hash(pointer.read_text()[:64])
+        except (OSError, protocol.ProtocolError):
+            return None
+        scene = self.get(scene_hash)
+        if scene is None or scene.meshes_hash != meshes_hash:
+            pointer.unlink(missing_ok=True)     # its scene is gone (trimmed) or not that one
+            return None
+        return scene
 
     def held_mesh(self, mesh_hash: bytes):
         """(Geometry, CompactTree) of a mesh with this hash (Scene.mesh_hashes) in a scene in
@@ -106,6 +122,10 @@ class SceneCache:
         with open(temporary, "wb") as handle:
             np.savez(handle, **arrays)
         os.replace(temporary, path)
+        if scene.meshes_hash is not None:
+            with open(temporary, "w") as handle:
+                handle.write(scene.hash)
+            os.replace(temporary, self._meshes_path(scene.meshes_hash))
         self._trim_disk(keep=path)
 
     def _trim_disk(self, keep: pathlib.Path) -> None:

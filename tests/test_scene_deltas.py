@@ -175,3 +175,16 @@ def test_meshes_from_the_wire_are_checked(scenes):
             Scene.from_mesh_wire(changed_arrays, held.get)
     with pytest.raises(SceneError, match="neither carried nor held"):
         Scene.from_mesh_wire(arrays, {}.get)
+
+
+def test_a_restarted_slave_finds_the_meshes_on_disk(scenes, tmp_path):
+    from slave.scene_cache import SceneCache
+    first, second, changed = scenes
+    SceneCache(2, tmp_path).put(first)
+    fresh = SceneCache(2, tmp_path)                  # a restarted slave: nothing in memory
+    assert fresh.with_meshes(second.meshes_hash).hash == first.hash
+    assert fresh.with_meshes(changed.meshes_hash) is None
+    # A pointer to a scene that is gone (or names another one) is dropped.
+    (tmp_path / f"{first.hash}.npz").unlink()
+    assert SceneCache(2, tmp_path).with_meshes(first.meshes_hash) is None
+    assert not (tmp_path / f"meshes-{first.meshes_hash}.txt").exists()
