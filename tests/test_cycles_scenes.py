@@ -116,6 +116,7 @@ def test_unsupported_things_are_named(renders):
     one("material 'coated'", "object 'coated ball'", "Coat Weight", "Normal")
     one("material 'toon'", "object 'toon floor'", "Toon")
     one("light 'narrow area'", "spread")
-    one("object 'moving box'", "motion blur")
+    one("object 'moving box'", "motion blur", "parents")
+    one("object 'spinning box'", "motion blur", "turns or scales through zero")
     one("material 'noisy'", "object 'noisy cube'", "Voronoi Texture")
-    assert len(warnings) == 6, warnings
+    assert len(warnings) == 7, warnings

@@ -697,7 +697,15 @@ def build(name):
         carrier = bpy.context.object
         mover.parent = carrier
         keyframes(carrier, "location", {0: (0.0, 0.0, 0.0), 2: (0.0, 1.0, 0.0)})
+        # A half turn within the shutter (frames 0.75 to 1.25, keyed at both): its linear
+        # blend would pass a singular matrix.
+        spinner = add(bpy.ops.mesh.primitive_cube_add, material("box"), size=0.3,
+                      location=(-0.8, 0.8, 0.15))
+        spinner.name = "spinning box"
+        keyframes(spinner, "rotation_euler", {0.75: (0.0, 0.0, 0.0), 1.25: (0.0, 0.0, math.pi)})
         scene.render.use_motion_blur = True
+        scene.render.motion_blur_shutter = 0.5
+        scene.render.motion_blur_position = "CENTER"
         scene.frame_set(1)
         camera((0.0, -4.0, 1.5), (0, 0, 0.5))
     bpy.context.view_layer.update()
