@@ -106,6 +106,10 @@ class CompactTree:
     leaf_shift: int
     params: CompactParams | None = None      # None for a tree received from elsewhere
     stats: dict = field(default_factory=dict)
+    # (triangle count, depth) once core/scene/scene.py has validated the tree for that many
+    # triangles: a tree the master keeps in its cache is checked once, not at every render.
+    # A CompactTree's arrays are not changed after it is made.
+    checked: tuple | None = field(default=None, compare=False, repr=False)
 
     @property
     def mode(self) -> str | None:

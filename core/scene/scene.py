@@ -126,11 +126,15 @@ class Scene:
             else np.asarray(visibility, np.uint8).reshape(-1)
         if len(instance_mesh) and (instance_mesh.min() < 0 or instance_mesh.max() >= len(meshes)):
             raise SceneError(f"an instance uses a mesh outside 0..{len(meshes) - 1}")
-        parts = []
-        for geometry, tree in meshes:
+        parts, depths = [], []
+        for m, (geometry, tree) in enumerate(meshes):
             geometry.validate()
             if isinstance(tree, KDTree):
                 tree = compact_tree(tree, geometry.triangle_count, mode="standard")
+            try:
+                depths.append(_checked_depth(tree, geometry.triangle_count))
+            except ValueError as exc:
+                raise SceneError(f"invalid kd-tree of mesh {m}: {exc}") from None
             parts.append((geometry, tree))
         if len(parts) == 1 and len(instance_mesh) == 1 and \
                 np.array_equal(matrices[0], np.eye(3, 4)) and visibility[0] == VISIBLE_TO_ALL \
@@ -147,10 +151,12 @@ class Scene:
         arrays.update(instance_mesh=instance_mesh.astype(np.uint32),
                       instance_to_world=matrices.astype(np.float32),
                       instance_visibility=visibility, **motion)
-        return cls._checked_instances(geometry, arrays)
+        return cls._checked_instances(geometry, arrays, depths)
 
     @classmethod
-    def _checked_instances(cls, geometry: Geometry, arrays: dict) -> "Scene":
+    def _checked_instances(cls, geometry: Geometry, arrays: dict, depths=None) -> "Scene":
+        """`depths`: the mesh trees' depths where from_instances has validated the trees these
+        arrays concatenate (else each mesh's slice of the arrays is validated here)."""
         counts = arrays["mesh_counts"].astype(np.int64)
         totals = counts[:, :4].sum(axis=0)
         sizes = (geometry.triangle_count, len(arrays["nodes"]), len(arrays["leaf_index32"]),
@@ -168,17 +174,18 @@ class Scene:
         mesh_bounds = arrays["mesh_bounds"]
         if len(mesh_bounds) != len(counts):
             raise SceneError(f"{len(mesh_bounds)} mesh boxes for {len(counts)} meshes")
-        depth = 1
-        for m in range(len(counts)):
-            lo, hi = bases[m], bases[m + 1]
-            triangles = geometry.triangles[lo[0]:hi[0]]
-            try:
-                depth = max(depth, validate_compact(
-                    arrays["nodes"][lo[1]:hi[1]], arrays["leaf_index32"][lo[2]:hi[2]],
-                    arrays["leaf_index16"][lo[3]:hi[3]], mesh_bounds[m], int(counts[m, 4]),
-                    len(triangles)))
-            except ValueError as exc:
-                raise SceneError(f"invalid kd-tree of mesh {m}: {exc}") from None
+        if depths is None:
+            depths = []
+            for m in range(len(counts)):
+                lo, hi = bases[m], bases[m + 1]
+                try:
+                    depths.append(validate_compact(
+                        arrays["nodes"][lo[1]:hi[1]], arrays["leaf_index32"][lo[2]:hi[2]],
+                        arrays["leaf_index16"][lo[3]:hi[3]], mesh_bounds[m], int(counts[m, 4]),
+                        int(hi[0] - lo[0])))
+                except ValueError as exc:
+                    raise SceneError(f"invalid kd-tree of mesh {m}: {exc}") from None
+        depth = max([1, *depths])
         instances = InstanceSet.checked(arrays["instance_mesh"], arrays["instance_to_world"],
                                         arrays["instance_visibility"], table, mesh_bounds,
                                         arrays.get("instance_to_world_end"))
@@ -371,8 +378,7 @@ class Scene:
     @classmethod
     def _checked(cls, geometry: Geometry, tree: CompactTree) -> "Scene":
         try:
-            depth = validate_compact(tree.nodes, tree.leaf_index32, tree.leaf_index16,
-                                     tree.bounds, tree.leaf_shift, geometry.triangle_count)
+            depth = _checked_depth(tree, geometry.triangle_count)
         except ValueError as exc:
             raise SceneError(f"invalid kd-tree: {exc}") from None
         used = np.unique(geometry.material_ids) if geometry.triangle_count else \
@@ -520,6 +526,16 @@ def _content_hash(geometry: Geometry, tree: CompactTree) -> str:
         digest.update(f"{name}{array.shape}".encode())
         digest.update(array.tobytes())
     return digest.hexdigest()
+
+
+def _checked_depth(tree: CompactTree, triangle_count: int) -> int:
+    """validate_compact's depth of `tree` for `triangle_count` triangles, computed once per
+    tree object (CompactTree.checked); ValueError names what is wrong."""
+    if tree.checked is None or tree.checked[0] != triangle_count:
+        tree.checked = (triangle_count, validate_compact(
+            tree.nodes, tree.leaf_index32, tree.leaf_index16, tree.bounds, tree.leaf_shift,
+            triangle_count))
+    return tree.checked[1]
 
 
 def _concatenated_meshes(parts) -> dict:
