@@ -10,6 +10,7 @@ the traffic of all slaves, both directions. The master runs alone in this proces
 time (time.process_time) is the master's own.
 
     flock /tmp/bench.lock .venv/bin/python bench/many_slaves.py [--json out.json] [--png plot.png]
+    flock /tmp/bench.lock .venv/bin/python bench/many_slaves.py --counts 64 --profile auto
 
 Calibration (once, cached in bench/out/): the real tracer renders the bench frame with one PoCL
 thread at each tile size, timing every tile in CPU time.
@@ -251,6 +252,40 @@ def master_cost(scene, view, reps, ports) -> list:
     return {"rows": rows, "per_frame_s": per_frame, "per_tile_s": per_tile}
 
 
+def profile_loop(ports, scene, view, reps, tile_size) -> None:
+    """The frame loop's own CPU per frame (time.thread_time on its thread, user and system)
+    and a cProfile of it in thread CPU time (which inflates Python calls about 2.5 x)."""
+    import cProfile
+    import pstats
+    options = {"tile_size": tile_size, "tiles_in_flight": 2, "passes": ["combined"],
+               "payload": "f32"}
+    profile = cProfile.Profile(time.thread_time)
+    with Master([("127.0.0.1", p) for p in ports], secret=None, name="bench") as master:
+        master.connect()
+        master.load_scene(scene)
+        run_frame(master, view, **options)
+        loop = master._frame_loop()
+
+        def on_loop(function):
+            done = threading.Event()
+            box = []
+            loop.call(lambda: (box.append(function()), done.set()))
+            done.wait()
+            return box[0]
+
+        for _ in range(reps):
+            c0 = on_loop(time.thread_time)
+            job = run_frame(master, view, **options)
+            print(f"{len(ports)} slaves, {len(job.tiles)} tiles of {job.tile_w}: frame "
+                  f"{job.elapsed_s * 1e3:.0f} ms, frame loop CPU "
+                  f"{(on_loop(time.thread_time) - c0) * 1e3:.1f} ms", flush=True)
+        on_loop(profile.enable)
+        for _ in range(reps):
+            run_frame(master, view, **options)
+        on_loop(profile.disable)
+    pstats.Stats(profile).sort_stats("tottime").print_stats(30)
+
+
 def mixed_speeds(scene, view, reps, count=16) -> list:
     """Half the slaves three times as fast as the others (per-link emulation): fixed tile
     size and tiles in flight against the master's choices from the slaves' speeds. Efficiency
@@ -327,6 +362,8 @@ def main():
     parser.add_argument("--json", default=None)
     parser.add_argument("--png", default=None)
     parser.add_argument("--table", default=None, help="print the Markdown tables of a --json file")
+    parser.add_argument("--profile", default=None, metavar="TILE",
+                        help="only profile the frame loop at the largest count, tile size TILE")
     parser.add_argument("--calibrate", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--serve", nargs=2, type=int, help=argparse.SUPPRESS)
     parser.add_argument("--speeds", default="1")
@@ -358,6 +395,15 @@ def main():
     hosts = [Child("--serve", str(min(per_host, most - i)), str(i), "--speeds", args.speeds)
              for i in range(0, most, per_host)]
     ports = [p for host in hosts for p in host.ports]
+    if args.profile:
+        network = Child("--network", "link", *map(str, ports))
+        try:
+            size = args.profile if args.profile == "auto" else int(args.profile)
+            return profile_loop(network.ports, scene, view, args.reps, size)
+        finally:
+            network.close()
+            for host in hosts:
+                host.close()
     # tau_1: one slave, float32, its own link, at its tile size; at another tile size scaled by
     # the calibrated work of that tiling (the calibrated frames differ by some % between tile
     # sizes: per-tile costs and timing noise), so that efficiency compares like with like

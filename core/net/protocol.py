@@ -184,6 +184,11 @@ class Message:
 
 # ----------------------------------------------------------------------------- encoding
 
+# One encoder and one decoder for every message (json.dumps/loads with options build new ones
+# per call: a tenth of the master's cost per tile).
+_JSON_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+
+
 def encode_message(msg_type: MsgType, header: dict | None = None, arrays: dict | None = None) -> list:
     """The message as a list of buffers (header+JSON bytes, then one buffer per array)."""
     header = dict(header or {})
@@ -198,7 +203,7 @@ def encode_message(msg_type: MsgType, header: dict | None = None, arrays: dict |
         specs.append({"name": name, "dtype": code, "shape": list(array.shape)})
         buffers.append(memoryview(array.reshape(-1).view(np.uint8)))
     header["arrays"] = specs
-    text = json.dumps(header, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    text = _JSON_ENCODER.encode(header).encode("utf-8")
     payload_length = sum(len(b) for b in buffers)
     head = HEADER.pack(MAGIC, PROTOCOL_VERSION, int(msg_type), len(text), payload_length)
     return [head + text] + buffers
@@ -293,9 +298,12 @@ def _check_header(head, limits: Limits, allowed) -> tuple:
     return msg_type, json_length, payload_length
 
 
+_JSON_DECODER = json.JSONDecoder(parse_constant=_reject_constant)
+
+
 def _parse_body(msg_type: MsgType, text, payload) -> Message:
     try:
-        header = json.loads(bytes(text).decode("utf-8"), parse_constant=_reject_constant)
+        header = _JSON_DECODER.decode(text.decode("utf-8"))
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise ProtocolError(f"{msg_type.name}: invalid JSON ({exc})") from None
     if not isinstance(header, dict):
@@ -713,6 +721,12 @@ def pass_dtypes(payload: str, passes=ALL_PASSES) -> dict:
 
 
 @functools.lru_cache(maxsize=64)
+def _checked_pass_dtypes(payload: str, passes: tuple) -> dict:
+    # decode_tile's dtypes: checked once per frame format, not once per tile (read only)
+    return pass_dtypes(payload, passes)
+
+
+@functools.lru_cache(maxsize=64)
 def _pass_dtypes(payload: str, passes: tuple) -> tuple:
     small = {"f32": "<f4", "f16": "<f2", "u8": "|u1"}[payload]
     return tuple((name, np.dtype("<f4" if name == "depth" else small)) for name in passes)
@@ -769,7 +783,10 @@ def decode_tile(header: dict, arrays: dict, w: int, h: int, payload: str, passes
     shapes, dtypes, sizes, NaN or infinity); nothing is written then."""
     if header.get("payload", "f32") != payload:
         raise ProtocolError(f"tile payload {header.get('payload')!r}, expected {payload!r}")
-    dtypes = pass_dtypes(payload, passes)
+    try:
+        dtypes = _checked_pass_dtypes(payload, tuple(passes))
+    except TypeError:        # unhashable: not passes at all, pass_dtypes says why
+        dtypes = pass_dtypes(payload, passes)
     compression = header.get("compression", "none")
     if compression == "zlib":
         packed = arrays.get("zlib")

@@ -150,7 +150,7 @@ class TilePool:
              cheap: bool = False) -> int | None:
         """The next pending tile (`cheap`: for a slave that is still busy, see `order`); with
         `duplicates`, when nothing is pending, a copy of a tile that other holders still have.
-        Waits up to `timeout`; None if none."""
+        Waits up to `timeout` (0: not at all, the frame loop's take); None if none."""
         def ready():
             return (self.has_pending or self._closed or self.all_done
                     or (duplicates and self._copyable(holder) is not None))
@@ -158,7 +158,7 @@ class TilePool:
         with self._changed:
             # Wait for a notification, the deadline, or the moment a held tile becomes
             # overdue (then it may be copied): no polling in between.
-            while not ready():
+            while timeout != 0 and not ready():
                 now = time.monotonic()
                 wake = deadline
                 if duplicates:
