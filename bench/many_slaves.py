@@ -138,7 +138,9 @@ class Child:
 
 # -- the master's side
 
-def run_frame(master, view, **options):
+def run_frame(master, view, release=True, **options):
+    """One frame, results taken as the add-on's render thread does; with `release` its image
+    goes back to the master for the next frame (RenderJob.release)."""
     job = master.render(view, **options)
     count = 0
     while not job.finished:
@@ -146,6 +148,8 @@ def run_frame(master, view, **options):
             count += 1
     assert job.error is None and count == len(job.tiles), job.error
     job.wait(30)
+    if release:
+        job.release()
     return job
 
 
@@ -252,9 +256,19 @@ def master_cost(scene, view, reps, ports) -> list:
     return {"rows": rows, "per_frame_s": per_frame, "per_tile_s": per_tile}
 
 
+def thread_stat(native_id: int) -> tuple:
+    """(user s, system s, minor page faults) of one thread of this process, from /proc."""
+    fields = pathlib.Path(f"/proc/self/task/{native_id}/stat").read_text().rsplit(")", 1)[1].split()
+    tick = os.sysconf("SC_CLK_TCK")
+    return int(fields[11]) / tick, int(fields[12]) / tick, int(fields[7])
+
+
 def profile_loop(ports, scene, view, reps, tile_size) -> None:
-    """The frame loop's own CPU per frame (time.thread_time on its thread, user and system)
-    and a cProfile of it in thread CPU time (which inflates Python calls about 2.5 x)."""
+    """The frame loop's own CPU per frame (time.thread_time on its thread; user and system
+    time, in 10 ms ticks, and minor page faults from /proc: medians over the frames), frames
+    written into the released image of the frame before alternating with frames written into
+    a new image, then a cProfile of
+    it in thread CPU time (which inflates Python calls about 2.5 x)."""
     import cProfile
     import pstats
     options = {"tile_size": tile_size, "tiles_in_flight": 2, "passes": ["combined"],
@@ -263,7 +277,7 @@ def profile_loop(ports, scene, view, reps, tile_size) -> None:
     with Master([("127.0.0.1", p) for p in ports], secret=None, name="bench") as master:
         master.connect()
         master.load_scene(scene)
-        run_frame(master, view, **options)
+        run_frame(master, view, release=False, **options)
         loop = master._frame_loop()
 
         def on_loop(function):
@@ -273,12 +287,27 @@ def profile_loop(ports, scene, view, reps, tile_size) -> None:
             done.wait()
             return box[0]
 
-        for _ in range(reps):
-            c0 = on_loop(time.thread_time)
-            job = run_frame(master, view, **options)
-            print(f"{len(ports)} slaves, {len(job.tiles)} tiles of {job.tile_w}: frame "
-                  f"{job.elapsed_s * 1e3:.0f} ms, frame loop CPU "
-                  f"{(on_loop(time.thread_time) - c0) * 1e3:.1f} ms", flush=True)
+        # frames written into the image of the frame before (RenderJob.release) alternate
+        # with frames written into a new one, side by side
+        cpu, stats = {True: [], False: []}, {True: [], False: []}
+        for rep in range(2 * reps):
+            reused = rep % 2 == 1        # the frame before released its image
+            c0, s0 = on_loop(time.thread_time), thread_stat(loop.thread.native_id)
+            job = run_frame(master, view, release=not reused, **options)
+            cpu[reused].append(on_loop(time.thread_time) - c0)
+            stats[reused].append([b - a for a, b in zip(s0, thread_stat(loop.thread.native_id))])
+            last = stats[reused][-1]
+            print(f"{len(ports)} slaves, {len(job.tiles)} tiles of {job.tile_w}, "
+                  f"{'image reused' if reused else 'new image'}: frame {job.elapsed_s * 1e3:.0f} ms, "
+                  f"frame loop CPU {cpu[reused][-1] * 1e3:.1f} ms (user {last[0] * 1e3:.0f}, "
+                  f"system {last[1] * 1e3:.0f} ms, {last[2]} minor faults)", flush=True)
+        for reused in (False, True):
+            mine = stats[reused]
+            print(f"{'image reused' if reused else 'new image'}, median of {reps}: frame loop CPU "
+                  f"{statistics.median(cpu[reused]) * 1e3:.1f} ms a frame, user "
+                  f"{statistics.median(s[0] for s in mine) * 1e3:.0f} ms, system "
+                  f"{statistics.median(s[1] for s in mine) * 1e3:.0f} ms, "
+                  f"{statistics.median(s[2] for s in mine):.0f} minor faults", flush=True)
         on_loop(profile.enable)
         for _ in range(reps):
             run_frame(master, view, **options)

@@ -12,7 +12,7 @@ import pytest
 
 from bench.standin import StandInTracer, calibrate
 from core.net import protocol
-from core.net.master import Master, auto_tile_size
+from core.net.master import DEPTH_MISS, Master, auto_tile_size
 from core.scene.scene import Scene
 from slave.server import SlaveServer
 from tests.linkemu import LinkEmulator
@@ -100,6 +100,60 @@ def test_32_stand_in_slaves_finish_a_frame_with_every_tile_once(scene, calibrati
             assert set(threading.enumerate()) <= before
             assert [t.name for t in before if t.name.startswith("frames of")] == ["frames of master"]
             assert job.wait(30) and job.error is None
+    finally:
+        slaves.close()
+
+
+def _address(image: dict) -> int:
+    return image["combined"].__array_interface__["data"][0]
+
+
+def _empty_or_rendered(job, reference: dict) -> list:
+    """Per tile of `job`: True where it holds the reference's pixels, False where it is
+    empty (zero colour and normal, no surface); AssertionError if it is anything else."""
+    states = []
+    for x, y, w, h in job.tiles:
+        window = job.windows(x, y, w, h)
+        rendered = all(np.array_equal(window[n], reference[n][y:y + h, x:x + w]) for n in window)
+        empty = all(np.all(window[n] == (DEPTH_MISS if n == "depth" else 0.0)) for n in window)
+        assert rendered or empty, (x, y)
+        states.append(rendered)
+    return states
+
+
+def test_a_released_frame_is_written_again_from_empty(scene, calibration):
+    """RenderJob.release(): the next frame of the same size and passes is written into the
+    same memory, from empty (a cancelled frame shows no pixel of the frame before), and only
+    once the released frame is quiet; a frame not released is never written again."""
+    slaves = StandIns(calibration, 8)
+    try:
+        with Master(slaves.endpoints, secret=None, retry_delays=()) as master:
+            master.connect()
+            master.load_scene(scene)
+            view = make_view(128, 96)
+            first = master.render(view, tile_size=TILE)
+            first.release()                  # while it renders: handed back once quiet
+            assert first.next_result(30) is not None and first.image is not None
+            assert first.wait(30) and first.image is None
+            job, _ = render(master, view, tile_size=TILE)
+            reused = _address(job.image)
+            for name, image in calibration.image.items():
+                np.testing.assert_array_equal(job.image[name], image, err_msg=name)
+            kept, _ = render(master, view, tile_size=TILE)     # job not released: new memory
+            assert _address(kept.image) != reused
+            for image in job.image.values():     # the caller's until released
+                image[...] = 7.0
+            job.release()
+            cancelled = master.render(view, tile_size=TILE)
+            assert cancelled.next_result(30) is not None
+            cancelled.cancel()
+            assert cancelled.wait(30) and cancelled.error is None
+            assert _address(cancelled.image) == reused
+            states = _empty_or_rendered(cancelled, calibration.image)
+            assert 1 <= sum(states) < len(states), sum(states)
+            np.testing.assert_array_equal(kept.image["combined"], calibration.image["combined"])
+            other, _ = render(master, make_view(128, 96), tile_size=TILE, passes=["combined"])
+            assert _address(other.image) != reused          # other passes: not that frame
     finally:
         slaves.close()
 

@@ -65,6 +65,7 @@ AUTO_MAX_TILES = 256
 AUTO_SLACK = 1.25
 DEPTH_MISS = 1e10        # the tracer's depth where a pixel sees nothing (kernels/shade/render.cl)
 RETRY_DELAYS_S = (0.5, 1.0, 2.0, 4.0, 8.0)   # reconnecting to a lost (or busy) slave
+MAX_SPARE_FRAMES = 2     # frames handed back by RenderJob.release() kept for reuse
 
 
 def auto_tile_size(region, slaves: int) -> tuple:
@@ -81,6 +82,18 @@ def auto_tile_size(region, slaves: int) -> tuple:
         if larger >= edge and len(TileGrid(region, larger)) <= AUTO_MAX_TILES * AUTO_SLACK:
             return (larger, larger)
     return (AUTO_TILE_EDGES[-1],) * 2
+
+
+def _empty_frame(shape: tuple, passes: tuple, reuse: dict | None = None) -> dict:
+    """pass -> the empty float32 frame (zero colour and normal, depth DEPTH_MISS: no surface),
+    written into `reuse` (an earlier frame of this shape and passes) when given."""
+    if reuse is None:
+        return {name: (np.full(shape, DEPTH_MISS, np.float32) if name == "depth" else
+                       np.zeros(shape + (protocol.TILE_PASSES[name],), np.float32))
+                for name in passes}
+    for name, array in reuse.items():
+        array.fill(DEPTH_MISS if name == "depth" else 0.0)
+    return reuse
 
 
 class MasterError(Exception):
@@ -323,6 +336,7 @@ class Master:
         self._joining: set = set()       # endpoints a thread is connecting to
         self._tile_ms: dict = {}         # (region, tile dims) -> render ms per tile, last frame
         self._frames: _FrameLoop | None = None   # the thread that runs every frame
+        self._spare_frames: list = []    # frames handed back (RenderJob.release), for reuse
         self._lock = threading.RLock()
         self._closed = False
 
@@ -633,6 +647,19 @@ class Master:
                 self._frames = _FrameLoop(self.name)
             return self._frames
 
+    def _spare_frame(self, shape: tuple, passes: tuple) -> dict | None:
+        """A frame handed back (RenderJob.release) of this shape and passes, or None."""
+        with self._lock:
+            for i, image in enumerate(self._spare_frames):
+                if tuple(image) == passes and image["combined"].shape[:2] == shape:
+                    return self._spare_frames.pop(i)
+        return None
+
+    def _keep_spare(self, image: dict) -> None:
+        with self._lock:
+            if not self._closed:
+                self._spare_frames = [image] + self._spare_frames[:MAX_SPARE_FRAMES - 1]
+
     def _auto_tile_size(self, view: View) -> tuple:
         with self._lock:
             count = len(self.slaves)
@@ -669,6 +696,7 @@ class Master:
     def close(self) -> None:
         with self._lock:
             self._closed = True
+            self._spare_frames = []
             job = self._job
         if job is not None:
             job.cancel()
@@ -1095,9 +1123,9 @@ class RenderJob:
         # empty: zero colour, no surface).
         x0, y0, x1, y1 = view.region
         self.origin, shape = (x0, y0), (y1 - y0, x1 - x0)
-        self.image = {name: (np.full(shape, DEPTH_MISS, np.float32) if name == "depth" else
-                             np.zeros(shape + (protocol.TILE_PASSES[name],), np.float32))
-                      for name in self.passes}
+        spare = None if master is None else master._spare_frame(shape, self.passes)
+        self.image = _empty_frame(shape, self.passes, spare)
+        self._released = False
         self.duplicates, self.silence_timeout = duplicates, silence_timeout
         self.tile_budget, self.hold_when_stranded = tile_budget, hold_when_stranded
         self.scene_hash = scene_hash
@@ -1219,6 +1247,17 @@ class RenderJob:
         cancels confirmed); True if so."""
         return self._quiet.wait(timeout)
 
+    def release(self) -> None:
+        """The caller is done with job.image and its TileResults' passes: the master writes a
+        later frame of the same size and passes into that memory (a new frame's 16 MiB would
+        otherwise fault in page by page as tiles arrive). The memory is handed over, and
+        job.image set to None, once the frame is quiet (no late tile can be written into it)."""
+        with self._lock:
+            if self._released:
+                return
+            self._released = True
+        self._hand_back()
+
     # -- the frame loop's side
 
     def _deliver(self, result: TileResult) -> None:
@@ -1245,6 +1284,16 @@ class RenderJob:
         with self._lock:
             if self._over.is_set() and all(w.released for w in self._workers):
                 self._quiet.set()
+        self._hand_back()
+
+    def _hand_back(self) -> None:
+        """Once released by the caller and quiet: the frame's memory goes to the master."""
+        with self._lock:
+            if not (self._released and self._quiet.is_set()) or self.image is None:
+                return
+            image, self.image = self.image, None
+        if self.master is not None:
+            self.master._keep_spare(image)
 
     def _slave_lost(self, worker: _SlaveWorker, reason: str, retry: bool) -> None:
         """A slave that drops is reconnected to, once per loss; one that drops again before
