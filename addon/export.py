@@ -257,28 +257,75 @@ class Placement:
 
 def _mesh_arrays(mesh, want_normals: bool, want_uvs: bool) -> dict:
     """Vertices (V,3) float32, triangles (T,3), per-triangle slot indices, and when asked and
-    present: corner normals (T,3,3) (only if some face is smooth) and corner UVs (T,3,2)."""
-    mesh.calc_loop_triangles()
-    tris = mesh.loop_triangles
-    vertices = np.empty(len(mesh.vertices) * 3, np.float32)
-    mesh.vertices.foreach_get("co", vertices)
-    triangles = np.empty(len(tris) * 3, np.int32)
-    tris.foreach_get("vertices", triangles)
-    slots = np.empty(len(tris), np.int32)
-    tris.foreach_get("material_index", slots)
-    out = {"vertices": vertices.reshape(-1, 3), "triangles": triangles.reshape(-1, 3),
+    present: corner normals (T,3,3) (only if some face is smooth) and corner UVs (T,3,2).
+
+    Read from Blender's attribute arrays (position, the corners' vertices, material_index,
+    corner normals, the UV map: a copy each), each triangle's corners picked from them with
+    numpy; per-element reads (loop_triangles' vertices, material_index, split_normals) take
+    20 to 400 times longer (docs/benchmarks.md, "Fixed cost of a render"). A mesh of
+    triangles only needs no loop triangles: its triangle i is face i, corners 3i to 3i+2."""
+    vertices = _attribute(mesh, "position", np.float32, 3)
+    corner_vertex = _attribute(mesh, ".corner_vert", np.int32)
+    if len(mesh.loops) == 3 * len(mesh.polygons):   # every face a triangle (>= 3 corners each)
+        corners = triangle_face = None
+    else:
+        mesh.calc_loop_triangles()
+        tris = mesh.loop_triangles
+        corners = np.empty(len(tris) * 3, np.int32)
+        tris.foreach_get("loops", corners)
+        triangle_face = np.empty(len(tris), np.int32)
+        mesh.loop_triangle_polygons.foreach_get("value", triangle_face)
+
+    def per_corner(values):     # a per-corner array's values at each triangle's corners
+        return values if corners is None else values[corners]
+    triangles = per_corner(corner_vertex).reshape(-1, 3)
+    if _attribute_of(mesh, "material_index", "FACE", "INT") is not None:
+        slots = _attribute(mesh, "material_index", np.int32)
+        slots = slots if triangle_face is None else slots[triangle_face]
+    else:
+        slots = np.zeros(len(triangles), np.int32)
+    out = {"vertices": vertices, "triangles": triangles,
            "slots": slots, "normals": None, "uvs": None}
-    if want_normals and len(tris) and (mesh.has_custom_normals or _has_smooth_faces(mesh)):
-        normals = np.empty(len(tris) * 9, np.float32)
-        tris.foreach_get("split_normals", normals)
-        out["normals"] = normals.reshape(-1, 3, 3)
-    if want_uvs and len(tris) and mesh.uv_layers.active is not None:
-        loops = np.empty(len(tris) * 3, np.int32)
-        tris.foreach_get("loops", loops)
-        uv = np.empty(len(mesh.loops) * 2, np.float32)
-        mesh.uv_layers.active.uv.foreach_get("vector", uv)
-        out["uvs"] = uv.reshape(-1, 2)[loops].reshape(-1, 3, 2)
+    if want_normals and len(triangles) and (mesh.has_custom_normals or _has_smooth_faces(mesh)):
+        normals = np.empty(len(mesh.loops) * 3, np.float32)
+        mesh.corner_normals.foreach_get("vector", normals)
+        out["normals"] = per_corner(normals.reshape(-1, 3)).reshape(-1, 3, 3)
+    if want_uvs and len(triangles) and mesh.uv_layers.active is not None:
+        name = mesh.uv_layers.active.name
+        if _attribute_of(mesh, name, "CORNER", "FLOAT2") is not None:
+            uv = _attribute(mesh, name, np.float32, 2)
+        else:
+            uv = np.empty(len(mesh.loops) * 2, np.float32)
+            mesh.uv_layers.active.uv.foreach_get("vector", uv)
+            uv = uv.reshape(-1, 2)
+        out["uvs"] = per_corner(uv).reshape(-1, 3, 2)
     return out
+
+
+def _attribute_of(mesh, name: str, domain: str, data_type: str):
+    """The mesh attribute `name` if it has that domain and data type, else None."""
+    attribute = mesh.attributes.get(name)
+    if attribute is None or attribute.domain != domain or attribute.data_type != data_type:
+        return None
+    return attribute
+
+
+def _attribute(mesh, name: str, dtype, width: int = 0) -> np.ndarray:
+    """The values of mesh attribute `name` (Blender's built-in ones: "position", ".corner_vert",
+    "material_index"), (N,) or (N, width)."""
+    attribute = mesh.attributes[name]
+    values = np.empty(len(attribute.data) * max(width, 1), dtype)
+    attribute.data.foreach_get("vector" if width else "value", values)
+    return values.reshape(-1, width) if width else values
+
+
+def _nonzero_area(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Whether each triangle's edge cross product, in float32, is not zero (np.cross's
+    arithmetic, by coordinate planes: a third of its time on the dragon)."""
+    x, y, z = (np.ascontiguousarray(vertices[:, k])[triangles] for k in range(3))
+    ax, ay, az = x[:, 1] - x[:, 0], y[:, 1] - y[:, 0], z[:, 1] - z[:, 0]
+    bx, by, bz = x[:, 2] - x[:, 0], y[:, 2] - y[:, 0], z[:, 2] - z[:, 0]
+    return ((ay * bz - az * by) != 0) | ((az * bx - ax * bz) != 0) | ((ax * by - ay * bx) != 0)
 
 
 def _has_smooth_faces(mesh) -> bool:
@@ -308,8 +355,7 @@ class _MeshParts:
         if not np.isfinite(placed).all():
             raise SceneError(f"object '{obj.name}' has vertices that are NaN or infinite")
         placed32 = placed.astype(np.float32)
-        corners = placed32[triangles]
-        keep = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).any(axis=1)
+        keep = _nonzero_area(placed32, triangles)
         if not keep.all():
             self._warn(obj, f"object '{obj.name}': {int((~keep).sum())} zero-area face(s) dropped")
             if not keep.any():

@@ -131,6 +131,7 @@ def render(engine, depsgraph):
     prefs = preferences(bpy.context)
     state = session.current()
     started = time.perf_counter()
+    steps = Steps()
     try:
         if settings.use_zeroconf:
             state.browser()   # if not running yet: it looks while the scene exports and builds
@@ -140,7 +141,7 @@ def render(engine, depsgraph):
         meshes = exported_geometry.meshes
         for warning in info["warnings"]:
             engine.report({"WARNING"}, f"KD Trace: {warning}")
-        exported = time.perf_counter()
+        exported = steps.mark("export")
 
         def tree_progress(fraction, message):
             if engine.test_break():
@@ -165,36 +166,44 @@ def render(engine, depsgraph):
             trees.append(tree)
             built |= new
             done += share
+        steps.mark("kd-tree cache")
         scene = frame_scene(state, meshes, trees, exported_geometry,
                             (settings.kdtree_mode, tuple(sorted(tree_settings.items()))))
+        steps.mark("scene")
         scene.check_view(view)
         memory = memory_report(scene)
-        tree_done = time.perf_counter()
+        tree_done = steps.mark("view check")
         if engine.test_break():
             return
         secret = shared_secret(prefs)
         endpoints = find_slaves(engine, settings, prefs, secret)
+        steps.mark("find slaves")
         with Master(endpoints, secret=secret) as master:
             legend = state.start_legend(master)   # the panel follows each slave from here on
             master.connect()
+            steps.mark("connect")
             engine.update_stats("", f"KD Trace | Sending scene to {len(master.slaves)} slave(s)")
             master.load_scene(scene)
+            steps.mark("scene query")
             for problem in master.errors:
                 engine.report({"WARNING"}, f"KD Trace: {problem}")
             job = master.render(view, **job_options(settings, depsgraph.view_layer),
                                 hold_when_stranded=bool(settings.local_slaves))
             canvas = TileCanvas(engine, job)
+            steps.mark("frame start")
             try:
                 _receive_tiles(engine, job, canvas, legend, master,
-                               local_takeover(engine, settings, prefs, secret, master))
+                               local_takeover(engine, settings, prefs, secret, master), steps)
+                steps.mark("other tiles")
             finally:
                 canvas.finish()
+                steps.mark("image")
             for problem in job.errors:
                 engine.report({"WARNING"}, f"KD Trace: {problem}")
             if job.error and not job.cancelled:
                 raise RenderFailed(job.error)
             uploaded_to, scene_bytes = list(master.uploaded_to), dict(master.scene_bytes)
-        finished = time.perf_counter()
+        finished = steps.mark("close")
     except RenderCancelled:
         return
     except (SceneError, RenderFailed, MasterError, ProtocolError, AuthError, OSError, RuntimeError) as error:
@@ -205,6 +214,7 @@ def render(engine, depsgraph):
     state.last_render = {
         "export_seconds": exported - started, "tree_seconds": tree_done - exported,
         "tree_built": built, "tree_stats": dict(trees[0].stats), "render_seconds": finished - tree_done,
+        "steps": steps.seconds, "tile_render_ms": legend.render_ms(),
         "triangles": memory["triangles_referenced"], "memory": memory,
         "tiles_per_slave": per_slave,
         "slave_colors": {name: slave_color(name) for name in per_slave},
@@ -272,8 +282,8 @@ def local_takeover(engine, settings, prefs, secret, master):
     return take_over
 
 
-def _receive_tiles(engine, job, canvas, legend, master, take_over):
-    """Show tiles as they arrive; stop promptly on Esc."""
+def _receive_tiles(engine, job, canvas, legend, master, take_over, steps):
+    """Show tiles as they arrive; stop promptly on Esc. `steps` marks the first tile."""
     done, total = 0, len(job.tiles)
     while not job.finished:
         if engine.test_break():
@@ -288,8 +298,25 @@ def _receive_tiles(engine, job, canvas, legend, master, take_over):
         canvas.add(tile)
         legend.tile_done(tile)
         done += 1
+        if done == 1:
+            steps.mark("first tile")
         engine.update_progress(0.5 + 0.5 * done / total)
         engine.update_stats("", f"KD Trace | Tile {done}/{total} from {tile.slave_name}")
+
+
+class Steps:
+    """Wall seconds of a render's steps, each from the previous mark (the report's breakdown:
+    state.last_render["steps"], in order)."""
+
+    def __init__(self):
+        self.seconds: dict = {}
+        self._last = time.perf_counter()
+
+    def mark(self, name: str) -> float:
+        now = time.perf_counter()
+        self.seconds[name] = self.seconds.get(name, 0.0) + now - self._last
+        self._last = now
+        return now
 
 
 class TileCanvas:

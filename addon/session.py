@@ -104,6 +104,10 @@ class Legend:
         counts[0] += 1
         counts[1] += tile.render_ms
 
+    def render_ms(self) -> float:
+        """The slaves' own render time of every tile delivered, summed."""
+        return sum(render_ms for _, render_ms in self._tiles.values())
+
     def tiles_per_slave(self) -> dict:
         return {name: tiles for name, (tiles, _) in self._tiles.items() if tiles}
 

@@ -340,21 +340,7 @@ def cycles_child(arguments, result_path):
     timings = {}
 
     def render(engine, name, axis, settings, label, seed=1, repeat=1):
-        scene.render.engine = engine
-        if engine == "CYCLES":
-            c = scene.cycles
-            c.device, c.samples, c.seed = "CPU", axis * axis, seed
-            c.use_adaptive_sampling = c.use_denoising = False
-            c.pixel_filter_type, c.filter_width = "BOX", 1.0     # ours: a box of one pixel
-            scene.render.threads_mode = "AUTO"                   # every core
-            for key, value in settings.items():
-                setattr(c, CYCLES_NAMES.get(key, key), value)
-        else:
-            props = scene.kdtrace
-            props.use_zeroconf, props.local_slaves, props.tile_size = False, 1, 32
-            props.samples_per_axis, props.adaptive, props.light_samples_per_axis = axis, False, 1
-            for key, value in settings.items():
-                setattr(props, key, value)
+        use_renderer(scene, engine, axis, settings, seed)
         path = out / f"{name}-{label}.exr"
         scene.render.filepath = str(path)
         seconds = math.inf
@@ -372,13 +358,7 @@ def cycles_child(arguments, result_path):
 
     for name in arguments["scenes"]:
         settings = dict(CYCLES_SCENES[name].settings, **arguments["kdtrace"])
-        builders["clear"]()
-        CYCLES_SCENES[name].build(builders)
-        bpy.context.view_layer.update()
-        r = scene.render
-        r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
-        scene.view_settings.view_transform, scene.view_settings.look = "Standard", "None"
-        r.image_settings.file_format, r.image_settings.color_depth = "OPEN_EXR", "32"
+        build_scene(builders, name, width, height)
         # The first render of each starts what later ones reuse (KD Trace: the slave, its kernel
         # build, the kd-tree in the add-on's cache; Cycles: its kernels): timed apart.
         for engine, who in (("CYCLES", "cycles"), ("KDTRACE", "kdtrace")):
@@ -394,6 +374,41 @@ def cycles_child(arguments, result_path):
         render("KDTRACE", name, axis, settings, "kdtrace-converged")
     with open(result_path, "w") as f:
         json.dump({"timings": timings, "blender": bpy.app.version_string}, f)
+
+
+def build_scene(builders, name, width, height):
+    """Build CYCLES_SCENES[name] in the current (emptied) Blender file at width x height,
+    Standard view transform, written as 32-bit OpenEXR."""
+    import bpy
+    scene = bpy.context.scene
+    builders["clear"]()
+    CYCLES_SCENES[name].build(builders)
+    bpy.context.view_layer.update()
+    r = scene.render
+    r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
+    scene.view_settings.view_transform, scene.view_settings.look = "Standard", "None"
+    r.image_settings.file_format, r.image_settings.color_depth = "OPEN_EXR", "32"
+
+
+def use_renderer(scene, engine, axis, settings, seed=1):
+    """Make `engine` ("CYCLES" or "KDTRACE") render `scene` at axis x axis uniform samples and
+    the light paths `settings` as the comparison does (Cycles on the CPU with every core, a
+    one-pixel box filter, no denoising; KD Trace with one local slave, 32-pixel tiles)."""
+    scene.render.engine = engine
+    if engine == "CYCLES":
+        c = scene.cycles
+        c.device, c.samples, c.seed = "CPU", axis * axis, seed
+        c.use_adaptive_sampling = c.use_denoising = False
+        c.pixel_filter_type, c.filter_width = "BOX", 1.0     # ours: a box of one pixel
+        scene.render.threads_mode = "AUTO"                   # every core
+        for key, value in settings.items():
+            setattr(c, CYCLES_NAMES.get(key, key), value)
+    else:
+        props = scene.kdtrace
+        props.use_zeroconf, props.local_slaves, props.tile_size = False, 1, 32
+        props.samples_per_axis, props.adaptive, props.light_samples_per_axis = axis, False, 1
+        for key, value in settings.items():
+            setattr(props, key, value)
 
 
 def issue14_builders(out):
@@ -412,6 +427,13 @@ def issue14_builders(out):
     return namespace
 
 
+def kdtrace_settings() -> dict:
+    """KD Trace's settings beside the light paths: the Cycles-like defaults the test matches."""
+    from tests.test_cycles_scenes import MATCHED
+    return {k: v for k, v in MATCHED.items()
+            if k not in ("adaptive", "light_samples_per_axis") and k not in ONE_BOUNCE}
+
+
 def time_for_psnr(rows, target):
     """Seconds to reach `target` dB along a renderer's sweep (in order of samples): PSNR linear
     in log time between neighbouring sample counts; None outside them."""
@@ -423,23 +445,27 @@ def time_for_psnr(rows, target):
     return None
 
 
-def against_cycles(args):
-    """Time to equal error against Cycles (module docstring)."""
-    from tests.blender import build_extension
-    from tests.test_cycles_scenes import MATCHED, psnr as psnr_db
+def start_run(args):
+    """(width, height, the output folder made) of --size and --out; prints the command and
+    the machine with its load."""
     width, height = (int(v) for v in args.size.split("x"))
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     print(f"command: {' '.join([os.path.basename(sys.executable)] + sys.argv)}")
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, "
           f"load average {os.getloadavg()[0]:.1f}")
+    return width, height, out
+
+
+def against_cycles(args):
+    """Time to equal error against Cycles (module docstring)."""
+    from tests.blender import build_extension
+    from tests.test_cycles_scenes import psnr as psnr_db
+    width, height, out = start_run(args)
     arguments = {"zip": str(build_extension(out / "dist")), "out": str(out), "width": width,
                  "height": height, "scenes": args.cycles_scenes, "kdtrace": {},
                  "reference_axis": round(math.sqrt(args.reference_spp)), "repeat": args.repeat}
-    # KD Trace's settings beside the light paths: the Cycles-like defaults the test matches.
-    arguments["kdtrace"] = {k: v for k, v in MATCHED.items()
-                            if k not in ("adaptive", "light_samples_per_axis")
-                            and k not in ONE_BOUNCE}
+    arguments["kdtrace"] = kdtrace_settings()
     result_path = out / "child-result.json"
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(out / "blender-user"), PYTHONPATH=str(ROOT),
                PYTHONUNBUFFERED="1")

@@ -110,6 +110,7 @@ class CompactTree:
     # triangles: a tree the master keeps in its cache is checked once, not at every render.
     # A CompactTree's arrays are not changed after it is made.
     checked: tuple | None = field(default=None, compare=False, repr=False)
+    digest: str | None = field(default=None, compare=False, repr=False)   # scene.py's, once
 
     @property
     def mode(self) -> str | None:

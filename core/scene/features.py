@@ -52,7 +52,7 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
         features.add("SOFT_LIGHTS")
     used = np.zeros(len(shading.materials), bool)
     if used_materials is None:
-        used_materials = np.unique(geometry.material_ids)
+        used_materials = geometry.used_material_ids()
     ids = np.asarray(used_materials)
     used[ids[ids < len(used)]] = True
     params = shading.material_params[used]

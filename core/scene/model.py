@@ -149,6 +149,11 @@ class Geometry:
     def nbytes(self) -> int:
         return sum(a.nbytes for a in self.arrays().values())
 
+    def used_material_ids(self) -> np.ndarray:
+        """The sorted material ids some triangle uses (np.unique's result, by counting: the ids
+        are 16-bit, and sorting 871k of them takes 20 ms)."""
+        return np.flatnonzero(np.bincount(self.material_ids)).astype(self.material_ids.dtype)
+
     def content_hash(self) -> str:
         """32 hex digits over every array present; computed once (a Geometry's arrays are not
         changed after it is made)."""

@@ -140,9 +140,10 @@ class Scene:
                 np.array_equal(matrices[0], np.eye(3, 4)) and visibility[0] == VISIBLE_TO_ALL \
                 and not motion:
             geometry, tree = parts[0]
-            return cls.from_parts(Geometry(geometry.vertices, geometry.triangles,
-                                           geometry.material_ids, geometry.normals,
-                                           geometry.uvs, texels, texture_sizes), tree)
+            if texels is not None or texture_sizes is not None or geometry.texels is not None:
+                geometry = Geometry(geometry.vertices, geometry.triangles, geometry.material_ids,
+                                    geometry.normals, geometry.uvs, texels, texture_sizes)
+            return cls.from_parts(geometry, tree)   # (untextured: its hash is computed once)
         arrays = _concatenated_meshes(parts)
         geometry = Geometry(arrays.pop("vertices"), arrays.pop("triangles"),
                             arrays.pop("material_ids"), arrays.pop("normals", None),
@@ -191,8 +192,7 @@ class Scene:
                                         arrays.get("instance_to_world_end"))
         tree = CompactTree(arrays["nodes"], arrays["leaf_index32"], arrays["leaf_index16"],
                            instances.bounds(), 0)
-        used = np.unique(geometry.material_ids) if geometry.triangle_count else \
-            np.zeros(0, geometry.material_ids.dtype)
+        used = geometry.used_material_ids()
         meshes = {name: np.ascontiguousarray(arrays[name], dtype=INSTANCED_SCENE_ARRAYS[name][0])
                   for name in ("nodes", "leaf_index32", "leaf_index16", "mesh_counts",
                                "mesh_bounds")}
@@ -381,8 +381,7 @@ class Scene:
             depth = _checked_depth(tree, geometry.triangle_count)
         except ValueError as exc:
             raise SceneError(f"invalid kd-tree: {exc}") from None
-        used = np.unique(geometry.material_ids) if geometry.triangle_count else \
-            np.zeros(0, geometry.material_ids.dtype)
+        used = geometry.used_material_ids()
         return cls(geometry, tree, _content_hash(geometry, tree), depth, used)
 
     @property
@@ -518,14 +517,25 @@ def _wire_arrays(geometry: Geometry, tree: CompactTree) -> dict:
 
 
 def _content_hash(geometry: Geometry, tree: CompactTree) -> str:
-    """The geometry's hash plus the compact tree's arrays: another kd-tree mode or other
-    thresholds, which give other arrays, give another hash."""
+    """The geometry's hash plus the compact tree's (another kd-tree mode or other thresholds,
+    which give other arrays, give another hash)."""
     digest = hashlib.blake2b(digest_size=16)
     digest.update(geometry.content_hash().encode())
-    for name, array in _tree_arrays(tree).items():
-        digest.update(f"{name}{array.shape}".encode())
-        digest.update(array.tobytes())
+    digest.update(_tree_hash(tree).encode())
     return digest.hexdigest()
+
+
+def _tree_hash(tree: CompactTree) -> str:
+    """32 hex digits over the compact tree's arrays, computed once per tree object (its arrays
+    are not changed after it is made, so the master's cached tree is hashed once, not at every
+    render): CompactTree.digest."""
+    if tree.digest is None:
+        digest = hashlib.blake2b(digest_size=16)
+        for name, array in _tree_arrays(tree).items():
+            digest.update(f"{name}{array.shape}".encode())
+            digest.update(array.tobytes())
+        tree.digest = digest.hexdigest()
+    return tree.digest
 
 
 def _checked_depth(tree: CompactTree, triangle_count: int) -> int:
