@@ -264,6 +264,9 @@ def _mesh_arrays(mesh, want_normals: bool, want_uvs: bool) -> dict:
     numpy; per-element reads (loop_triangles' vertices, material_index, split_normals) take
     20 to 400 times longer (docs/benchmarks.md, "Fixed cost of a render"). A mesh of
     triangles only needs no loop triangles: its triangle i is face i, corners 3i to 3i+2."""
+    if not len(mesh.polygons):   # no corners (and an empty mesh has no positions either)
+        return {"vertices": np.zeros((0, 3), np.float32), "triangles": np.zeros((0, 3), np.int32),
+                "slots": np.zeros(0, np.int32), "normals": None, "uvs": None}
     vertices = _attribute(mesh, "position", np.float32, 3)
     corner_vertex = _attribute(mesh, ".corner_vert", np.int32)
     if len(mesh.loops) == 3 * len(mesh.polygons):   # every face a triangle (>= 3 corners each)

@@ -97,3 +97,4 @@ def test_mesh_arrays_match_blenders_per_element_reads(tmp_path):
             assert result[name][array]["equal"], (name, array, result[name][array])
         assert result[name]["slots"]["distinct"] == 3      # every material slot is used
     assert result["quads"]["triangles"]["shape"] == [6 * 2 + 7, 3]
+    assert result["wire"]["triangles"] == result["wire"]["slots"] == 0   # edges only: skipped

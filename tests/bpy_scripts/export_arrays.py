@@ -2,7 +2,8 @@
 Blender's per-element reads of the same evaluated meshes (loop_triangles' vertices,
 material_index, split_normals, and the UV map at each triangle's loops): meshes of quads and
 an n-gon, of triangles only, with material slots per face, custom normals, flat and smooth
-faces and a UV map. Reports, per mesh, whether each array is equal and its shape."""
+faces and a UV map. Reports, per mesh, whether each array is equal and its shape, and the
+lengths of what it reads from a mesh of edges only."""
 import importlib
 
 import bpy
@@ -82,4 +83,9 @@ for obj in objects:
                "shape": list(ref.shape), "distinct": len(np.unique(ref))}
         for name, ref in reference.items()}
     result[obj.name]["all_triangles"] = len(mesh.loops) == 3 * len(mesh.polygons)
+# A mesh of vertices and edges only has no corner attributes: no triangles.
+wire = bpy.data.meshes.new("wire")
+wire.from_pydata([(0, 0, 0), (1, 0, 0), (0, 1, 0)], [(0, 1), (1, 2)], [])
+result["wire"] = {name: len(value) for name, value in export._mesh_arrays(wire, True, True).items()
+                  if value is not None}
 write_result(result_path, result)
