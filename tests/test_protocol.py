@@ -325,3 +325,54 @@ def test_the_end_of_a_long_part_arriving_late_is_received():
         thread.join(5)
         sender.close()
         receiver.close()
+
+
+def test_a_channel_parses_messages_where_they_lie_and_big_ones_in_their_own_buffer(pair):
+    """Several messages in one write come out of one channel buffer, the frame loop's arrays
+    as views of it (valid until the next read), recv()'s as copies of their own; a message
+    over RECV_KEEP_BYTES (a scene) arrives whole in a buffer of its own, and the messages
+    after it still arrive; a message cut short names the part it was cut in."""
+    a, b = pair
+    tile = np.arange(64 * 64 * 4, dtype=np.float32).reshape(64, 64, 4)
+    scene = np.arange((protocol.RECV_KEEP_BYTES + 4096) // 4, dtype=np.float32)
+    data = b"".join(bytes(part) for msg in (
+        (MsgType.TILE_RESULT, {"tile": 1}, {"combined": tile}),
+        (MsgType.HEARTBEAT, {"state": "idle"}, None),
+        (MsgType.SCENE_UPLOAD, {"scene_hash": "0" * 32}, {"values": scene}),
+        (MsgType.TILE_RESULT, {"tile": 2}, {"combined": tile + 1}),
+    ) for part in protocol.encode_message(*msg))
+    writer = send_raw(a, data)
+    channel = protocol.Channel(b, "master")
+    received = []
+    while len(received) < 2:
+        for msg in channel.recv_available():    # handled before the next read, as it must
+            received.append(msg.type)
+            if msg.type == MsgType.TILE_RESULT:
+                np.testing.assert_array_equal(msg.arrays["combined"], tile)
+                assert np.shares_memory(msg.arrays["combined"],
+                                        np.frombuffer(channel._buffer, np.uint8))
+    assert received[:2] == [MsgType.TILE_RESULT, MsgType.HEARTBEAT]
+    big = channel.recv(deadline=time.monotonic() + 5)       # its own buffer, its own arrays
+    np.testing.assert_array_equal(big.arrays["values"], scene)
+    assert not np.shares_memory(big.arrays["values"], np.frombuffer(channel._buffer, np.uint8))
+    last = channel.recv(deadline=time.monotonic() + 5)
+    assert last.header["tile"] == 2
+    assert not np.shares_memory(last.arrays["combined"], np.frombuffer(channel._buffer, np.uint8))
+    np.testing.assert_array_equal(last.arrays["combined"], tile + 1)
+    writer.join(5)
+    with pytest.raises(protocol.ConnectionClosed):
+        channel.recv(deadline=time.monotonic() + 5)
+
+
+def test_a_message_cut_short_in_a_channel_names_its_part():
+    for cut, part in ((10, "header"), (HEADER.size + 5, "JSON"), (-100, "payload")):
+        a, b = socket.socketpair()
+        try:
+            data = b"".join(bytes(p) for p in protocol.encode_message(
+                MsgType.TILE_RESULT, {"tile": 1}, {"combined": np.zeros((8, 8, 4), np.float32)}))
+            send_raw(a, data[:cut]).join(5)
+            with pytest.raises(protocol.ConnectionBroken, match=f"middle of a message \\({part}: "):
+                protocol.Channel(b, "master").recv(deadline=time.monotonic() + 5)
+        finally:
+            a.close()
+            b.close()

@@ -67,8 +67,10 @@ SILENCE_S = 10.0
 IDLE_S = 300.0
 KEEPALIVE_S = 30.0
 MIN_RATE_BPS = 256 * 1024
-PREALLOCATE_BYTES = 8 << 20     # parts of a message up to this size are received in place
-READ_AHEAD = 64 * 1024          # what a small read takes from the socket at once
+RECV_BUFFER_BYTES = 64 * 1024   # a channel's receive buffer at first (it grows to fit messages)
+RECV_KEEP_BYTES = 2 << 20       # messages up to this size are received in that buffer (tiles up
+                                # to 256 x 256 with every pass); larger ones in their own
+PREALLOCATE_BYTES = 8 << 20     # such a message's own buffer is allocated at once up to this size
 LOW_WATER_BYTES = 256 * 1024    # a long read wakes when this much (or the rest) has arrived
 POLL_S = 0.25                   # how often a blocked send or receive looks at its deadline
 SLAVE_STATES = ("idle", "loading", "compiling", "waiting", "rendering")
@@ -303,7 +305,7 @@ _JSON_DECODER = json.JSONDecoder(parse_constant=_reject_constant)
 
 def _parse_body(msg_type: MsgType, text, payload) -> Message:
     try:
-        header = _JSON_DECODER.decode(text.decode("utf-8"))
+        header = _JSON_DECODER.decode(str(text, "utf-8"))
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise ProtocolError(f"{msg_type.name}: invalid JSON ({exc})") from None
     if not isinstance(header, dict):
@@ -341,35 +343,44 @@ def transfer_deadline(nbytes: int, grace_s: float = SILENCE_S) -> float:
 
 
 class _Incoming:
-    """A message being received: the parts so far (header, JSON, payload, MAC) and the one
-    under way, filled as bytes arrive."""
+    """The message being received, once its header is in: its type and length, and, for a
+    message too large for the channel's buffer, the rest of it in a buffer of its own."""
 
-    def __init__(self, started: float):
+    def __init__(self, started: float, msg_type: MsgType, json_length: int, payload_length: int,
+                 mac_length: int):
         self.started = started          # its first byte
-        self.received = 0               # its bytes so far
-        self.total = HEADER.size        # its length, once the header is in
-        self.msg_type = None
-        self.parts: list = []
-        self.sizes = [(HEADER.size, "header")]   # (bytes, what) of the parts still to come
-        self.next_part()
+        self.msg_type = msg_type
+        self.sizes = (json_length, payload_length, mac_length)
+        self.total = HEADER.size + json_length + payload_length + mac_length
+        self.own: bytearray | None = None   # the bytes after the header, if not in the buffer
+        self.head = b""                 # the header's bytes then
+        self.filled = 0                 # of them so far
+        self.in_place = False           # own preallocated (else grown as data arrives)
 
-    def next_part(self) -> None:
-        self.count, self.what = self.sizes.pop(0)
-        self.in_place = self.count <= PREALLOCATE_BYTES
-        self.buffer = bytearray(self.count) if self.in_place else bytearray()
-        self.filled = 0
+    def take_own(self, first) -> None:
+        """Receive the rest in a buffer of its own, starting with `first` (bytes after the
+        header already read): preallocated up to PREALLOCATE_BYTES, beyond that grown as
+        data arrives, so that a lying length costs nothing until bytes really come."""
+        rest = self.total - HEADER.size
+        self.in_place = rest <= PREALLOCATE_BYTES
+        self.own = bytearray(rest) if self.in_place else bytearray()
+        self.add(first)
 
     def add(self, piece) -> None:
         if self.in_place:
-            self.buffer[self.filled:self.filled + len(piece)] = piece
+            self.own[self.filled:self.filled + len(piece)] = piece
         else:
-            self.buffer += piece
+            self.own += piece
         self.filled += len(piece)
-        self.received += len(piece)
 
-    def broken(self) -> str:
-        return (f"connection closed in the middle of a message ({self.what}: {self.filled} of "
-                f"{self.count} bytes)")
+    def where(self, received: int) -> str:
+        """Which part `received` bytes of the message end in, for errors."""
+        offset = received - HEADER.size
+        for what, size in zip(("JSON", "payload", "MAC"), self.sizes):
+            if offset < size:
+                return f"{what}: {offset} of {size} bytes"
+            offset -= size
+        return f"{received} of {self.total} bytes"
 
 
 class Channel:
@@ -384,8 +395,13 @@ class Channel:
         self._recv_label = _DIRECTION_LABELS["slave" if role == "master" else "master"]
         self._key = None
         self._send_seq = self._recv_seq = 0
-        self._ahead, self._ahead_pos = b"", 0   # received, not yet read (read-ahead)
-        self._incoming: _Incoming | None = None  # the message under way
+        # Received bytes not yet parsed: _buffer[_start:_end]. One buffer per channel, reused
+        # message after message (messages up to RECV_KEEP_BYTES are received and parsed in
+        # it; larger ones go to a buffer of their own, _Incoming.own).
+        self._buffer = bytearray(RECV_BUFFER_BYTES)
+        self._start = self._end = 0
+        self._began: float | None = None          # the first byte of a message with no header yet
+        self._incoming: _Incoming | None = None   # the message under way, its header in
         self._rcvlowat = 1
         self._send_lock = threading.RLock()   # re-entered by sends inside batch()
         self._batch: list | None = None        # buffers of a batch() under way
@@ -473,10 +489,11 @@ class Channel:
 
     # -- receiving
     #
-    # A message is received part by part (header, JSON, payload, MAC) into an _Incoming as
-    # bytes arrive, so one code path serves a thread that blocks in recv() (the slave, the
-    # handshakes) and the master's single receiving thread, which reads what a readable socket
-    # holds (recv_available) and checks the deadline of a message under way (incoming_due).
+    # One code path serves a thread that blocks in recv() (the slave, the handshakes) and the
+    # master's single receiving thread, which reads what a readable socket holds
+    # (recv_available) and checks the deadline of a message under way (incoming_due). Bytes
+    # are read into the channel's buffer, as many as are there (several messages, or the
+    # start of the next, in one system call), and messages are parsed where they lie.
 
     def recv(self, limits: Limits = DEFAULT_LIMITS, allowed: frozenset | None = None,
              wait: float | None = None, deadline: float | None = None,
@@ -485,14 +502,14 @@ class Channel:
         None if none began within `wait` seconds (None: wait as long as it takes). Once a
         message begins it must arrive within its transfer deadline, and before the absolute
         `deadline` (time.monotonic()) if given. `unauthenticated`: types accepted without a MAC
-        (the handshake's refusals). ProtocolError on anything else."""
+        (the handshake's refusals). ProtocolError on anything else. Its arrays are its own."""
         waited_from = time.monotonic()
         while True:
-            msg = self._parse(limits, allowed, unauthenticated)
+            msg = self._parse(limits, allowed, unauthenticated, borrow=False)
             if msg is not None:
                 self._low_water(self._wake_bytes())
                 return msg
-            if self._incoming is None:      # the first byte: nothing owed yet
+            if self._start == self._end and self._incoming is None:  # nothing owed yet
                 if deadline is not None and time.monotonic() > deadline:
                     raise PeerTooSlow("nothing arrived before the deadline")
             else:
@@ -500,122 +517,167 @@ class Channel:
             try:
                 self._fill()
             except socket.timeout:
-                if (self._incoming is None and wait is not None
+                if (self._start == self._end and self._incoming is None and wait is not None
                         and time.monotonic() - waited_from >= wait):
                     return None
 
     def recv_available(self, limits: Limits = DEFAULT_LIMITS,
                        allowed: frozenset | None = None) -> list:
         """The messages that what the socket holds now completes (one read: call it when the
-        socket is readable, e.g. from a selector); [] if none is complete yet. Afterwards the
-        socket signals readable again only when the next read can make progress (see
-        _low_water). Deadlines: see incoming_due."""
+        socket is readable, e.g. from a selector); [] if none is complete yet. Their arrays
+        are views of the channel's buffer, valid until the next receive on this channel:
+        handle (or copy) them first. Afterwards the socket signals readable again only when
+        the next read can make progress (see _low_water). Deadlines: see incoming_due."""
         try:
             self._fill()
         except socket.timeout:      # woken for nothing
             pass
         messages = []
-        while (msg := self._parse(limits, allowed, frozenset())) is not None:
+        while (msg := self._parse(limits, allowed, frozenset(), borrow=True)) is not None:
             messages.append(msg)
         self._low_water(self._wake_bytes())
         return messages
+
+    def _received(self) -> int:
+        """Bytes of the message under way so far."""
+        incoming = self._incoming
+        if incoming is not None and incoming.own is not None:
+            return HEADER.size + incoming.filled
+        return self._end - self._start
 
     def incoming_due(self) -> float | None:
         """When the message under way arrives too slowly (time.monotonic()) unless more of it
         comes first; None when none is under way."""
         incoming = self._incoming
-        if incoming is None:
+        started = self._began if incoming is None else incoming.started
+        if started is None:
             return None
-        return incoming.started + self.grace_s + incoming.received / MIN_RATE_BPS
+        return started + self.grace_s + self._received() / MIN_RATE_BPS
 
     def check_incoming(self, deadline: float | None = None) -> None:
         """PeerTooSlow if the message under way is past its transfer deadline (or `deadline`)."""
         incoming = self._incoming
-        if incoming is None:
+        started = self._began if incoming is None else incoming.started
+        if started is None:
             return
+        received = self._received()
+        total = HEADER.size if incoming is None else incoming.total
         if deadline is not None and time.monotonic() > deadline:
-            raise PeerTooSlow(f"message not complete before the deadline ({incoming.what}: "
-                              f"{incoming.filled} of {incoming.count} bytes)")
-        self._check_rate(incoming.started, incoming.received, incoming.total, "received",
-                         "message arrived too slowly")
+            where = f"header: {received} of {total} bytes" if incoming is None else incoming.where(received)
+            raise PeerTooSlow(f"message not complete before the deadline ({where})")
+        self._check_rate(started, received, total, "received", "message arrived too slowly")
 
-    def _parse(self, limits: Limits, allowed, unauthenticated) -> Message | None:
-        """Move read-ahead bytes into the message under way; the message once complete, None
-        when the read-ahead runs out first."""
-        while True:
-            incoming = self._incoming
-            if incoming is None:
-                if self._ahead_pos == len(self._ahead):
-                    return None
-                incoming = self._incoming = _Incoming(time.monotonic())
-            n = min(incoming.count - incoming.filled, len(self._ahead) - self._ahead_pos)
-            if n:
-                with memoryview(self._ahead) as ahead:
-                    incoming.add(ahead[self._ahead_pos:self._ahead_pos + n])
-                self._ahead_pos += n
-            if incoming.filled < incoming.count:
+    def _parse(self, limits: Limits, allowed, unauthenticated, borrow: bool) -> Message | None:
+        """The next message if its bytes are all in, else None (what is there waits)."""
+        incoming = self._incoming
+        if incoming is None:
+            have = self._end - self._start
+            if have < HEADER.size:
+                if have == 0:
+                    self._start = self._end = 0     # all parsed: the buffer is free again
+                elif self._began is None:
+                    self._began = time.monotonic()
                 return None
-            incoming.parts.append(incoming.buffer)
-            if len(incoming.parts) == 1:    # the header: checked before anything else is read
-                msg_type, json_length, payload_length = _check_header(incoming.buffer, limits,
-                                                                      allowed)
-                keyed = self._key is not None and msg_type not in unauthenticated
-                incoming.msg_type = msg_type
-                incoming.total = HEADER.size + json_length + payload_length + (MAC_BYTES if keyed else 0)
-                incoming.sizes = [(json_length, "JSON"), (payload_length, "payload")] + (
-                    [(MAC_BYTES, "MAC")] if keyed else [])
-            if incoming.sizes:
-                incoming.next_part()
-                continue
-            self._incoming = None
-            return self._finish(incoming)
+            # The header: checked before anything else is read.
+            msg_type, json_length, payload_length = _check_header(
+                memoryview(self._buffer)[self._start:self._start + HEADER.size], limits, allowed)
+            keyed = self._key is not None and msg_type not in unauthenticated
+            incoming = self._incoming = _Incoming(
+                self._began or time.monotonic(), msg_type, json_length, payload_length,
+                MAC_BYTES if keyed else 0)
+            self._began = None
+            if incoming.total > RECV_KEEP_BYTES:
+                # (the buffer, at most RECV_KEEP_BYTES, holds nothing beyond this message)
+                with memoryview(self._buffer) as view:
+                    incoming.head = bytes(view[self._start:self._start + HEADER.size])
+                    incoming.take_own(view[self._start + HEADER.size:self._end])
+                self._start = self._end = 0
+            else:
+                self._make_room(incoming.total)
+        if incoming.own is not None:
+            if incoming.filled < incoming.total - HEADER.size:
+                return None
+            body, head = memoryview(incoming.own), incoming.head
+            borrow = True            # its own buffer: nobody else's to share
+        else:
+            if self._end - self._start < incoming.total:
+                return None
+            start = self._start
+            self._start += incoming.total
+            with memoryview(self._buffer) as view:
+                head = view[start:start + HEADER.size]
+                body = view[start + HEADER.size:start + incoming.total]
+                if not borrow:
+                    body = memoryview(bytearray(body))
+        self._incoming = None
+        return self._finish(incoming, head, body)
 
-    def _finish(self, incoming: "_Incoming") -> Message:
-        head, text, payload = incoming.parts[:3]
-        msg_type = incoming.msg_type
-        if len(incoming.parts) == 4:
+    def _make_room(self, total: int) -> None:
+        """The buffer holds the message of `total` bytes that starts at _start: the bytes
+        still to parse move to its front, into a larger buffer where it is too small (a new
+        one: messages lent out may still look at the old one)."""
+        if self._start + total <= len(self._buffer):
+            return
+        have = self._end - self._start
+        if total > len(self._buffer):
+            fresh = bytearray(total)
+            fresh[:have] = memoryview(self._buffer)[self._start:self._end]
+            self._buffer = fresh
+        else:
+            self._buffer[:have] = memoryview(self._buffer)[self._start:self._end]
+        self._start, self._end = 0, have
+
+    def _finish(self, incoming: _Incoming, head, body) -> Message:
+        json_length, payload_length, mac_length = incoming.sizes
+        text = body[:json_length]
+        payload = body[json_length:json_length + payload_length]
+        if mac_length:
             expected = self._mac(self._recv_label, self._recv_seq, (head, text, payload))
-            if not hmac.compare_digest(expected, bytes(incoming.parts[3])):
-                raise ProtocolError(f"{msg_type.name}: message authentication failed "
+            if not hmac.compare_digest(expected, bytes(body[json_length + payload_length:])):
+                raise ProtocolError(f"{incoming.msg_type.name}: message authentication failed "
                                     f"(injected, replayed or reordered)")
             self._recv_seq += 1
         self.last_received = time.monotonic()
-        return _parse_body(msg_type, text, payload)
+        return _parse_body(incoming.msg_type, text, payload)
 
     def _wake_bytes(self) -> int:
         """What the next read waits for: once the header is in, the rest of the message (up to
         LOW_WATER_BYTES), so that a tile arriving over a slow link wakes the reader once or
         twice, not for every segment; before, any byte."""
         incoming = self._incoming
-        if incoming is None or incoming.msg_type is None:
+        if incoming is None:
             return 1
-        return max(1, min(incoming.total - incoming.received, LOW_WATER_BYTES))
+        return max(1, min(incoming.total - self._received(), LOW_WATER_BYTES))
 
     def _fill(self) -> None:
-        """One read from the socket (the read-ahead is empty here): straight into the part
-        under way when much of it is left and it is received in place (up to
-        PREALLOCATE_BYTES: tiles up to 512 x 512), else into the read-ahead, up to READ_AHEAD
-        bytes at once, so a tile's header, JSON and payload take one or two system calls.
-        Parts beyond PREALLOCATE_BYTES grow as data arrives: a lying length costs nothing
-        until bytes really come. socket.timeout when nothing came."""
-        incoming = self._incoming
+        """One read from the socket: into the channel's buffer, as much as it has room for
+        (the rest of a message under way is already made room for), or into the message's
+        own buffer (at most its rest: bytes after it go to the channel's buffer on the next
+        read). socket.timeout when nothing came."""
         self._low_water(self._wake_bytes())
-        remaining = 0 if incoming is None else incoming.count - incoming.filled
-        if remaining >= READ_AHEAD and incoming.in_place:
-            with memoryview(incoming.buffer) as view:
-                got = self.sock.recv_into(view[incoming.filled:], min(remaining, 1 << 20))
-            if got == 0:
-                raise ConnectionBroken(incoming.broken())
-            incoming.filled += got
-            incoming.received += got
-            return
-        rest = 0 if incoming is None or incoming.msg_type is None else incoming.total - incoming.received
-        chunk = self.sock.recv(max(READ_AHEAD, min(rest, 1 << 20)))
-        if not chunk:
-            if incoming is None:
+        incoming = self._incoming
+        if incoming is not None and incoming.own is not None:
+            rest = incoming.total - HEADER.size - incoming.filled
+            if incoming.in_place:
+                with memoryview(incoming.own) as view:
+                    got = self.sock.recv_into(view[incoming.filled:], min(rest, 1 << 20))
+                incoming.filled += got
+            else:
+                chunk = self.sock.recv(min(rest, 1 << 20))
+                got = len(chunk)
+                incoming.add(chunk)
+        else:
+            if self._end == len(self._buffer):          # full of unparsed bytes: move them
+                self._make_room(self._end - self._start + HEADER.size)
+            with memoryview(self._buffer) as view:
+                got = self.sock.recv_into(view[self._end:])
+            self._end += got
+        if got == 0:
+            if incoming is None and self._start == self._end:
                 raise ConnectionClosed("connection closed by peer")
-            raise ConnectionBroken(incoming.broken())
-        self._ahead, self._ahead_pos = chunk, 0
+            where = (f"header: {self._received()} of {HEADER.size} bytes" if incoming is None
+                     else incoming.where(self._received()))
+            raise ConnectionBroken(f"connection closed in the middle of a message ({where})")
 
     def _low_water(self, nbytes: int) -> None:
         """SO_RCVLOWAT: poll() (so a receive with a timeout, and a selector) wakes once this
