@@ -376,3 +376,25 @@ def test_a_message_cut_short_in_a_channel_names_its_part():
         finally:
             a.close()
             b.close()
+
+
+def test_messages_lent_by_one_read_stay_intact_while_the_next_one_waits(pair):
+    """recv_available lends every message of a read until the next read: one that completes
+    a tile and also holds the start of a tile too long for the rest of the buffer must not
+    move that start over the tile lent (the frame loop composes tiles after the call)."""
+    a, b = pair
+    tiles = [np.full((48, 48, 4), i, np.float32) + np.arange(4, dtype=np.float32)
+             for i in range(6)]              # 36 KiB each: two do not fit the 64 KiB buffer
+    data = b"".join(bytes(part) for i, tile in enumerate(tiles)
+                    for part in protocol.encode_message(MsgType.TILE_RESULT, {"tile": i},
+                                                        {"combined": tile}))
+    writer = send_raw(a, data)
+    channel = protocol.Channel(b, "master")
+    seen = []
+    while len(seen) < len(tiles):
+        batch = channel.recv_available()
+        for msg in batch:                    # after the whole batch is parsed, as the master
+            np.testing.assert_array_equal(msg.arrays["combined"], tiles[msg.header["tile"]])
+            seen.append(msg.header["tile"])
+    assert seen == list(range(len(tiles)))
+    writer.join(5)

@@ -592,8 +592,6 @@ class Channel:
                     incoming.head = bytes(view[self._start:self._start + HEADER.size])
                     incoming.take_own(view[self._start + HEADER.size:self._end])
                 self._start = self._end = 0
-            else:
-                self._make_room(incoming.total)
         if incoming.own is not None:
             if incoming.filled < incoming.total - HEADER.size:
                 return None
@@ -614,8 +612,9 @@ class Channel:
 
     def _make_room(self, total: int) -> None:
         """The buffer holds the message of `total` bytes that starts at _start: the bytes
-        still to parse move to its front, into a larger buffer where it is too small (a new
-        one: messages lent out may still look at the old one)."""
+        still to parse move to its front, into a larger buffer where it is too small. Only
+        at a read (_fill): messages parsed before it were lent views of the buffer until
+        then, and moving bytes in place would overwrite them."""
         if self._start + total <= len(self._buffer):
             return
         have = self._end - self._start
@@ -651,7 +650,7 @@ class Channel:
 
     def _fill(self) -> None:
         """One read from the socket: into the channel's buffer, as much as it has room for
-        (the rest of a message under way is already made room for), or into the message's
+        (made room for the rest of the message under way first), or into the message's
         own buffer (at most its rest: bytes after it go to the channel's buffer on the next
         read). socket.timeout when nothing came."""
         self._low_water(self._wake_bytes())
@@ -667,8 +666,10 @@ class Channel:
                 got = len(chunk)
                 incoming.add(chunk)
         else:
-            if self._end == len(self._buffer):          # full of unparsed bytes: move them
-                self._make_room(self._end - self._start + HEADER.size)
+            # Room for the rest of the message under way, or for a header after the bytes
+            # still to parse.
+            self._make_room(incoming.total if incoming is not None
+                            else self._end - self._start + HEADER.size)
             with memoryview(self._buffer) as view:
                 got = self.sock.recv_into(view[self._end:])
             self._end += got
