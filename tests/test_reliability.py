@@ -505,13 +505,16 @@ def test_a_slave_that_heartbeats_forever_is_dropped_by_its_tile_budget(slaves, s
 
 def test_killed_slave_rejoins_and_a_late_slave_takes_tiles(slaves, scene, slow_reference):
     """Slave B is killed while it renders and restarted on its port: the master reconnects,
-    uploads the scene to the new process and B takes tiles again; slave C, started mid-frame,
-    is joined (as discovery would) and takes tiles. The image is the one-piece render's."""
+    uploads the scene to the new process and B takes tiles again; slave C, running but unknown
+    to the master, is joined mid-frame (as discovery would) and takes tiles (started before
+    the frame: a fast machine finishes the frame in about 5 s, in which a slave process could
+    start, join, load the scene and compile, but only just). The image is the one-piece
+    render's."""
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     b = SlaveProcess("kdt-rel-bounce", "--port", str(port))
-    c = None
+    c = SlaveProcess("kdt-rel-late")
     seen = []
     try:
         with Master([slaves[0].endpoint, b.endpoint], secret=None, silence_timeout=2.0,
@@ -533,7 +536,6 @@ def test_killed_slave_rejoins_and_a_late_slave_takes_tiles(slaves, scene, slow_r
                     b.kill()
                     killed = True
                     b = SlaveProcess("kdt-rel-bounce", "--port", str(port))
-                    c = SlaveProcess("kdt-rel-late")
                     master.join(*c.endpoint)
                 result = job.next_result(0.05)
                 if result is not None:
@@ -551,8 +553,7 @@ def test_killed_slave_rejoins_and_a_late_slave_takes_tiles(slaves, scene, slow_r
         assert_images_equal(images, slow_reference)
     finally:
         b.stop()
-        if c is not None:
-            c.stop()
+        c.stop()
 
 
 # -- case 1: work proportional to a peer's numbers --------------------------------------------
