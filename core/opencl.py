@@ -46,7 +46,8 @@ def ensure_pocl_cache_dir() -> None:
 
 def select_device(cl, device, error=OpenCLError):
     """None/"auto": the first GPU, else the first CPU device; "cpu"; "gpu"; or "P:D" indices.
-    Raises `error` with the devices found when there is no such device."""
+    Of several of the kind wanted, the first that compiles. Raises `error` with the devices
+    found when there is no such device."""
     try:
         platforms = cl.get_platforms()
     except cl.Error as exc:
@@ -62,9 +63,9 @@ def select_device(cl, device, error=OpenCLError):
         want = {"gpu": (cl.device_type.GPU,), "cpu": (cl.device_type.CPU,),
                 "auto": (cl.device_type.GPU, cl.device_type.CPU)}[spec]
         for kind in want:
-            for p, d in devices:
-                if d.type & kind:
-                    return d
+            candidates = [d for p, d in devices if d.type & kind]
+            if candidates:
+                return _first_that_compiles(cl, candidates)
         if spec == "auto" and devices:
             return devices[0][1]
         raise error(f"no OpenCL {spec} device; found: "
@@ -75,6 +76,31 @@ def select_device(cl, device, error=OpenCLError):
     except (ValueError, IndexError):
         raise error(f"device {device!r} not found: use auto, cpu, gpu or P:D with "
                     f"{len(platforms)} platform(s)") from None
+
+
+def _first_that_compiles(cl, candidates):
+    """The first device that builds a trivial kernel, when there is a choice: a system may
+    hold two of a kind, one of them unable to compile here (PoCL 3.0 of the
+    pocl-binary-distribution wheel, LLVM 14, does not know AMD Zen 5 CPUs, while the system's
+    newer PoCL does). With none that builds, the first, whose kernel build error says why."""
+    if len(candidates) == 1:
+        return candidates[0]
+    for device in candidates:
+        try:
+            cl.Program(cl.Context([device]), "__kernel void probe(__global int *a) { a[0] = 1; }"
+                       ).build(devices=[device])
+            return device
+        except cl.Error:
+            continue
+    return candidates[0]
+
+
+# A kernel build log that means the OpenCL compiler does not know this CPU, and what to do.
+UNKNOWN_CPU_LOG = "unknown target CPU"
+UNKNOWN_CPU_HINT = ("this OpenCL compiler does not know the machine's CPU (PoCL 3.0 of the "
+                    "pocl-binary-distribution wheel, on LLVM 14, predates AMD Zen 5): install a "
+                    "newer PoCL, e.g. `apt-get install pocl-opencl-icd` on Debian or Ubuntu, and "
+                    "KD Trace takes the first CPU device that builds")
 
 
 class Programs:
@@ -112,7 +138,8 @@ class Programs:
                 log = str(exc)
             saved = pathlib.Path(tempfile.gettempdir()) / f"kdtrace-failed-{digest}.cl"
             saved.write_text(source)
+            hint = f"\n{UNKNOWN_CPU_HINT}" if UNKNOWN_CPU_LOG in log else ""
             raise self._error(f"kernel build failed on {self.device.name.strip()} with "
                               f"options {' '.join(options)}; source saved to {saved}\n"
-                              f"{log}") from None
+                              f"{log}{hint}") from None
         return {k.function_name: k for k in program.all_kernels()}
