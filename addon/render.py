@@ -291,15 +291,16 @@ def _receive_tiles(engine, job, canvas, legend, master, take_over, steps):
             return
         if job.stranded and not take_over():
             job.give_up()    # its error names every slave and why it was lost
-        tile = job.next_result(POLL_SECONDS)
-        if tile is None:
+        tiles = job.next_results(POLL_SECONDS)
+        if not tiles:
             join_new_lan_slaves(master)
             continue
-        canvas.add(tile)
-        legend.tile_done(tile)
-        done += 1
-        if done == 1:
+        for tile in tiles:
+            canvas.add(tile)
+            legend.tile_done(tile)
+        if done == 0:
             steps.mark("first tile")
+        done += len(tiles)
         engine.update_progress(0.5 + 0.5 * done / total)
         engine.update_stats("", f"KD Trace | Tile {done}/{total} from {tile.slave_name}")
 

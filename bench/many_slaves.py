@@ -144,8 +144,7 @@ def run_frame(master, view, release=True, **options):
     job = master.render(view, **options)
     count = 0
     while not job.finished:
-        if job.next_result(0.05) is not None:
-            count += 1
+        count += len(job.next_results(0.05))
     assert job.error is None and count == len(job.tiles), job.error
     job.wait(30)
     if release:

@@ -12,7 +12,7 @@ import pytest
 
 from bench.standin import StandInTracer, calibrate
 from core.net import protocol
-from core.net.master import DEPTH_MISS, Master, auto_tile_size
+from core.net.master import DEPTH_MISS, RESULTS_EVERY_S, Master, auto_tile_size
 from core.scene.scene import Scene
 from slave.server import SlaveServer
 from tests.linkemu import LinkEmulator
@@ -100,6 +100,33 @@ def test_32_stand_in_slaves_finish_a_frame_with_every_tile_once(scene, calibrati
             assert set(threading.enumerate()) <= before
             assert [t.name for t in before if t.name.startswith("frames of")] == ["frames of master"]
             assert job.wait(30) and job.error is None
+    finally:
+        slaves.close()
+
+
+def test_next_results_takes_the_tiles_that_came_meanwhile_at_a_steady_pace(scene, calibration):
+    """32 slaves deliver 32 tiles at about the same moment: a caller showing tiles wakes for
+    them a few times, not 32, and every tile comes once; while the frame goes on the calls
+    return at least RESULTS_EVERY_S apart."""
+    slaves = StandIns(calibration, 32)
+    try:
+        with Master(slaves.endpoints, secret=None, retry_delays=()) as master:
+            master.connect()
+            master.load_scene(scene)
+            job = master.render(make_view(128, 96), tile_size=TILE, tiles_in_flight=1)
+            batches, returned, deadline = [], [], time.monotonic() + 60
+            while not job.finished:
+                assert time.monotonic() < deadline, "frame did not finish in time"
+                batch = job.next_results(0.1)
+                if batch:
+                    batches.append(batch)
+                    returned.append((time.monotonic(), job.over))
+            assert job.error is None, job.error
+            assert sorted(r.index for b in batches for r in b) == list(range(48))
+            assert len(batches) < 48 and max(map(len, batches)) > 1, [len(b) for b in batches]
+            for (before, _), (after, over) in zip(returned, returned[1:]):
+                assert over or after - before >= RESULTS_EVERY_S * 0.99
+            assert job.wait(30)
     finally:
         slaves.close()
 
