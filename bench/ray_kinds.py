@@ -134,7 +134,8 @@ def make_tracer(spec):
     """A Tracer on the CPU device as `spec` says: "current", or "+"-joined settings:
     kernels:DIR (the kernel files of another copy of kernels/), breadth-first (the tree as the
     compactor lays it out, no treelets), given-order (scattered rays not reordered), one-ray
-    (one ray per work-item, no packets)."""
+    (one ray per work-item, no packets), local:N (work-groups of N work-items, not the
+    driver's choice)."""
     from slave.tracer import Tracer
     settings = [] if spec == "current" else spec.split("+")
     kernels = [x.split(":", 1)[1] for x in settings if x.startswith("kernels:")]
@@ -146,6 +147,8 @@ def make_tracer(spec):
             tracer.reorder_rays = False
         elif setting == "one-ray":
             tracer.packet = 0
+        elif setting.startswith("local:"):
+            tracer.local_size = int(setting.split(":", 1)[1])
         elif not setting.startswith("kernels:"):
             raise SystemExit(f"unknown tracer setting {setting!r} in {spec!r}")
     return tracer
