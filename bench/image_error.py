@@ -449,7 +449,7 @@ def start_run(args):
     """(width, height, the output folder made) of --size and --out; prints the command and
     the machine with its load."""
     width, height = (int(v) for v in args.size.split("x"))
-    out = pathlib.Path(args.out)
+    out = pathlib.Path(args.out).resolve()   # the Blender child runs elsewhere
     out.mkdir(parents=True, exist_ok=True)
     print(f"command: {' '.join([os.path.basename(sys.executable)] + sys.argv)}")
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, "

@@ -220,12 +220,14 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
         lobes.unbumped = to_local(&fr, m.unbumped);
 #endif
+        rng->depth = (uint)bounces;     // the point sequences of this scattering event
         radiance += direct_light(sc, &s, &m, &lobes, &fr, wo_l, beta, limit, rng);
 #ifdef HAS_BOUNCES
         float3 wi_l, weight;
         int kind;
-        float u_lobe = rng_next(rng), u1 = rng_next(rng), u2 = rng_next(rng), u3 = rng_next(rng);
-        if (!bsdf_sample_local(&m, &lobes, wo_l, u_lobe, u1, u2, u3, &wi_l, &weight, &pdf_prev,
+        float u_lobe = rng_next(rng), u3 = rng_next(rng);
+        float2 u = rng_2d_at(rng, rng_dim(rng, RNG_BSDF, 0u), rng->sample);
+        if (!bsdf_sample_local(&m, &lobes, wo_l, u_lobe, u.x, u.y, u3, &wi_l, &weight, &pdf_prev,
                                &kind))
             break;
         float3 wi = to_world(&fr, wi_l);

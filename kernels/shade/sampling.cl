@@ -12,14 +12,24 @@ inline uint pcg_hash(uint v)
     return (word >> 22u) ^ word;
 }
 
+// A sample's random numbers: a stream (rng_next) for the choices that are made once a sample
+// (a lobe, a cut-out, Russian roulette), and stratified 2D points (rng_2d_at) for the light
+// and BSDF samples, point `sample` of a sequence of the pixel's own for each use at each
+// depth, so that a pixel's samples cover the square evenly rather than at random.
 typedef struct {
-    uint state;
+    uint state;         // rng_next's stream
+    uint pixel_seed;    // the scrambles of this pixel's sequences
+    uint sample;        // the sample's index in them
+    uint depth;         // scattering events so far on the path (trace_path sets it)
 } Rng;
 
 inline Rng rng_seed(uint pixel_index, uint sample, uint seed)
 {
     Rng r;
     r.state = pcg_hash(pixel_index ^ pcg_hash(sample ^ pcg_hash(seed + 0x9E3779B9u)));
+    r.pixel_seed = pcg_hash(pixel_index ^ pcg_hash(seed ^ 0x85EBCA6Bu));
+    r.sample = sample;
+    r.depth = 0u;
     return r;
 }
 
@@ -28,6 +38,64 @@ inline float rng_next(Rng *r)
 {
     r->state = pcg_hash(r->state);
     return (float)(r->state >> 8) * 0x1.0p-24f;
+}
+
+inline uint reverse_bits(uint x)
+{
+    x = ((x >> 1) & 0x55555555u) | ((x & 0x55555555u) << 1);
+    x = ((x >> 2) & 0x33333333u) | ((x & 0x33333333u) << 2);
+    x = ((x >> 4) & 0x0F0F0F0Fu) | ((x & 0x0F0F0F0Fu) << 4);
+    x = ((x >> 8) & 0x00FF00FFu) | ((x & 0x00FF00FFu) << 8);
+    return (x >> 16) | (x << 16);
+}
+
+// Owen scrambling in base 2 by a hash (Laine and Karras 2011, with Vegdahl's constants, as in
+// Burley 2020): each bit is flipped by a function of the bits above it only, so the points of
+// an aligned block of 2^k stay a stratified set.
+inline uint owen_scramble(uint x, uint seed)
+{
+    x = reverse_bits(x);
+    x ^= x * 0x3D20ADEAu;
+    x += seed;
+    x *= (seed >> 16) | 1u;
+    x ^= x * 0x05526C56u;
+    x ^= x * 0x53A22864u;
+    return reverse_bits(x);
+}
+
+// The second dimension of the Sobol sequence (the first is reverse_bits): direction numbers
+// v_0 = 2^31, v_k = v_(k-1) ^ (v_(k-1) >> 1).
+inline uint sobol_second(uint index)
+{
+    uint x = 0u, v = 0x80000000u;
+    for (; index != 0u; index >>= 1, v ^= v >> 1)
+        if (index & 1u)
+            x ^= v;
+    return x;
+}
+
+// What a 2D point is for (rng_dim): its sequence is its own for each use, light and depth.
+#define RNG_LIGHT 0u
+#define RNG_WORLD 1u
+#define RNG_EMISSION 2u
+#define RNG_BSDF 3u
+
+inline uint rng_dim(const Rng *r, uint use, uint which)
+{
+    return (r->depth * 4u + use) * 65536u + which;
+}
+
+// Point `index` in [0, 1)^2 of the pixel's Owen-scrambled Sobol sequence `dim` (Burley 2020,
+// "Practical Hash-based Owen Scrambling"): the index shuffled and both coordinates scrambled
+// by seeds of the pixel and the sequence, so sequences are independent of each other and of
+// other pixels, and each 2^k points from an aligned start are stratified (a (0, k, 2)-net).
+inline float2 rng_2d_at(const Rng *r, uint dim, uint index)
+{
+    uint seed = pcg_hash(r->pixel_seed ^ pcg_hash(dim));
+    index = owen_scramble(index, seed);
+    uint x = owen_scramble(reverse_bits(index), pcg_hash(seed ^ 0x68BC21EBu));
+    uint y = owen_scramble(sobol_second(index), pcg_hash(seed ^ 0x02E5BE93u));
+    return (float2)((float)(x >> 8) * 0x1.0p-24f, (float)(y >> 8) * 0x1.0p-24f);
 }
 
 // sin and cos of x in [-pi/4, pi/4] (Taylor to x^9 / x^8: error below 4e-8).

@@ -1822,8 +1822,8 @@ inline float3 light_contribution(const Scene *sc, const Surface *s, const Materi
     return f * L * (fabs(wi_l.z) * w) * V;
 }
 
-// Direct light at a surface: every Blender light (L x L stratified samples for lights with an
-// extent, one for the others), the world and the emissive triangles (L x L each), weighted
+// Direct light at a surface: every Blender light (L x L samples for lights with an extent, one
+// for the others; a pixel's samples of a light at a depth are points of one sequence), the world and the emissive triangles (L x L each), weighted
 // against the BSDF by the power heuristic. `beta` the path's throughput and `limit` the
 // clamp, applied per sample.
 inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
@@ -1843,12 +1843,12 @@ inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
 #endif
         int k = extended ? n : 1;
         float share = extended ? inv_nn : 1.0f;
+        uint dim = rng_dim(rng, RNG_LIGHT, l);
         for (int j = 0; j < k * k; ++j) {
-            float u1 = ((float)(j % k) + rng_next(rng)) / (float)k;
-            float u2 = ((float)(j / k) + rng_next(rng)) / (float)k;
+            float2 u = rng_2d_at(rng, dim, rng->sample * (uint)(k * k) + (uint)j);
             float3 wi, target;
             float dist, pdf_light;
-            float3 E = sample_light(sc, l, s->p, u1, u2, &wi, &target, &dist, &pdf_light);
+            float3 E = sample_light(sc, l, s->p, u.x, u.y, &wi, &target, &dist, &pdf_light);
             if (all(E == 0.0f))
                 continue;
             // E is radiance over the sample's density already.
@@ -1859,11 +1859,10 @@ inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
     }
 #ifdef HAS_WORLD
     for (int j = 0; j < n * n; ++j) {
-        float u1 = ((float)(j % n) + rng_next(rng)) / (float)n;
-        float u2 = ((float)(j / n) + rng_next(rng)) / (float)n;
+        float2 u = rng_2d_at(rng, rng_dim(rng, RNG_WORLD, 0u), rng->sample * (uint)(n * n) + (uint)j);
         float3 wi;
         float pdf;
-        float3 L = world_sample(sc, u1, u2, &wi, &pdf);
+        float3 L = world_sample(sc, u.x, u.y, &wi, &pdf);
         if (!(pdf > 0.0f) || all(L == 0.0f))
             continue;
         total += clamp_sample(beta * light_contribution(sc, s, m, lobes, fr, wo_l, wi, L / pdf,
@@ -1875,12 +1874,12 @@ inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
     if (sc->emitter_count > 0) {
         for (int j = 0; j < n * n; ++j) {
             float u0 = rng_next(rng);
-            float u1 = ((float)(j % n) + rng_next(rng)) / (float)n;
-            float u2 = ((float)(j / n) + rng_next(rng)) / (float)n;
+            float2 u = rng_2d_at(rng, rng_dim(rng, RNG_EMISSION, 0u),
+                                 rng->sample * (uint)(n * n) + (uint)j);
             float3 wi;
             float dist, pdf;
             uint tri;
-            float3 L = emitter_sample(sc, s->p, u0, u1, u2, &wi, &dist, &pdf, &tri);
+            float3 L = emitter_sample(sc, s->p, u0, u.x, u.y, &wi, &dist, &pdf, &tri);
             if (tri == s->tri || !(pdf > 0.0f) || all(L == 0.0f))
                 continue;
             // The MIS weight uses the density a BSDF ray hitting tri sees (emitter_pdf).
