@@ -19,6 +19,8 @@ U4 = np.uint32
 PRIVATE_GAPS = 64         # a triangle with more references keeps its lift stacks in the scratch
 TOPO_STACK = 64           # topo_subtrees' stack: more than the levels below its start
 TOPO_ROOTS = 4096         # topo_subtrees starts at the first level this wide
+PIECE_TRIANGLES = 1 << 19  # lift_candidates walks up the tree for each triangle: launches of
+                           # this many (about 0.1 s each on 2 CPU threads), so Esc is seen soon
 
 
 def _exclusive(counts) -> np.ndarray:
@@ -62,9 +64,10 @@ class CompactorCL:
         self.k = builder._programs.kernels(kernel_source(KERNEL_FILES), options)
 
     # -- helpers ---------------------------------------------------------------------------
-    def run(self, name, count, *args):
+    def run(self, name, count, *args, piece=None):
         from .kdtree_cl import PIECE_ITEMS
-        self.b._run(self.k[name], count, *args, local_size=self.local_size, piece=PIECE_ITEMS)
+        self.b._run(self.k[name], count, *args, local_size=self.local_size,
+                    piece=piece or PIECE_ITEMS)
 
     def zeros(self, nbytes):
         b = self.b
@@ -208,12 +211,13 @@ class CompactorCL:
             used = self.zeros(4)
             self.run("lift_candidates", triangle_count, tri_first, s_pre, gap_pre, gap_depth,
                      nodes, climb, walk, b._buffer(big_first[:-1].astype(U4)), scratch, out,
-                     used, U4(capacity), U4(triangle_count), U4(params.min_refs), *taus)
+                     used, U4(capacity), U4(triangle_count), U4(params.min_refs), *taus,
+                     piece=PIECE_TRIANGLES)
             total = self.value_at(used, 0)
             if total <= capacity:
                 break
             capacity = total          # more candidates than room: again with room for all
-        return _ByDepth(b._read(out, U4, (total, 6)), depth_count)
+        return _ByDepth(b._take(out, U4, (total, 6)), depth_count)
 
     def select_lifts(self, nodes, ranges, per_depth, R, n, params):
         """compact.py _select_lifts, its references on the path and per node on the device:
@@ -367,8 +371,8 @@ class CompactorCL:
             int(x) for x in per_block.sum(0))
         if int(per_block[:, 6].max()) > host.MAX_LEAF32_COUNT:
             raise ValueError("a leaf holds too many triangles for the 32-bit list's count")
-        laid_out = (b._read(out, U4, (total, 2)), b._read(index32, U4, total32),
-                    b._read(index16, np.uint16, total16), shift,
+        laid_out = (b._take(out, U4, (total, 2)), b._take(index32, U4, total32),
+                    b._take(index16, np.uint16, total16), shift,
                     {"inner": inner_count, "tref": int(len(np.unique(lift_node))), "leaf": stored},
                     {"leaves": stored, "empty_leaves_stored": empty,
                      "empty_leaves_elided": elided_count, "leaves_16bit": leaves16,

@@ -212,6 +212,17 @@ class KDTreeBuilderCL:
             self._cl.enqueue_copy(self.queue, out, buffer)
         return out
 
+    def _take(self, buffer, dtype, shape):
+        """A buffer's contents as a host array, for a buffer no kernel uses again: on a CPU
+        device the buffer's own memory, mapped (a copy of the tree's 100s of MB, into pages
+        first touched by the copy, took longer than the kernels that wrote them)."""
+        if not self.is_cpu or not np.prod(shape):
+            return self._read(buffer, dtype, shape)
+        cl = self._cl
+        array, _ = cl.enqueue_map_buffer(self.queue, buffer, cl.map_flags.READ | cl.map_flags.WRITE,
+                                         0, shape, dtype, is_blocking=True)
+        return array
+
     # -- the build -------------------------------------------------------------------------
     def build(self, vertices, triangles, params: KDTreeParams | None = None,
               progress=None) -> KDTree:
@@ -634,8 +645,8 @@ class _BuildState:
         b._run(k["place_subtrees"], n_sub, store.words, store.meta, store.leaf_refs,
                b._buffer(places), b._buffer(bases), d_nodes, d_leaves, u4(n_sub),
                piece=max(1, PIECE_ITEMS // per_subtree))
-        nodes = b._read(d_nodes, u4, (total_nodes, 2))
-        leaf_indices = b._read(d_leaves, u4, total_refs)
+        nodes = b._take(d_nodes, u4, (total_nodes, 2))
+        leaf_indices = b._take(d_leaves, u4, total_refs)
         self.store = None
         # Big inner nodes: their own place, and their children's (the entry at the next level
         # with the below child's key).
