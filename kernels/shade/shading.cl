@@ -1823,7 +1823,8 @@ inline float3 light_contribution(const Scene *sc, const Surface *s, const Materi
 }
 
 // Direct light at a surface: every Blender light (L x L samples for lights with an extent, one
-// for the others; a pixel's samples of a light at a depth are points of one sequence), the world and the emissive triangles (L x L each), weighted
+// for the others; a pixel's samples of a light at a depth are points of one sequence), the
+// world and the emissive triangles (L x L each), weighted
 // against the BSDF by the power heuristic. `beta` the path's throughput and `limit` the
 // clamp, applied per sample.
 inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
@@ -1858,8 +1859,9 @@ inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
         }
     }
 #ifdef HAS_WORLD
+    uint world_dim = rng_dim(rng, RNG_WORLD, 0u);
     for (int j = 0; j < n * n; ++j) {
-        float2 u = rng_2d_at(rng, rng_dim(rng, RNG_WORLD, 0u), rng->sample * (uint)(n * n) + (uint)j);
+        float2 u = rng_2d_at(rng, world_dim, rng->sample * (uint)(n * n) + (uint)j);
         float3 wi;
         float pdf;
         float3 L = world_sample(sc, u.x, u.y, &wi, &pdf);
@@ -1872,10 +1874,10 @@ inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
 #endif
 #ifdef HAS_EMISSION
     if (sc->emitter_count > 0) {
+        uint emission_dim = rng_dim(rng, RNG_EMISSION, 0u);
         for (int j = 0; j < n * n; ++j) {
             float u0 = rng_next(rng);
-            float2 u = rng_2d_at(rng, rng_dim(rng, RNG_EMISSION, 0u),
-                                 rng->sample * (uint)(n * n) + (uint)j);
+            float2 u = rng_2d_at(rng, emission_dim, rng->sample * (uint)(n * n) + (uint)j);
             float3 wi;
             float dist, pdf;
             uint tri;
