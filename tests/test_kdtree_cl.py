@@ -208,6 +208,27 @@ def test_tree_does_not_depend_on_subtrees_chunks_or_work_groups(builder, name):
         assert other.build(vertices, triangles).stats["sah_cost"] == reference.stats["sah_cost"]
 
 
+def test_tree_does_not_depend_on_the_stores_chunks(builder, monkeypatch):
+    # Finished subtrees go into chunks of the device store; tiny chunks (a new one for every
+    # launch, some launches larger than a chunk) must give the same tree.
+    import core.accel.kdtree_cl as kcl
+    vertices, triangles = load_bunny()
+    small = KDTreeBuilderCL("cpu", subtree_refs=64)
+    reference = small.build(vertices, triangles)
+    chunks = []
+
+    class CountedChunk(kcl._Chunk):
+        def __init__(self, *args):
+            super().__init__(*args)
+            chunks.append(self.rec_capacity)
+    monkeypatch.setattr(kcl, "_Chunk", CountedChunk)
+    monkeypatch.setattr(kcl._Store, "CHUNK_RECORDS", 512)
+    monkeypatch.setattr(kcl._Store, "CHUNK_REFS", 256)
+    small.batch_seconds = 1e-6         # launches of about subtree_refs references
+    same_tree(reference, small.build(vertices, triangles))
+    assert len(chunks) > 10 and max(chunks) > 512
+
+
 @pytest.mark.parametrize("name", ["bunny", "slivers", "soup", "cube_of_quads"])
 def test_software_double_gives_the_same_tree(builder, soft_builder, name):
     vertices, triangles = SCENES[name]()
