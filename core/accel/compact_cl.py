@@ -4,8 +4,8 @@ node order (what core/accel/kdtree.py and kdtree_cl.py both build). Each level o
 a contiguous range of nodes whose inner nodes' children are, pair by pair, the next level, so
 every per-level step is one kernel over a range, and the final numbering is a prefix sum in
 node order. The result is compact_tree's, bit for bit: the kernels use its float64 arithmetic
-and numpy's summation order, and the greedy choice of lifts runs on the host with compact.py's
-own step. Every array of the size of the tree stays on the device (buffers freed as soon as
+and numpy's summation order, and the greedy choice of lifts takes the same lifts in the same
+order (choose_lifts). Every array of the size of the tree stays on the device (buffers freed as soon as
 their step is done), so that a 10 M-triangle scene fits in a few GB. docs/kdtree_native.md.
 """
 from __future__ import annotations
@@ -27,27 +27,6 @@ def _exclusive(counts) -> np.ndarray:
     out = np.zeros(len(counts) + 1, np.int64)
     np.cumsum(counts, out=out[1:])
     return out
-
-
-class _ByDepth:
-    """Lift candidates, rows (depth, node, triangle, r, first, end) in any order, handed out
-    per depth as int64 columns (node, triangle, r, first, end)."""
-
-    def __init__(self, found, depth_count):
-        self.found = found
-        # Rows by depth (numpy's stable sort of a uint8 key is a radix sort).
-        self.order = np.argsort(found[:, 0].astype(np.uint8), kind="stable")
-        self.bounds = _exclusive(np.bincount(found[:, 0], minlength=depth_count)[:depth_count])
-
-    def __len__(self):
-        return len(self.bounds) - 1
-
-    def __getitem__(self, d):
-        a, b = self.bounds[d], self.bounds[d + 1]
-        if a == b:
-            return None
-        part = self.found[self.order[a:b]].astype(np.int64)
-        return tuple(part[:, j] for j in range(1, 6))
 
 
 class CompactorCL:
@@ -100,11 +79,15 @@ class CompactorCL:
         return self.b._read(out, U4, len(at)).astype(np.int64)
 
     def set_counts(self, buffer, nodes):
-        """buffer[node] += how often node appears in `nodes` (distinct places per launch)."""
+        """buffer[node] += how often node appears in `nodes`."""
         used, counts = np.unique(nodes, return_counts=True)
-        if len(used):
-            self.run("add_values", len(used), self.b._buffer(used.astype(U4)),
-                     self.b._buffer(counts.astype(U4)), buffer, U4(len(used)))
+        self.add_at(buffer, used, counts)
+
+    def add_at(self, buffer, places, values):
+        """buffer[places] += values (distinct places)."""
+        if len(places):
+            self.run("add_values", len(places), self.b._buffer(places.astype(U4)),
+                     self.b._buffer(values.astype(U4)), buffer, U4(len(places)))
 
     def scan(self, values, n, out=None):
         """Exclusive prefix sum of n uints (into `out`, or in place); returns the total."""
@@ -179,11 +162,15 @@ class CompactorCL:
         triangle, and each triangle's first place."""
         b = self.b
         R = len(leaf_indices)
-        tri_first = b._buffer(_exclusive(np.bincount(leaf_indices, minlength=triangle_count))
-                              .astype(U4))
+        d_leaf_indices = self.view(leaf_indices)
+        # Counted on the device (numpy's bincount took 0.64 s of the 12 dragons' 35 M
+        # references, with Esc unseen); the (T + 1)-th count is 0, so its prefix is R.
+        tri_first = self.zeros(4 * (triangle_count + 1))
+        self.run("refs_count", R, d_leaf_indices, tri_first, U4(R))
+        self.scan(tri_first, triangle_count + 1)
         cursor = self.zeros(4 * triangle_count)
         s_leaf, s_pre, s_tri = (b._buffer(nbytes=4 * max(R, 1)) for _ in range(3))
-        self.run("refs_scatter", n, nodes, self.view(leaf_indices), tri_first, cursor, pre,
+        self.run("refs_scatter", n, nodes, d_leaf_indices, tri_first, cursor, pre,
                  s_leaf, s_pre, U4(n))
         self.run("refs_sort", triangle_count, tri_first, s_leaf, s_pre, s_tri, U4(triangle_count))
         return s_leaf, s_pre, s_tri, tri_first
@@ -195,14 +182,13 @@ class CompactorCL:
         return gap_node, gap_pre, gap_depth
 
     def lift_candidates(self, nodes, tri_first, triangle_count, s_pre, gap_pre, gap_depth,
-                        climb, walk, R, depth_count, params) -> _ByDepth:
-        """compact.py _lift_candidates, by depth."""
+                        climb, walk, R, params):
+        """compact.py _lift_candidates: (a buffer of candidate rows, their number)."""
         b = self.b
         # Triangles with more than PRIVATE_GAPS references keep their stacks in the scratch.
-        counts = np.diff(b._read(tri_first, U4, triangle_count + 1).astype(np.int64))
-        big = np.where(counts > PRIVATE_GAPS, counts, 0)
-        big_first = _exclusive(big)
-        scratch = b._buffer(nbytes=12 * max(int(big_first[-1]), 1))
+        big_first = self.zeros(4 * (triangle_count + 1))
+        self.run("scratch_spans", triangle_count, tri_first, big_first, U4(triangle_count))
+        scratch = b._buffer(nbytes=12 * max(self.scan(big_first, triangle_count + 1), 1))
         taus = (np.float64(params.tau_occu).view(np.uint64),
                 np.float64(params.tau_freq).view(np.uint64))
         capacity = max(R // 2, 1024)
@@ -210,47 +196,53 @@ class CompactorCL:
             out = b._buffer(nbytes=24 * capacity)
             used = self.zeros(4)
             self.run("lift_candidates", triangle_count, tri_first, s_pre, gap_pre, gap_depth,
-                     nodes, climb, walk, b._buffer(big_first[:-1].astype(U4)), scratch, out,
+                     nodes, climb, walk, big_first, scratch, out,
                      used, U4(capacity), U4(triangle_count), U4(params.min_refs), *taus,
                      piece=PIECE_TRIANGLES)
             total = self.value_at(used, 0)
             if total <= capacity:
-                break
+                return out, total
             capacity = total          # more candidates than room: again with room for all
-        return _ByDepth(b._take(out, U4, (total, 6)), depth_count)
 
-    def select_lifts(self, nodes, ranges, per_depth, R, n, params):
-        """compact.py _select_lifts, its references on the path and per node on the device:
-        (removed, lift node, triangle, first: host arrays; refs per node: a buffer)."""
+    def group_candidates(self, candidates, total, n):
+        """The candidate rows grouped by node: (each node's end in `grouped`, grouped
+        (triangle, references, first, end), each one's node)."""
         b = self.b
-        removed = np.zeros(R, bool)
-        refs_at = self.zeros(4 * n)
+        node_next = self.zeros(4 * n)
+        self.run("cand_count", total, candidates, node_next, U4(total))
+        self.scan(node_next, n)                         # each node's first place
+        grouped, grouped_node = b._buffer(nbytes=16 * total), b._buffer(nbytes=4 * total)
+        self.run("cand_group", total, candidates, node_next, grouped, grouped_node, U4(total))
+        return node_next, grouped, grouped_node         # node_next: now each node's end
+
+    def select_lifts(self, nodes, ranges, grouped_candidates, total, R, n, params):
+        """compact.py _select_lifts on the device (choose_lifts, level by level): (removed
+        references: a uchar buffer; lift node, triangle, first: host arrays, by node; refs per
+        node: a buffer)."""
+        b = self.b
+        node_end, grouped, grouped_node = grouped_candidates
+        removed, taken, refs_at = self.zeros(R), self.zeros(4 * (total + 1)), self.zeros(4 * n)
         limited = params.refs_per_path is not None
-        on_path = self.zeros(4 * n) if limited else None
-        lifts = []
-        for d, (first, end) in enumerate(ranges):
-            cand = per_depth[d] if d < len(per_depth) else None
-            if cand is not None and params.refs_per_node:
-                on_path_of = ((lambda at: self.gather(on_path, at)) if limited
-                              else (lambda at: np.zeros(len(at), np.int64)))
-                taken = host._choose_lifts(cand, removed, on_path_of, params)
-                self.set_counts(refs_at, taken[0])
-                lifts.append(taken)
+        on_path = self.zeros(4 * n if limited else 4)
+        for first, end in ranges:
+            self.run("choose_lifts", end - first, node_end, grouped, removed, taken, refs_at,
+                     on_path, U4(first), U4(end), U4(params.refs_per_node),
+                     U4(params.refs_per_path or 0), U4(limited))
             if limited:
                 self.run("pass_down", end - first, nodes, refs_at, on_path, U4(first), U4(end))
             b.heartbeat()
-        if lifts:
-            node, tri, first = (np.concatenate(part) for part in zip(*lifts))
-        else:
-            node = tri = first = np.zeros(0, np.int64)
+        del on_path
+        count = self.scan(taken, total + 1)
+        b.heartbeat()
+        lifts = [b._buffer(nbytes=4 * max(count, 1)) for _ in range(3)]
+        self.run("lifts_out", total, taken, grouped, grouped_node, *lifts, U4(total))
+        node, tri, first = (b._read(x, U4, count).astype(np.int64) for x in lifts)
         return removed, node, tri, first, refs_at
 
-    def collapse(self, nodes, n, ranges, removed, s_leaf, gap_node, gap_depth, lift_node,
+    def collapse(self, nodes, n, ranges, R, d_removed, s_leaf, gap_node, gap_depth, lift_node,
                  lift_first, refs_at, pre, walk, params):
         """compact.py _distinct_below and _collapse: the collapsed nodes (a buffer)."""
         b = self.b
-        R = len(removed)
-        d_removed = b._buffer(removed.astype(np.uint8))
         per_node = self.zeros(4 * n)
         leaf_count = self.zeros(4 * n)
         self.run("distinct_refs", R, d_removed, s_leaf, gap_node, gap_depth, per_node, leaf_count,
@@ -279,33 +271,36 @@ class CompactorCL:
             self.b.heartbeat()
         return dead, owner
 
-    def items(self, n, removed, s_leaf, s_tri, owner, extra_owner, extra_tri):
+    def items(self, n, R, d_removed, s_leaf, s_tri, owner, extra_owner, extra_tri):
         """Every final leaf's triangles (kept references and the lifts of removed nodes),
         sorted, without repeats, one list after another in node order: buffers (count per
         node, first place per node, the lists) and the number of items."""
         b = self.b
-        R = len(removed)
-        d_removed = b._buffer(removed.astype(np.uint8))
         per_owner = self.zeros(4 * (n + 1))
         self.run("items_count", R, d_removed, s_leaf, owner, per_owner, U4(R))
         # The lifts of removed nodes go first in their owner's bucket, then the references.
+        order = np.argsort(extra_owner, kind="stable")
+        by_owner = extra_owner[order]
+        starts = host._run_starts(by_owner)
+        runs = np.diff(np.append(starts, len(by_owner)))
         cursor = self.zeros(4 * n)
-        self.set_counts(cursor, extra_owner)
-        self.set_counts(per_owner, extra_owner)
+        self.add_at(cursor, by_owner[starts], runs)
+        self.add_at(per_owner, by_owner[starts], runs)
+        b.heartbeat()
         owner_first = b._buffer(nbytes=4 * (n + 1))
         total = self.scan(per_owner, n + 1, owner_first)
         del per_owner
+        b.heartbeat()
         items = b._buffer(nbytes=4 * max(total, 1))
         if len(extra_owner):
-            by_owner = np.sort(extra_owner)
-            rank = np.arange(len(by_owner)) - np.searchsorted(by_owner, by_owner)
+            rank = np.arange(len(by_owner)) - np.repeat(starts, runs)
             first = self.gather(owner_first, by_owner)
             self.run("put_values", len(by_owner), b._buffer((first + rank).astype(U4)),
-                     b._buffer(extra_tri[np.argsort(extra_owner, kind="stable")].astype(U4)),
-                     items, U4(len(by_owner)))
+                     b._buffer(extra_tri[order].astype(U4)), items, U4(len(by_owner)))
+            b.heartbeat()
         self.run("items_scatter", R, d_removed, s_leaf, s_tri, owner, owner_first, cursor, items,
                  U4(R))
-        del cursor, d_removed
+        del cursor
         kept = b._buffer(nbytes=4 * (n + 1))
         self.run("items_unique", n, owner_first, items, kept, U4(n))
         b.heartbeat()
@@ -353,27 +348,33 @@ class CompactorCL:
         self.run("layout_words", n, nodes, classes, elided, refs_at, groups, final_count,
                  item_first, items, count16, off32, off16, base_of, new_index, out, index32,
                  index16, U4(n), U4(shift))
+        lifted_nodes = 0
         if len(lift_node):
-            order = np.lexsort((lift_tri, lift_node))
+            # By (node, triangle): the lifts come by node, so this stable sort of a combined
+            # key is nearly linear (a lexsort took 0.31 s of the 12 dragons' 5 M lifts).
+            order = np.argsort((lift_node << 32) | lift_tri, kind="stable")
             node_sorted = lift_node[order]
             first = host._run_starts(node_sorted)
+            lifted_nodes = len(first)
             slot = np.arange(len(order)) - np.repeat(first, np.diff(np.append(first, len(order))))
             self.run("layout_slots", len(order), b._buffer(node_sorted.astype(U4)),
                      b._buffer(lift_tri[order].astype(U4)), b._buffer(slot.astype(U4)), groups,
                      out, U4(len(order)))
+            b.heartbeat()
         block = 4096
         blocks = max(1, -(-n // block))
         counters = b._buffer(nbytes=32 * blocks)
         b._run(self.k["layout_stats"], blocks, classes, elided, final_count, count16, collapsed,
                dead, counters, U4(n), U4(block), local_size=1)
         per_block = b._read(counters, U4, (blocks, 8)).astype(np.int64)
+        b.heartbeat()
         stored, empty, elided_count, leaves16, leaves32, inner_count, _, kept_collapsed = (
             int(x) for x in per_block.sum(0))
         if int(per_block[:, 6].max()) > host.MAX_LEAF32_COUNT:
             raise ValueError("a leaf holds too many triangles for the 32-bit list's count")
         laid_out = (b._take(out, U4, (total, 2)), b._take(index32, U4, total32),
                     b._take(index16, np.uint16, total16), shift,
-                    {"inner": inner_count, "tref": int(len(np.unique(lift_node))), "leaf": stored},
+                    {"inner": inner_count, "tref": lifted_nodes, "leaf": stored},
                     {"leaves": stored, "empty_leaves_stored": empty,
                      "empty_leaves_elided": elided_count, "leaves_16bit": leaves16,
                      "leaves_32bit": leaves32,
@@ -425,21 +426,23 @@ def compact_on_device(device, tree, triangles_count, params, report, started):
         gap_node, gap_pre, gap_depth = c.neighbour_lcas(s_pre, s_tri, climb, R)
         report(0.3, "compact: neighbouring references' common ancestors")
     if lifting:
-        per_depth = c.lift_candidates(nodes, tri_first, triangles_count, s_pre, gap_pre,
-                                      gap_depth, climb, walk, R, len(ranges), params)
+        candidates, total = c.lift_candidates(nodes, tri_first, triangles_count, s_pre, gap_pre,
+                                              gap_depth, climb, walk, R, params)
         del climb, gap_pre, s_pre, tri_first
+        grouped = c.group_candidates(candidates, total, n)
+        del candidates
         removed, lift_node, lift_tri, lift_first, refs_at = c.select_lifts(
-            nodes, ranges, per_depth, R, n, params)
-        del per_depth
+            nodes, ranges, grouped, total, R, n, params)
+        del grouped
     else:
         del climb, s_pre, tri_first
-        removed = np.zeros(R, bool)
+        removed = c.zeros(R)
         lift_node = lift_tri = lift_first = np.zeros(0, np.int64)
         refs_at = c.zeros(4 * n)
     report(0.5, f"compact: {len(lift_tri)} triangle references lifted")
 
     if params.collapse:
-        collapsed = c.collapse(nodes, n, ranges, removed, s_leaf, gap_node, gap_depth, lift_node,
+        collapsed = c.collapse(nodes, n, ranges, R, removed, s_leaf, gap_node, gap_depth, lift_node,
                                lift_first, refs_at, pre, walk, params)
         del gap_node, gap_depth
     else:
@@ -452,7 +455,7 @@ def compact_on_device(device, tree, triangles_count, params, report, started):
     gone = ((c.gather(dead, lift_node, "gather_bytes") > 0)
             | (c.gather(collapsed, lift_node, "gather_bytes") > 0))
     final_count, item_first, items, item_count = c.items(
-        n, removed, s_leaf, s_tri, owner, c.gather(owner, lift_node[gone]), lift_tri[gone])
+        n, R, removed, s_leaf, s_tri, owner, c.gather(owner, lift_node[gone]), lift_tri[gone])
     del owner, s_leaf, s_tri, removed
     lift_node, lift_tri = lift_node[~gone], lift_tri[~gone]
     report(0.85, f"compact: {item_count:,} leaf references")

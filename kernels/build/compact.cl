@@ -231,6 +231,15 @@ __kernel void topo_subtrees(__global const uint2* restrict nodes, __global const
    References sorted by (triangle, preorder of the leaf): counted per triangle, scattered into
    their triangle's range (in any order), then each range sorted by preorder. */
 
+/* Per reference: one more for its triangle (the ranges' sizes, before their prefix sum). */
+__kernel void refs_count(__global const uint* restrict leaf_indices, __global uint* restrict counts,
+                         uint count)
+{
+    uint j = get_global_id(0);
+    if (j < count)
+        atomic_inc(counts + leaf_indices[j]);
+}
+
 /* Per node (leaves only): its references scattered into their triangles' ranges. */
 __kernel void refs_scatter(__global const uint2* restrict nodes,
                            __global const uint* restrict leaf_indices,
@@ -434,6 +443,18 @@ inline dbl run_area(__global const WalkRecord* walk, __global const uint* s_pre,
 #define CANDIDATE_BLOCK 32
 /* PRIVATE_GAPS (-D, compact_cl.py): triangles with more references use the scratch. */
 
+/* Per triangle: its reference count when it needs the scratch (more than PRIVATE_GAPS),
+   else 0; their prefix sum places each one's stacks. */
+__kernel void scratch_spans(__global const uint* restrict tri_first, __global uint* restrict spans,
+                            uint triangle_count)
+{
+    uint t = get_global_id(0);
+    if (t < triangle_count) {
+        uint span = tri_first[t + 1u] - tri_first[t];
+        spans[t] = span > PRIVATE_GAPS ? span : 0u;
+    }
+}
+
 __kernel void lift_candidates(__global const uint* restrict tri_first,
                               __global const uint* restrict s_pre,
                               __global const uint* restrict gap_pre,
@@ -558,6 +579,95 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
         for (uint i = 0; i < 6 * held && at + held <= capacity; i++)
             out[6 * (size_t)at + i] = block[i];
     }
+}
+
+/* ----------------------------------------------------------------------------------------
+   The greedy choice of lifts (compact.py _choose_lifts): the candidates grouped by node, then
+   level by level from the root, each node of a level takes its best candidates still live. */
+
+/* Per candidate: one more for its node. */
+__kernel void cand_count(__global const uint* restrict cand, __global uint* restrict node_next,
+                         uint count)
+{
+    uint j = get_global_id(0);
+    if (j < count)
+        atomic_inc(node_next + cand[6 * (size_t)j + 1]);
+}
+
+/* Per candidate: into its node's range, in any order (the choice ranks them by a total
+   order). node_next starts at each node's first place and ends at the next node's. */
+__kernel void cand_group(__global const uint* restrict cand, __global uint* restrict node_next,
+                         __global uint4* restrict grouped, __global uint* restrict grouped_node,
+                         uint count)
+{
+    uint j = get_global_id(0);
+    if (j >= count)
+        return;
+    __global const uint* c = cand + 6 * (size_t)j;
+    uint at = atomic_inc(node_next + c[1]);
+    grouped[at] = (uint4)(c[2], c[3], c[4], c[5]);      /* triangle, references, first, end */
+    grouped_node[at] = c[1];
+}
+
+/* Per node of a level: of its candidates whose run no lift above removed, the ones that
+   remove the most references (ties: the lower triangle, then the earlier run), as many as
+   the node and the path allow. They move to the front of the node's range in that order,
+   flagged in `taken`; their runs are removed. A node's candidates are distinct triangles, so
+   their runs are disjoint, and nodes of one level have disjoint subtrees. */
+__kernel void choose_lifts(__global const uint* restrict node_end, __global uint4* restrict grouped,
+                           __global uchar* restrict removed, __global uint* restrict taken,
+                           __global uint* restrict refs_at, __global const uint* restrict on_path,
+                           uint first, uint end, uint refs_per_node, uint path_cap, uint limited)
+{
+    uint i;
+    if (!level_node(first, end, &i))
+        return;
+    uint a = i > 0u ? node_end[i - 1u] : 0u, b = node_end[i];
+    uint cap = refs_per_node;
+    if (limited) {
+        uint above = on_path[i];
+        cap = min(cap, path_cap > above ? path_cap - above : 0u);
+    }
+    uint k = 0u;
+    for (; k < cap && a + k < b; k++) {
+        uint best = b;
+        uint4 bc = (uint4)(0u);
+        for (uint j = a + k; j < b; j++) {
+            uint4 c = grouped[j];
+            if (removed[c.z])
+                continue;
+            if (best == b || c.y > bc.y || (c.y == bc.y && (c.x < bc.x
+                                                            || (c.x == bc.x && c.z < bc.z)))) {
+                best = j;
+                bc = c;
+            }
+        }
+        if (best == b)
+            break;
+        grouped[best] = grouped[a + k];
+        grouped[a + k] = bc;
+        taken[a + k] = 1u;
+        for (uint r = bc.z; r < bc.w; r++)
+            removed[r] = 1;
+    }
+    refs_at[i] = k;
+}
+
+/* Per candidate: a taken one to its place among the lifts (slot: the exclusive prefix sum of
+   the taken flags), node by node, each node's in the order chosen. */
+__kernel void lifts_out(__global const uint* restrict slot, __global const uint4* restrict grouped,
+                        __global const uint* restrict grouped_node, __global uint* restrict lift_node,
+                        __global uint* restrict lift_tri, __global uint* restrict lift_first,
+                        uint count)
+{
+    uint j = get_global_id(0);
+    if (j >= count || slot[j + 1u] == slot[j])
+        return;
+    uint s = slot[j];
+    uint4 c = grouped[j];
+    lift_node[s] = grouped_node[j];
+    lift_tri[s] = c.x;
+    lift_first[s] = c.z;
 }
 
 /* ----------------------------------------------------------------------------------------
