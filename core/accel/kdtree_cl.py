@@ -71,6 +71,19 @@ def _exclusive(counts: np.ndarray) -> np.ndarray:
     return out
 
 
+def _leaf_counts(words) -> tuple[int, int]:
+    """Leaves and empty leaves among plain nodes' first words, a slice at a time: whole-tree
+    temporaries are fresh pages (0.7-1.4 s for 74 M nodes), slices stay in cache."""
+    tag_mask = np.uint32(PLAIN_TAG.put(PLAIN_TAG.max))
+    leaf_tag = np.uint32(PLAIN_TAG.put(LEAF_TAG))        # also an empty leaf's whole word
+    leaves = empties = 0
+    for start in range(0, len(words), 1 << 20):
+        part = words[start:start + (1 << 20)]
+        leaves += int(np.count_nonzero((part & tag_mask) == leaf_tag))
+        empties += int(np.count_nonzero(part == leaf_tag))
+    return leaves, empties
+
+
 def _ranges(starts, lengths) -> np.ndarray:
     """Concatenation of arange(s, s + n) for every (s, n)."""
     lengths = np.asarray(lengths, np.int64)
@@ -269,13 +282,14 @@ class KDTreeBuilderCL:
         lap("subtrees")
         nodes, leaf_indices = state.layout()
         lap("layout")
+        report(0.97, f"kd-tree laid out: {len(nodes):,} nodes")
 
-        leaf = PLAIN_TAG.get(nodes[:, 0]) == LEAF_TAG
+        leaf_count, empty_count = _leaf_counts(nodes[:, 0])
         tree = KDTree(nodes, leaf_indices, bounds)
         tree.stats = {
             "nodes": len(nodes),
-            "leaves": int(leaf.sum()),
-            "empty_leaves": int((nodes[:, 0] == PLAIN_TAG.put(LEAF_TAG)).sum()),
+            "leaves": leaf_count,
+            "empty_leaves": empty_count,
             "depth": state.depth,
             "depth_cap": depth_cap,
             "references": len(leaf_indices),
@@ -652,6 +666,7 @@ class _BuildState:
         nodes = b._take(d_nodes, u4, (total_nodes, 2))
         leaf_indices = b._take(d_leaves, u4, total_refs)
         self.store = None
+        b.heartbeat()
         # Big inner nodes: their own place, and their children's (the entry at the next level
         # with the below child's key).
         if len(inner_key):
