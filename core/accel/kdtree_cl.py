@@ -38,8 +38,8 @@ FLT_MIN = np.float32(np.finfo(np.float32).tiny)
 HIST_PAD = 6            # histogram words per chunk: 6 * max_bins + 6
 # Launches over more than this many references (big-node passes) or items (one work-item
 # each) go in pieces, with the progress callback between them: Esc is seen within a piece.
-PIECE_REFS = 1 << 21
-PIECE_ITEMS = 1 << 22
+PIECE_REFS = 1 << 20
+PIECE_ITEMS = 1 << 21
 
 
 def _float_literal(x: float) -> str:
@@ -663,6 +663,7 @@ class _BuildState:
             b._run(k["place_subtrees"], len(ids), chunk.words, chunk.meta, chunk.leaf_refs,
                    b._buffer(places[ids]), d_bases, d_nodes, d_leaves, u4(len(ids)),
                    piece=max(1, PIECE_ITEMS // per_subtree))
+            b.heartbeat()
         nodes = b._take(d_nodes, u4, (total_nodes, 2))
         leaf_indices = b._take(d_leaves, u4, total_refs)
         self.store = None
