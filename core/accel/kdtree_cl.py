@@ -39,7 +39,7 @@ HIST_PAD = 6            # histogram words per chunk: 6 * max_bins + 6
 # Launches over more than this many references (big-node passes) or items (one work-item
 # each) go in pieces, with the progress callback between them: Esc is seen within a piece.
 PIECE_REFS = 1 << 20
-PIECE_ITEMS = 1 << 21
+PIECE_ITEMS = 1 << 22
 
 
 def _float_literal(x: float) -> str:
