@@ -5,8 +5,9 @@ a contiguous range of nodes whose inner nodes' children are, pair by pair, the n
 every per-level step is one kernel over a range, and the final numbering is a prefix sum in
 node order. The result is compact_tree's, bit for bit: the kernels use its float64 arithmetic
 and numpy's summation order, and the greedy choice of lifts takes the same lifts in the same
-order (choose_lifts). Every array of the size of the tree stays on the device (buffers freed as soon as
-their step is done), so that a 10 M-triangle scene fits in a few GB. docs/kdtree_native.md.
+order (choose_lifts). Every array of the size of the tree stays on the device (buffers freed
+as soon as their step is done), so that a 10 M-triangle scene fits in a few GB.
+docs/kdtree_native.md.
 """
 from __future__ import annotations
 
