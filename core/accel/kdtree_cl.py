@@ -667,7 +667,6 @@ class _BuildState:
         nodes = b._take(d_nodes, u4, (total_nodes, 2))
         leaf_indices = b._take(d_leaves, u4, total_refs)
         self.store = None
-        b.heartbeat()
         # Big inner nodes: their own place, and their children's (the entry at the next level
         # with the below child's key).
         if len(inner_key):
