@@ -31,7 +31,7 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
     """`tree` with its node groups in treelets of `height` levels (module docstring)."""
     if height < 1:
         raise ValueError("treelet height must be at least 1")
-    nodes = np.asarray(tree.nodes)
+    nodes = np.ascontiguousarray(tree.nodes, np.uint32)     # (n, 2) words: viewed as uint64 below
     w0 = nodes[:, 0].astype(np.int64)
     if TAG.get(w0[0]) == LEAF_TAG:
         return tree
@@ -54,7 +54,7 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
         # Each parent's children side by side, below first: the parents stay in order.
         stored = np.stack([has_below, has_above], 1)
         level = np.stack([below, above], 1)[stored]
-        parents = np.repeat(inner, stored.sum(1))
+        parents = np.stack([inner, inner], 1)[stored]      # a mask: faster than np.repeat
     inner = np.concatenate(inner_levels)                    # breadth-first order
     level_start = _exclusive_cumsum([len(x) for x in inner_levels])
     depth = np.repeat(np.arange(len(inner_levels)), np.diff(level_start))
@@ -96,13 +96,17 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
     key = (preorder[root] << 35) | ((depth - depth[root]) << 27) | preorder
     order = np.argsort(key, kind="stable")
     new_group = 1 + _exclusive_cumsum(group_size[order])[:-1]     # node 0 is the root
+    # Each group's nodes keep their places in it (a group has at most 3: one pass per place).
     new_index = np.zeros(len(nodes), np.int64)
-    new_index[_ranges(group[order], group_size[order])] = _ranges(new_group, group_size[order])
+    old_group, sizes = group[order], group_size[order]
+    for k in range(int(sizes.max())):
+        has = sizes > k
+        new_index[old_group[has] + k] = new_group[has] + k
     new_of_group = np.empty(len(inner), np.int64)
     new_of_group[order] = new_group
 
     out = np.empty_like(nodes)
-    out[new_index] = nodes
+    out.view(np.uint64)[new_index, 0] = nodes.view(np.uint64)[:, 0]   # both words at once
     field = INNER_GROUP.put(INNER_GROUP.max)
     out[new_index[inner], 0] = ((w & ~field) | INNER_GROUP.put(new_of_group)).astype(np.uint32)
 
