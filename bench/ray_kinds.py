@@ -305,8 +305,9 @@ def main():
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
     args = parser.parse_args()
     out = pathlib.Path(args.out)
-    cache = out / "ray_kinds_trees"
+    cache = ROOT / "bench" / "out" / "ray_kinds_trees"     # shared by every --out: 12 dragons take a minute
     cache.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     try:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
         pinned = "pinned to one CPU"
