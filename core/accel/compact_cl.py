@@ -24,12 +24,6 @@ PIECE_TRIANGLES = 1 << 19  # lift_candidates walks up the tree for each triangle
                            # this many (about 0.1 s each on 2 CPU threads), so Esc is seen soon
 
 
-def _exclusive(counts) -> np.ndarray:
-    out = np.zeros(len(counts) + 1, np.int64)
-    np.cumsum(counts, out=out[1:])
-    return out
-
-
 class CompactorCL:
     """Kernel compaction on a kd-tree builder's device (core.accel.kdtree_cl.KDTreeBuilderCL)."""
 
@@ -97,7 +91,7 @@ class CompactorCL:
         blocks = max(1, -(-n // block))
         sums = b._buffer(nbytes=8 * blocks)
         b._run(self.k["block_sums"], blocks, values, sums, U4(n), U4(block), local_size=1)
-        offsets = _exclusive(b._read(sums, np.uint64, blocks).astype(np.int64))
+        offsets = host._exclusive_cumsum(b._read(sums, np.uint64, blocks).astype(np.int64))
         b._run(self.k["block_scan"], blocks, values, b._buffer(offsets[:-1].astype(np.uint64)),
                values if out is None else out, U4(n), U4(block), local_size=1)
         return int(offsets[-1])

@@ -27,6 +27,7 @@ import time
 import numpy as np
 
 from ..layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
+from .compact import _exclusive_cumsum, _ranges
 from .kdtree import KDTree, KDTreeParams, _root_bounds, checked_mesh
 
 KERNEL_FILES = ("build/fp64.cl", "build/common.cl", "build/split.cl", "build/big.cl",
@@ -65,12 +66,6 @@ def _half_area_f32(lo: np.ndarray, hi: np.ndarray, pow2: np.float32) -> np.float
     return np.float32(d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
 
 
-def _exclusive(counts: np.ndarray) -> np.ndarray:
-    out = np.zeros(len(counts) + 1, np.int64)
-    np.cumsum(counts, out=out[1:])
-    return out
-
-
 def _leaf_counts(words) -> tuple[int, int]:
     """Leaves and empty leaves among plain nodes' first words, a slice at a time: whole-tree
     temporaries are fresh pages (0.7-1.4 s for 74 M nodes), slices stay in cache."""
@@ -82,13 +77,6 @@ def _leaf_counts(words) -> tuple[int, int]:
         leaves += int(np.count_nonzero((part & tag_mask) == leaf_tag))
         empties += int(np.count_nonzero(part == leaf_tag))
     return leaves, empties
-
-
-def _ranges(starts, lengths) -> np.ndarray:
-    """Concatenation of arange(s, s + n) for every (s, n)."""
-    lengths = np.asarray(lengths, np.int64)
-    shift = np.asarray(starts, np.int64) - _exclusive(lengths)[:-1]
-    return np.arange(int(lengths.sum()), dtype=np.int64) + np.repeat(shift, lengths)
 
 
 class KDTreeBuilderCL:
@@ -381,7 +369,7 @@ class _BuildState:
     def _add_roots(self, lo, hi, level, bad, key, count):
         """New subtree roots whose references are about to be written to the queue, in this
         order; returns their first places in the queue."""
-        start = self.queue_used + _exclusive(count)[:-1]
+        start = self.queue_used + _exclusive_cumsum(count)[:-1]
         self._reserve_queue(int(count.sum()))
         self.queue_used += int(count.sum())
         self.roots.append(dict(lo=lo, hi=hi, level=np.broadcast_to(level, len(count)).astype(np.int64),
@@ -411,10 +399,10 @@ class _BuildState:
                         f"kd-tree level {level}: {len(count)} big nodes, {int(count.sum())} references")
             m = len(count)
             per_node = -(-count // CH)
-            chunk_first = _exclusive(per_node)
+            chunk_first = _exclusive_cumsum(per_node)
             C = int(chunk_first[-1])
             chunk_node = np.repeat(np.arange(m), per_node)
-            ref_first = _exclusive(count)
+            ref_first = _exclusive_cumsum(count)
             within = np.arange(C) - np.repeat(chunk_first[:-1], per_node)
             chunk_start = ref_first[:-1][chunk_node] + within * CH
             chunk_count = np.minimum(CH, count[chunk_node] - within * CH)
@@ -463,7 +451,7 @@ class _BuildState:
             # Next level: big children in node order, below before above.
             big_flat = big_child.reshape(-1)
             big_start = np.zeros(2 * m, np.int64)
-            big_start[big_flat] = _exclusive(child_n.reshape(-1)[big_flat])[:-1]
+            big_start[big_flat] = _exclusive_cumsum(child_n.reshape(-1)[big_flat])[:-1]
             next_total = int(child_n.reshape(-1)[big_flat].sum())
             # Queue: per node the leaf itself, or its small children, in node order.
             to_queue = np.zeros((m, 2), bool)
@@ -491,7 +479,7 @@ class _BuildState:
             for side in (0, 1):
                 flat = 2 * chunk_node + side
                 base = np.where(q_flat[flat], q_start[flat], big_start[flat])
-                offset = _exclusive(out[:, side])
+                offset = _exclusive_cumsum(out[:, side])
                 node_offset = offset[chunk_first[:-1]]
                 dest[:, 2 * side] = q_flat[flat]
                 dest[:, 2 * side + 1] = base + offset[:-1] - node_offset[chunk_node]
@@ -559,8 +547,8 @@ class _BuildState:
             rec_cap = f * (12 * n + 64)
             leaf_cap = f * (8 * n + 64)
             scr_cap = f * (4 * n + 64)
-            rec_off, leaf_off, scr_off = _exclusive(rec_cap), _exclusive(leaf_cap), _exclusive(scr_cap)
-            lvl_off = _exclusive(span[batch])
+            rec_off, leaf_off, scr_off = _exclusive_cumsum(rec_cap), _exclusive_cumsum(leaf_cap), _exclusive_cumsum(scr_cap)
+            lvl_off = _exclusive_cumsum(span[batch])
             need = (int(rec_off[-1]), int(leaf_off[-1]), int(scr_off[-1]))
             if any(x > y for x, y in zip(need, sizes)):
                 sizes = tuple(max(x, y) for x, y in zip(need, sizes))
@@ -618,7 +606,7 @@ class _BuildState:
                         f"kd-tree subtrees: {done_refs:,} of {total_refs:,} references")
         # Per-level counts in subtree order.
         self.level_counts = np.zeros((int(self.levels.sum()), 2), np.int64)
-        first = _exclusive(self.levels)[:-1]
+        first = _exclusive_cumsum(self.levels)[:-1]
         for ids, rows in level_pieces:
             self.level_counts[_ranges(first[ids], self.levels[ids])] = rows
 
@@ -631,7 +619,7 @@ class _BuildState:
         levels = self.levels
         # Entries: every (subtree, relative level) and every big inner node.
         sub_of = np.repeat(np.arange(n_sub), levels)
-        rel = np.arange(int(levels.sum())) - np.repeat(_exclusive(levels)[:-1], levels)
+        rel = np.arange(int(levels.sum())) - np.repeat(_exclusive_cumsum(levels)[:-1], levels)
         counts = self.level_counts
         inner_level = np.concatenate([np.full(len(x["key"]), x["level"]) for x in self.inner]) \
             if self.inner else np.zeros(0, np.int64)
@@ -643,8 +631,8 @@ class _BuildState:
         order = np.lexsort((e_key, e_level))
         node_base = np.empty(len(order), np.int64)
         leaf_base = np.empty(len(order), np.int64)
-        node_base[order] = _exclusive(e_nodes[order])[:-1]
-        leaf_base[order] = _exclusive(e_leaf[order])[:-1]
+        node_base[order] = _exclusive_cumsum(e_nodes[order])[:-1]
+        leaf_base[order] = _exclusive_cumsum(e_leaf[order])[:-1]
         total_nodes = int(e_nodes.sum())
         total_refs = int(e_leaf.sum())
         if total_nodes - 1 > PLAIN_FIELD.max:
@@ -653,7 +641,7 @@ class _BuildState:
         nsub_entries = len(sub_of)
         bases = np.stack([node_base[:nsub_entries], leaf_base[:nsub_entries]], 1).astype(u4)
         places = np.stack([self.rec_start, self.rec_count, self.leaf_start,
-                           _exclusive(levels)[:-1]], 1).astype(u4)
+                           _exclusive_cumsum(levels)[:-1]], 1).astype(u4)
         d_nodes = b._buffer(nbytes=8 * total_nodes)
         d_leaves = b._buffer(nbytes=4 * total_refs)
         d_bases = b._buffer(bases)
@@ -718,8 +706,8 @@ class _Store:
         if c is None or c.records + need_rec > c.rec_capacity or c.refs + need_refs > c.ref_capacity:
             c = _Chunk(b, max(need_rec, self.CHUNK_RECORDS), max(need_refs, self.CHUNK_REFS))
             self.chunks.append(c)
-        rec_dst = c.records + _exclusive(rec_n)[:-1]
-        leaf_dst = c.refs + _exclusive(leaf_n)[:-1]
+        rec_dst = c.records + _exclusive_cumsum(rec_n)[:-1]
+        leaf_dst = c.refs + _exclusive_cumsum(leaf_n)[:-1]
         moves = np.stack([rec_src, rec_dst, rec_n, leaf_src, leaf_dst, leaf_n], 1).astype(np.uint32)
         b._run(self.kernel, len(moves), records[0], records[1], leafbuf, b._buffer(moves),
                c.words, c.meta, c.leaf_refs, np.uint32(len(moves)))
