@@ -111,8 +111,8 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         "(fewer fireflies from caustics; 0: off)", default=RENDER.filter_glossy,
         min=LIMITS["filter_glossy"][0], max=LIMITS["filter_glossy"][1])
     light_samples_per_axis: IntProperty(
-        name="Light Samples", description="L x L shadow samples per soft light, the world and "
-        "the emissive meshes, per camera sample",
+        name="Light Samples", description="L x L shadow samples per soft light, a textured world "
+        "and the emissive meshes, per camera sample",
         default=RENDER.light_samples_per_axis, min=LIMITS["light_samples_per_axis"][0],
         max=LIMITS["light_samples_per_axis"][1])
     seed: IntProperty(name="Seed", description="Seed of the sampling pattern",

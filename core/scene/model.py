@@ -511,8 +511,8 @@ class RenderSettings:
     surface / after a bounce (0: no clamping), as Cycles' Clamping.
     filter_glossy: Cycles' Filter Glossy: after wide BSDF samples sharp glossy lobes are
     blurred (fewer caustic fireflies; 0: off).
-    light_samples_per_axis L: L x L stratified shadow samples per soft light, the world and the
-    emissive meshes, per camera sample.
+    light_samples_per_axis L: L x L stratified shadow samples per soft light, a textured world
+    and the emissive meshes, per camera sample.
     """
 
     samples_per_axis: int = 64

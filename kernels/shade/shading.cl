@@ -1468,12 +1468,27 @@ inline float3 world_radiance(const Scene *sc, float3 d)
 }
 
 #ifdef HAS_WORLD
-// Density (solid angle) of world_sample choosing unit direction d.
+// Whether direct light samples the world: only a world that varies with direction (an
+// Environment Texture). A constant world is left to the BSDF rays, as Cycles leaves it
+// ("Background MIS has been disabled"): for a colour a BSDF sample is the better of the two
+// (cosine-distributed on a diffuse surface, against uniform over the sphere), so the light
+// samples' shadow rays would add time, not much else.
+inline bool world_light_sampled(const Scene *sc)
+{
+#ifdef HAS_WORLD_TEXTURE
+    return (int)WORLD_TEXTURE(sc->world) >= 0;
+#else
+    return false;
+#endif
+}
+
+// Density (solid angle) of world_sample choosing unit direction d; 0 where direct light does
+// not sample the world (a BSDF ray that finds it then counts in full).
 inline float world_pdf(const Scene *sc, float3 d)
 {
 #ifdef HAS_WORLD_TEXTURE
     __global const float4 *W = sc->world;
-    if ((int)WORLD_TEXTURE(W) >= 0) {
+    if (world_light_sampled(sc)) {
         int projection = (int)WORLD_PROJECTION(W);
         int w = (int)WORLD_CDF_WIDTH(W), h = (int)WORLD_CDF_HEIGHT(W);
         float3 a = rows_times(WORLD_TO_TEXTURE(W), d);
@@ -1490,48 +1505,43 @@ inline float world_pdf(const Scene *sc, float3 d)
                * (WORLD_DET(W) / (la * la * la));
     }
 #endif
-    return 0.25f * M_1_PI_F;
+    return 0.0f;
 }
 
-// A direction towards the world (importance-sampled texture, else uniform); returns its
-// radiance, *pdf its density.
+#ifdef HAS_WORLD_TEXTURE
+// A direction towards the world, importance-sampled from its texture (only where
+// world_light_sampled); returns its radiance, *pdf its density.
 inline float3 world_sample(const Scene *sc, float u1, float u2, float3 *wi, float *pdf)
 {
-#ifdef HAS_WORLD_TEXTURE
     __global const float4 *W = sc->world;
-    if ((int)WORLD_TEXTURE(W) >= 0) {
-        int projection = (int)WORLD_PROJECTION(W);
-        int w = (int)WORLD_CDF_WIDTH(W), h = (int)WORLD_CDF_HEIGHT(W);
-        __global const float *marginal = sc->env_cdf;
-        int j = cdf_find(marginal, h, u1);
-        float pj = marginal[j + 1] - marginal[j];
-        __global const float *row = sc->env_cdf + (h + 1) + j * (w + 1);
-        int i = cdf_find(row, w, u2);
-        float pi = row[i + 1] - row[i];
-        if (!(pj > 0.0f) || !(pi > 0.0f)) {
-            *pdf = 0.0f;
-            return (float3)(0.0f, 0.0f, 0.0f);
-        }
-        float2 uv = (float2)(((float)i + clamp((u2 - row[i]) / pi, 0.0f, 1.0f)) / (float)w,
-                             ((float)j + clamp((u1 - marginal[j]) / pj, 0.0f, 1.0f)) / (float)h);
-        float3 dt;
-        if (!world_direction(projection, uv, &dt)) {
-            *pdf = 0.0f;
-            return (float3)(0.0f, 0.0f, 0.0f);
-        }
-        float3 d = rows_times(WORLD_FROM_TEXTURE(W), dt);
-        float ld = length(d);
-        *wi = d / ld;
-        float jac = world_jacobian(projection, dt);
-        // |A wi| = 1 / |A^-1 dt|.
-        *pdf = jac > 0.0f ? pj * pi * (float)(w * h) / jac * (WORLD_DET(W) * ld * ld * ld) : 0.0f;
-        return world_radiance(sc, *wi);
+    int projection = (int)WORLD_PROJECTION(W);
+    int w = (int)WORLD_CDF_WIDTH(W), h = (int)WORLD_CDF_HEIGHT(W);
+    __global const float *marginal = sc->env_cdf;
+    int j = cdf_find(marginal, h, u1);
+    float pj = marginal[j + 1] - marginal[j];
+    __global const float *row = sc->env_cdf + (h + 1) + j * (w + 1);
+    int i = cdf_find(row, w, u2);
+    float pi = row[i + 1] - row[i];
+    if (!(pj > 0.0f) || !(pi > 0.0f)) {
+        *pdf = 0.0f;
+        return (float3)(0.0f, 0.0f, 0.0f);
     }
-#endif
-    *wi = uniform_cone((float3)(0.0f, 0.0f, 1.0f), -1.0f, u1, u2);
-    *pdf = 0.25f * M_1_PI_F;
-    return sc->world_color;
+    float2 uv = (float2)(((float)i + clamp((u2 - row[i]) / pi, 0.0f, 1.0f)) / (float)w,
+                         ((float)j + clamp((u1 - marginal[j]) / pj, 0.0f, 1.0f)) / (float)h);
+    float3 dt;
+    if (!world_direction(projection, uv, &dt)) {
+        *pdf = 0.0f;
+        return (float3)(0.0f, 0.0f, 0.0f);
+    }
+    float3 d = rows_times(WORLD_FROM_TEXTURE(W), dt);
+    float ld = length(d);
+    *wi = d / ld;
+    float jac = world_jacobian(projection, dt);
+    // |A wi| = 1 / |A^-1 dt|.
+    *pdf = jac > 0.0f ? pj * pi * (float)(w * h) / jac * (WORLD_DET(W) * ld * ld * ld) : 0.0f;
+    return world_radiance(sc, *wi);
 }
+#endif
 #endif
 
 // ---------------------------------------------------------------------------------------------
@@ -1823,8 +1833,8 @@ inline float3 light_contribution(const Scene *sc, const Surface *s, const Materi
 }
 
 // Direct light at a surface: every Blender light (L x L samples for lights with an extent, one
-// for the others; a pixel's samples of a light at a depth are points of one sequence), the
-// world and the emissive triangles (L x L each), weighted
+// for the others; a pixel's samples of a light at a depth are points of one sequence), a
+// textured world (world_light_sampled) and the emissive triangles (L x L each), weighted
 // against the BSDF by the power heuristic. `beta` the path's throughput and `limit` the
 // clamp, applied per sample.
 inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
@@ -1858,9 +1868,9 @@ inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
                                                             (float)(k * k)) * share, limit);
         }
     }
-#ifdef HAS_WORLD
+#ifdef HAS_WORLD_TEXTURE
     uint world_dim = rng_dim(rng, RNG_WORLD, 0u);
-    for (int j = 0; j < n * n; ++j) {
+    for (int j = 0; j < n * n && world_light_sampled(sc); ++j) {
         float2 u = rng_2d_at(rng, world_dim, rng->sample * (uint)(n * n) + (uint)j);
         float3 wi;
         float pdf;
