@@ -33,6 +33,11 @@ KERNEL_FILES = ("trace/trace.cl", "shade/sampling.cl", "shade/ggx_albedo.cl", "s
                 "trace/packet.cl", "trace/intersect.cl", "shade/render.cl")
 MIN_STACK_SIZE = 32
 PACKET_RAYS = 8             # rays per work-item of intersect_rays on CPU devices
+# Work-group size of the render kernel on CPU devices. A work-item traces all of a pixel's
+# samples, so pixels differ in cost many times over, and PoCL's own choice for a tile (a few
+# large groups) left one of two threads idle for a fifth of a 32x30 tile's time (docs/tracer.md,
+# "Speed"); small groups are shared out between the threads as they finish.
+RENDER_GROUP_ITEMS = 8
 
 
 class TracerError(OpenCLError):
@@ -103,7 +108,8 @@ class Tracer:
         self._light_tables = None   # (key, buffers) of the world importance map and emitters
         self.specialise = True      # False: compile every feature (for measuring specialisation)
         self.last_render = {}       # kernel seconds, samples traced, features of the last tile
-        self.local_size = None      # work-group size; None lets the driver choose (measured best on PoCL)
+        self.local_size = None      # intersect's work-group size; None: the driver's (best on PoCL)
+        self.render_group = RENDER_GROUP_ITEMS if self.device.type & cl.device_type.CPU else None
         # Rays per work-item in intersect(): CPU devices trace 8 neighbouring rays together in
         # vector lanes (kernels/trace/packet.cl); 0 = one ray per work-item (GPUs).
         self.packet = PACKET_RAYS if self.device.type & cl.device_type.CPU else 0
@@ -131,13 +137,13 @@ class Tracer:
     def _program(self, features: dict):
         return self._programs.kernels(self._source, kernel_options(features))
 
-    def _local(self):
-        return None if self.local_size is None else (self.local_size,)
-
-    def _global_size(self, n):
-        # A set local size must divide the global size; the kernels skip the padding items.
-        ls = self.local_size or 1
-        return (-(-n // ls) * ls,)
+    @staticmethod
+    def _launch_sizes(n, local_size):
+        """Global and local size of a launch of n work-items: a set local size must divide the
+        global size (the kernels skip the padding items); None lets the driver choose."""
+        if local_size is None:
+            return (n,), None
+        return (-(-n // local_size) * local_size,), (local_size,)
 
     # -- scene ---------------------------------------------------------------------------
     def load(self, scene: Scene) -> None:
@@ -274,7 +280,7 @@ class Tracer:
             flags += ("OBJECT_MOTION",)
         kernel = self._program(self._features(flags, packet=packet))[kernel_name]
         work_items = -(-n // packet) if packet else n
-        kernel(self.queue, self._global_size(work_items), self._local(), o_buf, d_buf,
+        kernel(self.queue, *self._launch_sizes(work_items, self.local_size), o_buf, d_buf,
                np.float32(tmin), np.float32(tmax), np.uint32(n), scene["nodes"],
                scene["leaf_index32"], scene["leaf_index16"], scene["leaf_shift"],
                scene["tri_verts"], scene["bounds"], *self._toplevel_args(time, flags), *out_bufs)
@@ -475,9 +481,10 @@ class _TileOnDevice:
         pixels = np.ascontiguousarray(pixels, np.int32)
         pixel_buf = cl.Buffer(tracer.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
                               hostbuf=pixels)
-        self.kernel(tracer.queue, tracer._global_size(len(pixels)), tracer._local(), *self.fixed,
-                    pixel_buf, np.int32(len(pixels)), np.int32(start), np.int32(count),
-                    *self.constants, np.int32(aux), *self.scene_args)
+        sizes = tracer._launch_sizes(len(pixels), tracer.render_group)
+        self.kernel(tracer.queue, *sizes, *self.fixed, pixel_buf, np.int32(len(pixels)),
+                    np.int32(start), np.int32(count), *self.constants, np.int32(aux),
+                    *self.scene_args)
         self.traced += len(pixels) * count
 
     def read(self):
