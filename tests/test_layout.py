@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 
 from core import layout
-from core.opencl import KERNEL_DIR, Programs, ensure_pocl_cache_dir, kernel_source, select_device
+from core.opencl import KERNEL_DIR, kernel_source
 from core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
                               Shading, View)
 from slave.buffers import (light_intensity, pack_bounds, pack_camera, pack_lights, pack_materials,
                            pack_triangles)
 from slave.tracer import KERNEL_FILES
+from tests.opencl_programs import programs_on
 
 FIELDS = [f for node in layout.NODE_FORMATS for f in node.fields]
 
@@ -43,11 +44,7 @@ def header_numbers() -> dict:
 
 @pytest.fixture(scope="module")
 def device():
-    ensure_pocl_cache_dir()
-    import pyopencl as cl
-    dev = select_device(cl, None)
-    context = cl.Context([dev])
-    return cl, context, cl.CommandQueue(context), Programs(cl, context, dev)
+    return programs_on(None)
 
 
 def run_kernel(device, source, name, out_count, *inputs, dtype=np.uint32):

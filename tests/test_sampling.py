@@ -5,7 +5,8 @@ pixels and uses must be independent of it."""
 import numpy as np
 import pytest
 
-from core.opencl import KERNEL_DIR, Programs, ensure_pocl_cache_dir, kernel_source, select_device
+from core.opencl import KERNEL_DIR, kernel_source
+from tests.opencl_programs import programs_on
 
 POINTS = r"""
 __kernel void points(uint pixel, uint dim, uint first, __global float2 *out)
@@ -19,13 +20,9 @@ __kernel void points(uint pixel, uint dim, uint first, __global float2 *out)
 
 @pytest.fixture(scope="module")
 def points():
-    ensure_pocl_cache_dir()
-    import pyopencl as cl
-    device = select_device(cl, "cpu")
-    context = cl.Context([device])
-    queue = cl.CommandQueue(context)
+    cl, context, queue, programs = programs_on("cpu")
     source = (KERNEL_DIR / "shade" / "sampling.cl").read_text() + POINTS
-    kernel = Programs(cl, context, device).kernels(kernel_source([]) + source, [])["points"]
+    kernel = programs.kernels(kernel_source([]) + source, [])["points"]
 
     def run(pixel, dim, count, first=0):
         out = np.empty((count, 2), np.float32)

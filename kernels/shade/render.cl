@@ -95,7 +95,7 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
                          float *alpha)
 {
     float3 radiance = (float3)(0.0f, 0.0f, 0.0f), beta = (float3)(1.0f, 1.0f, 1.0f);
-    float along = dot(d, CAMERA_VIEW_AXIS(cam));     // view-axis distance per unit of t
+    float along = kd_dot(d, CAMERA_VIEW_AXIS(cam));     // view-axis distance per unit of t
     float tmin = CAMERA_CLIP_START(cam) / along, tmax = CAMERA_CLIP_END(cam) / along;
     float t_before = 0.0f;
     uint ignore = NO_HIT;
@@ -139,7 +139,7 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
                 break;
             }
 #endif
-            d = normalize(d);
+            d = kd_normalize(d);
             float3 Le = world_radiance(sc, d);
 #ifdef HAS_WORLD
             if (pdf_prev > 0.0f)
@@ -198,9 +198,9 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
             if (pdf_prev > 0.0f) {
                 float3 n_l;
                 triangle_area(sc, h.tri, &n_l);
-                float dist = h.t * length(d);
+                float len = kd_length(d), dist = h.t * len;
                 w = mis_weight(pdf_prev, n_light * emitter_pdf(sc, h.tri, dist,
-                                                               fabs(dot(n_l, d)) / length(d)));
+                                                               fabs(kd_dot(n_l, d)) / len));
             }
             radiance += clamp_sample(beta * m.emission * w, limit_found);
         }
@@ -208,7 +208,7 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         if (last)
             break;
         primary = false;
-        float3 wo = -normalize(d);
+        float3 wo = -kd_normalize(d);
         Frame fr = frame_of(s.ns);
         float3 wo_l = to_local(&fr, wo);
         // Filter Glossy (Cycles): after a wide BSDF sample, sharp lobes are blurred, which
@@ -232,7 +232,7 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
             break;
         float3 wi = to_world(&fr, wi_l);
         // Reflections stay on the side they came from, refractions cross the surface.
-        if ((dot(wi, s.ng) > 0.0f) != (wi_l.z > 0.0f))
+        if ((kd_dot(wi, s.ng) > 0.0f) != (wi_l.z > 0.0f))
             break;
         ++bounces;
         if (pdf_prev > 0.0f)
@@ -379,7 +379,7 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
 #endif
         float3 o, d;
         camera_ray(cam, (float)px + 0.5f, (float)py + 0.5f, (float2)(0.0f, 0.0f), 0.5f, &o, &d);
-        float along = dot(d, CAMERA_VIEW_AXIS(cam));
+        float along = kd_dot(d, CAMERA_VIEW_AXIS(cam));
         float tmin = CAMERA_CLIP_START(cam) / along, tmax = CAMERA_CLIP_END(cam) / along;
         float t_before = 0.0f;
         uint ignore = NO_HIT;

@@ -94,7 +94,7 @@ inline float3 transform_abs(const float4 *m, float3 v)
 inline float3 instance_normal(const float4 *to_object, float3 n)
 {
     float3 w = transform_normal(to_object, n);
-    float len = length(w);
+    float len = kd_length(w);
     return len > 0.0f ? w / len : w;
 }
 #endif
@@ -110,7 +110,7 @@ inline Surface surface_at(const Scene *sc, const Hit *h, float3 d)
     // bounded relative to the coordinates' magnitude (pbrt), which scales the origin offset.
     s.p = b0 * v0 + h->u * v1 + h->v * v2;
     s.err = HIT_ERROR * (fabs(b0 * v0) + fabs(h->u * v1) + fabs(h->v * v2));
-    float3 n = cross(v1 - v0, v2 - v0);
+    float3 n = kd_cross(v1 - v0, v2 - v0);
 #ifdef HAS_INSTANCES
     // The instance's mesh is in object space: the point to world space (its error through
     // |M|, plus the transform's own rounding), the normal by the inverse transpose, flipped
@@ -125,9 +125,9 @@ inline Surface surface_at(const Scene *sc, const Hit *h, float3 d)
     s.p = placed_point(to_world, s.p);
     n = transform_normal(to_object, n) * placement.orientation;
 #endif
-    float len = length(n);
-    n = len > 0.0f && isfinite(len) ? n / len : -normalize(d);   // slivers: face the ray
-    s.front = dot(n, d) < 0.0f;
+    float len = kd_length(n);
+    n = len > 0.0f && isfinite(len) ? n / len : -kd_normalize(d);   // slivers: face the ray
+    s.front = kd_dot(n, d) < 0.0f;
     s.ng = s.front ? n : -n;
     s.ns = s.ng;
 #ifdef HAS_SMOOTH
@@ -139,13 +139,13 @@ inline Surface surface_at(const Scene *sc, const Hit *h, float3 d)
     n2 = instance_normal(to_object, n2);
 #endif
     float3 ns = b0 * n0 + h->u * n1 + h->v * n2;
-    float ls = length(ns);
+    float ls = kd_length(ns);
     if (ls > 0.0f && isfinite(ls)) {
         ns = ns / ls;
         if (!s.front)
             ns = -ns;
         // Interpolated normals may face away from the ray at grazing angles: keep them usable.
-        if (dot(ns, -d) > 0.0f)
+        if (kd_dot(ns, -d) > 0.0f)
             s.ns = ns;
     }
 #endif
@@ -166,19 +166,19 @@ inline Surface surface_at(const Scene *sc, const Hit *h, float3 d)
 inline float3 offset_origin(float3 p, float3 err, float3 n)
 {
     float3 a = fabs(p);
-    float d = dot(fabs(n), err) + HIT_ERROR * fmax(fmax(a.x, a.y), a.z) + 0x1.0p-100f;
+    float d = kd_dot(fabs(n), err) + HIT_ERROR * fmax(fmax(a.x, a.y), a.z) + 0x1.0p-100f;
     float3 off = d * n;
     float3 po = p + off;
-    po.x = off.x > 0.0f ? nextafter(po.x, INFINITY) : (off.x < 0.0f ? nextafter(po.x, -INFINITY) : po.x);
-    po.y = off.y > 0.0f ? nextafter(po.y, INFINITY) : (off.y < 0.0f ? nextafter(po.y, -INFINITY) : po.y);
-    po.z = off.z > 0.0f ? nextafter(po.z, INFINITY) : (off.z < 0.0f ? nextafter(po.z, -INFINITY) : po.z);
+    po.x = off.x != 0.0f ? kd_next_float(po.x, off.x > 0.0f) : po.x;
+    po.y = off.y != 0.0f ? kd_next_float(po.y, off.y > 0.0f) : po.y;
+    po.z = off.z != 0.0f ? kd_next_float(po.z, off.z > 0.0f) : po.z;
     return po;
 }
 
 // Origin for a ray leaving `s` in direction w (to the side of ng that w goes to).
 inline float3 spawn(const Surface *s, float3 w)
 {
-    return offset_origin(s->p, s->err, dot(w, s->ng) >= 0.0f ? s->ng : -s->ng);
+    return offset_origin(s->p, s->err, kd_dot(w, s->ng) >= 0.0f ? s->ng : -s->ng);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -370,11 +370,11 @@ inline float4 node_vector_math(int op, float4 a, float4 b, float s)
         r = (float3)(y.x != 0.0f ? x.x / y.x : 0.0f, y.y != 0.0f ? x.y / y.y : 0.0f,
                      y.z != 0.0f ? x.z / y.z : 0.0f);
     else if (op == NODE_VECTOR_MATH_SCALE) r = x * s;
-    else if (op == NODE_VECTOR_MATH_DOT_PRODUCT) value = dot(x, y);
-    else if (op == NODE_VECTOR_MATH_CROSS_PRODUCT) r = cross(x, y);
-    else if (op == NODE_VECTOR_MATH_LENGTH) value = length(x);
+    else if (op == NODE_VECTOR_MATH_DOT_PRODUCT) value = kd_dot(x, y);
+    else if (op == NODE_VECTOR_MATH_CROSS_PRODUCT) r = kd_cross(x, y);
+    else if (op == NODE_VECTOR_MATH_LENGTH) value = kd_length(x);
     else if (op == NODE_VECTOR_MATH_NORMALIZE) {
-        float l = length(x);
+        float l = kd_length(x);
         r = l != 0.0f ? x / l : (float3)(0.0f, 0.0f, 0.0f);
     }
     else if (op == NODE_VECTOR_MATH_ABSOLUTE) r = fabs(x);
@@ -624,7 +624,7 @@ inline float4 node_noise(const NoiseSettings *n, float4 p, float distortion, boo
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
 inline float3 safe_normalize(float3 n)
 {
-    float len = length(n);
+    float len = kd_length(n);
     return len > 0.0f && isfinite(len) ? n / len : (float3)(0.0f, 0.0f, 0.0f);
 }
 
@@ -658,7 +658,7 @@ inline float3 node_normal_map(const Scene *sc, const Surface *s, __global const 
         float3 p0, e1, e2;
         float2 uv0, duv1, duv2;
         triangle_edges_uv(sc, s->tri, &p0, &e1, &e2, &uv0, &duv1, &duv2);
-        float3 normal = normalize(cross(e1, e2));
+        float3 normal = kd_normalize(kd_cross(e1, e2));
 #ifdef HAS_SMOOTH
         float b0 = 1.0f - s->u - s->v;
         normal = b0 * vload3(3 * s->tri, sc->normals) + s->u * vload3(3 * s->tri + 1, sc->normals)
@@ -669,9 +669,9 @@ inline float3 node_normal_map(const Scene *sc, const Surface *s, __global const 
             return s->ns;                   // no UVs here: Cycles' unperturbed normal
         float3 dpdu = (e1 * duv2.y - e2 * duv1.y) / det, dpdv = (e2 * duv1.x - e1 * duv2.x) / det;
         float3 unit = safe_normalize(normal);
-        float3 tangent = safe_normalize(dpdu - dot(dpdu, unit) * unit);
-        float sign = dot(cross(normal, tangent), dpdv) < 0.0f ? -1.0f : 1.0f;
-        n = safe_normalize(c.x * tangent + c.y * sign * cross(normal, tangent) + c.z * normal);
+        float3 tangent = safe_normalize(dpdu - kd_dot(dpdu, unit) * unit);
+        float sign = kd_dot(kd_cross(normal, tangent), dpdv) < 0.0f ? -1.0f : 1.0f;
+        n = safe_normalize(c.x * tangent + c.y * sign * kd_cross(normal, tangent) + c.z * normal);
     } else {
         if (space == NODE_NORMAL_SPACE_BLENDER_OBJECT || space == NODE_NORMAL_SPACE_BLENDER_WORLD)
             c.yz = -c.yz;                   // Blender's convention
@@ -696,17 +696,17 @@ inline void bump_offsets(const Scene *sc, uint tri, float3 p, float3 *dp, float2
     float3 p0, e1, e2;
     float2 uv0, duv1, duv2;
     triangle_edges_uv(sc, tri, &p0, &e1, &e2, &uv0, &duv1, &duv2);
-    float3 n = safe_normalize(cross(e1, e2)), t, b;
+    float3 n = safe_normalize(kd_cross(e1, e2)), t, b;
     basis(all(n == 0.0f) ? (float3)(0.0f, 0.0f, 1.0f) : n, &t, &b);
     float step = 1e-4f * (1.0f + fmax(fabs(p.x), fmax(fabs(p.y), fabs(p.z))));
     dp[0] = (float3)(0.0f, 0.0f, 0.0f);
     dp[1] = step * t;
     dp[2] = step * b;
     // The barycentric steps of dp (least squares in the triangle's plane) move the UVs.
-    float a11 = dot(e1, e1), a12 = dot(e1, e2), a22 = dot(e2, e2);
+    float a11 = kd_dot(e1, e1), a12 = kd_dot(e1, e2), a22 = kd_dot(e2, e2);
     float det = a11 * a22 - a12 * a12;
     for (int k = 0; k < 3; ++k) {
-        float r1 = dot(e1, dp[k]), r2 = dot(e2, dp[k]);
+        float r1 = kd_dot(e1, dp[k]), r2 = kd_dot(e2, dp[k]);
         float s1 = det != 0.0f ? (a22 * r1 - a12 * r2) / det : 0.0f;
         float s2 = det != 0.0f ? (a11 * r2 - a12 * r1) / det : 0.0f;
         duv[k] = s1 * duv1 + s2 * duv2;
@@ -719,14 +719,14 @@ inline void bump_offsets(const Scene *sc, uint tri, float3 p, float3 *dp, float2
 inline float3 node_bump(float3 dpx, float3 dpy, float3 normal_in, float4 heights,
                         float strength, float distance)
 {
-    float3 rx = cross(dpy, normal_in), ry = cross(normal_in, dpx);
-    float det = dot(dpx, rx);
+    float3 rx = kd_cross(dpy, normal_in), ry = kd_cross(normal_in, dpx);
+    float det = kd_dot(dpx, rx);
     float3 gradient = (heights.y - heights.x) * rx + (heights.z - heights.x) * ry;
     float3 n = safe_normalize(fabs(det) * normal_in - distance * sign(det) * gradient);
     if (all(n == 0.0f))
         return normal_in;
     strength = fmax(strength, 0.0f);
-    return normalize(strength * n + (1.0f - strength) * normal_in);
+    return kd_normalize(strength * n + (1.0f - strength) * normal_in);
 }
 #endif
 
@@ -826,7 +826,7 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Su
 #ifdef HAS_BUMP
             q.xyz += dp[clamp((int)w1.z, 0, 2)];
 #endif
-            out = (float4)(dot(rows[0], q), dot(rows[1], q), dot(rows[2], q), 0.0f);
+            out = (float4)(kd_dot4(rows[0], q), kd_dot4(rows[1], q), kd_dot4(rows[2], q), 0.0f);
 #ifdef HAS_NORMAL_MAP
         } else if (op == NODE_OP_NORMAL_MAP) { // a: colour; b: strength; p0: object rows; p1: space
             out = (float4)(s ? node_normal_map(sc, s, code + pc + (int)w1.y, (int)w1.z, a.xyz, b.x)
@@ -838,7 +838,7 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Su
             out = (float4)(node_bump(dp[1], dp[2], normal_in, a, c.x, w1.y > 0.0f ? -c.y : c.y), 0.0f);
 #endif
         } else if (op == NODE_OP_DOT) {        // colour or vector to a value
-            out = (float4)(dot(a.xyz, w1.yzw));
+            out = (float4)(kd_dot(a.xyz, w1.yzw));
         } else if (op == NODE_OP_OUT) {
             int field = (int)w1.y;
             if (field == NODE_OUT_BASE_COLOR)
@@ -925,15 +925,15 @@ inline Material material_at(const Scene *sc, uint tri, float u, float v)
 // enough that the reflection stays above the surface.
 inline float3 valid_reflection_normal(float3 ng, float3 wi, float3 n)
 {
-    float3 r = 2.0f * dot(n, wi) * n - wi;
-    float iz = dot(wi, ng);
+    float3 r = 2.0f * kd_dot(n, wi) * n - wi;
+    float iz = kd_dot(wi, ng);
     float threshold = fmin(0.9f * iz, 0.01f);
-    if (dot(ng, r) >= threshold)
+    if (kd_dot(ng, r) >= threshold)
         return n;
-    float3 x = safe_normalize(n - dot(n, ng) * ng);
+    float3 x = safe_normalize(n - kd_dot(n, ng) * ng);
     if (all(x == 0.0f))
         x = n;
-    float ix = dot(wi, x);
+    float ix = kd_dot(wi, x);
     float a = ix * ix + iz * iz, b = 2.0f * (a + iz * threshold);
     float c = (threshold + iz) * (threshold + iz);
     float root = sqrt(fmax(b * b - 4.0f * a * c, 0.0f));
@@ -950,8 +950,8 @@ inline Material surface_material(const Scene *sc, Surface *s, float3 d)
     float3 ns = s->ns;
     Material m = material_eval(sc, s->tri, s->u, s->v, s);
     if (any(s->ns != ns))
-        s->ns = valid_reflection_normal(s->ng, -normalize(d), s->ns);
-    if (!(dot(s->ns, d) < 0.0f))
+        s->ns = valid_reflection_normal(s->ng, -kd_normalize(d), s->ns);
+    if (!(kd_dot(s->ns, d) < 0.0f))
         s->ns = ns;
     return m;
 #else
@@ -1017,21 +1017,21 @@ inline float ggx_lambda(float alpha2, float cos_t)
 // 2018), with the concentric disk map (no trig).
 inline float3 sample_vndf(float3 wo, float alpha, float u1, float u2)
 {
-    float3 vh = normalize((float3)(alpha * wo.x, alpha * wo.y, wo.z));
+    float3 vh = kd_normalize((float3)(alpha * wo.x, alpha * wo.y, wo.z));
     float lensq = vh.x * vh.x + vh.y * vh.y;
     float3 t1 = lensq > 0.0f ? (float3)(-vh.y, vh.x, 0.0f) / sqrt(lensq) : (float3)(1.0f, 0.0f, 0.0f);
-    float3 t2 = cross(vh, t1);
+    float3 t2 = kd_cross(vh, t1);
     float2 p = concentric_disk(u1, u2);
     float s = 0.5f * (1.0f + vh.z);
     p.y = (1.0f - s) * sqrt(fmax(0.0f, 1.0f - p.x * p.x)) + s * p.y;
     float3 nh = p.x * t1 + p.y * t2 + sqrt(fmax(0.0f, 1.0f - p.x * p.x - p.y * p.y)) * vh;
-    return normalize((float3)(alpha * nh.x, alpha * nh.y, fmax(nh.z, 1e-7f)));
+    return kd_normalize((float3)(alpha * nh.x, alpha * nh.y, fmax(nh.z, 1e-7f)));
 }
 
 // pbrt-v4's Refract: wo leaves the surface on the side of n; eta = n_t / n_i across it.
 inline bool refract_local(float3 wo, float3 n, float eta, float3 *wt)
 {
-    float cos_i = dot(n, wo);
+    float cos_i = kd_dot(n, wo);
     if (cos_i < 0.0f) {
         eta = 1.0f / eta;
         cos_i = -cos_i;
@@ -1115,7 +1115,7 @@ inline Frame frame_of(float3 n)
 
 inline float3 to_local(const Frame *f, float3 w)
 {
-    return (float3)(dot(w, f->t), dot(w, f->b), dot(w, f->n));
+    return (float3)(kd_dot(w, f->t), kd_dot(w, f->b), kd_dot(w, f->n));
 }
 
 inline float3 to_world(const Frame *f, float3 w)
@@ -1220,7 +1220,7 @@ inline Lobes lobes_at(const Material *m, float cos_o, bool front, float alpha_mi
 // Solve the Bump Terminator Problem").
 inline float bump_shadowing(float3 n, float3 wi)
 {
-    float cos_i = fabs(dot(n, wi)), cos_d = fabs(n.z);
+    float cos_i = fabs(kd_dot(n, wi)), cos_d = fabs(n.z);
     if (cos_d >= 1.0f || cos_i >= 1.0f)
         return 1.0f;
     if (cos_i < 1e-6f)
@@ -1240,7 +1240,7 @@ inline float3 bsdf_eval_local(const Material *m, const Lobes *l, float3 wo, floa
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
     // Light on the other side of the unperturbed surface than the perturbed normal says (as
     // Cycles: no light leaks through bumps to the back of opaque geometry).
-    if (dot(l->unbumped, wi) * l->unbumped.z * cos_i < 0.0f)
+    if (kd_dot(l->unbumped, wi) * l->unbumped.z * cos_i < 0.0f)
         return f;
 #endif
     if (cos_i > 0.0f) {
@@ -1256,12 +1256,12 @@ inline float3 bsdf_eval_local(const Material *m, const Lobes *l, float3 wo, floa
     float lambda_o = ggx_lambda(l->alpha2, cos_o);
 #if defined(HAS_SPECULAR) || defined(HAS_TRANSMISSION)
     if (cos_i > 0.0f) {
-        float3 h = normalize(wo + wi);
+        float3 h = kd_normalize(wo + wi);
         float d = ggx_d(l->alpha2, h.z);
         float g2 = 1.0f / (1.0f + lambda_o + ggx_lambda(l->alpha2, cos_i));
         float common = d * g2 / (4.0f * cos_o * cos_i);
         float pdf_reflect = d / ((1.0f + lambda_o) * 4.0f * cos_o);   // D G1(wo) / (4 cos_o)
-        float cos_oh = dot(wo, h);
+        float cos_oh = kd_dot(wo, h);
 #ifdef HAS_SPECULAR
         if (l->w_metal > 0.0f) {
             f += l->w_metal * metal_fresnel(m->base, cos_oh) * l->metal_scale * common;
@@ -1286,12 +1286,12 @@ inline float3 bsdf_eval_local(const Material *m, const Lobes *l, float3 wo, floa
         // pbrt-v4's rough dielectric transmission (generalised half vector), radiance mode.
         float etap = l->eta_glass;
         float3 h = wi * etap + wo;
-        float hl = length(h);
+        float hl = kd_length(h);
         if (hl > 0.0f) {
             h = h / hl;
             if (h.z < 0.0f)
                 h = -h;
-            float cos_oh = dot(wo, h), cos_ih = dot(wi, h);
+            float cos_oh = kd_dot(wo, h), cos_ih = kd_dot(wi, h);
             if (cos_oh > 0.0f && cos_ih < 0.0f) {
                 float F = fresnel_dielectric(cos_oh, etap);
                 float d = ggx_d(l->alpha2, h.z);
@@ -1338,13 +1338,13 @@ inline bool bsdf_sample_local(const Material *m, const Lobes *l, float3 wo, floa
             return true;
         }
         float3 h = sample_vndf(wo, l->alpha, u1, u2);
-        *wi = 2.0f * dot(wo, h) * h - wo;
+        *wi = 2.0f * kd_dot(wo, h) * h - wo;
         if (!(wi->z > 0.0f))
             return false;
     } else {
         float etap = l->eta_glass;
         float3 h = l->delta ? (float3)(0.0f, 0.0f, 1.0f) : sample_vndf(wo, l->alpha, u1, u2);
-        float cos_oh = dot(wo, h);
+        float cos_oh = kd_dot(wo, h);
         float F = fresnel_dielectric(cos_oh, etap);
         bool reflect = u3 < F;
         if (reflect) {
@@ -1423,7 +1423,7 @@ inline float world_jacobian(int projection, float3 d)
 
 inline float3 rows_times(__global const float4 *m, float3 v)
 {
-    return (float3)(dot(m[0].xyz, v), dot(m[1].xyz, v), dot(m[2].xyz, v));
+    return (float3)(kd_dot(m[0].xyz, v), kd_dot(m[1].xyz, v), kd_dot(m[2].xyz, v));
 }
 
 // The importance map: marginal CDF of the rows (height + 1), then each row's CDF (width + 1).
@@ -1459,7 +1459,7 @@ inline float3 world_radiance(const Scene *sc, float3 d)
     int tex = (int)WORLD_TEXTURE(W);
     if (tex >= 0) {
         int projection = (int)WORLD_PROJECTION(W);
-        float3 dt = normalize(rows_times(WORLD_TO_TEXTURE(W), d));
+        float3 dt = kd_normalize(rows_times(WORLD_TO_TEXTURE(W), d));
         float2 uv = world_uv(projection, dt);
         c *= texture_lookup(sc, tex, uv, WORLD_INTERPOLATION(W) == INTERPOLATION_CLOSEST).xyz;
     }
@@ -1492,7 +1492,7 @@ inline float world_pdf(const Scene *sc, float3 d)
         int projection = (int)WORLD_PROJECTION(W);
         int w = (int)WORLD_CDF_WIDTH(W), h = (int)WORLD_CDF_HEIGHT(W);
         float3 a = rows_times(WORLD_TO_TEXTURE(W), d);
-        float la = length(a);
+        float la = kd_length(a);
         float3 dt = a / la;
         float2 uv = world_uv(projection, dt);
         uv = uv - floor(uv);
@@ -1534,7 +1534,7 @@ inline float3 world_sample(const Scene *sc, float u1, float u2, float3 *wi, floa
         return (float3)(0.0f, 0.0f, 0.0f);
     }
     float3 d = rows_times(WORLD_FROM_TEXTURE(W), dt);
-    float ld = length(d);
+    float ld = kd_length(d);
     *wi = d / ld;
     float jac = world_jacobian(projection, dt);
     // |A wi| = 1 / |A^-1 dt|.
@@ -1551,9 +1551,9 @@ inline float3 world_sample(const Scene *sc, float u1, float u2, float3 *wi, floa
 inline float triangle_area(const Scene *sc, uint tri, float3 *n)
 {
     __global const float4 *corners = sc->tri_verts + TRIANGLE_SIZE * tri;
-    float3 c = cross(TRIANGLE_V1(corners) - TRIANGLE_V0(corners),
+    float3 c = kd_cross(TRIANGLE_V1(corners) - TRIANGLE_V0(corners),
                      TRIANGLE_V2(corners) - TRIANGLE_V0(corners));
-    float len = length(c);
+    float len = kd_length(c);
     *n = len > 0.0f ? c / len : (float3)(0.0f, 0.0f, 1.0f);
     return 0.5f * len;
 }
@@ -1590,13 +1590,13 @@ inline float3 emitter_sample(const Scene *sc, float3 p, float u0, float u1, floa
     float3 n;
     float area = triangle_area(sc, *tri, &n);
     float3 to = q - p;
-    float d2 = dot(to, to);
+    float d2 = kd_dot(to, to);
     float d = sqrt(d2);
     if (!(d > 0.0f) || !(area > 0.0f))
         return (float3)(0.0f, 0.0f, 0.0f);
     *wi = to / d;
     *dist = d;
-    float cos_l = fabs(dot(n, *wi));                   // emission is two-sided, as Cycles'
+    float cos_l = fabs(kd_dot(n, *wi));                   // emission is two-sided, as Cycles'
     if (!(cos_l > 0.0f))
         return (float3)(0.0f, 0.0f, 0.0f);
     *pdf = pmf / area * (d2 / cos_l);
@@ -1616,7 +1616,7 @@ inline float smoothstep01(float x)
 
 inline float area_light_area(__global const float4 *L)
 {
-    float a = length(LIGHT_AREA_U(L)) * length(LIGHT_AREA_V(L));
+    float a = kd_length(LIGHT_AREA_U(L)) * kd_length(LIGHT_AREA_V(L));
     return LIGHT_AREA_SHAPE(L) == LIGHT_SHAPE_ELLIPSE ? a * M_PI_4_F : a;
 }
 
@@ -1637,7 +1637,7 @@ inline float3 sample_light(const Scene *sc, uint l, float3 p, float u1, float u2
 #ifdef HAS_SOFT_LIGHTS
         float cos_half = LIGHT_SUN_COS_HALF_ANGLE(L);
         if (cos_half < 1.0f) {
-            w = normalize(uniform_cone(w, cos_half, u1, u2));
+            w = kd_normalize(uniform_cone(w, cos_half, u1, u2));
             *pdf = 1.0f / (2.0f * M_PI_F * (1.0f - cos_half));
         }
 #endif
@@ -1668,7 +1668,7 @@ inline float3 sample_light(const Scene *sc, uint l, float3 p, float u1, float u2
     else if (LIGHT_RADIUS(L) > 0.0f) {
         // A sphere light seen from p: a disk facing p (uniform radiance: same irradiance as
         // the point while unoccluded), which gives soft shadows.
-        float3 axis = normalize(p - LIGHT_POSITION(L));
+        float3 axis = kd_normalize(p - LIGHT_POSITION(L));
         float3 t, b;
         basis(axis, &t, &b);
         float2 d = concentric_disk(u1, u2);
@@ -1676,19 +1676,19 @@ inline float3 sample_light(const Scene *sc, uint l, float3 p, float u1, float u2
     }
 #endif
     float3 to = pos - p;
-    float dist2 = dot(to, to);
+    float dist2 = kd_dot(to, to);
     float dl = sqrt(dist2);
     if (!(dl > 0.0f))
         return (float3)(0.0f, 0.0f, 0.0f);
     *wi = to / dl;
     *dist = dl;
     *target = pos;
-    float cos_out = -dot(*wi, LIGHT_DIRECTION(L));
+    float cos_out = -kd_dot(*wi, LIGHT_DIRECTION(L));
 #ifdef HAS_SPOT
     if (kind == LIGHT_SPOT) {
         // The cone is measured from the light's centre (Cycles: smoothstep over the blend).
-        float3 from_centre = normalize(p - LIGHT_POSITION(L));
-        float c = dot(from_centre, LIGHT_DIRECTION(L));
+        float3 from_centre = kd_normalize(p - LIGHT_POSITION(L));
+        float c = kd_dot(from_centre, LIGHT_DIRECTION(L));
         float cos_half = LIGHT_SPOT_COS_HALF(L), smooth = LIGHT_SPOT_SMOOTH(L);
         emit = smooth > 0.0f ? smoothstep01((c - cos_half) * smooth) : (c > cos_half ? 1.0f : 0.0f);
     }
@@ -1716,15 +1716,15 @@ inline float3 area_light_hit(const Scene *sc, float3 o, float3 d, float t_max, f
         if ((int)LIGHT_KIND(L) != LIGHT_AREA)
             continue;
         float3 n = LIGHT_DIRECTION(L);
-        float denom = dot(d, n);
+        float denom = kd_dot(d, n);
         if (!(denom < 0.0f))
             continue;
-        float t = dot(LIGHT_POSITION(L) - o, n) / denom;
+        float t = kd_dot(LIGHT_POSITION(L) - o, n) / denom;
         if (!(t > 0.0f) || !(t < best))
             continue;
         float3 q = o + t * d - LIGHT_POSITION(L);
         float3 au = LIGHT_AREA_U(L), av = LIGHT_AREA_V(L);
-        float a = dot(q, au) / dot(au, au), b = dot(q, av) / dot(av, av);
+        float a = kd_dot(q, au) / kd_dot(au, au), b = kd_dot(q, av) / kd_dot(av, av);
         bool inside = LIGHT_AREA_SHAPE(L) == LIGHT_SHAPE_ELLIPSE ? 4.0f * (a * a + b * b) <= 1.0f
                                                                  : fabs(a) <= 0.5f && fabs(b) <= 0.5f;
         float area = area_light_area(L);
@@ -1747,7 +1747,8 @@ inline float3 sun_disks(const Scene *sc, float3 d, float pdf_bsdf, float n_light
     for (uint l = 0; l < sc->light_count; ++l) {
         __global const float4 *L = sc->lights + LIGHT_SIZE * l;
         float cos_half = LIGHT_SUN_COS_HALF_ANGLE(L);
-        if ((int)LIGHT_KIND(L) != LIGHT_SUN || !(cos_half < 1.0f) || dot(d, -LIGHT_DIRECTION(L)) < cos_half)
+        if ((int)LIGHT_KIND(L) != LIGHT_SUN || !(cos_half < 1.0f)
+            || kd_dot(d, -LIGHT_DIRECTION(L)) < cos_half)
             continue;
         float pdf_l = 1.0f / (2.0f * M_PI_F * (1.0f - cos_half));
         float w = pdf_bsdf > 0.0f ? mis_weight(pdf_bsdf, n_light * pdf_l) : 1.0f;
@@ -1790,7 +1791,7 @@ inline float3 shadow(const Scene *sc, float3 o, float3 w, float dist, float3 tar
         o = spawn(&s, w);
         ignore = h.key;
         if (!isinf(dist))
-            dist = length(target - o);
+            dist = kd_length(target - o);
     }
     return (float3)(0.0f, 0.0f, 0.0f);
 #else
@@ -1814,7 +1815,7 @@ inline float3 light_contribution(const Scene *sc, const Surface *s, const Materi
                                  float3 L, float dist, float3 target, float pdf_light,
                                  float n_light)
 {
-    float cos_geo = dot(s->ng, wi);
+    float cos_geo = kd_dot(s->ng, wi);
     float3 wi_l = to_local(fr, wi);
     // The shading and the geometric normal must agree on the side wi leaves to.
     if (wi_l.z == 0.0f || (wi_l.z > 0.0f) != (cos_geo > 0.0f))
@@ -1897,7 +1898,7 @@ inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
             // The MIS weight uses the density a BSDF ray hitting tri sees (emitter_pdf).
             float3 n_l;
             triangle_area(sc, tri, &n_l);
-            float pdf_mis = emitter_pdf(sc, tri, dist, fabs(dot(n_l, wi)));
+            float pdf_mis = emitter_pdf(sc, tri, dist, fabs(kd_dot(n_l, wi)));
             float3 c = light_contribution(sc, s, m, lobes, fr, wo_l, wi, L / pdf, dist,
                                           s->p + dist * wi, pdf_mis, (float)(n * n));
             total += clamp_sample(beta * c * inv_nn, limit);

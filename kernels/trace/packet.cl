@@ -157,7 +157,7 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, bool any_hit,
         } else if (lm.s[k] && (q[k].kx != p.kx || q[k].ky != p.ky || q[k].kz != p.kz)) {
             p.same_axes = false;
         }
-        b.tie_abs.s[k] = KD_TIE_EPS * kd->extent / length(r[k].d);
+        b.tie_abs.s[k] = KD_TIE_EPS * kd->extent / kd_length(r[k].d);
         b.best.s[k] = tmax;
         b.limit.s[k] = tmax + (KD_TIE_EPS * tmax + b.tie_abs.s[k]);
         b.t.s[k] = INFINITY;

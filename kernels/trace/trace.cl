@@ -42,6 +42,70 @@ KD_INLINE bool kd_isfinite(float x)
     return kd_fabs(x) < INFINITY;     // false for +-inf and NaN
 }
 
+// The geometric functions, each one formula and so the same bits on every device: OpenCL
+// leaves the rounding of its dot, cross, length and normalize to the implementation (a GPU may
+// fuse or reorder their sums), and PoCL 3.0 calls them out of line. Every kernel uses these.
+KD_INLINE float kd_dot(float3 a, float3 b)
+{
+    return a.x * b.x + a.y * b.y + a.z * b.z;
+}
+
+KD_INLINE float kd_dot4(float4 a, float4 b)
+{
+    return a.x * b.x + a.y * b.y + a.z * b.z + a.w * b.w;
+}
+
+KD_INLINE float3 kd_cross(float3 a, float3 b)
+{
+    return (float3)(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x);
+}
+
+// The largest |component| of v, by comparisons (NaN components are passed over).
+KD_INLINE float kd_max_abs(float3 v)
+{
+    float ax = kd_fabs(v.x), ay = kd_fabs(v.y), az = kd_fabs(v.z);
+    float m = ax > ay ? ax : ay;
+    return m > az ? m : az;
+}
+
+// |v|. Where the sum of squares leaves float's normal range (over- or underflow), v is first
+// divided by its largest component.
+KD_INLINE float kd_length(float3 v)
+{
+    float l2 = kd_dot(v, v);
+    if (l2 >= FLT_MIN && l2 < INFINITY)
+        return sqrt(l2);
+    float m = kd_max_abs(v);
+    if (l2 != l2 || m == 0.0f || m == INFINITY)
+        return l2 != l2 ? l2 : m;       // NaN, 0, inf
+    float3 s = v / m;
+    return m * sqrt(kd_dot(s, s));
+}
+
+// v / |v|, scaled as kd_length; the zero vector stays zero (as OpenCL's normalize).
+KD_INLINE float3 kd_normalize(float3 v)
+{
+    float l2 = kd_dot(v, v);
+    if (l2 >= FLT_MIN && l2 < INFINITY)
+        return v / sqrt(l2);
+    float m = kd_max_abs(v);
+    if (m == 0.0f)
+        return v;
+    float3 s = v / m;
+    return s / sqrt(kd_dot(s, s));
+}
+
+// The float next to x towards +inf (up) or -inf: nextafter(x, +-INFINITY), as bit steps.
+KD_INLINE float kd_next_float(float x, bool up)
+{
+    if (x != x || x == (up ? INFINITY : -INFINITY))
+        return x;
+    if (x == 0.0f)
+        return up ? as_float(1u) : -as_float(1u);
+    uint u = as_uint(x);
+    return as_float((x > 0.0f) == up ? u + 1u : u - 1u);
+}
+
 typedef struct {
     float3 o, d, inv_d;
     uint kx, ky, kz;        // watertight test: kz = dominant axis of d
@@ -66,13 +130,13 @@ typedef struct {
 inline float3 transform_point(__global const float4 *m, float3 p)
 {
     float4 q = (float4)(p, 1.0f);
-    return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
+    return (float3)(kd_dot4(m[0], q), kd_dot4(m[1], q), kd_dot4(m[2], q));
 }
 
 inline float3 transform_vector(__global const float4 *m, float3 v)
 {
     float4 q = (float4)(v, 0.0f);
-    return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
+    return (float3)(kd_dot4(m[0], q), kd_dot4(m[1], q), kd_dot4(m[2], q));
 }
 
 KD_INLINE Ray make_ray(float3 o, float3 d)
@@ -379,7 +443,7 @@ inline bool trace_ray(const Ray *r, float tmin, float tmax, bool any_hit, uint i
     q.sx = r->sx; q.sy = r->sy; q.sz = r->sz;
     Best b;
     // The scene's size in units of t along this ray, for the tie tolerance.
-    b.tie_abs = KD_TIE_EPS * kd->extent / length(r->d);
+    b.tie_abs = KD_TIE_EPS * kd->extent / kd_length(r->d);
     b.best = tmax;
     b.limit = tmax + (KD_TIE_EPS * tmax + b.tie_abs);
     b.t = INFINITY;
@@ -523,14 +587,14 @@ KD_INLINE Placement instance_placement(__global const float4 *I, const TopLevel 
     for (int k = 0; k < 3; ++k)
         p.to_world[k] = (1.0f - time) * to_world[k] + time * to_world_end[k];
     float3 r0 = p.to_world[0].xyz, r1 = p.to_world[1].xyz, r2 = p.to_world[2].xyz;
-    float3 c0 = cross(r1, r2), c1 = cross(r2, r0), c2 = cross(r0, r1);
-    float det = dot(r0, c0);
+    float3 c0 = kd_cross(r1, r2), c1 = kd_cross(r2, r0), c2 = kd_cross(r0, r1);
+    float det = kd_dot(r0, c0);
     float3 t = (float3)(p.to_world[0].w, p.to_world[1].w, p.to_world[2].w);
     float3 a0 = (float3)(c0.x, c1.x, c2.x) / det, a1 = (float3)(c0.y, c1.y, c2.y) / det;
     float3 a2 = (float3)(c0.z, c1.z, c2.z) / det;
-    p.to_object[0] = (float4)(a0, -dot(a0, t));
-    p.to_object[1] = (float4)(a1, -dot(a1, t));
-    p.to_object[2] = (float4)(a2, -dot(a2, t));
+    p.to_object[0] = (float4)(a0, -kd_dot(a0, t));
+    p.to_object[1] = (float4)(a1, -kd_dot(a1, t));
+    p.to_object[2] = (float4)(a2, -kd_dot(a2, t));
     p.orientation = det < 0.0f ? -1.0f : 1.0f;
 #else
     __global const float4 *to_object = INSTANCE_TO_OBJECT(I);
@@ -548,13 +612,13 @@ KD_INLINE Placement instance_placement(__global const float4 *I, const TopLevel 
 KD_INLINE float3 placed_vector(const float4 *m, float3 v)
 {
     float4 q = (float4)(v, 0.0f);
-    return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
+    return (float3)(kd_dot4(m[0], q), kd_dot4(m[1], q), kd_dot4(m[2], q));
 }
 
 KD_INLINE float3 placed_point(const float4 *m, float3 p)
 {
     float4 q = (float4)(p, 1.0f);
-    return (float3)(dot(m[0], q), dot(m[1], q), dot(m[2], q));
+    return (float3)(kd_dot4(m[0], q), kd_dot4(m[1], q), kd_dot4(m[2], q));
 }
 
 // v through the transpose of the linear part of m: a normal of object space to world space
