@@ -33,11 +33,6 @@ KERNEL_FILES = ("trace/trace.cl", "shade/sampling.cl", "shade/ggx_albedo.cl", "s
                 "trace/packet.cl", "trace/intersect.cl", "shade/render.cl")
 MIN_STACK_SIZE = 32
 PACKET_RAYS = 8             # rays per work-item of intersect_rays on CPU devices
-# Work-group size of the render kernel on CPU devices. A work-item traces all of a pixel's
-# samples, so pixels differ in cost many times over, and PoCL's own choice for a tile (a few
-# large groups) left one of two threads idle for a fifth of a 32x30 tile's time (docs/tracer.md,
-# "Speed"); small groups are shared out between the threads as they finish.
-RENDER_GROUP_ITEMS = 8
 
 
 class TracerError(OpenCLError):
@@ -69,8 +64,9 @@ def kernel_options(features: dict) -> list:
     "correct_divide_sqrt" (bool: the device can round / and sqrt correctly, which keeps pixels
     identical across devices), "packet" (rays per work-item of intersect_rays: 8 on CPU
     devices, 0 elsewhere), "prefetch" (bool: trace_ray fetches a leaf's triangles ahead of
-    their tests with clang's __builtin_prefetch; CPU devices). Never fast-math: traversal
-    needs inf/NaN/-0.
+    their tests with clang's __builtin_prefetch; CPU devices), "pixel_queue" (bool: the render
+    kernel's work-items take a tile's pixels one at a time from a counter; CPU devices). Never
+    fast-math: traversal needs inf/NaN/-0.
     """
     options = [f"-DKD_STACK_SIZE={int(features.get('stack_size', MIN_STACK_SIZE))}"]
     flags = set(features.get("flags", ())) | set(features.get("light_kinds", ()))
@@ -81,6 +77,8 @@ def kernel_options(features: dict) -> list:
         options.append(f"-DKD_PACKET={int(features['packet'])}")
     if features.get("prefetch"):
         options.append("-DKD_PREFETCH")
+    if features.get("pixel_queue"):
+        options.append("-DRENDER_PIXEL_QUEUE")
     return options
 
 
@@ -109,7 +107,11 @@ class Tracer:
         self.specialise = True      # False: compile every feature (for measuring specialisation)
         self.last_render = {}       # kernel seconds, samples traced, features of the last tile
         self.local_size = None      # intersect's work-group size; None: the driver's (best on PoCL)
-        self.render_group = RENDER_GROUP_ITEMS if self.device.type & cl.device_type.CPU else None
+        # CPU devices: a few render work-items take a tile's pixels one at a time (a pixel's
+        # samples cost many times another's, and PoCL hands a launch's work-groups to its
+        # threads in halves, so one thread waited for the other; docs/tracer.md "Speed").
+        # Elsewhere one work-item per pixel, in the driver's work-groups.
+        self.pixel_queue = bool(self.device.type & cl.device_type.CPU)
         # Rays per work-item in intersect(): CPU devices trace 8 neighbouring rays together in
         # vector lanes (kernels/trace/packet.cl); 0 = one ray per work-item (GPUs).
         self.packet = PACKET_RAYS if self.device.type & cl.device_type.CPU else 0
@@ -132,7 +134,8 @@ class Tracer:
         fp = getattr(self.device, "single_fp_config", 0)
         return {"stack_size": self._stack_size, "flags": tuple(sorted(flags)),
                 "correct_divide_sqrt": bool(fp & self._cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT),
-                "packet": packet, "prefetch": bool(self.device.type & self._cl.device_type.CPU)}
+                "packet": packet, "prefetch": bool(self.device.type & self._cl.device_type.CPU),
+                "pixel_queue": self.pixel_queue}
 
     def _program(self, features: dict):
         return self._programs.kernels(self._source, kernel_options(features))
@@ -474,17 +477,25 @@ class _TileOnDevice:
                           clamps.view(cltypes.float4)[0],
                           np.int32(settings.light_samples_per_axis), np.uint32(settings.seed))
         self.accum, self.accum_buf, self.stats, self.stats_buf = accum, accum_buf, stats, stats_buf
+        self.next_pixel = tracer._cl.Buffer(tracer.context, tracer._cl.mem_flags.READ_WRITE, 4)
         self.traced = 0             # samples traced
 
     def run(self, pixels, start, count, aux):
         tracer, cl = self.tracer, self.tracer._cl
         pixels = np.ascontiguousarray(pixels, np.int32)
+        if len(pixels) == 0:
+            return
         pixel_buf = cl.Buffer(tracer.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
                               hostbuf=pixels)
-        sizes = tracer._launch_sizes(len(pixels), tracer.render_group)
+        if tracer.pixel_queue:      # one work-item per compute unit, each taking pixels in turn
+            cl.enqueue_fill_buffer(tracer.queue, self.next_pixel, np.int32(0), 0, 4)
+            workers = min(int(tracer.device.max_compute_units), len(pixels))
+            sizes = (workers,), (1,)
+        else:
+            sizes = tracer._launch_sizes(len(pixels), None)
         self.kernel(tracer.queue, *sizes, *self.fixed, pixel_buf, np.int32(len(pixels)),
-                    np.int32(start), np.int32(count), *self.constants, np.int32(aux),
-                    *self.scene_args)
+                    self.next_pixel, np.int32(start), np.int32(count), *self.constants,
+                    np.int32(aux), *self.scene_args)
         self.traced += len(pixels) * count
 
     def read(self):

@@ -315,15 +315,16 @@ def test_tile_equals_cut_from_full_image_and_is_deterministic(tracer):
     again = tracer.render_tile(view, 0, 0, 64, 48)
     for name in full:
         np.testing.assert_array_equal(again[name], full[name])
-    # Nor do the render kernel's work-groups change a pixel (the driver's choice, one item).
-    group = tracer.render_group
+    # Nor does the work-item that renders a pixel change it (a queue of pixels on CPU devices,
+    # one work-item per pixel in the driver's groups elsewhere).
+    queue = tracer.pixel_queue
     try:
-        for tracer.render_group in (None, 1):
+        for tracer.pixel_queue in (not queue, queue):
             other = tracer.render_tile(view, 0, 0, 64, 48)
             for name in full:
                 np.testing.assert_array_equal(other[name], full[name])
     finally:
-        tracer.render_group = group
+        tracer.pixel_queue = queue
     # The sphere casts a shadow and both materials and the world appear.
     colours = full["combined"][..., :3].reshape(-1, 3)
     assert (colours[:, 0] > colours[:, 1] + 0.05).any()    # red sphere

@@ -270,61 +270,16 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
     return radiance;
 }
 
-// Sample `sample_start + k` (k < sample_count) of each listed pixel. strata n > 0: sample s
-// lies in stratum progressive_stratum(s, n) of an n x n grid, jittered; n == 0: the pixel
-// centre (one sample). pixels[i]: tile-local index (row * tile_w + column).
-// accum: (sum of RGB, sample count); stats: (sum, sum of squares) of min(luminance, 1).
-// write_aux: also write the depth and normal passes (from the pixel-centre ray).
-__kernel void render_samples(__global const float4 *cam, int x0, int y0, int tile_w,
-                             __global const int *pixels, int pixel_count, int sample_start,
-                             int sample_count, int strata, int4 bounce_limits,
-                             int transparent_bounces, float4 clamps, int light_n, uint seed,
-                             int write_aux,
-                             __global const uint2 *nodes, __global const uint *leaf_index32,
-                             __global const ushort *leaf_index16, uint leaf_shift,
-                             __global const float4 *tri_verts, __global const float4 *bounds
-                             TOPLEVEL_PARAMS,
-                             __global const ushort *material_ids,
-                             __global const float4 *materials, __global const float4 *lights,
-                             uint light_count, __global const float *normals,
-                             __global const float *uvs, __global const half *texels,
-                             __global const uint *tex_sizes, __global const float4 *world,
-                             __global const float *env_cdf, __global const float4 *emitters,
-                             uint emitter_count, float emitter_power,
-                             __global float4 *accum, __global float2 *stats,
-                             __global float *out_depth, __global float *out_normal)
+// Samples sample_start .. + sample_count of pixel `here` (tile-local index) into its accum
+// and stats records (render_samples).
+inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits *limits,
+                         int here, int x0, int y0, int tile_w, int sample_start,
+                         int sample_count, int strata, uint seed, int write_aux,
+                         __global float4 *accum, __global float2 *stats,
+                         __global float *out_depth, __global float *out_normal)
 {
-    int i = get_global_id(0);
-    if (i >= pixel_count)
-        return;
-    int here = pixels[i];
     int px = x0 + here % tile_w, py = y0 + here / tile_w;
     uint pixel_index = (uint)py * (uint)CAMERA_WIDTH(cam) + (uint)px;   // global: same on every slave
-
-    Scene sc;
-    sc.kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
-    sc.tri_verts = tri_verts;
-#ifdef HAS_INSTANCES
-    TOPLEVEL_MAKE(top);
-    sc.top = top;
-#endif
-    sc.material_ids = material_ids;
-    sc.materials = materials;
-    sc.lights = lights;
-    sc.normals = normals;
-    sc.uvs = uvs;
-    sc.texels = texels;
-    sc.tex_sizes = tex_sizes;
-    sc.light_count = light_count;
-    sc.light_n = light_n;
-    sc.world = world;
-    sc.env_cdf = env_cdf;
-    sc.emitters = emitters;
-    sc.emitter_count = emitter_count;
-    sc.emitter_power = emitter_power;
-    sc.world_color = CAMERA_WORLD_COLOR(cam);
-    PathLimits limits = {bounce_limits.x, bounce_limits.y, bounce_limits.z, bounce_limits.w,
-                         transparent_bounces, clamps.x, clamps.y, clamps.z};
 
     float4 sum[ACCUM_SIZE];         // this pixel's ACCUM and STATS records, kept in registers
     for (int k = 0; k < ACCUM_SIZE; ++k)
@@ -350,12 +305,12 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
         time = rng_next(&rng);
 #endif
 #ifdef HAS_OBJECT_MOTION
-        sc.top.time = time;         // the objects are where they are at the camera ray's moment
+        sc->top.time = time;         // the objects are where they are at the camera ray's moment
 #endif
         float3 o, d;
         camera_ray(cam, (float)px + jx, (float)py + jy, lens, time, &o, &d);
         float alpha;
-        float3 c = trace_path(&sc, cam, o, d, &rng, &limits, &depth, &normal, &alpha);
+        float3 c = trace_path(sc, cam, o, d, &rng, limits, &depth, &normal, &alpha);
         if (!all(isfinite(c)))
             c = (float3)(0.0f, 0.0f, 0.0f);                 // never let NaN/inf reach a pixel
         if (write_aux && strata == 0 && k == 0) {
@@ -375,7 +330,7 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     if (write_aux && strata > 0) {
         // Depth and normal from the pixel centre, as with one sample.
 #ifdef HAS_OBJECT_MOTION
-        sc.top.time = 0.5f;
+        sc->top.time = 0.5f;
 #endif
         float3 o, d;
         camera_ray(cam, (float)px + 0.5f, (float)py + 0.5f, (float2)(0.0f, 0.0f), 0.5f, &o, &d);
@@ -387,11 +342,11 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
         depth = 1e10f;
         normal = (float3)(0.0f, 0.0f, 0.0f);
         for (int k = 0; k <= MAX_UNSEEN_SURFACES; ++k) {
-            if (!trace(&sc, o, d, tmin, tmax, false, ignore, &h))
+            if (!trace(sc, o, d, tmin, tmax, false, ignore, &h))
                 break;
-            Surface s = surface_at(&sc, &h, d);
+            Surface s = surface_at(sc, &h, d);
 #ifdef HAS_VISIBILITY
-            if (!(hit_visibility(&sc, &h) & VISIBILITY_CAMERA)) {   // not seen: behind
+            if (!(hit_visibility(sc, &h) & VISIBILITY_CAMERA)) {   // not seen: behind
                 go_behind(&s, &h, d, true, &o, &ignore, &t_before, &tmin, &tmax);
                 continue;
             }
@@ -403,4 +358,71 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
         out_depth[here] = depth;
         vstore3(normal, here, out_normal);
     }
+}
+
+// Sample `sample_start + k` (k < sample_count) of each listed pixel. strata n > 0: sample s
+// lies in stratum progressive_stratum(s, n) of an n x n grid, jittered; n == 0: the pixel
+// centre (one sample). pixels[i]: tile-local index (row * tile_w + column).
+// accum: (sum of RGB, sample count); stats: (sum, sum of squares) of min(luminance, 1).
+// write_aux: also write the depth and normal passes (from the pixel-centre ray).
+// With RENDER_PIXEL_QUEUE (CPU devices) a few work-items take the pixels in turn from the
+// counter next_pixel (0 at launch), one at a time as each finishes one: a tile's pixels differ
+// in cost many times over, and PoCL shares work-groups out between its threads in halves, so
+// one thread would wait for the other. Otherwise one work-item per pixel. The pixels do not
+// depend on which work-item renders them.
+__kernel void render_samples(__global const float4 *cam, int x0, int y0, int tile_w,
+                             __global const int *pixels, int pixel_count,
+                             volatile __global int *next_pixel, int sample_start,
+                             int sample_count, int strata, int4 bounce_limits,
+                             int transparent_bounces, float4 clamps, int light_n, uint seed,
+                             int write_aux,
+                             __global const uint2 *nodes, __global const uint *leaf_index32,
+                             __global const ushort *leaf_index16, uint leaf_shift,
+                             __global const float4 *tri_verts, __global const float4 *bounds
+                             TOPLEVEL_PARAMS,
+                             __global const ushort *material_ids,
+                             __global const float4 *materials, __global const float4 *lights,
+                             uint light_count, __global const float *normals,
+                             __global const float *uvs, __global const half *texels,
+                             __global const uint *tex_sizes, __global const float4 *world,
+                             __global const float *env_cdf, __global const float4 *emitters,
+                             uint emitter_count, float emitter_power,
+                             __global float4 *accum, __global float2 *stats,
+                             __global float *out_depth, __global float *out_normal)
+{
+    Scene sc;
+    sc.kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
+    sc.tri_verts = tri_verts;
+#ifdef HAS_INSTANCES
+    TOPLEVEL_MAKE(top);
+    sc.top = top;
+#endif
+    sc.material_ids = material_ids;
+    sc.materials = materials;
+    sc.lights = lights;
+    sc.normals = normals;
+    sc.uvs = uvs;
+    sc.texels = texels;
+    sc.tex_sizes = tex_sizes;
+    sc.light_count = light_count;
+    sc.light_n = light_n;
+    sc.world = world;
+    sc.env_cdf = env_cdf;
+    sc.emitters = emitters;
+    sc.emitter_count = emitter_count;
+    sc.emitter_power = emitter_power;
+    sc.world_color = CAMERA_WORLD_COLOR(cam);
+    PathLimits limits = {bounce_limits.x, bounce_limits.y, bounce_limits.z, bounce_limits.w,
+                         transparent_bounces, clamps.x, clamps.y, clamps.z};
+
+#ifdef RENDER_PIXEL_QUEUE
+    for (int i = atomic_inc(next_pixel); i < pixel_count; i = atomic_inc(next_pixel))
+        render_pixel(&sc, cam, &limits, pixels[i], x0, y0, tile_w, sample_start, sample_count,
+                     strata, seed, write_aux, accum, stats, out_depth, out_normal);
+#else
+    int i = get_global_id(0);
+    if (i < pixel_count)
+        render_pixel(&sc, cam, &limits, pixels[i], x0, y0, tile_w, sample_start, sample_count,
+                     strata, seed, write_aux, accum, stats, out_depth, out_normal);
+#endif
 }
