@@ -201,9 +201,11 @@ def sah_cost(tree, params=KDTreeParams()) -> float:
 def test_tree_does_not_depend_on_subtrees_chunks_or_work_groups(builder, name):
     vertices, triangles = SCENES[name]()
     reference = builder.build(vertices, triangles)
-    for subtree_refs, chunk_refs, local_size in ((16, 7, 1), (100, 4096, 4), (1 << 20, 64, 1)):
+    assert builder.subtree_queue        # on the CPU the subtrees are taken in turn; and without:
+    for subtree_refs, chunk_refs, local_size, queue in ((16, 7, 1, True), (100, 4096, 4, False),
+                                                        (1 << 20, 64, 1, True), (64, 256, 1, False)):
         other = KDTreeBuilderCL("cpu", subtree_refs=subtree_refs, chunk_refs=chunk_refs,
-                                local_size=local_size)
+                                local_size=local_size, subtree_queue=queue)
         same_tree(reference, other.build(vertices, triangles))
         assert other.build(vertices, triangles).stats["sah_cost"] == reference.stats["sah_cost"]
 

@@ -84,12 +84,14 @@ class KDTreeBuilderCL:
 
     subtree_refs: nodes with at most this many references are built by one work-item each
     (None: a size that suits the device kind); chunk_refs: references per work-item in the
-    big-node passes. Neither changes the tree, only the speed.
+    big-node passes; subtree_queue: the subtrees taken in turn by a few work-items (None: on CPU
+    devices). None of them changes the tree, only the speed.
     """
 
     def __init__(self, device=None, subtree_refs: int | None = None,
                  chunk_refs: int | None = None, soft_fp64: bool | None = None,
-                 local_size: int | None = None, profile_kernels: bool = False):
+                 local_size: int | None = None, profile_kernels: bool = False,
+                 subtree_queue: bool | None = None):
         from ..opencl import Programs, ensure_pocl_cache_dir, select_device
         ensure_pocl_cache_dir()
         import pyopencl as cl
@@ -108,6 +110,9 @@ class KDTreeBuilderCL:
         self.subtree_refs = subtree_refs or (2048 if self.is_cpu else 64)
         self.chunk_refs = chunk_refs or (4096 if self.is_cpu else 256)
         self.local_size = local_size if local_size is not None else (1 if self.is_cpu else 32)
+        # CPU devices: a few work-items take a launch's subtrees one at a time (subtree.cl);
+        # elsewhere one work-item per subtree.
+        self.subtree_queue = self.is_cpu if subtree_queue is None else bool(subtree_queue)
         self.batch_seconds = 0.15      # target time of one subtree launch (Esc stays prompt)
         self.last_profile: dict = {}
         self._progress = None          # the running build's or compaction's callback
@@ -144,6 +149,8 @@ class KDTreeBuilderCL:
                    f"-DKD_SMALL_NODE={int(params.small_node)}u", f"-DKD_EXACT_MAX={EXACT_MAX}u"]
         if self.soft_fp64:
             options.append("-DKDTRACE_SOFT_FP64")
+        if self.subtree_queue:
+            options.append("-DKD_SUBTREE_QUEUE")
         return options
 
     def program(self, source: str, params: KDTreeParams | None = None) -> dict:
@@ -538,6 +545,7 @@ class _BuildState:
         batch_refs = 4 * b.subtree_refs * max(1, int(b.device.max_compute_units))
         scratch = records = leafbuf = None
         sizes = (0, 0, 0)
+        next_subtree = b._buffer(nbytes=4)
         while len(pending):
             take = max(1, int(np.searchsorted(np.cumsum(roots["count"][pending] * factor[pending]),
                                               batch_refs, side="right")))
@@ -569,10 +577,13 @@ class _BuildState:
             d_result = b._buffer(nbytes=16 * len(batch))
             d_sah = b._buffer(nbytes=8 * len(batch))
             t0 = time.perf_counter()
-            b._run(k["build_subtrees"], len(batch), self.queue_refs, self.corners, d_roots,
-                   scratch, records[0], records[1],
-                   leafbuf, d_levels, d_result, d_sah, u4(len(batch)), self.pow2, self.inv_root,
-                   u4(self.depth_cap))
+            workers = len(batch)
+            if b.subtree_queue:     # a few work-items take the subtrees in turn
+                cl.enqueue_fill_buffer(b.queue, next_subtree, u4(0), 0, 4)
+                workers = min(workers, int(b.device.max_compute_units))
+            b._run(k["build_subtrees"], workers, self.queue_refs, self.corners, d_roots,
+                   scratch, records[0], records[1], leafbuf, d_levels, d_result, d_sah,
+                   next_subtree, u4(len(batch)), self.pow2, self.inv_root, u4(self.depth_cap))
             result = b._read(d_result, u4, (len(batch), 4)).astype(np.int64)
             seconds = time.perf_counter() - t0
             self.launches += 1

@@ -30,22 +30,19 @@ typedef struct {
 /* Root words: cell lo (3 floats), cell hi (3), absolute level, bad refines, first reference in
    the queue, reference count, then offset and capacity of its records, leaf references and
    scratch, and of its per-level counts. */
-__kernel void build_subtrees(__global const Ref* restrict queue,
-                             __global const float* restrict corners,
-                             __global const uint* restrict roots,
-                             __global Ref* restrict scratch,
-                             __global uint2* restrict rec_words,
-                             __global uint* restrict rec_meta,
-                             __global uint* restrict leaf_refs,
-                             __global uint2* restrict level_counts,
-                             __global uint4* restrict result,
-                             __global long* restrict sah,
-                             uint subtree_count, float pow2, float inv_root_half_area,
-                             uint depth_cap)
+/* Subtree s of the launch. */
+inline void build_subtree(uint s, __global const Ref* restrict queue,
+                          __global const float* restrict corners,
+                          __global const uint* restrict roots,
+                          __global Ref* restrict scratch,
+                          __global uint2* restrict rec_words,
+                          __global uint* restrict rec_meta,
+                          __global uint* restrict leaf_refs,
+                          __global uint2* restrict level_counts,
+                          __global uint4* restrict result,
+                          __global long* restrict sah,
+                          float pow2, float inv_root_half_area, uint depth_cap)
 {
-    uint s = get_global_id(0);
-    if (s >= subtree_count)
-        return;
     __global const uint* root = roots + ROOT_WORDS * s;
     uint root_level = root[6], ref_start = root[8], n = root[9];
     uint rec_off = root[10], rec_cap = root[11], leaf_off = root[12], leaf_cap = root[13];
@@ -228,4 +225,34 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
         level_counts[lvl_off + l] = (uint2)(node_count[l], leaf_prefix[l]);
     result[s] = (uint4)((uint)status, recs, lrefs, levels);
     sah[s] = sah_sum;
+}
+
+/* With KD_SUBTREE_QUEUE (CPU devices) a few work-items take the launch's subtrees in turn from
+   the counter next_subtree (0 at launch), one at a time as each finishes one: subtrees differ
+   in cost many times over, and PoCL hands a launch's work-groups to its threads in chunks of up
+   to half of those left, so the thread that drew the big subtrees (they come first) worked on
+   while the other waited. Otherwise one work-item per subtree. A subtree's output does not
+   depend on which work-item builds it. */
+__kernel void build_subtrees(__global const Ref* restrict queue,
+                             __global const float* restrict corners,
+                             __global const uint* restrict roots,
+                             __global Ref* restrict scratch,
+                             __global uint2* restrict rec_words,
+                             __global uint* restrict rec_meta,
+                             __global uint* restrict leaf_refs,
+                             __global uint2* restrict level_counts,
+                             __global uint4* restrict result,
+                             __global long* restrict sah,
+                             volatile __global uint* next_subtree,
+                             uint subtree_count, float pow2, float inv_root_half_area,
+                             uint depth_cap)
+{
+#ifdef KD_SUBTREE_QUEUE
+    for (uint s = atomic_inc(next_subtree); s < subtree_count; s = atomic_inc(next_subtree))
+#else
+    uint s = get_global_id(0);
+    if (s < subtree_count)
+#endif
+        build_subtree(s, queue, corners, roots, scratch, rec_words, rec_meta, leaf_refs,
+                      level_counts, result, sah, pow2, inv_root_half_area, depth_cap);
 }
