@@ -28,9 +28,11 @@ def test_render_through_slaves_found_by_zeroconf(tmp_path, two_advertised_slaves
     zip_path = build_extension(tmp_path / "dist")
     png = tmp_path / "render.png"
     width, height, tile_size = 160, 120, 32
+    # 4 x 4 samples: tiles of some 50-100 ms, so that neither slave can render all 20 while the
+    # other loads the scene (at one sample a tile took 5 ms, and one slave sometimes took all).
     report = run_bpy_script("render_with_discovered_slaves", tmp_path, zip=str(zip_path),
                             png=str(png), width=width, height=height, tile_size=tile_size,
-                            discovery_seconds=5.0)
+                            discovery_seconds=5.0, samples_per_axis=4)
     assert png.exists() and png.stat().st_size > 1000
     tiles = report["tiles_per_slave"]
     assert set(tiles) == {"zc-slave-a", "zc-slave-b"}, report["log"][-3000:]

@@ -12,6 +12,7 @@ scene.kdtrace.use_zeroconf = True
 scene.kdtrace.discovery_seconds = args["discovery_seconds"]
 scene.kdtrace.local_slaves = 0
 scene.kdtrace.tile_size = args["tile_size"]
+scene.kdtrace.samples_per_axis = args["samples_per_axis"]
 scene.render.image_settings.file_format = "PNG"
 scene.render.filepath = args["png"]
 bpy.ops.render.render(write_still=True)
