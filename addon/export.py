@@ -408,16 +408,22 @@ class _MeshParts:
         counts = [len(t) for t in parts["t"]]
         normals = None
         if any(n is not None for n, _ in parts["n"]):
-            normals = np.concatenate([
+            normals = _joined([
                 n if n is not None else _flat_normals(v, t, offset)
                 for (n, _), v, t, offset in zip(parts["n"], parts["v"], parts["t"],
                                                 np.cumsum([0] + [len(v) for v in parts["v"][:-1]]))])
         uvs = None
         if with_uvs:
-            uvs = np.concatenate([uv if uv is not None else np.zeros((3 * c, 2), np.float32)
-                                  for uv, c in zip(parts["uv"], counts)])
-        return Geometry(np.concatenate(parts["v"]), np.concatenate(parts["t"]),
-                        np.concatenate(parts["m"]), normals, uvs, texels, sizes)
+            uvs = _joined([uv if uv is not None else np.zeros((3 * c, 2), np.float32)
+                           for uv, c in zip(parts["uv"], counts)])
+        return Geometry(_joined(parts["v"]), _joined(parts["t"]), _joined(parts["m"]), normals,
+                        uvs, texels, sizes)
+
+
+def _joined(arrays: list) -> np.ndarray:
+    """np.concatenate of the parts, without copying a single part (a mesh of its own: the
+    common case, and a copy of every array of a large mesh at each render)."""
+    return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
 
 
 def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
