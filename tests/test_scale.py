@@ -277,8 +277,10 @@ def test_auto_tile_size_gives_each_slave_about_eight_tiles_and_a_frame_at_most_2
 
 def test_faster_slaves_get_more_tiles_in_flight(scene, calibration):
     """tiles_in_flight="auto": behind links of 20 ms each way, a slave eight times as fast as
-    the other (6 ms tiles against 50) keeps more requests ahead; the slow one keeps 2."""
-    slaves = StandIns(calibration, 2, speeds=(1.0, 8.0))
+    the other (12.5 ms tiles against 100) keeps more requests ahead; the slow one keeps 2. (With
+    50 ms tiles the slow one's round trip, 40 ms plus this machine's delays, now and then
+    exceeded a tile and gave it 3.)"""
+    slaves = StandIns(calibration, 2, speeds=(0.5, 4.0))
     links = [LinkEmulator(endpoint, latency_s=0.02).start() for endpoint in slaves.endpoints]
     try:
         with Master([link.endpoint for link in links], secret=None, retry_delays=()) as master:
