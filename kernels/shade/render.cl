@@ -414,15 +414,12 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     sc.world_color = CAMERA_WORLD_COLOR(cam);
     PathLimits limits = {bounce_limits.x, bounce_limits.y, bounce_limits.z, bounce_limits.w,
                          transparent_bounces, clamps.x, clamps.y, clamps.z};
-
 #ifdef RENDER_PIXEL_QUEUE
     for (int i = atomic_inc(next_pixel); i < pixel_count; i = atomic_inc(next_pixel))
-        render_pixel(&sc, cam, &limits, pixels[i], x0, y0, tile_w, sample_start, sample_count,
-                     strata, seed, write_aux, accum, stats, out_depth, out_normal);
 #else
     int i = get_global_id(0);
     if (i < pixel_count)
+#endif
         render_pixel(&sc, cam, &limits, pixels[i], x0, y0, tile_w, sample_start, sample_count,
                      strata, seed, write_aux, accum, stats, out_depth, out_normal);
-#endif
 }
