@@ -139,6 +139,7 @@ def render(engine, depsgraph):
         exported_geometry, view, info = export_instanced_view(
             depsgraph, every_object=bool(engine.is_animation))
         meshes = exported_geometry.meshes
+        hashes_reused = state.reuse_mesh_hashes(meshes)
         for warning in info["warnings"]:
             engine.report({"WARNING"}, f"KD Trace: {warning}")
         exported = steps.mark("export")
@@ -214,6 +215,7 @@ def render(engine, depsgraph):
     state.last_render = {
         "export_seconds": exported - started, "tree_seconds": tree_done - exported,
         "tree_built": built, "tree_stats": dict(trees[0].stats), "render_seconds": finished - tree_done,
+        "mesh_hashes_reused": hashes_reused,
         "steps": steps.seconds, "tile_render_ms": legend.render_ms(),
         "triangles": memory["triangles_referenced"], "memory": memory,
         "tiles_per_slave": per_slave,
@@ -240,15 +242,21 @@ def frame_scene(state, meshes, trees, exported, tree_key) -> Scene:
     last render's (an animation frame in which objects only moved), the last scene placed by
     this frame's instances: the meshes' arrays and their checks are reused, only the instances
     are checked and the top level built, and the slaves that hold the meshes are sent only the
-    instances (docs/instances.md, "Scene deltas")."""
+    instances (docs/instances.md, "Scene deltas"); a flat scene placed flat again is the last
+    scene itself."""
     textures = hashlib.blake2b(digest_size=16)
     for array in (exported.texels, exported.texture_sizes):
         textures.update(b"-" if array is None else np.ascontiguousarray(array).tobytes())
-    key = (tuple(m.content_hash() for m in meshes), tree_key, textures.hexdigest())
+    key = (tuple((m.content_hash(), tuple(m.arrays())) for m in meshes), tree_key,
+           textures.hexdigest())
     last_key, last = state.last_scene or (None, None)
-    if key == last_key and last.instances is not None:
-        return last.placed(exported.instance_mesh, exported.to_world,
-                           to_world_end=exported.to_world_end)
+    if key == last_key:
+        if last.instances is not None:
+            return last.placed(exported.instance_mesh, exported.to_world,
+                               to_world_end=exported.to_world_end)
+        if Scene.places_flat(len(meshes), exported.instance_mesh, exported.to_world,
+                             exported.to_world_end):
+            return last     # the same flat scene (an F12 of an unchanged scene)
     scene = Scene.from_instances(list(zip(meshes, trees)), exported.instance_mesh,
                                  exported.to_world, texels=exported.texels,
                                  texture_sizes=exported.texture_sizes,

@@ -124,6 +124,27 @@ class Session:
         self.joined: list = []       # endpoints the LAN browser found during the last frame
         self.last_scene = None       # (key, Scene) of the last render (render.frame_scene)
 
+    def reuse_mesh_hashes(self, meshes) -> int:
+        """Give each exported mesh that is the last render's mesh of its place, bit for bit, that
+        mesh's content hash instead of hashing it again (an F12 of an unchanged scene, an
+        animation frame where objects only moved): the tree cache and the frame's scene key
+        by it. Compared against the arrays the last scene holds anyway (of those the mesh had:
+        a scene fills in normals and UVs for meshes without, and a flat scene carries the
+        textures), so nothing more is kept between renders. How many hashes were reused."""
+        if self.last_scene is None:
+            return 0
+        (last_meshes, *_), last = self.last_scene
+        if last.instances is None:
+            held = [last.geometry]
+        else:
+            held = [geometry for geometry, _ in last.mesh_parts or ()]
+        reused = 0
+        for mesh, old, (digest, names) in zip(meshes, held, last_meshes):
+            arrays = old.arrays()
+            if set(names) <= arrays.keys():
+                reused += mesh.take_hash(digest, {name: arrays[name] for name in names})
+        return reused
+
     def start_legend(self, master) -> Legend:
         self.legend = Legend(master)
         return self.legend

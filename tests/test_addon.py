@@ -91,6 +91,9 @@ def test_slave_pass_shows_who_rendered_each_tile_and_combined_is_clean(tmp_path)
     assert {"Image", "Depth", "Normal", "Slave"} <= set(result["compositor_outputs"])
     two, one = result["reports"]["2"], result["reports"]["1"]
     assert len(two["tiles_per_slave"]) == 2 and len(one["tiles_per_slave"]) == 1
+    # The same scene again: its one mesh (flat: everything realised) keeps the first's hash.
+    assert (two["mesh_hashes_reused"], one["mesh_hashes_reused"]) == (0, 1)
+    assert two["tree_built"] and not one["tree_built"]
 
     def load(slaves, name):
         return np.load(tmp_path / f"slaves{slaves}-{name}.npy")
@@ -130,6 +133,8 @@ def test_animation_rebuilds_and_uploads_only_when_geometry_changes(tmp_path):
     # slave only the instances, frame 4 (the scene of frame 3) only the query, and frame 5
     # rebuilds and sends only the plane (SCENE_MESHES), not the sphere and the bunny.
     assert [frames[f]["tree_built"] for f in range(1, 6)] == [True, False, False, False, True]
+    # Meshes the same bits as the last frame's take its hashes instead of hashing again.
+    assert [frames[f]["hashes_reused"] for f in range(1, 6)] == [0, 3, 3, 3, 2]
     assert frames[1]["builds"] == frames[4]["builds"] == 3     # sphere, plane, bunny
     assert result["builds"] == frames[5]["builds"] == 4        # and the lifted plane
     assert frames[1]["uploaded_to"] and all(frames[f]["uploaded_to"] == [] for f in range(2, 6))
@@ -145,7 +150,7 @@ def test_animation_rebuilds_and_uploads_only_when_geometry_changes(tmp_path):
     assert all(not np.array_equal(images[f], images[f + 1]) for f in range(1, 5)), "every frame moves"
     # A still realises the objects that are alone (world-space mesh 0, built anew as it moved);
     # the same pixels within float rounding of the transformed rays (8-bit PNGs).
-    assert result["stills_built"] == [True, True]
+    assert result["stills_built"] == [[True, 0], [True, 0]]     # (built, hashes reused)
     for frame in (2, 5):
         still = np.load(tmp_path / f"still_{frame:04d}.npy")
         diff = np.abs(images[frame] - still)

@@ -213,6 +213,33 @@ def test_scene_hash_depends_on_the_kdtree_mode():
     assert received.tree.leaf_shift == trees["ours"].leaf_shift
 
 
+def test_a_geometry_takes_a_hash_only_from_the_same_bits():
+    """Geometry.take_hash (the add-on's reuse of the last render's mesh hashes): the hash it
+    takes is the one hashing would give, and any difference of bits, shape or arrays present
+    (-0.0 against 0.0, one normal, normals against none) makes it hash instead."""
+    from tests.meshes import uv_sphere
+    vertices, triangles = uv_sphere(16, 8)
+    ids = np.zeros(len(triangles), np.uint16)
+    normals = np.tile(np.float32([0, 0, 1]), (3 * len(triangles), 1))
+
+    def made(v=vertices, n=normals):
+        return Geometry(v.copy(), triangles.copy(), ids.copy(), None if n is None else n.copy())
+
+    old = made()
+    digest = old.content_hash()
+    same = made()
+    assert same.take_hash(digest, old.arrays())
+    assert same.content_hash() == digest == made().content_hash()
+    signed_zero = vertices.copy()
+    signed_zero[vertices == 0] = -0.0
+    assert (signed_zero == vertices).all() and (vertices == 0).any()
+    one_normal = normals.copy()
+    one_normal[5] = [0, 1, 0]
+    for changed in (made(v=signed_zero), made(n=one_normal), made(n=None), made(v=vertices[:-1])):
+        assert not changed.take_hash(digest, old.arrays())
+        assert changed.content_hash() != digest
+
+
 @pytest.mark.parametrize("change, match", [
     (lambda s: s.pop("bounds"), "must carry the arrays"),
     (lambda s: s.update(colours=s["bounds"]), "must carry the arrays"),

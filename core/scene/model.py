@@ -64,6 +64,23 @@ def _int(value, what: str, low: int, high: int) -> int:
     return value
 
 
+def _same_arrays(a: dict, b: dict) -> bool:
+    """Whether two dicts of contiguous arrays have the same names, dtypes, shapes and bytes
+    (bit for bit: -0.0 is not 0.0, a NaN equals itself), without copying either."""
+    if a.keys() != b.keys():
+        return False
+    for name, x in a.items():
+        y = b[name]
+        if x.dtype != y.dtype or x.shape != y.shape:
+            return False
+        if x is y or not x.size:
+            continue
+        as_bits = np.dtype(f"u{x.itemsize}") if x.itemsize in (1, 2, 4, 8) else np.dtype("u1")
+        if not np.array_equal(x.reshape(-1).view(as_bits), y.reshape(-1).view(as_bits)):
+            return False
+    return True
+
+
 @dataclass
 class Geometry:
     """Triangles in world space: the part of the scene that the kd-tree is built over.
@@ -166,6 +183,16 @@ class Geometry:
                 digest.update(array.tobytes())
             self._content_hash = digest.hexdigest()
         return self._content_hash
+
+    def take_hash(self, digest: str, held: dict) -> bool:
+        """Take `digest` as this geometry's content hash where `held` (name -> array), the
+        arrays of the geometry that hashed to `digest`, are this geometry's bit for bit (the
+        same names, dtypes, shapes and bytes: hashing would give `digest`). Comparing reads the
+        arrays several times faster than blake2b hashes them. Whether it was taken."""
+        if not _same_arrays(self.arrays(), held):
+            return False
+        self._content_hash = digest
+        return True
 
 
 @dataclass

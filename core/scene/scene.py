@@ -136,9 +136,7 @@ class Scene:
             except ValueError as exc:
                 raise SceneError(f"invalid kd-tree of mesh {m}: {exc}") from None
             parts.append((geometry, tree))
-        if len(parts) == 1 and len(instance_mesh) == 1 and \
-                np.array_equal(matrices[0], np.eye(3, 4)) and visibility[0] == VISIBLE_TO_ALL \
-                and not motion:
+        if _flat(len(parts), instance_mesh, matrices, visibility, motion):
             geometry, tree = parts[0]
             if texels is not None or texture_sizes is not None or geometry.texels is not None:
                 geometry = Geometry(geometry.vertices, geometry.triangles, geometry.material_ids,
@@ -153,6 +151,16 @@ class Scene:
                       instance_to_world=matrices.astype(np.float32),
                       instance_visibility=visibility, **motion)
         return cls._checked_instances(geometry, arrays, depths)
+
+    @staticmethod
+    def places_flat(mesh_count: int, instance_mesh, to_world, to_world_end=None) -> bool:
+        """Whether from_instances makes these meshes (visible to every ray) placed so the flat
+        scene of mesh 0: one mesh, one identity instance, nothing moving."""
+        matrices = as_3x4(to_world)
+        instance_mesh = np.asarray(instance_mesh).reshape(-1)
+        return _flat(mesh_count, instance_mesh, matrices,
+                     np.full(len(instance_mesh), VISIBLE_TO_ALL, np.uint8),
+                     _motion_arrays(matrices, to_world_end))
 
     @classmethod
     def _checked_instances(cls, geometry: Geometry, arrays: dict, depths=None) -> "Scene":
@@ -625,6 +633,11 @@ def _placement_arrays(instances: InstanceSet) -> dict:
     if instances.to_world_end is not None:
         arrays["instance_to_world_end"] = instances.to_world_end
     return arrays
+
+
+def _flat(mesh_count: int, instance_mesh, matrices, visibility, motion: dict) -> bool:
+    return mesh_count == 1 and len(instance_mesh) == 1 and \
+        np.array_equal(matrices[0], np.eye(3, 4)) and visibility[0] == VISIBLE_TO_ALL and not motion
 
 
 def _motion_arrays(matrices: np.ndarray, to_world_end) -> dict:

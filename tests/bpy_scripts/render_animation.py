@@ -39,6 +39,7 @@ def record(scene, *_):
     frames.append({"frame": scene.frame_current, "tree_built": report.get("tree_built"),
                    "uploaded_to": report.get("uploaded_to"), "tiles": report.get("tiles_per_slave"),
                    "scene_bytes": report.get("scene_bytes"),
+                   "hashes_reused": report.get("mesh_hashes_reused"),
                    "builds": addon.addon.session.current().trees.builds - builds_before})
 
 
@@ -56,7 +57,8 @@ for frame in (2, 5):
     scene.frame_set(frame)
     scene.render.filepath = f"{args['out']}/still_{frame:04d}.png"
     bpy.ops.render.render(write_still=True)
-    stills.append(dict(addon.addon.session.current().last_render)["tree_built"])
+    report = addon.addon.session.current().last_render
+    stills.append((report["tree_built"], report["mesh_hashes_reused"]))
 for name in [f"anim_{f:04d}" for f in range(1, 6)] + ["still_0002", "still_0005"]:
     image = bpy.data.images.load(f"{args['out']}/{name}.png")
     np.save(f"{args['out']}/{name}.npy", np.array(image.pixels[:], np.float32))
