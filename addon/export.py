@@ -345,10 +345,13 @@ def _has_smooth_faces(mesh) -> bool:
 class _MeshParts:
     """Triangles gathered from objects into one Geometry: the world-space triangles of the
     realised objects, or one mesh in object space. `add` drops zero-area faces (in float32,
-    in the space stored: what the kernel sees, never hit, only noise), with a warning."""
+    in the space stored: what the kernel sees, never hit, only noise), with a warning.
+    The kept triangles' rows are copied once, by np.take into the joined arrays (a boolean
+    mask's copy takes 2-3 times as long); a single object that keeps every triangle keeps
+    its arrays."""
 
     def __init__(self, warnings: list, warned: set):
-        self.parts = {"v": [], "t": [], "m": [], "n": [], "uv": []}
+        self.parts = []     # per object: its arrays as placed, and the kept triangles
         self.vertex_count = 0
         self.warnings, self.warned = warnings, warned
 
@@ -362,31 +365,26 @@ class _MeshParts:
         if not np.isfinite(placed32).all():
             raise SceneError(f"object '{obj.name}' has vertices that are NaN or infinite")
         keep = _nonzero_area(placed32, triangles)
-        if not keep.all():
+        if keep.all():
+            keep = None
+        else:
             self._warn(obj, f"object '{obj.name}': {int((~keep).sum())} zero-area face(s) dropped")
             if not keep.any():
                 return
-        else:
-            keep = slice(None)
-        parts = self.parts
-        parts["v"].append(placed32)
-        parts["t"].append(triangles[keep].astype(np.uint32) + np.uint32(self.vertex_count))
-        parts["m"].append(slot_materials.take(slots[keep], mode="clip"))
+            keep = np.flatnonzero(keep)
         normals = arrays["normals"]
         if normals is not None:
             normal_matrix = np.linalg.inv(matrix[:3, :3]).T.astype(np.float32)
-            n = normals[keep].reshape(-1, 3)
             if not np.allclose(normal_matrix, np.eye(3)):
-                n = n @ normal_matrix.T
+                n = normals.reshape(-1, 3) @ normal_matrix.T
                 length = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
-                n = n / np.where(length > 0, length, 1.0)
-        else:
-            n = None
-        parts["n"].append((n, keep))
-        uvs = arrays["uvs"]
-        if textured and uvs is None:
+                normals = (n / np.where(length > 0, length, 1.0)).reshape(-1, 3, 3)
+        if textured and arrays["uvs"] is None:
             self._warn(obj, f"object '{obj.name}' has a textured material but no UV map")
-        parts["uv"].append(None if uvs is None else uvs[keep].reshape(-1, 2))
+        # triangles.view: the corners' int32 vertex indices (>= 0) as the uint32 stored.
+        self.parts.append({"v": placed32, "t": triangles.view(np.uint32), "keep": keep,
+                           "base": self.vertex_count, "m": slot_materials.take(slots, mode="clip"),
+                           "n": normals, "uv": arrays["uvs"]})
         self.vertex_count += len(vertices)
 
     def _warn(self, obj, message):
@@ -396,34 +394,50 @@ class _MeshParts:
 
     @property
     def empty(self) -> bool:
-        return not self.parts["t"]
+        return not self.parts
 
     def geometry(self, with_uvs: bool, texels=None, sizes=None) -> Geometry:
         """The gathered triangles; `with_uvs`: UVs for every triangle (zeros where an object
         has none: textures and node programs read them)."""
         parts = self.parts
-        if not parts["t"]:
+        if not parts:
             return Geometry(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32),
                             np.zeros(0, np.uint16), texels=texels, texture_sizes=sizes)
-        counts = [len(t) for t in parts["t"]]
+        keeps = [p["keep"] for p in parts]
+        triangles = _kept([p["t"] for p in parts], keeps)
+        counts = [len(p["t"]) if p["keep"] is None else len(p["keep"]) for p in parts]
+        for part, start, count in zip(parts, np.cumsum([0] + counts[:-1]), counts):
+            if part["base"]:    # (a part of its own, base 0, may be the mesh's array)
+                triangles[start:start + count] += np.uint32(part["base"])
         normals = None
-        if any(n is not None for n, _ in parts["n"]):
-            normals = _joined([
-                n if n is not None else _flat_normals(v, t, offset)
-                for (n, _), v, t, offset in zip(parts["n"], parts["v"], parts["t"],
-                                                np.cumsum([0] + [len(v) for v in parts["v"][:-1]]))])
+        if any(p["n"] is not None for p in parts):
+            normals = _kept([p["n"] if p["n"] is not None else _flat_normals(p["v"], p["t"])
+                             for p in parts], keeps).reshape(-1, 3)
         uvs = None
         if with_uvs:
-            uvs = _joined([uv if uv is not None else np.zeros((3 * c, 2), np.float32)
-                           for uv, c in zip(parts["uv"], counts)])
-        return Geometry(_joined(parts["v"]), _joined(parts["t"]), _joined(parts["m"]), normals,
+            uvs = _kept([p["uv"] if p["uv"] is not None else
+                         np.zeros((len(p["t"]), 3, 2), np.float32) for p in parts],
+                        keeps).reshape(-1, 2)
+        vertices = parts[0]["v"] if len(parts) == 1 else np.concatenate([p["v"] for p in parts])
+        return Geometry(vertices, triangles, _kept([p["m"] for p in parts], keeps), normals,
                         uvs, texels, sizes)
 
 
-def _joined(arrays: list) -> np.ndarray:
-    """np.concatenate of the parts, without copying a single part (a mesh of its own: the
-    common case, and a copy of every array of a large mesh at each render)."""
-    return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
+def _kept(arrays: list, keeps: list) -> np.ndarray:
+    """Each part's kept rows (`keeps`: row indices, or None for every row) one after another:
+    one copy, by np.take into the joined array, and none for a single part that keeps all."""
+    if len(arrays) == 1 and keeps[0] is None:
+        return arrays[0]
+    counts = [len(a) if k is None else len(k) for a, k in zip(arrays, keeps)]
+    out = np.empty((sum(counts),) + arrays[0].shape[1:], np.result_type(*arrays))
+    at = 0
+    for array, keep, count in zip(arrays, keeps, counts):
+        if keep is None:
+            out[at:at + count] = array
+        else:
+            np.take(array, keep, axis=0, out=out[at:at + count], mode="clip")
+        at += count
+    return out
 
 
 def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
@@ -568,12 +582,14 @@ def _is_animated(obj) -> bool:
     return False
 
 
-def _flat_normals(vertices, triangles, offset) -> np.ndarray:
-    """Face normals repeated at each corner, for flat objects in a scene that has smooth ones."""
-    corners = vertices[triangles.astype(np.int64) - offset].astype(np.float64)
+def _flat_normals(vertices, triangles) -> np.ndarray:
+    """(T, 3, 3) float32: face normals repeated at each corner, for flat objects in a scene that
+    has smooth ones."""
+    corners = vertices[triangles].astype(np.float64)
     n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.repeat(n / np.where(length > 0, length, 1.0), 3, axis=0)
+    n = (n / np.where(length > 0, length, 1.0)).astype(np.float32)
+    return np.repeat(n[:, None], 3, axis=1)
 
 
 def _export_camera(depsgraph, warnings: list) -> Camera:

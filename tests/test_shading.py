@@ -108,6 +108,12 @@ def test_bad_input_is_named_and_cleaned(extension, tmp_path):
     assert any("'empty'" in w and "no faces" in w for w in warnings), warnings
     assert any("'degenerate'" in w and "2 zero-area" in w for w in warnings), warnings
     assert result["triangles"] == 2
+    # The objects' triangles one after another, each indexing its own vertices; the flat
+    # object's face normal at its corners beside the smooth one's kept corners.
+    arrays = result["arrays"]
+    assert len(arrays["vertices"]) == 8
+    assert arrays["triangles"] == [[0, 1, 2], [3, 4, 5]], arrays["triangles"]
+    assert np.allclose(arrays["normals"], [[0, 0, 1]] * 6, atol=1e-6), arrays["normals"]
     assert result["error"] and "SceneError" in result["error"] and "'good'" in result["error"]
 
 

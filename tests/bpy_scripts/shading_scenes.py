@@ -112,11 +112,14 @@ elif args["scene"] == "bad":
     # Two collinear (zero-area) faces beside a good one.
     mesh_object("degenerate", [[0, 0, 1], [1, 0, 1], [0, 1, 1], [2, 0, 1], [3, 0, 1]],
                 [[0, 1, 2], [0, 1, 3], [1, 3, 4]])
+    bpy.data.objects["degenerate"].data.shade_smooth()    # corner normals beside flat ones
     mesh_object("empty", np.zeros((0, 3)), np.zeros((0, 3), np.int32))
     light("sun", "SUN", (0, 0, 5), energy=1.0)
     bpy.context.view_layer.update()
     geometry, view, info = export.export_view(bpy.context.evaluated_depsgraph_get())
     triangles = geometry.triangle_count
+    arrays = {"vertices": geometry.vertices.tolist(), "triangles": geometry.triangles.tolist(),
+              "normals": None if geometry.normals is None else geometry.normals.tolist()}
     bad = bpy.data.objects["good"].data
     bad.vertices[1].co = (float("nan"), 0.0, 0.0)
     bad.update()
@@ -126,7 +129,8 @@ elif args["scene"] == "bad":
         error = None
     except Exception as exc:        # SceneError from the add-on package
         error = f"{type(exc).__name__}: {exc}"
-    write_result(result_path, {"warnings": info["warnings"], "triangles": triangles, "error": error})
+    write_result(result_path, {"warnings": info["warnings"], "triangles": triangles, "error": error,
+                               "arrays": arrays})
     raise SystemExit(0)
 
 bpy.context.view_layer.update()
