@@ -5,11 +5,11 @@ Inside Blender (the bpy module, in a child process, as bench/image_error.py --ag
 the same scene builders and render settings), the dragon scene of the Cycles comparison (871k
 triangles, 96x72) is rendered once by each renderer to start what later renders reuse (KD
 Trace: the local slave, its kernels, the kd-tree in the add-on's cache), then --renders times
-each at 1 spp, alternating. Per KD Trace render it prints the wall time of Blender's render
-call and the add-on's steps (addon/render.py `Steps`: export, the kd-tree cache, the scene,
-the slaves' connection, the scene query, the frame's start, its first tile, the rest of the
-tiles, the image, the master's close) and the slave's own render time of the tiles; medians
-over the renders.
+each at 1 spp, alternating. It prints the first KD Trace render's steps, and per KD Trace
+render the wall time of Blender's render call and the add-on's steps (addon/render.py
+`Steps`: export, the kd-tree cache, the scene, the slaves' connection, the scene query, the
+frame's start, its first tile, the rest of the tiles, the image, the master's close) and the
+slave's own render time of the tiles; medians over the renders.
 
 With --compare REV the same child runs also on the add-on of git revision REV (its zip built
 from `git archive`), the two alternating --rounds times: before and after in one run.
@@ -64,7 +64,8 @@ def child(arguments: dict, result_path: str) -> None:
         return time.perf_counter() - started
 
     result = {"first": {engine: render(engine) for engine in ("CYCLES", "KDTRACE")},
-              "cycles": [], "kdtrace": [], "reports": []}
+              "cycles": [], "kdtrace": [], "reports": [],
+              "first_steps": dict(session.current().last_render.get("steps") or {})}
     for i in range(arguments["renders"]):
         order = ("CYCLES", "KDTRACE") if i % 2 == 0 else ("KDTRACE", "CYCLES")
         for engine in order:
@@ -124,6 +125,9 @@ def summary(label: str, results: list) -> None:
     print(f"\n{label}: {len(ours)} renders each; first renders KD Trace "
           + ", ".join(f"{r['first']['KDTRACE']:.1f}" for r in results) + " s, Cycles "
           + ", ".join(f"{r['first']['CYCLES']:.2f}" for r in results) + " s")
+    for r in results:
+        print("    the first KD Trace render's steps: " + ", ".join(
+            f"{step} {seconds:.2f}" for step, seconds in r.get("first_steps", {}).items()))
     print(f"  Cycles render call    {median(cycles):6.3f} s  (min {min(cycles):.3f})")
     print(f"  KD Trace render call  {median(ours):6.3f} s  (min {min(ours):.3f})  "
           f"KD Trace / Cycles {median(ours) / median(cycles):.2f}")
