@@ -157,10 +157,8 @@ class Scene:
         """Whether from_instances makes these meshes (visible to every ray) placed so the flat
         scene of mesh 0: one mesh, one identity instance, nothing moving."""
         matrices = as_3x4(to_world)
-        instance_mesh = np.asarray(instance_mesh).reshape(-1)
-        return _flat(mesh_count, instance_mesh, matrices,
-                     np.full(len(instance_mesh), VISIBLE_TO_ALL, np.uint8),
-                     _motion_arrays(matrices, to_world_end))
+        return _flat(mesh_count, np.asarray(instance_mesh).reshape(-1), matrices,
+                     (VISIBLE_TO_ALL,), _motion_arrays(matrices, to_world_end))
 
     @classmethod
     def _checked_instances(cls, geometry: Geometry, arrays: dict, depths=None) -> "Scene":
