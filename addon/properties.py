@@ -7,6 +7,7 @@ from ..core.accel.compact import USER_SETTING_LIMITS as TREE_LIMITS, compact_par
 from ..core.net.master import DEFAULT_TILE_SIZE, DEFAULT_TILES_IN_FLIGHT, MAX_TILES_IN_FLIGHT
 from ..core.net.protocol import DEFAULT_MODEL, DEFAULT_PORT, MAX_TILE_SIZE
 from ..core.scene.model import RENDER_SETTING_LIMITS as LIMITS, RenderSettings
+from ..core.scene.tree_files import DEFAULT_LIMIT_MIB as TREE_FILES_MIB, LIMIT_MIB_RANGE
 
 # Defaults and limits live with what they configure (core/); the panel only shows them.
 RENDER = RenderSettings()
@@ -177,11 +178,19 @@ class KDTracePreferences(bpy.types.AddonPreferences):
         name="Shared Secret File", description="File holding the secret shared with the slaves "
         "(empty: the KDTRACE_SECRET environment variable, else no authentication)",
         default="", subtype="FILE_PATH")
+    tree_cache_folder: StringProperty(
+        name="kd-Tree Cache Folder", description="Folder where built kd-trees are kept, so "
+        "that an unchanged mesh is not built again after Blender restarts (empty: the "
+        "extension's own user folder)", default="", subtype="DIR_PATH")
+    tree_cache_mib: IntProperty(
+        name="kd-Tree Cache Size", description="Most MiB of kd-trees kept on disk; the least "
+        "recently used go first (0: keep none)", default=TREE_FILES_MIB,
+        min=LIMIT_MIB_RANGE[0], max=LIMIT_MIB_RANGE[1])
 
     def draw(self, context):
-        self.layout.prop(self, "slave_python")
-        self.layout.prop(self, "slave_device")
-        self.layout.prop(self, "secret_file")
+        for name in ("slave_python", "slave_device", "secret_file", "tree_cache_folder",
+                     "tree_cache_mib"):
+            self.layout.prop(self, name)
 
 
 def preferences(context):

@@ -16,7 +16,7 @@ from ..core.scene.scene import Scene, memory_report, memory_summary
 from ..core.net.slave_colors import slave_color
 from . import session
 from .export import export_instanced_view
-from .properties import preferences
+from .properties import KDTracePreferences, preferences
 
 POLL_SECONDS = 0.05  # how often the render thread checks for Esc while waiting for tiles
 SETTLE_SECONDS = 0.3  # after the first slave answers a young browser, for the others to answer
@@ -55,6 +55,15 @@ def shared_secret(prefs) -> bytes | None:
 def bpy_path(path: str) -> str:
     import bpy
     return bpy.path.abspath(path)
+
+
+def tree_folder(prefs) -> str:
+    """Where the master keeps kd-trees on disk: the preferences' folder, else the extension's
+    own user folder (Blender's extension_path_user, kept across upgrades)."""
+    import bpy
+    if prefs.tree_cache_folder:
+        return bpy_path(prefs.tree_cache_folder)
+    return bpy.utils.extension_path_user(KDTracePreferences.bl_idname, path="kd-trees")
 
 
 def find_slaves(engine, settings, prefs, secret) -> list[tuple[str, int]]:
@@ -156,17 +165,25 @@ def render(engine, depsgraph):
         tree_settings = user_settings(settings.kdtree_mode, settings.tau_occu,
                                       settings.tau_freq, settings.refs_per_path)
         # One tree per mesh (docs/instances.md), each cached by its mesh's content.
-        trees, built, done = [], False, 0.0
+        try:
+            state.trees.use_disk(tree_folder(prefs), prefs.tree_cache_mib)
+        except OSError as error:
+            state.trees.use_disk(None, 0)
+            engine.report({"WARNING"}, f"KD Trace: no kd-tree cache on disk: {error}")
+        trees, sources, done = [], [], 0.0
         for mesh in meshes:
             share = mesh.triangle_count / max(stored, 1)     # of the progress bar
 
             def mesh_progress(fraction, message, done=done, share=share):
                 tree_progress(done + share * fraction, message)
-            tree, new = state.trees.get(mesh, settings.kdtree_mode, tree_settings,
-                                        mesh_progress, device=prefs.slave_device)
+            tree, source = state.trees.get(mesh, settings.kdtree_mode, tree_settings,
+                                           mesh_progress, device=prefs.slave_device)
             trees.append(tree)
-            built |= new
+            sources.append(source)
             done += share
+        if state.trees.disk_problem:
+            engine.report({"WARNING"}, f"KD Trace: {state.trees.disk_problem}")
+        built = "built" in sources
         steps.mark("kd-tree cache")
         scene = frame_scene(state, meshes, trees, exported_geometry,
                             (settings.kdtree_mode, tuple(sorted(tree_settings.items()))))
@@ -214,7 +231,8 @@ def render(engine, depsgraph):
     per_slave = legend.tiles_per_slave()
     state.last_render = {
         "export_seconds": exported - started, "tree_seconds": tree_done - exported,
-        "tree_built": built, "tree_stats": dict(trees[0].stats), "render_seconds": finished - tree_done,
+        "tree_built": built, "tree_sources": sources, "tree_stats": dict(trees[0].stats),
+        "render_seconds": finished - tree_done,
         "mesh_hashes_reused": hashes_reused,
         "steps": steps.seconds, "tile_render_ms": legend.render_ms(),
         "triangles": memory["triangles_referenced"], "memory": memory,
@@ -223,7 +241,8 @@ def render(engine, depsgraph):
         "uploaded_to": uploaded_to, "scene_bytes": scene_bytes, "cancelled": job.cancelled,
         "local_reason": state.local_reason,
         "joined_during_frame": [f"{host}:{port}" for host, port in state.joined]}
-    summary = (f"export {exported - started:.2f} s, kd-tree {'built' if built else 'reused'} "
+    how = ("built" if built else "read from disk" if "disk" in sources else "reused")
+    summary = (f"export {exported - started:.2f} s, kd-tree {how} "
                f"{tree_done - exported:.2f} s ({trees[0].stats['mode']}: "
                f"{sum(t.stats['nodes'] for t in trees):,} nodes, "
                f"{sum(t.nbytes for t in trees) / 1e6:.1f} MB; {trees[0].stats['builder']} builder on "

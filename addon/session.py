@@ -2,6 +2,7 @@
 LAN browser. Created in register(), closed in unregister() (and at Blender's exit)."""
 from __future__ import annotations
 
+import pathlib
 import threading
 import time
 from collections import OrderedDict
@@ -10,6 +11,7 @@ from dataclasses import dataclass
 from ..core.accel.compact import compact_tree
 from ..core.accel.kdtree_cl import build_standard, opencl_builder
 from ..core.net.slave_colors import slave_color
+from ..core.scene.tree_files import TreeFiles
 from .local_slaves import LocalSlaves
 
 
@@ -18,29 +20,51 @@ class TreeCache:
     so a re-render of unchanged geometry with unchanged kd-tree settings does not rebuild. The
     standard SAH tree of a geometry is kept too, so another mode or threshold only redoes the
     compaction. An instanced scene keeps a tree per mesh (docs/instances.md): the capacity
-    counts trees."""
+    counts trees. With a folder (`use_disk`), compact trees are also kept on disk
+    (core/scene/tree_files.py), so they outlive Blender."""
 
     def __init__(self, capacity: int = 8):
         self.capacity = capacity
         self.builds = 0        # how many standard trees were built (tests count rebuilds with it)
         self.compactions = 0   # how many compact trees were made from them
+        self.disk: TreeFiles | None = None
+        self.disk_problem = ""  # why the last tree could not be written to disk ("": it was)
         self._trees: OrderedDict = OrderedDict()      # key -> CompactTree
         self._standard: OrderedDict = OrderedDict()   # geometry hash -> KDTree
         self._lock = threading.Lock()
 
+    def use_disk(self, folder, limit_mib: int):
+        """Keep trees in `folder` too, up to limit_mib MiB; None or a limit of 0: memory only.
+        OSError when the folder cannot be made."""
+        if not folder or limit_mib <= 0:
+            self.disk = None
+        elif (self.disk is None or self.disk.files.folder != pathlib.Path(folder)
+              or self.disk.files.limit_bytes != limit_mib << 20):
+            self.disk = TreeFiles(folder, limit_mib << 20)
+
     def get(self, geometry, mode: str, settings: dict, progress=None, device="auto"):
-        """(compact tree, built): built is True when anything had to be built or compacted.
-        `settings`: compact_tree's keyword arguments (core.accel.compact.user_settings).
-        progress(fraction, message) covers both steps: the SAH build 0-0.8, compaction 0.8-1.
-        Both run on the OpenCL device `device` (the preferences' local slave device) when
-        there is one, else with numpy; the tree's stats say which builder ran where."""
+        """(compact tree, where from): "memory", "disk" or "built" (anything had to be built
+        or compacted). `settings`: compact_tree's keyword arguments
+        (core.accel.compact.user_settings). progress(fraction, message) covers both steps:
+        the SAH build 0-0.8, compaction 0.8-1. Both run on the OpenCL device `device` (the
+        preferences' local slave device) when there is one, else with numpy; the tree's stats
+        say which builder ran where."""
         report = progress or (lambda fraction, message: None)
         key = (geometry.content_hash(), mode, tuple(sorted(settings.items())))
         with self._lock:
             if key in self._trees:
                 self._trees.move_to_end(key)
-                return self._trees[key], False
+                return self._trees[key], "memory"
             standard = self._standard.get(key[0])
+        disk, name = self.disk, None
+        if disk is not None:
+            name = disk.key(key[0], mode, settings)
+            report(0.0, "reading the kd-tree from disk")
+            compact = disk.read(name, geometry.triangle_count)
+            if compact is not None:
+                with self._lock:
+                    self._remember(self._trees, key, compact)
+                return compact, "disk"
         if standard is None:
             standard, builder = build_standard(geometry.vertices, geometry.triangles, device,
                                                progress=lambda f, m: report(0.8 * f, m))
@@ -55,7 +79,13 @@ class TreeCache:
         with self._lock:
             self.compactions += 1
             self._remember(self._trees, key, compact)
-        return compact, True
+        if disk is not None:
+            try:
+                disk.write(name, compact, geometry.triangle_count)
+                self.disk_problem = ""
+            except OSError as error:    # a full disk costs a build after a restart, no more
+                self.disk_problem = f"cannot keep the kd-tree in {disk.files.folder}: {error}"
+        return compact, "built"
 
     def _remember(self, store, key, value):
         store[key] = value

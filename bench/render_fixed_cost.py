@@ -14,8 +14,13 @@ slave's own render time of the tiles; medians over the renders.
 With --compare REV the same child runs also on the add-on of git revision REV (its zip built
 from `git archive`), the two alternating --rounds times: before and after in one run.
 
+Each round starts with no kd-tree on disk (the add-on's cache in its user folder,
+core/scene/tree_files.py, is emptied). With --restarts N, N more Blender processes follow each
+child on the same user folder, each timing only its first renders: F12 after Blender restarts.
+
     flock /tmp/bench.lock .venv/bin/python bench/render_fixed_cost.py [--renders 5]
-        [--compare main] [--rounds 2] [--profile] [--scene dragon] [--size 96x72]
+        [--compare main] [--rounds 2] [--restarts 1] [--profile] [--scene dragon]
+        [--size 96x72]
 """
 from __future__ import annotations
 
@@ -23,6 +28,7 @@ import argparse
 import json
 import os
 import pathlib
+import shutil
 import statistics
 import subprocess
 import sys
@@ -117,17 +123,22 @@ def median(values):
     return statistics.median(values) if values else float("nan")
 
 
-def summary(label: str, results: list) -> None:
-    """Medians of every child's renders of one add-on, with its steps."""
-    cycles = [s for r in results for s in r["cycles"]]
-    ours = [s for r in results for s in r["kdtrace"]]
-    reports = [rep for r in results for rep in r["reports"]]
-    print(f"\n{label}: {len(ours)} renders each; first renders KD Trace "
+def first_renders(label: str, results: list) -> None:
+    """The first renders of each child, with the KD Trace render's steps."""
+    print(f"\n{label}: first renders KD Trace "
           + ", ".join(f"{r['first']['KDTRACE']:.1f}" for r in results) + " s, Cycles "
           + ", ".join(f"{r['first']['CYCLES']:.2f}" for r in results) + " s")
     for r in results:
         print("    the first KD Trace render's steps: " + ", ".join(
             f"{step} {seconds:.2f}" for step, seconds in r.get("first_steps", {}).items()))
+
+
+def summary(label: str, results: list) -> None:
+    """Medians of every child's renders of one add-on, with its steps."""
+    cycles = [s for r in results for s in r["cycles"]]
+    ours = [s for r in results for s in r["kdtrace"]]
+    reports = [rep for r in results for rep in r["reports"]]
+    first_renders(f"{label}, {len(ours)} renders each", results)
     print(f"  Cycles render call    {median(cycles):6.3f} s  (min {min(cycles):.3f})")
     print(f"  KD Trace render call  {median(ours):6.3f} s  (min {min(ours):.3f})  "
           f"KD Trace / Cycles {median(ours) / median(cycles):.2f}")
@@ -163,6 +174,9 @@ def main():
     parser.add_argument("--renders", type=int, default=5, help="timed renders of each renderer")
     parser.add_argument("--compare", metavar="REV", help="also the add-on of this git revision")
     parser.add_argument("--rounds", type=int, default=1, help="with --compare: alternations")
+    parser.add_argument("--restarts", type=int, default=0,
+                        help="Blender processes after each child that time only their first "
+                             "renders, with the kd-trees the child left on disk")
     parser.add_argument("--profile", action="store_true",
                         help="cProfile one more KD Trace render (the render thread)")
     parser.add_argument("--out", default=str(ROOT / "bench" / "out" / "render_fixed_cost"))
@@ -172,20 +186,29 @@ def main():
     if args.compare:
         zips = {args.compare: revision_zip(args.compare, out), **zips}
     results = {label: [] for label in zips}
+    restarted = {label: [] for label in zips}
     for _ in range(args.rounds if args.compare else 1):
         for label, zip_path in zips.items():
-            arguments = {"zip": str(zip_path), "out": str(out), "scene": args.scene,
-                         "width": width, "height": height, "renders": args.renders,
-                         "kdtrace": kdtrace_settings(), "profile": args.profile}
-            result_path = out / "child-result.json"
-            env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1",
-                       BLENDER_USER_RESOURCES=str(out / f"blender-user-{list(zips).index(label)}"))
-            subprocess.run([sys.executable, __file__, "--bpy-child", json.dumps(arguments),
-                            str(result_path)], env=env, check=True, cwd=out)
-            results[label].append(json.loads(result_path.read_text()))
+            user = out / f"blender-user-{list(zips).index(label)}"
+            for trees in list(user.rglob("kd-trees")):
+                shutil.rmtree(trees)        # the round starts with no tree on disk
+            for restart in range(1 + args.restarts):
+                arguments = {"zip": str(zip_path), "out": str(out), "scene": args.scene,
+                             "width": width, "height": height,
+                             "renders": 0 if restart else args.renders,
+                             "kdtrace": kdtrace_settings(), "profile": args.profile and not restart}
+                result_path = out / "child-result.json"
+                env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1",
+                           BLENDER_USER_RESOURCES=str(user))
+                subprocess.run([sys.executable, __file__, "--bpy-child", json.dumps(arguments),
+                                str(result_path)], env=env, check=True, cwd=out)
+                (restarted if restart else results)[label].append(
+                    json.loads(result_path.read_text()))
     print(f"\n{args.scene} {width}x{height}, 1 spp; load average after {os.getloadavg()[0]:.1f}")
     for label, runs in results.items():
         summary(label, runs)
+        if restarted[label]:
+            first_renders(f"{label}, after Blender restarted", restarted[label])
 
 
 if __name__ == "__main__":

@@ -5,20 +5,18 @@ file `meshes-<meshes hash>.txt` naming the scene), so a frame whose instances al
 travels as instance arrays (docs/instances.md, "Scene deltas").
 
 The disk copy is read back through the same validation as an upload (`Scene.from_wire`) and
-its hash is recomputed: a damaged or tampered file is deleted, never trusted. Files are .npz
-written with numpy (no pickle: loaded with allow_pickle=False), via a temporary name + rename.
+its hash is recomputed: a damaged or tampered file is deleted, never trusted. The files are a
+core.npz_folder.NpzFolder (numpy's .npz, no pickle, written under a temporary name + rename).
 """
 from __future__ import annotations
 
 import collections
 import logging
 import os
-import pathlib
 import threading
 
-import numpy as np
-
 from core.net import protocol
+from core.npz_folder import NpzFolder
 from core.scene.scene import Scene
 
 log = logging.getLogger("kdtrace.slave")
@@ -28,20 +26,14 @@ class SceneCache:
     def __init__(self, size: int = 2, disk_dir: str | os.PathLike | None = None,
                  disk_limit_bytes: int = 2 * 1024 ** 3):
         self.size = max(1, int(size))
-        self.disk_dir = pathlib.Path(disk_dir) if disk_dir else None
-        self.disk_limit_bytes = int(disk_limit_bytes)
+        self.disk = NpzFolder(disk_dir, disk_limit_bytes) if disk_dir else None
         self._scenes = collections.OrderedDict()
         self._mesh_index = {}       # scene hash -> {mesh hash: mesh} of the scenes in memory
         self._lock = threading.Lock()
-        if self.disk_dir is not None:
-            self.disk_dir.mkdir(parents=True, exist_ok=True)
 
-    def _path(self, scene_hash: str) -> pathlib.Path:
-        return self.disk_dir / f"{protocol.check_scene_hash(scene_hash)}.npz"
-
-    def _meshes_path(self, meshes_hash: str) -> pathlib.Path:
+    def _meshes_path(self, meshes_hash: str):
         """The file naming the scene on disk that holds these meshes (its hash)."""
-        return self.disk_dir / f"meshes-{protocol.check_scene_hash(meshes_hash)}.txt"
+        return self.disk.folder / f"meshes-{protocol.check_scene_hash(meshes_hash)}.txt"
 
     def get(self, scene_hash: str):
         with self._lock:
@@ -61,7 +53,7 @@ class SceneCache:
             for scene in reversed(self._scenes.values()):
                 if scene.meshes_hash == meshes_hash:
                     return scene
-        if self.disk_dir is None:
+        if self.disk is None:
             return None
         pointer = self._meshes_path(meshes_hash)
         try:
@@ -97,7 +89,7 @@ class SceneCache:
         """Keep `scene`; on disk too unless `to_disk` is False (a scene placed from instances:
         its meshes went to disk with the scene that brought them)."""
         self._remember(scene.hash, scene)
-        if self.disk_dir is not None and to_disk:
+        if self.disk is not None and to_disk:
             try:
                 self._save_to_disk(scene)
             except OSError as exc:  # a full disk costs a future upload, nothing else
@@ -111,48 +103,21 @@ class SceneCache:
                 self._mesh_index.pop(self._scenes.popitem(last=False)[0], None)
 
     def _save_to_disk(self, scene: Scene) -> None:
-        arrays = scene.wire_arrays()
-        if sum(a.nbytes for a in arrays.values()) > self.disk_limit_bytes:
-            return
-        path = self._path(scene.hash)
-        if path.exists():
-            os.utime(path)
-            return
-        temporary = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
-        with open(temporary, "wb") as handle:
-            np.savez(handle, **arrays)
-        os.replace(temporary, path)
+        if not self.disk.write(protocol.check_scene_hash(scene.hash), scene.wire_arrays()):
+            return          # bigger than the disk limit
         if scene.meshes_hash is not None:
-            with open(temporary, "w") as handle:
-                handle.write(scene.hash)
-            os.replace(temporary, self._meshes_path(scene.meshes_hash))
-        self._trim_disk(keep=path)
-
-    def _trim_disk(self, keep: pathlib.Path) -> None:
-        files = sorted(self.disk_dir.glob("*.npz"), key=lambda p: p.stat().st_mtime)
-        total = sum(p.stat().st_size for p in files)
-        for path in files:  # oldest use first
-            if total <= self.disk_limit_bytes:
-                break
-            if path != keep:
-                total -= path.stat().st_size
-                path.unlink(missing_ok=True)
+            pointer = self._meshes_path(scene.meshes_hash)
+            temporary = self.disk.temporary(pointer)
+            temporary.write_text(scene.hash)
+            os.replace(temporary, pointer)
 
     def _load_from_disk(self, scene_hash: str):
-        if self.disk_dir is None:
+        if self.disk is None:
             return None
-        path = self._path(scene_hash)
-        if not path.exists():
-            return None
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {name: np.ascontiguousarray(data[name]) for name in data.files}
+
+        def checked(arrays):
             scene = Scene.from_wire(arrays)
             if scene.hash != scene_hash:
                 raise ValueError("content does not match its hash")
-        except Exception as exc:  # damaged, truncated or foreign file: drop it
-            log.warning("disk cache: discarding %s: %s", path.name, exc)
-            path.unlink(missing_ok=True)
-            return None
-        os.utime(path)
-        return scene
+            return scene
+        return self.disk.read(protocol.check_scene_hash(scene_hash), checked)

@@ -119,6 +119,12 @@ def test_enable_disable_reload_leaves_nothing_behind(tmp_path):
     for round_ in result["rounds"]:
         assert round_["rendered"] and round_["local_slaves"] == 1, result["log"][-3000:]
         assert round_["leftovers"] == []
+    # Only the first builds the kd-tree: the add-on's memory went with the disable, the
+    # extension's user folder kept the tree (core/scene/tree_files.py).
+    assert [r["tree_sources"] for r in result["rounds"]] == [["built"], ["disk"], ["disk"]]
+    assert len({r["tree_nodes"] for r in result["rounds"]}) == 1
+    assert len(list((tmp_path / "blender-user").rglob("kd-trees/*.npz"))) == 1
+    assert "kd-tree read from disk" in result["log"]
 
 
 def test_animation_rebuilds_and_uploads_only_when_geometry_changes(tmp_path):

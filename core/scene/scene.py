@@ -132,7 +132,7 @@ class Scene:
             if isinstance(tree, KDTree):
                 tree = compact_tree(tree, geometry.triangle_count, mode="standard")
             try:
-                depths.append(_checked_depth(tree, geometry.triangle_count))
+                depths.append(checked_depth(tree, geometry.triangle_count))
             except ValueError as exc:
                 raise SceneError(f"invalid kd-tree of mesh {m}: {exc}") from None
             parts.append((geometry, tree))
@@ -384,7 +384,7 @@ class Scene:
     @classmethod
     def _checked(cls, geometry: Geometry, tree: CompactTree) -> "Scene":
         try:
-            depth = _checked_depth(tree, geometry.triangle_count)
+            depth = checked_depth(tree, geometry.triangle_count)
         except ValueError as exc:
             raise SceneError(f"invalid kd-tree: {exc}") from None
         used = geometry.used_material_ids()
@@ -507,7 +507,7 @@ def _check_array_specs(arrays: dict, specs: dict) -> None:
                              f"got {array.dtype.str} {array.shape}")
 
 
-def _tree_arrays(tree: CompactTree) -> dict:
+def tree_arrays(tree: CompactTree) -> dict:
     arrays = {"nodes": tree.nodes, "leaf_index32": tree.leaf_index32,
               "leaf_index16": tree.leaf_index16, "bounds": tree.bounds,
               "leaf_shift": np.array([int(tree.leaf_shift)])}
@@ -519,7 +519,7 @@ def _wire_arrays(geometry: Geometry, tree: CompactTree) -> dict:
     specs = {**SCENE_ARRAYS, **OPTIONAL_SCENE_ARRAYS}
     arrays = {name: np.ascontiguousarray(array, dtype=specs[name][0])
               for name, array in geometry.arrays().items()}
-    return {**arrays, **_tree_arrays(tree)}
+    return {**arrays, **tree_arrays(tree)}
 
 
 def _content_hash(geometry: Geometry, tree: CompactTree) -> str:
@@ -527,24 +527,24 @@ def _content_hash(geometry: Geometry, tree: CompactTree) -> str:
     which give other arrays, give another hash)."""
     digest = hashlib.blake2b(digest_size=16)
     digest.update(geometry.content_hash().encode())
-    digest.update(_tree_hash(tree).encode())
+    digest.update(tree_digest(tree).encode())
     return digest.hexdigest()
 
 
-def _tree_hash(tree: CompactTree) -> str:
+def tree_digest(tree: CompactTree) -> str:
     """32 hex digits over the compact tree's arrays, computed once per tree object (its arrays
     are not changed after it is made, so the master's cached tree is hashed once, not at every
     render): CompactTree.digest."""
     if tree.digest is None:
         digest = hashlib.blake2b(digest_size=16)
-        for name, array in _tree_arrays(tree).items():
+        for name, array in tree_arrays(tree).items():
             digest.update(f"{name}{array.shape}".encode())
             digest.update(array.tobytes())
         tree.digest = digest.hexdigest()
     return tree.digest
 
 
-def _checked_depth(tree: CompactTree, triangle_count: int) -> int:
+def checked_depth(tree: CompactTree, triangle_count: int) -> int:
     """validate_compact's depth of `tree` for `triangle_count` triangles, computed once per
     tree object (CompactTree.checked); ValueError names what is wrong."""
     if tree.checked is None or tree.checked[0] != triangle_count:

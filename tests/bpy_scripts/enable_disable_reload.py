@@ -1,6 +1,7 @@
 """Enable, render (which starts local slaves and the LAN browser), disable, reload: three times.
 After each disable, nothing of the add-on may be left: classes, properties, panel entries,
-threads or child processes."""
+threads or child processes. The kd-trees stay on disk: the renders after the first read the
+tree from there."""
 import os
 import threading
 
@@ -50,7 +51,9 @@ for round_number in range(3):
     pids = addon.session.current().local_slaves.pids()
     rendered = dict(addon.session.current().last_render)
     addon_utils.disable(MODULE, default_set=True)
-    rounds.append({"rendered": bool(rendered), "local_slaves": len(pids), "leftovers": leftovers(pids)})
+    rounds.append({"rendered": bool(rendered), "local_slaves": len(pids), "leftovers": leftovers(pids),
+                   "tree_sources": rendered.get("tree_sources"),
+                   "tree_nodes": rendered.get("tree_stats", {}).get("nodes")})
     addon_utils.enable(MODULE, default_set=True)
     bpy.ops.script.reload()
 write_result(result_path, {"rounds": rounds})

@@ -1,0 +1,89 @@
+"""A folder of .npz files with a size limit: what the slave's scene cache (slave/scene_cache.py)
+and the master's kd-tree cache (core/accel/tree_files.py) keep on disk.
+
+Files are written with numpy (no pickle: read with allow_pickle=False) under a temporary name
+and renamed, so a reader never sees half a file. Reading a file marks it used; the limit drops
+the least recently used first. A file that cannot be read is deleted: what it held is built or
+sent again, never trusted.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import pathlib
+import threading
+
+import numpy as np
+
+log = logging.getLogger("kdtrace.disk")
+
+
+class NpzFolder:
+    def __init__(self, folder: str | os.PathLike, limit_bytes: int):
+        self.folder = pathlib.Path(folder)
+        self.limit_bytes = int(limit_bytes)
+        self.folder.mkdir(parents=True, exist_ok=True)
+
+    def path(self, name: str) -> pathlib.Path:
+        """The file of `name` (a name the caller has checked: hex digits, no separators)."""
+        return self.folder / f"{name}.npz"
+
+    def write(self, name: str, arrays: dict) -> bool:
+        """Keep `arrays` as `name`, then trim the folder to its limit (this file stays). False
+        when they are bigger than the limit alone (nothing is written). OSError: a full or
+        read-only disk, for the caller to report."""
+        if sum(a.nbytes for a in arrays.values()) > self.limit_bytes:
+            return False
+        path = self.path(name)
+        if path.exists():
+            os.utime(path)
+            return True
+        temporary = self.temporary(path)
+        try:
+            with open(temporary, "wb") as handle:
+                np.savez(handle, **arrays)
+            os.replace(temporary, path)
+        finally:
+            temporary.unlink(missing_ok=True)
+        self.trim(keep=path)
+        return True
+
+    def read(self, name: str, check) -> object | None:
+        """check(arrays) of the file `name`, or None when there is none. When the file cannot
+        be read or `check` raises (damaged, truncated, not what its name says), it is deleted
+        and None returned."""
+        path = self.path(name)
+        if not path.exists():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: np.ascontiguousarray(data[key]) for key in data.files}
+            value = check(arrays)
+        except Exception as exc:    # damaged, truncated or foreign file: drop it
+            log.warning("disk cache: discarding %s: %s", path.name, exc)
+            path.unlink(missing_ok=True)
+            return None
+        os.utime(path)
+        return value
+
+    def trim(self, keep: pathlib.Path) -> None:
+        """Delete the least recently used files until the folder is within its limit."""
+        files = []
+        for path in self.folder.glob("*.npz"):
+            try:
+                stat = path.stat()
+            except FileNotFoundError:     # deleted meanwhile by another process
+                continue
+            files.append((stat.st_mtime, stat.st_size, path))
+        total = sum(size for _, size, _ in files)
+        for _, size, path in sorted(files, key=lambda f: f[0]):
+            if total <= self.limit_bytes:
+                break
+            if path != keep:
+                total -= size
+                path.unlink(missing_ok=True)
+
+    @staticmethod
+    def temporary(path: pathlib.Path) -> pathlib.Path:
+        """A name beside `path` no other writer uses (process and thread in it)."""
+        return path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
