@@ -307,3 +307,42 @@ def test_bad_compact_trees_are_rejected(tracer):
     for bad, message in cases:
         with pytest.raises(SceneError, match=message):
             Scene.from_parts(geometry, bad)
+
+
+def test_validation_catches_shared_nodes_and_overlapping_leaves_in_any_order():
+    # The shortcuts of validate_compact: nodes counted instead of sorted per level, leaves
+    # sorted only when out of order, one slice for lists that follow each other.
+    from core.accel.validate import validate_compact
+    from core.layout import INNER_GROUP, LEAF32_COUNT, LEAF_TAG, LEAF_WIDE, TAG
+    geometry, tree, _, _ = scene("bunny")
+    T = geometry.triangle_count
+    ct = compact_tree(tree, T, "standard")      # 32-bit lists, every node stored
+    good = (ct.nodes, ct.leaf_index32, ct.leaf_index16, ct.bounds, ct.leaf_shift, T)
+    depth = validate_compact(*good)
+    inner = TAG.get(ct.nodes[:, 0]) != LEAF_TAG
+    leaf = np.flatnonzero(~inner & (LEAF_WIDE.get(ct.nodes[:, 0]) == 0)
+                          & (LEAF32_COUNT.get(ct.nodes[:, 0]) > 0))     # lists not empty
+    # Two inner nodes of one level whose children are the same nodes.
+    a, b = next((i, i + 1) for i in range(1, len(ct.nodes) - 1) if inner[i] and inner[i + 1])
+    shared = ct.nodes.copy()
+    shared[b, 0] = (shared[b, 0] & ~np.uint32(INNER_GROUP.put(INNER_GROUP.max))) | (
+        shared[a, 0] & np.uint32(INNER_GROUP.put(INNER_GROUP.max)))
+    with pytest.raises(ValueError, match="reached more than once"):
+        validate_compact(shared, *good[1:])
+    # Two leaves sharing their list.
+    overlapping = ct.nodes.copy()
+    overlapping[leaf[-1], 1] = overlapping[leaf[-2], 1]
+    with pytest.raises(ValueError, match="overlap"):
+        validate_compact(overlapping, *good[1:])
+    # The first leaf's list moved past the others (lists out of order, with a gap): valid.
+    first = leaf[0]
+    count = int(LEAF32_COUNT.get(ct.nodes[first, 0]))
+    start = int(ct.nodes[first, 1])
+    moved_nodes = ct.nodes.copy()
+    moved_nodes[first, 1] = len(ct.leaf_index32) + 3
+    moved = np.concatenate([ct.leaf_index32, np.zeros(3, np.uint32),
+                            ct.leaf_index32[start:start + count]])
+    assert validate_compact(moved_nodes, moved, *good[2:]) == depth
+    moved[-1] = T
+    with pytest.raises(ValueError, match="triangle that does not exist"):
+        validate_compact(moved_nodes, moved, *good[2:])

@@ -42,6 +42,8 @@ def validate_compact(nodes, leaf_index32, leaf_index16, bounds, leaf_shift,
     T = int(triangle_count)
     reached = np.zeros(n, bool)
     reached[0] = True
+    reached_count = 1
+    word0 = nodes[:, 0]
     leaves = []
     level = np.zeros(1, np.int64)
     depth = 0
@@ -49,7 +51,7 @@ def validate_compact(nodes, leaf_index32, leaf_index16, bounds, leaf_shift,
         depth += 1
         if depth > MAX_DEPTH:
             raise ValueError(f"kd-tree deeper than {MAX_DEPTH} levels")
-        w0 = nodes[level, 0].astype(np.int64)
+        w0 = word0[level].astype(np.int64)
         is_leaf = TAG.get(w0) == LEAF_TAG
         leaves.append(level[is_leaf])
         inner, w = level[~is_leaf], w0[~is_leaf]
@@ -70,13 +72,18 @@ def validate_compact(nodes, leaf_index32, leaf_index16, bounds, leaf_shift,
             if (refs[:, 0] >= T).any() or ((refs[:, 1] >= T) & (refs[:, 1] != NO_TRIANGLE)).any():
                 raise ValueError("a kd-tree reference slot names a triangle that does not exist")
         touched = np.concatenate([slot, children])
-        if reached[touched].any() or len(np.unique(touched)) != len(touched):
+        # Each node once: none reached before, and no two of this level the same (then fewer
+        # new nodes are marked than were touched).
+        if reached[touched].any():
             raise ValueError("a kd-tree node is reached more than once")
         reached[touched] = True
+        reached_count += len(touched)
+        if np.count_nonzero(reached) != reached_count:
+            raise ValueError("a kd-tree node is reached more than once")
         level = children
     leaves = np.concatenate(leaves)
-    w0 = nodes[leaves, 0].astype(np.int64)
-    offset = nodes[leaves, 1].astype(np.int64)
+    w0 = word0[leaves].astype(np.int64)
+    offset = nodes[:, 1][leaves].astype(np.int64)
     wide = LEAF_WIDE.get(w0) == 1
     for is16, index, name in ((True, leaf_index16, "leaf_index16"),
                               (False, leaf_index32, "leaf_index32")):
@@ -90,13 +97,21 @@ def validate_compact(nodes, leaf_index32, leaf_index16, bounds, leaf_shift,
             continue
         if (off + count > len(index)).any():
             raise ValueError(f"a kd-tree leaf reaches past the end of {name}")
-        order = np.argsort(off, kind="stable")
-        off, count, base = off[order], count[order], base[order]
-        if (off[1:] < off[:-1] + count[:-1]).any():
+        if (off[1:] < off[:-1]).any():      # the compactor's trees come in list order
+            order = np.argsort(off, kind="stable")
+            off, count, base = off[order], count[order], base[order]
+        ends = off[:-1] + count[:-1]
+        if (off[1:] < ends).any():
             raise ValueError(f"kd-tree leaves overlap in {name}")
-        # Ranges are disjoint, so expanding them reads each entry at most once.
-        values = index[_ranges(off, count)].astype(np.int64)
-        top = np.maximum.reduceat(values, _exclusive_cumsum(count)[:-1]) + base
+        # Ranges are disjoint, so expanding them reads each entry at most once; ranges one
+        # after another (the compactor's) are one slice.
+        if np.array_equal(off[1:], ends):
+            values = index[off[0]:off[-1] + count[-1]]
+            starts = off - off[0]
+        else:
+            values = index[_ranges(off, count)]
+            starts = _exclusive_cumsum(count)[:-1]
+        top = np.maximum.reduceat(values, starts).astype(np.int64) + base
         if (top >= T).any():
             raise ValueError("a kd-tree leaf refers to a triangle that does not exist")
     return depth
