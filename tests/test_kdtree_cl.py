@@ -577,6 +577,7 @@ def test_build_standard_uses_the_device_or_falls_back_to_numpy(builder):
 def test_launches_in_pieces_give_the_same_tree_and_see_the_callback(monkeypatch):
     # Long launches go in pieces with the progress callback between them (Esc stays prompt):
     # the pieces change nothing, and an exception from the callback stops the work there.
+    import core.accel.compact_cl as ccl
     import core.accel.kdtree_cl as kcl
     vertices, triangles = load_bunny()
     small = KDTreeBuilderCL("cpu", subtree_refs=64, chunk_refs=32)
@@ -584,6 +585,7 @@ def test_launches_in_pieces_give_the_same_tree_and_see_the_callback(monkeypatch)
     calls = []
     monkeypatch.setattr(kcl, "PIECE_REFS", 64)
     monkeypatch.setattr(kcl, "PIECE_ITEMS", 256)
+    monkeypatch.setattr(ccl, "PIECE_NODES", 256)
     pieces = small.build(vertices, triangles, progress=lambda f, m: calls.append(m))
     same_tree(reference, pieces)
     assert sum(m.startswith("kd-tree level") for m in calls) > 20

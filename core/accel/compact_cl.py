@@ -22,6 +22,11 @@ TOPO_STACK = 64           # topo_subtrees' stack: more than the levels below its
 TOPO_ROOTS = 4096         # topo_subtrees starts at the first level this wide
 PIECE_TRIANGLES = 1 << 19  # lift_candidates walks up the tree for each triangle: launches of
                            # this many (about 0.1 s each on 2 CPU threads), so Esc is seen soon
+PIECE_NODES = 1 << 22      # the other steps' launches: of this many nodes or references
+                           # (smaller pieces cost time: 1 M, 5 % of 12 dragons' compaction)
+PIECE_SUBTREE_NODES = 1 << 20  # topo_subtrees' launches: roots of about this many nodes
+                           # (about 0.08 s on 2 CPU threads; 4 M nodes took 0.3 s)
+FILL_BYTES = 64 << 20      # zeros(): fills of this many bytes
 
 
 class CompactorCL:
@@ -39,15 +44,20 @@ class CompactorCL:
 
     # -- helpers ---------------------------------------------------------------------------
     def run(self, name, count, *args, piece=None):
-        from .kdtree_cl import PIECE_ITEMS
         self.b._run(self.k[name], count, *args, local_size=self.local_size,
-                    piece=piece or PIECE_ITEMS)
+                    piece=piece or PIECE_NODES)
 
     def zeros(self, nbytes):
+        """A new buffer of zeros, filled in pieces: a fresh buffer's pages are first touched
+        by the fill (a 300 MB one took 0.2 s), and Esc is seen between the pieces."""
         b = self.b
         nbytes = max(int(nbytes), 4)
         buffer = b._buffer(nbytes=nbytes)
-        b._cl.enqueue_fill_buffer(b.queue, buffer, np.uint8(0), 0, nbytes)
+        for start in range(0, nbytes, FILL_BYTES):
+            b._cl.enqueue_fill_buffer(b.queue, buffer, np.uint8(0), start,
+                                      min(FILL_BYTES, nbytes - start))
+            if nbytes > FILL_BYTES:
+                b.heartbeat()
         return buffer
 
     def view(self, array):
@@ -90,10 +100,12 @@ class CompactorCL:
         block = 4096
         blocks = max(1, -(-n // block))
         sums = b._buffer(nbytes=8 * blocks)
-        b._run(self.k["block_sums"], blocks, values, sums, U4(n), U4(block), local_size=1)
+        piece = max(1, PIECE_NODES // block)
+        b._run(self.k["block_sums"], blocks, values, sums, U4(n), U4(block), local_size=1,
+               piece=piece)
         offsets = host._exclusive_cumsum(b._read(sums, np.uint64, blocks).astype(np.int64))
         b._run(self.k["block_scan"], blocks, values, b._buffer(offsets[:-1].astype(np.uint64)),
-               values if out is None else out, U4(n), U4(block), local_size=1)
+               values if out is None else out, U4(n), U4(block), local_size=1, piece=piece)
         return int(offsets[-1])
 
     # -- steps -----------------------------------------------------------------------------
@@ -140,15 +152,13 @@ class CompactorCL:
                      size, nonempty, pre, climb, walk, U4(first), U4(end), U4(level))
             b.heartbeat()
         if wide < len(ranges):
-            from .kdtree_cl import PIECE_ITEMS
             first, end = ranges[wide]
             roots = end - first
-            # Small work-groups, as the subtrees differ in size; pieces of about PIECE_ITEMS
-            # nodes.
+            # Small work-groups, as the subtrees differ in size.
             b._run(self.k["topo_subtrees"], roots, nodes, cells[wide % 2], size, nonempty, pre,
                    climb, walk, U4(first), U4(end), U4(wide),
                    local_size=8 if b.is_cpu else self.local_size,
-                   piece=max(1, PIECE_ITEMS * roots // (n - first)))
+                   piece=max(1, PIECE_SUBTREE_NODES * roots // (n - first)))
             b.heartbeat()
         return pre, climb, walk
 

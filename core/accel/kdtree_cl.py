@@ -490,6 +490,7 @@ class _BuildState:
                 node_offset = offset[chunk_first[:-1]]
                 dest[:, 2 * side] = q_flat[flat]
                 dest[:, 2 * side + 1] = base + offset[:-1] - node_offset[chunk_node]
+            b.heartbeat()     # after the host's part of the level
             next_refs = b._buffer(nbytes=32 * max(next_total, 1))
             d_dest = b._buffer(dest)
             b._run(k["big_scatter"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
