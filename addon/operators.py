@@ -3,6 +3,7 @@ import bpy
 from bpy.props import IntProperty
 
 from . import session
+from .properties import preferences, tree_folder
 
 
 class KDTRACE_OT_host_add(bpy.types.Operator):
@@ -50,4 +51,22 @@ class KDTRACE_OT_refresh_slaves(bpy.types.Operator):
         return {"FINISHED"}
 
 
-classes = (KDTRACE_OT_host_add, KDTRACE_OT_host_remove, KDTRACE_OT_refresh_slaves)
+class KDTRACE_OT_clear_tree_cache(bpy.types.Operator):
+    bl_idname = "kdtrace.clear_tree_cache"
+    bl_label = "Clear kd-Tree Cache"
+    bl_description = "Delete the kd-trees kept on disk and in memory (the next render builds anew)"
+
+    def execute(self, context):
+        from ..core.npz_folder import NpzFolder
+        session.current().trees.clear()
+        try:
+            files, size = NpzFolder(tree_folder(preferences(context)), 0).clear()
+        except OSError as error:
+            self.report({"ERROR"}, f"KD Trace: cannot clear the kd-tree cache: {error}")
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"KD Trace: {files} kd-tree(s) deleted, {size / 2 ** 20:.1f} MiB")
+        return {"FINISHED"}
+
+
+classes = (KDTRACE_OT_host_add, KDTRACE_OT_host_remove, KDTRACE_OT_refresh_slaves,
+           KDTRACE_OT_clear_tree_cache)

@@ -1,4 +1,6 @@
 """Render settings stored in the .blend (Scene.kdtrace) and machine settings (add-on preferences)."""
+import pathlib
+
 import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
@@ -6,6 +8,7 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
 from ..core.accel.compact import USER_SETTING_LIMITS as TREE_LIMITS, compact_params
 from ..core.net.master import DEFAULT_TILE_SIZE, DEFAULT_TILES_IN_FLIGHT, MAX_TILES_IN_FLIGHT
 from ..core.net.protocol import DEFAULT_MODEL, DEFAULT_PORT, MAX_TILE_SIZE
+from ..core.npz_folder import NpzFolder
 from ..core.scene.model import RENDER_SETTING_LIMITS as LIMITS, RenderSettings
 from ..core.scene.tree_files import DEFAULT_LIMIT_MIB as TREE_FILES_MIB, LIMIT_MIB_RANGE
 
@@ -191,10 +194,29 @@ class KDTracePreferences(bpy.types.AddonPreferences):
         for name in ("slave_python", "slave_device", "secret_file", "tree_cache_folder",
                      "tree_cache_mib"):
             self.layout.prop(self, name)
+        files, size = tree_folder_usage(self)
+        row = self.layout.row()
+        row.label(text=f"{files} kd-tree(s) on disk, {size / 2 ** 20:.1f} MiB")
+        row.operator("kdtrace.clear_tree_cache")
 
 
 def preferences(context):
     return context.preferences.addons[KDTracePreferences.bl_idname].preferences
+
+
+def tree_folder(prefs) -> str:
+    """Where the master keeps kd-trees on disk (core/scene/tree_files.py): the preferences'
+    folder, else the extension's own user folder (Blender's extension_path_user, which
+    upgrades keep)."""
+    if prefs.tree_cache_folder:
+        return bpy.path.abspath(prefs.tree_cache_folder)
+    return bpy.utils.extension_path_user(KDTracePreferences.bl_idname, path="kd-trees")
+
+
+def tree_folder_usage(prefs) -> tuple[int, int]:
+    """(kd-trees, bytes) in the tree folder, without making it."""
+    folder = pathlib.Path(tree_folder(prefs))
+    return NpzFolder(folder, 0).usage() if folder.is_dir() else (0, 0)
 
 
 classes = (KDTraceHost, KDTraceRenderSettings, KDTracePreferences)

@@ -16,7 +16,7 @@ from ..core.scene.scene import Scene, memory_report, memory_summary
 from ..core.net.slave_colors import slave_color
 from . import session
 from .export import export_instanced_view
-from .properties import KDTracePreferences, preferences
+from .properties import preferences, tree_folder
 
 POLL_SECONDS = 0.05  # how often the render thread checks for Esc while waiting for tiles
 SETTLE_SECONDS = 0.3  # after the first slave answers a young browser, for the others to answer
@@ -55,15 +55,6 @@ def shared_secret(prefs) -> bytes | None:
 def bpy_path(path: str) -> str:
     import bpy
     return bpy.path.abspath(path)
-
-
-def tree_folder(prefs) -> str:
-    """Where the master keeps kd-trees on disk: the preferences' folder, else the extension's
-    own user folder (Blender's extension_path_user, kept across upgrades)."""
-    import bpy
-    if prefs.tree_cache_folder:
-        return bpy_path(prefs.tree_cache_folder)
-    return bpy.utils.extension_path_user(KDTracePreferences.bl_idname, path="kd-trees")
 
 
 def find_slaves(engine, settings, prefs, secret) -> list[tuple[str, int]]:

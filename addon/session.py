@@ -87,6 +87,12 @@ class TreeCache:
                 self.disk_problem = f"cannot keep the kd-tree in {disk.files.folder}: {error}"
         return compact, "built"
 
+    def clear(self):
+        """Forget every tree held in memory (the disk's are the caller's to delete)."""
+        with self._lock:
+            self._trees.clear()
+            self._standard.clear()
+
     def _remember(self, store, key, value):
         store[key] = value
         store.move_to_end(key)

@@ -83,7 +83,29 @@ class NpzFolder:
                 total -= size
                 path.unlink(missing_ok=True)
 
+    def usage(self) -> tuple[int, int]:
+        """(files, bytes) in the folder."""
+        return _usage(self.folder)
+
+    def clear(self) -> tuple[int, int]:
+        """Delete every file of the folder; (files, bytes) deleted."""
+        deleted = _usage(self.folder)
+        for path in self.folder.glob("*.npz"):
+            path.unlink(missing_ok=True)
+        return deleted
+
     @staticmethod
     def temporary(path: pathlib.Path) -> pathlib.Path:
         """A name beside `path` no other writer uses (process and thread in it)."""
         return path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
+
+
+def _usage(folder: pathlib.Path) -> tuple[int, int]:
+    files = total = 0
+    for path in folder.glob("*.npz"):
+        try:
+            total += path.stat().st_size
+            files += 1
+        except FileNotFoundError:     # deleted meanwhile by another process
+            pass
+    return files, total

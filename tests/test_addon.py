@@ -123,8 +123,12 @@ def test_enable_disable_reload_leaves_nothing_behind(tmp_path):
     # extension's user folder kept the tree (core/scene/tree_files.py).
     assert [r["tree_sources"] for r in result["rounds"]] == [["built"], ["disk"], ["disk"]]
     assert len({r["tree_nodes"] for r in result["rounds"]}) == 1
-    assert len(list((tmp_path / "blender-user").rglob("kd-trees/*.npz"))) == 1
     assert "kd-tree read from disk" in result["log"]
+    # Then the preferences' button deletes it (one file) and the trees in memory.
+    (files, size), after = result["usage"]
+    assert files == 1 and size > 1000 and after == [0, 0]
+    assert not list((tmp_path / "blender-user").rglob("kd-trees/*.npz"))
+    assert result["cleared"] == ["FINISHED"] and result["in_memory"] == 0
 
 
 def test_animation_rebuilds_and_uploads_only_when_geometry_changes(tmp_path):
@@ -194,3 +198,10 @@ def test_every_panel_draws_the_settings_it_offers(tmp_path):
     # The legend lists the local slave that rendered (named <host>-local-1).
     assert any(line.startswith("label:") and line.endswith("-local-1")
                for line in drawn["RENDER_PT_kdtrace_legend"])
+    # The preferences: the kd-tree cache's folder and size, with core's default and range,
+    # and what it holds (the render above left its tree there).
+    from core.scene.tree_files import DEFAULT_LIMIT_MIB, LIMIT_MIB_RANGE
+    assert {"slave_device", "tree_cache_folder", "tree_cache_mib"} <= set(drawn["preferences"])
+    assert "label:1 kd-tree(s) on disk" in " ".join(drawn["preferences"])
+    size = result["preferences"]["tree_cache_mib"]
+    assert size["default"] == DEFAULT_LIMIT_MIB and [size["min"], size["max"]] == list(LIMIT_MIB_RANGE)

@@ -44,10 +44,26 @@ for panel in addon.addon.ui.classes:
         shown = []
         panel.draw(SimpleNamespace(layout=RecordingLayout(shown)), context)
         drawn[panel.__name__] = shown
-# Every setting's default and range as the panel offers it (the test compares them with core/).
-settings = {}
-for name, prop in type(scene.kdtrace).bl_rna.properties.items():
-    if name != "rna_type" and prop.type in ("INT", "FLOAT", "BOOLEAN", "ENUM"):
-        settings[name] = {"default": prop.default, "min": getattr(prop, "hard_min", None),
-                          "max": getattr(prop, "hard_max", None)}
-write_result(result_path, {"drawn": drawn, "settings": settings})
+# The add-on preferences, drawn through a stand-in that has their properties.
+prefs = addon.addon.properties.preferences(bpy.context)
+shown = []
+stand_in = SimpleNamespace(layout=RecordingLayout(shown), bl_rna=prefs.bl_rna,
+                           **{name: getattr(prefs, name) for name in prefs.bl_rna.properties.keys()
+                              if name != "rna_type"})
+type(prefs).draw(stand_in, context)
+drawn["preferences"] = shown
+
+
+def defaults_and_ranges(rna) -> dict:
+    """Every setting's default and range as the panel offers it (the test compares them with
+    core/)."""
+    out = {}
+    for name, prop in rna.properties.items():
+        if name != "rna_type" and prop.type in ("INT", "FLOAT", "BOOLEAN", "ENUM"):
+            out[name] = {"default": prop.default, "min": getattr(prop, "hard_min", None),
+                         "max": getattr(prop, "hard_max", None)}
+    return out
+
+
+write_result(result_path, {"drawn": drawn, "settings": defaults_and_ranges(type(scene.kdtrace).bl_rna),
+                           "preferences": defaults_and_ranges(prefs.bl_rna)})

@@ -56,4 +56,11 @@ for round_number in range(3):
                    "tree_nodes": rendered.get("tree_stats", {}).get("nodes")})
     addon_utils.enable(MODULE, default_set=True)
     bpy.ops.script.reload()
-write_result(result_path, {"rounds": rounds})
+# The preferences' button empties the kd-tree cache, on disk and in memory.
+addon = __import__(MODULE, fromlist=["addon"]).addon
+prefs = addon.properties.preferences(bpy.context)
+before = addon.properties.tree_folder_usage(prefs)
+cleared = bpy.ops.kdtrace.clear_tree_cache()
+write_result(result_path, {"rounds": rounds, "cleared": sorted(cleared),
+                           "usage": [list(before), list(addon.properties.tree_folder_usage(prefs))],
+                           "in_memory": len(addon.session.current().trees._trees)})
