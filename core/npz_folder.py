@@ -61,9 +61,15 @@ class NpzFolder:
             value = check(arrays)
         except Exception as exc:    # damaged, truncated or foreign file: drop it
             log.warning("disk cache: discarding %s: %s", path.name, exc)
-            path.unlink(missing_ok=True)
+            try:
+                path.unlink(missing_ok=True)
+            except OSError:         # a read-only folder: the file stays, and stays unused
+                pass
             return None
-        os.utime(path)
+        try:
+            os.utime(path)          # used now: the limit drops it last
+        except OSError:
+            pass
         return value
 
     def trim(self, keep: pathlib.Path) -> None:

@@ -2,6 +2,7 @@
 was written, bit for bit, and renders as a scene; a damaged, foreign or outdated file is never
 used; the folder keeps to its limit."""
 import os
+import pathlib
 import shutil
 
 import numpy as np
@@ -137,3 +138,32 @@ def test_the_folder_keeps_to_its_limit_least_recently_used_first(bunny, tmp_path
     tiny = TreeFiles(tmp_path, 100)
     tiny.write("cd" * 16, trees["ours"], geometry.triangle_count)
     assert not tiny.files.path("cd" * 16).exists() and small.files.path(again).exists()
+
+
+
+def test_a_read_only_folder_serves_its_trees_and_reading_never_raises(bunny, tmp_path,
+                                                                      monkeypatch):
+    # A folder the user may read but not write (shared, or on a read-only disk): a tree is
+    # still read, a damaged file is skipped though it cannot be deleted, and a write raises
+    # OSError, which TreeCache turns into a warning. (Root writes anywhere: the refusals are
+    # made by hand.)
+    import core.npz_folder as npz_folder
+    geometry, trees = bunny
+    files = TreeFiles(tmp_path, 1 << 30)
+    key = files.key(geometry.content_hash(), "ours", {})
+    files.write(key, trees["ours"], geometry.triangle_count)
+
+    def refused(*args, **kwargs):
+        raise PermissionError("read-only file system")
+    monkeypatch.setattr(npz_folder.os, "utime", refused)
+    monkeypatch.setattr(npz_folder.os, "replace", refused)
+    monkeypatch.setattr(pathlib.Path, "unlink", refused)
+    same_tree(files.read(key, geometry.triangle_count), trees["ours"])
+    with pytest.raises(OSError):
+        files.write(files.key("other", "ours", {}), trees["ours"], geometry.triangle_count)
+    path = files.files.path(key)
+    data = path.read_bytes()
+    monkeypatch.undo()
+    path.write_bytes(data[:500])
+    monkeypatch.setattr(pathlib.Path, "unlink", refused)
+    assert files.read(key, geometry.triangle_count) is None and path.exists()
