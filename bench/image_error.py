@@ -39,6 +39,7 @@ import math
 import os
 import pathlib
 import platform
+import shutil
 import struct
 import subprocess
 import sys
@@ -445,6 +446,14 @@ def time_for_psnr(rows, target):
     return None
 
 
+def without_trees_on_disk(user_folder: pathlib.Path) -> pathlib.Path:
+    """A Blender user folder with no kd-tree in the add-on's disk cache (core/scene/tree_files.py),
+    so that a first render builds its tree as a user's very first one does."""
+    for trees in list(user_folder.rglob("kd-trees")):
+        shutil.rmtree(trees)
+    return user_folder
+
+
 def start_run(args):
     """(width, height, the output folder made) of --size and --out; prints the command and
     the machine with its load."""
@@ -467,7 +476,8 @@ def against_cycles(args):
                  "reference_axis": round(math.sqrt(args.reference_spp)), "repeat": args.repeat}
     arguments["kdtrace"] = kdtrace_settings()
     result_path = out / "child-result.json"
-    env = dict(os.environ, BLENDER_USER_RESOURCES=str(out / "blender-user"), PYTHONPATH=str(ROOT),
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(without_trees_on_disk(out / "blender-user")),
+               PYTHONPATH=str(ROOT),
                PYTHONUNBUFFERED="1")
     subprocess.run([sys.executable, __file__, "--bpy-child", json.dumps(arguments),
                     str(result_path)], env=env, check=True, cwd=out)

@@ -28,7 +28,6 @@ import argparse
 import json
 import os
 import pathlib
-import shutil
 import statistics
 import subprocess
 import sys
@@ -40,7 +39,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from bench.image_error import (CYCLES_SCENES, build_scene, issue14_builders,  # noqa: E402
-                               kdtrace_settings, start_run, use_renderer)
+                               kdtrace_settings, start_run, use_renderer, without_trees_on_disk)
 
 
 def child(arguments: dict, result_path: str) -> None:
@@ -189,9 +188,8 @@ def main():
     restarted = {label: [] for label in zips}
     for _ in range(args.rounds if args.compare else 1):
         for label, zip_path in zips.items():
-            user = out / f"blender-user-{list(zips).index(label)}"
-            for trees in list(user.rglob("kd-trees")):
-                shutil.rmtree(trees)        # the round starts with no tree on disk
+            # The round starts with no tree on disk.
+            user = without_trees_on_disk(out / f"blender-user-{list(zips).index(label)}")
             for restart in range(1 + args.restarts):
                 arguments = {"zip": str(zip_path), "out": str(out), "scene": args.scene,
                              "width": width, "height": height,
