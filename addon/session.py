@@ -28,14 +28,16 @@ class TreeCache:
         self.builds = 0        # how many standard trees were built (tests count rebuilds with it)
         self.compactions = 0   # how many compact trees were made from them
         self.disk: TreeFiles | None = None
-        self.disk_problem = ""  # why the last tree could not be written to disk ("": it was)
+        self.disk_problem = ""  # why a tree of this render could not be written to disk
         self._trees: OrderedDict = OrderedDict()      # key -> CompactTree
         self._standard: OrderedDict = OrderedDict()   # geometry hash -> KDTree
         self._lock = threading.Lock()
 
     def use_disk(self, folder, limit_mib: int):
         """Keep trees in `folder` too, up to limit_mib MiB; None or a limit of 0: memory only.
-        OSError when the folder cannot be made."""
+        OSError when the folder cannot be made. Called at each render: the last render's
+        disk problem is forgotten here."""
+        self.disk_problem = ""
         if not folder or limit_mib <= 0:
             self.disk = None
         elif (self.disk is None or self.disk.files.folder != pathlib.Path(folder)
@@ -82,7 +84,6 @@ class TreeCache:
         if disk is not None:
             try:
                 disk.write(name, compact, geometry.triangle_count)
-                self.disk_problem = ""
             except OSError as error:    # a full disk costs a build after a restart, no more
                 self.disk_problem = f"cannot keep the kd-tree in {disk.files.folder}: {error}"
         return compact, "built"

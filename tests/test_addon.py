@@ -119,9 +119,11 @@ def test_enable_disable_reload_leaves_nothing_behind(tmp_path):
     for round_ in result["rounds"]:
         assert round_["rendered"] and round_["local_slaves"] == 1, result["log"][-3000:]
         assert round_["leftovers"] == []
-    # Only the first builds the kd-tree: the add-on's memory went with the disable, the
-    # extension's user folder kept the tree (core/scene/tree_files.py).
-    assert [r["tree_sources"] for r in result["rounds"]] == [["built"], ["disk"], ["disk"]]
+    # The second reads the kd-tree the first built: the add-on's memory went with the disable,
+    # the extension's user folder kept the tree (core/scene/tree_files.py). The third, given
+    # a cache folder that is a file, warns and builds.
+    assert [r["tree_sources"] for r in result["rounds"]] == [["built"], ["disk"], ["built"]]
+    assert "Warning: KD Trace: no kd-tree cache on disk" in result["log"]
     assert len({r["tree_nodes"] for r in result["rounds"]}) == 1
     assert "kd-tree read from disk" in result["log"]
     # Then the preferences' button deletes it (one file) and the trees in memory.

@@ -1,7 +1,7 @@
 """Enable, render (which starts local slaves and the LAN browser), disable, reload: three times.
 After each disable, nothing of the add-on may be left: classes, properties, panel entries,
-threads or child processes. The kd-trees stay on disk: the renders after the first read the
-tree from there."""
+threads or child processes. The kd-trees stay on disk: the second render reads the tree from
+there (the third is given a cache folder that cannot be made, and builds)."""
 import os
 import threading
 
@@ -46,6 +46,10 @@ for round_number in range(3):
     scene.kdtrace.discovery_seconds = 0.2
     scene.kdtrace.local_slaves = 1
     scene.kdtrace.use_local_slaves_always = True
+    if round_number == 2:   # a cache folder that cannot be made: the render goes on without
+        prefs = __import__(MODULE, fromlist=["addon"]).addon.properties.preferences(bpy.context)
+        open("not-a-folder", "w").close()
+        prefs.tree_cache_folder = str(os.path.abspath("not-a-folder"))
     bpy.ops.render.render()
     addon = __import__(MODULE, fromlist=["addon"]).addon
     pids = addon.session.current().local_slaves.pids()
@@ -59,6 +63,7 @@ for round_number in range(3):
 # The preferences' button empties the kd-tree cache, on disk and in memory.
 addon = __import__(MODULE, fromlist=["addon"]).addon
 prefs = addon.properties.preferences(bpy.context)
+prefs.tree_cache_folder = ""
 before = addon.properties.tree_folder_usage(prefs)
 cleared = bpy.ops.kdtrace.clear_tree_cache()
 write_result(result_path, {"rounds": rounds, "cleared": sorted(cleared),
