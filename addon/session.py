@@ -11,6 +11,8 @@ from dataclasses import dataclass
 from ..core.accel.compact import compact_tree
 from ..core.accel.kdtree_cl import build_standard, opencl_builder
 from ..core.net.slave_colors import slave_color
+from ..core.scene.model import SceneError
+from ..core.scene.scene import checked_depth, tree_digest
 from ..core.scene.tree_files import TreeFiles
 from .local_slaves import LocalSlaves
 
@@ -62,7 +64,8 @@ class TreeCache:
         if disk is not None:
             name = disk.key(key[0], mode, settings)
             report(0.0, "reading the kd-tree from disk")
-            compact = disk.read(name, geometry.triangle_count)
+            compact = disk.read(name, geometry.triangle_count,
+                                lambda: report(0.0, "checking the kd-tree read from disk"))
             if compact is not None:
                 with self._lock:
                     self._remember(self._trees, key, compact)
@@ -78,6 +81,14 @@ class TreeCache:
         compact = compact_tree(standard, geometry.triangle_count, mode, **settings,
                                progress=lambda f, m: report(0.8 + 0.2 * f, m), device=builder)
         compact.stats.update({k: standard.stats[k] for k in ("builder", "device", "build_seconds")})
+        # The scene's checks of the tree and its digest, done here where Esc is heard (12
+        # dragons': 3-4 s); the scene finds them done.
+        checking = lambda: report(1.0, "checking the kd-tree")      # noqa: E731
+        try:
+            checked_depth(compact, geometry.triangle_count, checking)
+        except ValueError as error:
+            raise SceneError(f"invalid kd-tree: {error}") from None
+        tree_digest(compact, checking)
         with self._lock:
             self.compactions += 1
             self._remember(self._trees, key, compact)

@@ -48,29 +48,46 @@ class NpzFolder:
         self.trim(keep=path)
         return True
 
-    def read(self, name: str, check) -> object | None:
+    def read(self, name: str, check, heartbeat=None) -> object | None:
         """check(arrays) of the file `name`, or None when there is none. When the file cannot
-        be read or `check` raises (damaged, truncated, not what its name says), it is deleted
-        and None returned."""
+        be read, or `check` finds it wrong (raises ValueError, KeyError, TypeError or
+        IndexError: damaged, truncated, not what its name says), it is deleted and None
+        returned. Any other exception from `check`, or from heartbeat() (called after each
+        array is read), goes up and the file stays: the caller's Esc."""
         path = self.path(name)
         if not path.exists():
             return None
+        arrays = {}
         try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {key: np.ascontiguousarray(data[key]) for key in data.files}
+            data = np.load(path, allow_pickle=False)
+        except Exception as exc:    # not an .npz numpy can read
+            return self._discard(path, exc)
+        with data:
+            for key in data.files:
+                try:
+                    arrays[key] = np.ascontiguousarray(data[key])
+                except Exception as exc:
+                    return self._discard(path, exc)
+                if heartbeat is not None:
+                    heartbeat()
+        try:
             value = check(arrays)
-        except Exception as exc:    # damaged, truncated or foreign file: drop it
-            log.warning("disk cache: discarding %s: %s", path.name, exc)
-            try:
-                path.unlink(missing_ok=True)
-            except OSError:         # a read-only folder: the file stays, and stays unused
-                pass
-            return None
+        except (ValueError, KeyError, TypeError, IndexError) as exc:
+            return self._discard(path, exc)
         try:
             os.utime(path)          # used now: the limit drops it last
         except OSError:
             pass
         return value
+
+    @staticmethod
+    def _discard(path: pathlib.Path, problem: Exception) -> None:
+        log.warning("disk cache: discarding %s: %s", path.name, problem)
+        try:
+            path.unlink(missing_ok=True)
+        except OSError:             # a read-only folder: the file stays, and stays unused
+            pass
+        return None
 
     def trim(self, keep: pathlib.Path) -> None:
         """Delete the least recently used files until the folder is within its limit."""

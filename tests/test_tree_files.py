@@ -167,3 +167,27 @@ def test_a_read_only_folder_serves_its_trees_and_reading_never_raises(bunny, tmp
     path.write_bytes(data[:500])
     monkeypatch.setattr(pathlib.Path, "unlink", refused)
     assert files.read(key, geometry.triangle_count) is None and path.exists()
+
+
+def test_esc_while_a_tree_is_read_stops_the_read_and_keeps_the_file(bunny, tmp_path):
+    # The read calls the heartbeat between the digest's and the validation's pieces; its
+    # exception (Esc in Blender) is not damage: it goes up and the file stays for next time.
+    geometry, trees = bunny
+    files = TreeFiles(tmp_path, 1 << 30)
+    key = files.key(geometry.content_hash(), "ours", {})
+    files.write(key, trees["ours"], geometry.triangle_count)
+
+    class Esc(Exception):
+        pass
+    calls = []
+
+    def esc_at_the_third_call():
+        calls.append(1)
+        if len(calls) == 3:
+            raise Esc
+    with pytest.raises(Esc):
+        files.read(key, geometry.triangle_count, esc_at_the_third_call)
+    assert files.files.path(key).exists()
+    counted = []
+    same_tree(files.read(key, geometry.triangle_count, lambda: counted.append(1)), trees["ours"])
+    assert len(counted) >= Scene.from_parts(geometry, trees["ours"]).depth   # once a level at least

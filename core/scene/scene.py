@@ -61,6 +61,7 @@ MOTION_ARRAYS = {"instance_to_world_end": (np.dtype("<f4"), (-1, 3, 4))}
 # What a SCENE_INSTANCES message carries: the instances alone, for meshes the slave holds
 # (and MOTION_ARRAYS where they move).
 PLACEMENT_ARRAYS = ("instance_mesh", "instance_to_world", "instance_visibility")
+DIGEST_PIECE = 64 << 20     # tree_digest hashes this many bytes between two heartbeats
 INSTANCED_SCENE_ARRAYS = {**{name: SCENE_ARRAYS[name] for name in ("vertices", "triangles",
                                                                   "material_ids", "nodes",
                                                                   "leaf_index32", "leaf_index16")},
@@ -531,26 +532,31 @@ def _content_hash(geometry: Geometry, tree: CompactTree) -> str:
     return digest.hexdigest()
 
 
-def tree_digest(tree: CompactTree) -> str:
+def tree_digest(tree: CompactTree, heartbeat=None) -> str:
     """32 hex digits over the compact tree's arrays, computed once per tree object (its arrays
     are not changed after it is made, so the master's cached tree is hashed once, not at every
-    render): CompactTree.digest."""
+    render): CompactTree.digest. heartbeat(), where given, is called after each 64 MB."""
     if tree.digest is None:
         digest = hashlib.blake2b(digest_size=16)
         for name, array in tree_arrays(tree).items():
             digest.update(f"{name}{array.shape}".encode())
-            digest.update(array.tobytes())
+            data = memoryview(array.reshape(-1)).cast("B")
+            for start in range(0, len(data), DIGEST_PIECE):   # the same digest as in one go
+                digest.update(data[start:start + DIGEST_PIECE])
+                if heartbeat is not None:
+                    heartbeat()
         tree.digest = digest.hexdigest()
     return tree.digest
 
 
-def checked_depth(tree: CompactTree, triangle_count: int) -> int:
+def checked_depth(tree: CompactTree, triangle_count: int, heartbeat=None) -> int:
     """validate_compact's depth of `tree` for `triangle_count` triangles, computed once per
-    tree object (CompactTree.checked); ValueError names what is wrong."""
+    tree object (CompactTree.checked); ValueError names what is wrong. heartbeat: as
+    validate_compact's."""
     if tree.checked is None or tree.checked[0] != triangle_count:
         tree.checked = (triangle_count, validate_compact(
             tree.nodes, tree.leaf_index32, tree.leaf_index16, tree.bounds, tree.leaf_shift,
-            triangle_count))
+            triangle_count, heartbeat))
     return tree.checked[1]
 
 

@@ -60,12 +60,14 @@ class TreeFiles:
         text = json.dumps([content_hash, mode, sorted(settings.items()), self.version])
         return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
 
-    def read(self, key: str, triangle_count: int) -> CompactTree | None:
+    def read(self, key: str, triangle_count: int, heartbeat=None) -> CompactTree | None:
         """The tree stored as `key` for a mesh of `triangle_count` triangles, validated, or
-        None (no such file, or one that was damaged: it is deleted)."""
+        None (no such file, or one that was damaged: it is deleted). heartbeat(), where given,
+        is called between the arrays read and the digest's and the validation's pieces; its
+        exception (Esc) goes up and the file stays."""
         def checked(arrays):
-            return _tree_of(arrays, int(triangle_count))
-        return self.files.read(key, checked)
+            return _tree_of(arrays, int(triangle_count), heartbeat)
+        return self.files.read(key, checked, heartbeat)
 
     def write(self, key: str, tree: CompactTree, triangle_count: int) -> None:
         """Keep `tree` as `key`. OSError: the disk is full or read-only (the caller reports)."""
@@ -77,25 +79,25 @@ class TreeFiles:
         self.files.write(key, arrays)
 
 
-def _tree_of(arrays: dict, triangle_count: int) -> CompactTree:
+def _tree_of(arrays: dict, triangle_count: int, heartbeat=None) -> CompactTree:
     stored = bytes(arrays.pop("digest")).decode("ascii")
     tree = CompactTree(arrays["nodes"], arrays["leaf_index32"], arrays["leaf_index16"],
                        arrays["bounds"].astype(np.float32), int(arrays["leaf_shift"][0]))
-    if stored != _file_digest(tree, arrays):
+    if stored != _file_digest(tree, arrays, heartbeat):
         raise ValueError("its content does not match its digest")
     built_for = int(arrays["triangle_count"][0])
     if built_for != triangle_count:
         raise ValueError(f"built for {built_for} triangles, the mesh has {triangle_count}")
     tree.params = CompactParams(**json.loads(bytes(arrays["params"])))
     tree.stats = json.loads(bytes(arrays["stats"]))
-    checked_depth(tree, triangle_count)     # ValueError names what is wrong
+    checked_depth(tree, triangle_count, heartbeat)     # ValueError names what is wrong
     return tree
 
 
-def _file_digest(tree: CompactTree, arrays: dict) -> str:
+def _file_digest(tree: CompactTree, arrays: dict, heartbeat=None) -> str:
     """The tree's digest (the one its scene's hash uses, kept on the tree) and the rest of the
     file's arrays."""
-    digest = hashlib.blake2b(tree_digest(tree).encode(), digest_size=16)
+    digest = hashlib.blake2b(tree_digest(tree, heartbeat).encode(), digest_size=16)
     for name in ("params", "stats", "triangle_count"):
         digest.update(name.encode() + arrays[name].tobytes())
     return digest.hexdigest()
