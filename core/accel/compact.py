@@ -160,6 +160,16 @@ def _ranges(starts, lengths) -> np.ndarray:
     return np.arange(total, dtype=np.int64) + np.repeat(shift, lengths)
 
 
+def _run_lengths(values) -> np.ndarray:
+    """How often each distinct value occurs (np.unique's counts), without a sort where the
+    values come sorted (the kernel compaction's lifts come by node: 0.5 s less for 12
+    dragons' 5 M)."""
+    values = np.asarray(values)
+    if len(values) and not (values[1:] >= values[:-1]).all():
+        return np.unique(values, return_counts=True)[1]
+    return np.diff(np.append(_run_starts(values), len(values)))
+
+
 def _run_starts(*keys) -> np.ndarray:
     """Start positions of runs of equal consecutive key tuples."""
     n = len(keys[0])
@@ -695,7 +705,7 @@ def _finish(tree, params, standard_nodes, reference_count, collapsed_subtrees, l
     _layout's result, item_count the final leaves' references, lift_node / lift_tri the lifts
     that stay."""
     nodes, leaf32, leaf16, shift, kinds, leaf_stats = laid_out
-    _, per_node = np.unique(lift_node, return_counts=True)
+    per_node = _run_lengths(lift_node)
     out = CompactTree(nodes, leaf32, leaf16, tree.bounds.astype(np.float32), shift, params)
     out.stats = {
         "mode": params.mode,
@@ -706,7 +716,7 @@ def _finish(tree, params, standard_nodes, reference_count, collapsed_subtrees, l
         "leaf_references": int(item_count),
         "references_removed": reference_count - int(item_count),
         "inner_references": int(len(lift_tri)),
-        "lifted_triangles": int(len(np.unique(lift_tri))),
+        "lifted_triangles": int(np.count_nonzero(np.bincount(lift_tri))) if len(lift_tri) else 0,
         "tref_nodes": int(len(per_node)),
         "nodes_with_two_refs": int((per_node > 1).sum()),
         "max_refs_on_path": max_path,
