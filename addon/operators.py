@@ -2,6 +2,7 @@
 import bpy
 from bpy.props import IntProperty
 
+from ..core.npz_folder import NpzFolder
 from . import session
 from .properties import preferences, tree_folder
 
@@ -57,7 +58,6 @@ class KDTRACE_OT_clear_tree_cache(bpy.types.Operator):
     bl_description = "Delete the kd-trees kept on disk and in memory (the next render builds anew)"
 
     def execute(self, context):
-        from ..core.npz_folder import NpzFolder
         session.current().trees.clear()
         try:
             files, size = NpzFolder(tree_folder(preferences(context)), 0).clear()

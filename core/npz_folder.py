@@ -1,5 +1,5 @@
 """A folder of .npz files with a size limit: what the slave's scene cache (slave/scene_cache.py)
-and the master's kd-tree cache (core/accel/tree_files.py) keep on disk.
+and the master's kd-tree cache (core/scene/tree_files.py) keep on disk.
 
 Files are written with numpy (no pickle: read with allow_pickle=False) under a temporary name
 and renamed, so a reader never sees half a file. Reading a file marks it used; the limit drops
@@ -108,11 +108,18 @@ class NpzFolder:
 
     def usage(self) -> tuple[int, int]:
         """(files, bytes) in the folder."""
-        return _usage(self.folder)
+        files = total = 0
+        for path in self.folder.glob("*.npz"):
+            try:
+                total += path.stat().st_size
+                files += 1
+            except FileNotFoundError:     # deleted meanwhile by another process
+                pass
+        return files, total
 
     def clear(self) -> tuple[int, int]:
         """Delete every file of the folder; (files, bytes) deleted."""
-        deleted = _usage(self.folder)
+        deleted = self.usage()
         for path in self.folder.glob("*.npz"):
             path.unlink(missing_ok=True)
         return deleted
@@ -122,13 +129,3 @@ class NpzFolder:
         """A name beside `path` no other writer uses (process and thread in it)."""
         return path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
 
-
-def _usage(folder: pathlib.Path) -> tuple[int, int]:
-    files = total = 0
-    for path in folder.glob("*.npz"):
-        try:
-            total += path.stat().st_size
-            files += 1
-        except FileNotFoundError:     # deleted meanwhile by another process
-            pass
-    return files, total

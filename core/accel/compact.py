@@ -716,7 +716,7 @@ def _finish(tree, params, standard_nodes, reference_count, collapsed_subtrees, l
         "leaf_references": int(item_count),
         "references_removed": reference_count - int(item_count),
         "inner_references": int(len(lift_tri)),
-        "lifted_triangles": int(np.count_nonzero(np.bincount(lift_tri))) if len(lift_tri) else 0,
+        "lifted_triangles": int(np.count_nonzero(np.bincount(lift_tri))),
         "tref_nodes": int(len(per_node)),
         "nodes_with_two_refs": int((per_node > 1).sum()),
         "max_refs_on_path": max_path,

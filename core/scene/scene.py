@@ -61,7 +61,6 @@ MOTION_ARRAYS = {"instance_to_world_end": (np.dtype("<f4"), (-1, 3, 4))}
 # What a SCENE_INSTANCES message carries: the instances alone, for meshes the slave holds
 # (and MOTION_ARRAYS where they move).
 PLACEMENT_ARRAYS = ("instance_mesh", "instance_to_world", "instance_visibility")
-DIGEST_PIECE = 64 << 20     # tree_digest hashes this many bytes between two heartbeats
 INSTANCED_SCENE_ARRAYS = {**{name: SCENE_ARRAYS[name] for name in ("vertices", "triangles",
                                                                   "material_ids", "nodes",
                                                                   "leaf_index32", "leaf_index16")},
@@ -530,6 +529,9 @@ def _content_hash(geometry: Geometry, tree: CompactTree) -> str:
     digest.update(geometry.content_hash().encode())
     digest.update(tree_digest(tree).encode())
     return digest.hexdigest()
+
+
+DIGEST_PIECE = 64 << 20     # tree_digest hashes this many bytes between two heartbeats
 
 
 def tree_digest(tree: CompactTree, heartbeat=None) -> str:
