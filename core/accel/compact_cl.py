@@ -343,9 +343,9 @@ class CompactorCL:
         off16 = b._buffer(nbytes=4 * n)
         total32 = self.scan(off32, n)
         total16 = self.scan(count16, n, off16)
-        out = b._buffer(nbytes=8 * total)
-        index32 = b._buffer(nbytes=4 * max(total32, 1))
-        index16 = b._buffer(nbytes=2 * max(total16, 2))
+        out = b.buffers.standalone(8 * total)           # _take: the compact tree's arrays
+        index32 = b.buffers.standalone(4 * max(total32, 1))
+        index16 = b.buffers.standalone(2 * max(total16, 2))
         new_index = b._buffer(nbytes=4 * n)
         self.run("layout_places", n, nodes, classes, elided, refs_at, groups, new_index, out,
                  U4(n))
@@ -410,6 +410,13 @@ def compact_on_device(device, tree, triangles_count, params, report, started):
     None when the tree is not in the builders' order."""
     from .kdtree_cl import builder_for
     builder = builder_for(device)
+    try:
+        return _compact(builder, tree, triangles_count, params, report, started)
+    finally:
+        builder.buffers.release()
+
+
+def _compact(builder, tree, triangles_count, params, report, started):
     c = compactor_for(builder)
     report = builder.reporting(report)
     plain = np.ascontiguousarray(tree.nodes, U4)

@@ -27,6 +27,7 @@ import time
 import numpy as np
 
 from ..layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
+from .buffer_pool import MIN_POOLED_BYTES, BufferPool
 from .compact import _exclusive_cumsum, _ranges
 from .kdtree import KDTree, KDTreeParams, _root_bounds, checked_mesh
 
@@ -104,6 +105,7 @@ class KDTreeBuilderCL:
             cl.command_queue_properties.PROFILING_ENABLE if profile_kernels else 0))
         self._events = [] if profile_kernels else None
         self._programs = Programs(cl, self.context, self.device)
+        self.buffers = BufferPool(cl, self.context, self.device)
         self.is_cpu = bool(self.device.type & cl.device_type.CPU)
         has_fp64 = "cl_khr_fp64" in self.device.extensions.split()
         self.soft_fp64 = (not has_fp64) if soft_fp64 is None else bool(soft_fp64)
@@ -164,14 +166,19 @@ class KDTreeBuilderCL:
 
     # -- launching -------------------------------------------------------------------------
     def _buffer(self, array=None, nbytes=None):
+        """A buffer of nbytes, or holding a copy of `array`, from the pool (buffer_pool.py)."""
         cl = self._cl
-        if array is not None:
-            array = np.ascontiguousarray(array)
+        if array is None:
+            return self.buffers.take(max(int(nbytes), 4))
+        array = np.ascontiguousarray(array)
+        if array.nbytes < MIN_POOLED_BYTES:
             if array.nbytes == 0:
                 array = np.zeros(4, np.uint8)
             return cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR,
                              hostbuf=array)
-        return cl.Buffer(self.context, cl.mem_flags.READ_WRITE, max(int(nbytes), 4))
+        buffer = self.buffers.take(array.nbytes)
+        cl.enqueue_copy(self.queue, buffer, array)        # blocking: `array` may go after
+        return buffer
 
     def _run(self, kernel, count, *args, local_size=None, piece=None):
         """kernel over `count` work-items (padded to the work-group size; kernels skip ids
@@ -236,6 +243,12 @@ class KDTreeBuilderCL:
               progress=None) -> KDTree:
         """Build the kd-tree (see module docstring). `progress(fraction, message)` is called
         between kernel launches, on this thread; an exception it raises stops the build."""
+        try:
+            return self._build(vertices, triangles, params, progress)
+        finally:
+            self.buffers.release()
+
+    def _build(self, vertices, triangles, params, progress) -> KDTree:
         params = params or KDTreeParams()
         report = self.reporting(progress)
         started = time.perf_counter()
@@ -654,8 +667,8 @@ class _BuildState:
         bases = np.stack([node_base[:nsub_entries], leaf_base[:nsub_entries]], 1).astype(u4)
         places = np.stack([self.rec_start, self.rec_count, self.leaf_start,
                            _exclusive_cumsum(levels)[:-1]], 1).astype(u4)
-        d_nodes = b._buffer(nbytes=8 * total_nodes)
-        d_leaves = b._buffer(nbytes=4 * total_refs)
+        d_nodes = b.buffers.standalone(8 * total_nodes)       # _take: they outlive the build
+        d_leaves = b.buffers.standalone(4 * total_refs)
         d_bases = b._buffer(bases)
         per_subtree = max(1, int(self.rec_count.sum()) // max(n_sub, 1))
         for c, chunk in enumerate(self.store.chunks):
