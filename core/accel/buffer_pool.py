@@ -76,9 +76,11 @@ class BufferPool:
         nbytes = _round_up(nbytes, self._align)
         for chunk in self._chunks:
             chunk.collect()
-        chunk, offset = next(((c, o) for c in self._chunks
-                              for o in [c.place(nbytes)] if o is not None), (None, None))
-        if chunk is None:
+        for chunk in self._chunks:
+            offset = chunk.place(nbytes)
+            if offset is not None:
+                break
+        else:
             # A new chunk; wholly free ones go first, so that the pool does not add to the peak.
             self._chunks = [c for c in self._chunks if c.lent]
             held = sum(c.size for c in self._chunks)

@@ -169,7 +169,7 @@ class KDTreeBuilderCL:
         """A buffer of nbytes, or holding a copy of `array`, from the pool (buffer_pool.py)."""
         cl = self._cl
         if array is None:
-            return self.buffers.take(max(int(nbytes), 4))
+            return self.buffers.take(int(nbytes))
         array = np.ascontiguousarray(array)
         if array.nbytes < MIN_POOLED_BYTES:
             if array.nbytes == 0:
