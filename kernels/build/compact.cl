@@ -164,14 +164,9 @@ __kernel void topo_down(__global const uint2* restrict nodes, __global const flo
    so that the records go out in preorder, one after another (a subtree is a contiguous range
    of preorder numbers; level by level they would land spread over the whole range, each
    write touching a cache line of its own). The node's own record and cell come from the
-   level above. */
-typedef struct {
-    float lo[3], hi[3];
-    dbl area;
-    uint node, pre, depth;
-    int stops;
-} TopoEntry;
-
+   level above. The node being split stays in registers and only the above child is pushed,
+   field by field: a stack of structs, written a field at a time and read back whole, stalled
+   on store forwarding (a quarter of the kernel's time). */
 __kernel void topo_subtrees(__global const uint2* restrict nodes, __global const float* restrict cells,
                             __global const uint* restrict size, __global const uint* restrict nonempty,
                             __global uint* restrict pre, __global uint4* restrict climb,
@@ -180,50 +175,68 @@ __kernel void topo_subtrees(__global const uint2* restrict nodes, __global const
     uint i;
     if (!level_node(first, end, &i))
         return;
-    TopoEntry stack[TOPO_STACK];
+    float s_lo[3][TOPO_STACK], s_hi[3][TOPO_STACK];
+    dbl s_area[TOPO_STACK];
+    uint s_node[TOPO_STACK], s_pre[TOPO_STACK], s_depth[TOPO_STACK];
+    int s_stops[TOPO_STACK];
     int sp = 0;
-    TopoEntry e;
+    float lo[3], hi[3];
     __global const float* cell = cells + 6 * (i - first);
     for (int a = 0; a < 3; a++) {
-        e.lo[a] = cell[a];
-        e.hi[a] = cell[3 + a];
+        lo[a] = cell[a];
+        hi[a] = cell[3 + a];
     }
-    e.node = i;
-    e.pre = pre[i];
-    e.depth = level;
-    WalkRecord own = walk[e.pre];
-    e.area = own.area;
-    e.stops = own.nonempty_stops >> 31;
-    stack[sp++] = e;
-    while (sp > 0) {
-        TopoEntry parent = stack[--sp];
-        uint c = first_child(nodes[parent.node]);
-        if (c == NONE)
+    uint node = i, p = pre[i], depth = level;
+    WalkRecord own = walk[p];
+    dbl area = own.area;
+    int stops = own.nonempty_stops >> 31;
+    while (true) {
+        uint2 w = nodes[node];
+        uint c = first_child(w);
+        if (c == NONE) {
+            if (sp == 0)
+                break;
+            sp--;
+            for (int a = 0; a < 3; a++) {
+                lo[a] = s_lo[a][sp];
+                hi[a] = s_hi[a][sp];
+            }
+            node = s_node[sp];
+            p = s_pre[sp];
+            depth = s_depth[sp];
+            area = s_area[sp];
+            stops = s_stops[sp];
             continue;
-        uint2 w = nodes[parent.node];
+        }
         int axis = (int)KD_PLAIN_TAG(w.x);
         float split = as_float(w.y);
-        /* The above child is pushed first: the below child (preorder p + 1) comes out next. */
-        for (int side = 1; side >= 0; side--) {
-            TopoEntry child;
-            for (int a = 0; a < 3; a++) {
-                child.lo[a] = parent.lo[a];
-                child.hi[a] = parent.hi[a];
-            }
-            if (side)
-                child.lo[axis] = split;
-            else
-                child.hi[axis] = split;
-            child.node = c + (uint)side;
-            child.pre = side ? parent.pre + 1u + size[c] : parent.pre + 1u;
-            child.depth = parent.depth + 1u;
-            child.area = cell_area(child.lo, child.hi);
-            pre[child.node] = child.pre;
-            child.stops = put_records(child.node, child.pre, parent.pre, child.depth,
-                                      parent.stops, parent.area, child.area, size, nonempty,
-                                      climb, walk);
-            stack[sp++] = child;
+        /* The above child (preorder p + 1 + size of the below one) waits on the stack; the
+           below child (p + 1) is next. */
+        uint below_pre = p + 1u, above_pre = p + 1u + size[c];
+        float above_lo[3];
+        for (int a = 0; a < 3; a++) {
+            s_hi[a][sp] = hi[a];
+            above_lo[a] = a == axis ? split : lo[a];
+            s_lo[a][sp] = above_lo[a];
         }
+        dbl above_area = cell_area(above_lo, hi);
+        pre[c + 1u] = above_pre;
+        s_stops[sp] = put_records(c + 1u, above_pre, p, depth + 1u, stops, area, above_area,
+                                  size, nonempty, climb, walk);
+        s_node[sp] = c + 1u;
+        s_pre[sp] = above_pre;
+        s_depth[sp] = depth + 1u;
+        s_area[sp] = above_area;
+        sp++;
+        hi[axis] = split;
+        dbl below_area = cell_area(lo, hi);
+        pre[c] = below_pre;
+        stops = put_records(c, below_pre, p, depth + 1u, stops, area, below_area, size,
+                            nonempty, climb, walk);
+        node = c;
+        p = below_pre;
+        depth++;
+        area = below_area;
     }
 }
 
