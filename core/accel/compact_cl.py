@@ -171,11 +171,11 @@ class CompactorCL:
         # Counted on the device (numpy's bincount took 0.64 s of the 12 dragons' 35 M
         # references, with Esc unseen); the (T + 1)-th count is 0, so its prefix is R.
         tri_first = self.zeros(4 * (triangle_count + 1))
-        self.run("refs_count", R, d_leaf_indices, tri_first, U4(R))
-        self.scan(tri_first, triangle_count + 1)
-        cursor = self.zeros(4 * triangle_count)
         s_leaf, s_pre, s_tri = (b._buffer(nbytes=4 * max(R, 1)) for _ in range(3))
-        self.run("refs_scatter", n, nodes, d_leaf_indices, tri_first, cursor, pre,
+        rank = s_tri                  # each reference's place in its range, until refs_sort
+        self.run("refs_count", R, d_leaf_indices, tri_first, rank, U4(R))
+        self.scan(tri_first, triangle_count + 1)
+        self.run("refs_scatter", n, nodes, d_leaf_indices, tri_first, rank, pre,
                  s_leaf, s_pre, U4(n))
         self.run("refs_sort", triangle_count, tri_first, s_leaf, s_pre, s_tri, U4(triangle_count))
         return s_leaf, s_pre, s_tri, tri_first
