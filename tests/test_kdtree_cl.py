@@ -522,6 +522,31 @@ def test_kernel_compaction_topology_level_by_level_or_depth_first(builder, monke
                  compact_tree(tree, triangle_count, "ours"))
 
 
+def with_copies_in_leaves(tree):
+    """The same tree with every non-empty leaf listing its first triangle twice (a tree the
+    builders never make, which compaction takes: the copies' common ancestor is the leaf)."""
+    nodes, lists = tree.nodes.copy(), []
+    for i in np.flatnonzero(PLAIN_TAG.get(nodes[:, 0]) == LEAF_TAG):
+        count, offset = int(PLAIN_FIELD.get(int(nodes[i, 0]))), int(nodes[i, 1])
+        items = list(tree.leaf_indices[offset:offset + count])
+        items = items[:1] + items if items else items
+        nodes[i] = (PLAIN_TAG.put(LEAF_TAG) | PLAIN_FIELD.put(len(items)),
+                    sum(len(x) for x in lists))
+        lists.append(items)
+    return KDTree(nodes, np.array([t for x in lists for t in x], np.uint32), tree.bounds)
+
+
+def test_kernel_compaction_with_copies_in_a_leaf(builder):
+    tree, triangle_count = compact_scene("bunny")
+    copies = with_copies_in_leaves(tree)
+    assert len(copies.leaf_indices) > len(tree.leaf_indices)
+    for mode in ("ours", "choi"):
+        same_compact(compact_tree(copies, triangle_count, mode, device=builder),
+                     compact_tree(copies, triangle_count, mode))
+        same_compact(compact_tree(copies, triangle_count, mode, device=builder, min_refs=1),
+                     compact_tree(copies, triangle_count, mode, min_refs=1))
+
+
 def test_kernel_compaction_with_software_double(soft_builder):
     tree, triangle_count = compact_scene("architecture")
     for mode in ("ours", "choi"):

@@ -186,8 +186,8 @@ class CompactorCL:
                  U4(R))
         return gap_node, gap_pre, gap_depth
 
-    def lift_candidates(self, nodes, tri_first, triangle_count, s_pre, gap_pre, gap_depth,
-                        climb, walk, R, params):
+    def lift_candidates(self, tri_first, triangle_count, s_pre, gap_pre, gap_depth, climb, walk,
+                        R, params):
         """compact.py _lift_candidates: (a buffer of candidate rows, their number)."""
         b = self.b
         # Triangles with more than PRIVATE_GAPS references keep their stacks in the scratch.
@@ -201,7 +201,7 @@ class CompactorCL:
             out = b._buffer(nbytes=24 * capacity)
             used = self.zeros(4)
             self.run("lift_candidates", triangle_count, tri_first, s_pre, gap_pre, gap_depth,
-                     nodes, climb, walk, big_first, scratch, out,
+                     climb, walk, big_first, scratch, out,
                      used, U4(capacity), U4(triangle_count), U4(params.min_refs), *taus,
                      piece=PIECE_TRIANGLES)
             total = self.value_at(used, 0)
@@ -438,7 +438,7 @@ def _compact(builder, tree, triangles_count, params, report, started):
         gap_node, gap_pre, gap_depth = c.neighbour_lcas(s_pre, s_tri, climb, R)
         report(0.3, "compact: neighbouring references' common ancestors")
     if lifting:
-        candidates, total = c.lift_candidates(nodes, tri_first, triangles_count, s_pre, gap_pre,
+        candidates, total = c.lift_candidates(tri_first, triangles_count, s_pre, gap_pre,
                                               gap_depth, climb, walk, R, params)
         del climb, gap_pre, s_pre, tri_first
         grouped = c.group_candidates(candidates, total, n)
