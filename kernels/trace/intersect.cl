@@ -39,27 +39,32 @@ KD_INLINE void write_hit(const Hit *h, uint i, __global float *out_t, __global i
 // neighbouring points) share most of their path through the tree, and a packet traverses it
 // once for all; rays in different octants (bounces off a surface, rays in random order) part
 // at the first nodes, where a packet would visit the union of their paths.
-KD_INLINE bool packet_coherent(const Ray *r, int8 live)
+KD_INLINE bool packet_coherent(const PacketRays *pr, int8 live)
 {
-    LaneMask m;
-    m.v = live;
-    bool nx = r[0].d.x < 0.0f, ny = r[0].d.y < 0.0f, nz = r[0].d.z < 0.0f;
-    bool differ = false;
-    for (uint k = 1; k < KD_PACKET; ++k)
-        differ |= m.s[k] && ((r[k].d.x < 0.0f) != nx || (r[k].d.y < 0.0f) != ny
-                             || (r[k].d.z < 0.0f) != nz);
-    return !differ;
+    int8 differ = (int8)(0);
+    for (uint a = 0; a < 3; ++a) {
+        int8 negative = pr->d[a].v < 0.0f;
+        differ |= negative ^ (int8)(negative.s0);
+    }
+    return !any_lane(live & differ);
 }
 
 // Rays that part at once, one after another (out of line: inlined, trace_ray's registers made
 // the packet path slower).
-__attribute__((noinline)) void trace_one_by_one(const Ray *r, uint count, float tmin, float tmax,
-                                                bool any_hit, const KdTree *kd,
+__attribute__((noinline)) void trace_one_by_one(const PacketRays *pr, uint count, float tmin,
+                                                float tmax, bool any_hit, const KdTree *kd,
                                                 __global const float4 *tri_verts, Hit *h)
 {
-    for (uint k = 0; k < count; ++k)
-        trace_ray(&r[k], tmin, tmax, any_hit, NO_HIT, kd, tri_verts, &h[k]);
+    for (uint k = 0; k < count; ++k) {
+        Ray r = lane_ray(pr, k);
+        trace_ray(&r, tmin, tmax, any_hit, NO_HIT, kd, tri_verts, &h[k]);
+    }
 }
+
+// Component a of ray i of the packed float3 arrays p, for the 8 rays i[0..7].
+#define LOAD_LANES(p, i, a) (float8)((p)[3 * (i).s0 + (a)], (p)[3 * (i).s1 + (a)], \
+    (p)[3 * (i).s2 + (a)], (p)[3 * (i).s3 + (a)], (p)[3 * (i).s4 + (a)], \
+    (p)[3 * (i).s5 + (a)], (p)[3 * (i).s6 + (a)], (p)[3 * (i).s7 + (a)])
 
 // The rays of work-item `item` (KD_PACKET consecutive ones, fewer at the end): their hits (or,
 // when any_hit, whether each has one) in h.
@@ -70,17 +75,19 @@ KD_INLINE uint trace_rays_of_item(uint item, __global const float *origins,
 {
     uint first = item * KD_PACKET;
     uint count = min((uint)KD_PACKET, ray_count - first);
-    Ray r[KD_PACKET];
-    LaneMask live;
-    for (uint k = 0; k < KD_PACKET; ++k) {
-        // Past the end: a copy of the last ray, switched off.
-        r[k] = load_ray(origins, directions, first + min(k, count - 1u));
-        live.s[k] = k < count ? -1 : 0;
+    // Past the end: copies of the last ray, switched off.
+    uint8 lane = (uint8)(0, 1, 2, 3, 4, 5, 6, 7);
+    uint8 index = (uint8)(first) + min(lane, (uint8)(count - 1u));
+    int8 live = as_int8(lane) < (int8)((int)count);
+    PacketRays pr;
+    for (uint a = 0; a < 3; ++a) {
+        pr.o[a].v = LOAD_LANES(origins, index, a);
+        pr.d[a].v = LOAD_LANES(directions, index, a);
     }
-    if (packet_coherent(r, live.v))
-        trace_packet(r, live.v, tmin, tmax, any_hit, kd, tri_verts, h);
+    if (packet_coherent(&pr, live))
+        trace_packet(&pr, live, tmin, tmax, any_hit, kd, tri_verts, h);
     else
-        trace_one_by_one(r, count, tmin, tmax, any_hit, kd, tri_verts, h);
+        trace_one_by_one(&pr, count, tmin, tmax, any_hit, kd, tri_verts, h);
     return count;
 }
 #endif

@@ -60,12 +60,34 @@ typedef struct {
     LaneUints tri;
 } PacketBest;
 
+// The rays of a packet as lanes: origins and directions by axis.
+typedef struct {
+    Lanes o[3], d[3];
+} PacketRays;
+
+// Lane k's ray (make_ray: what trace_ray is given for it).
+KD_INLINE Ray lane_ray(const PacketRays *pr, uint k)
+{
+    return make_ray((float3)(pr->o[0].s[k], pr->o[1].s[k], pr->o[2].s[k]),
+                    (float3)(pr->d[0].s[k], pr->d[1].s[k], pr->d[2].s[k]));
+}
+
+// Lane k's constants of the watertight test when the lanes share the permutation.
+KD_INLINE TriRay shared_axes_tri_ray(const PacketRay *p, uint k)
+{
+    TriRay q;
+    q.kx = p->kx; q.ky = p->ky; q.kz = p->kz;
+    q.okx = p->okx.s[k]; q.oky = p->oky.s[k]; q.okz = p->okz.s[k];
+    q.sx = p->sx.s[k]; q.sy = p->sy.s[k]; q.sz = p->sz.s[k];
+    return q;
+}
+
 // consider() for lane k.
 KD_INLINE void consider_lane(uint k, uint tri, const TriRay *q, __global const float4 *tri_verts,
                              float tmin, PacketBest *b)
 {
     float t, u, v;
-    if (intersect_triangle(&q[k], triangle_corners(tri_verts, tri), tmin, b->best.s[k], &t, &u, &v)
+    if (intersect_triangle(q, triangle_corners(tri_verts, tri), tmin, b->best.s[k], &t, &u, &v)
         && (t < b->best.s[k] || tri < b->tri.s[k])) {
         b->best.s[k] = t;
         b->limit.s[k] = t + (KD_TIE_EPS * t + b->tie_abs.s[k]);
@@ -78,7 +100,8 @@ KD_INLINE void consider_lane(uint k, uint tri, const TriRay *q, __global const f
 
 // consider() for every lane in `m`. When the lanes share the permutation, intersect_triangle's
 // arithmetic runs on all lanes at once (the same operations, so the same bits); a lane whose
-// edge function is exactly 0, or all lanes otherwise, take the scalar path.
+// edge function is exactly 0, or all lanes otherwise (with their own constants q[k]), take the
+// scalar path.
 KD_INLINE void consider_lanes(int8 m, uint tri, const PacketRay *p, const TriRay *q,
                               __global const float4 *tri_verts, float tmin, PacketBest *b)
 {
@@ -97,8 +120,10 @@ KD_INLINE void consider_lanes(int8 m, uint tri, const PacketRay *p, const TriRay
         one.v = m & ((e0 == 0.0f) | (e1 == 0.0f) | (e2 == 0.0f));
         if (any_lane(one.v)) {
             for (uint k = 0; k < KD_PACKET; ++k)
-                if (one.s[k])
-                    consider_lane(k, tri, q, tri_verts, tmin, b);
+                if (one.s[k]) {
+                    TriRay qk = shared_axes_tri_ray(p, k);
+                    consider_lane(k, tri, &qk, tri_verts, tmin, b);
+                }
             m &= ~one.v;
         }
         int8 outside = ((e0 < 0.0f) | (e1 < 0.0f) | (e2 < 0.0f))
@@ -125,13 +150,19 @@ KD_INLINE void consider_lanes(int8 m, uint tri, const PacketRay *p, const TriRay
     one.v = m;
     for (uint k = 0; k < KD_PACKET; ++k)
         if (one.s[k])
-            consider_lane(k, tri, q, tri_verts, tmin, b);
+            consider_lane(k, tri, &q[k], tri_verts, tmin, b);
 }
 
-// Nearest hits of the rays r[k] for the lanes in `live` (the others are left as misses), or,
-// when any_hit, a hit for each lane that has one (a lane stops at its first hit, as
+// The lanes' component of the axes in `axis` (0, 1, 2 per lane).
+KD_INLINE float8 lane_axis8(const Lanes *v, int8 axis)
+{
+    return pick8(pick8(v[0].v, v[1].v, axis == 1), v[2].v, axis == 2);
+}
+
+// Nearest hits of the rays of `pr` for the lanes in `live` (the others are left as misses),
+// or, when any_hit, a hit for each lane that has one (a lane stops at its first hit, as
 // trace_ray's any_hit: shadow rays).
-void trace_packet(const Ray *r, int8 live, float tmin, float tmax, bool any_hit,
+void trace_packet(const PacketRays *pr, int8 live, float tmin, float tmax, bool any_hit,
                   const KdTree *kd, __global const float4 *tri_verts, Hit *hits)
 {
     __global const uint2 *nodes = kd->nodes;
@@ -139,31 +170,58 @@ void trace_packet(const Ray *r, int8 live, float tmin, float tmax, bool any_hit,
     TriRay q[KD_PACKET];
     PacketRay p;
     PacketBest b;
-    LaneMask lm;
-    lm.v = live;
-    p.same_axes = true;
-    for (uint k = 0; k < KD_PACKET; ++k) {
-        org[0].s[k] = r[k].o.x; org[1].s[k] = r[k].o.y; org[2].s[k] = r[k].o.z;
-        inv[0].s[k] = r[k].inv_d.x; inv[1].s[k] = r[k].inv_d.y; inv[2].s[k] = r[k].inv_d.z;
-        dir[0].s[k] = r[k].d.x; dir[1].s[k] = r[k].d.y; dir[2].s[k] = r[k].d.z;
-        float o3[3] = {r[k].o.x, r[k].o.y, r[k].o.z};
-        q[k].kx = r[k].kx; q[k].ky = r[k].ky; q[k].kz = r[k].kz;
-        q[k].okx = o3[r[k].kx]; q[k].oky = o3[r[k].ky]; q[k].okz = o3[r[k].kz];
-        q[k].sx = r[k].sx; q[k].sy = r[k].sy; q[k].sz = r[k].sz;
-        p.okx.s[k] = q[k].okx; p.oky.s[k] = q[k].oky; p.okz.s[k] = q[k].okz;
-        p.sx.s[k] = q[k].sx; p.sy.s[k] = q[k].sy; p.sz.s[k] = q[k].sz;
-        if (k == 0) {
-            p.kx = q[0].kx; p.ky = q[0].ky; p.kz = q[0].kz;
-        } else if (lm.s[k] && (q[k].kx != p.kx || q[k].ky != p.ky || q[k].kz != p.kz)) {
-            p.same_axes = false;
-        }
-        b.tie_abs.s[k] = KD_TIE_EPS * kd->extent / kd_length(r[k].d);
-        b.best.s[k] = tmax;
-        b.limit.s[k] = tmax + (KD_TIE_EPS * tmax + b.tie_abs.s[k]);
-        b.t.s[k] = INFINITY;
-        b.u.s[k] = b.v.s[k] = 0.0f;
-        b.tri.s[k] = NO_HIT;
+    // make_ray on all lanes at once: the same operations, so the same bits (division and sqrt
+    // round correctly in vectors as in scalars). Built as whole vectors: lanes written one by
+    // one and then read as vectors stall on store forwarding, which was most of the set-up.
+    for (uint a = 0; a < 3; ++a) {
+        org[a].v = pr->o[a].v;
+        dir[a].v = pr->d[a].v;
+        inv[a].v = 1.0f / pr->d[a].v;
     }
+    float8 adx = fabs8(dir[0].v), ady = fabs8(dir[1].v), adz = fabs8(dir[2].v);
+    int8 kz = pick_mask8(pick_mask8((int8)(2), (int8)(1), ady > adz),
+                         pick_mask8((int8)(2), (int8)(0), adx > adz), adx > ady);
+    int8 kx = pick_mask8(kz + 1, (int8)(0), kz == 2);
+    int8 ky = pick_mask8(kx + 1, (int8)(0), kx == 2);
+    float8 dz = lane_axis8(dir, kz);
+    int8 flip = dz < 0.0f;          // swap kx and ky to keep the winding (make_ray)
+    int8 kx2 = pick_mask8(kx, ky, flip), ky2 = pick_mask8(ky, kx, flip);
+    kx = kx2;
+    ky = ky2;
+    LaneMask differ;
+    differ.v = live & ((kx != (int8)(kx.s0)) | (ky != (int8)(ky.s0)) | (kz != (int8)(kz.s0)));
+    p.same_axes = !any_lane(differ.v);
+    if (p.same_axes) {
+        p.kx = (uint)kx.s0; p.ky = (uint)ky.s0; p.kz = (uint)kz.s0;
+        p.okx.v = org[p.kx].v; p.oky.v = org[p.ky].v; p.okz.v = org[p.kz].v;
+        p.sx.v = dir[p.kx].v / dz;
+        p.sy.v = dir[p.ky].v / dz;
+        p.sz.v = 1.0f / dz;
+    } else {
+        for (uint k = 0; k < KD_PACKET; ++k) {
+            Ray r = lane_ray(pr, k);
+            float o3[3] = {r.o.x, r.o.y, r.o.z};
+            q[k].kx = r.kx; q[k].ky = r.ky; q[k].kz = r.kz;
+            q[k].okx = o3[r.kx]; q[k].oky = o3[r.ky]; q[k].okz = o3[r.kz];
+            q[k].sx = r.sx; q[k].sy = r.sy; q[k].sz = r.sz;
+        }
+    }
+    // kd_length of every lane's direction: one vector sqrt where every sum of squares is in
+    // float's normal range, kd_length lane by lane else.
+    float8 l2 = dir[0].v * dir[0].v + dir[1].v * dir[1].v + dir[2].v * dir[2].v;
+    Lanes len;
+    if (!any_lane(~((l2 >= FLT_MIN) & (l2 < INFINITY)))) {
+        len.v = sqrt(l2);
+    } else {
+        for (uint k = 0; k < KD_PACKET; ++k)
+            len.s[k] = kd_length((float3)(dir[0].s[k], dir[1].s[k], dir[2].s[k]));
+    }
+    b.tie_abs.v = KD_TIE_EPS * kd->extent / len.v;
+    b.best.v = (float8)(tmax);
+    b.limit.v = tmax + (KD_TIE_EPS * tmax + b.tie_abs.v);
+    b.t.v = (float8)(INFINITY);
+    b.u.v = b.v.v = (float8)(0.0f);
+    b.tri.v = (uint8)(NO_HIT);
 
     // Clip to the root box, as trace_ray (comparisons that keep t0/t1 on NaN).
     float bmin[3] = {kd->bmin.x, kd->bmin.y, kd->bmin.z};
