@@ -118,6 +118,9 @@ class Tracer:
         # vector lanes (kernels/trace/packet.cl); 0 = one ray per work-item (GPUs).
         self.packet = PACKET_RAYS if self.device.type & cl.device_type.CPU else 0
         self.reorder_rays = True    # trace scattered rays of a query in their origins' order
+        # CPU devices: the ray queries' kernels read the caller's rays and write the results
+        # in place (USE_HOST_PTR, results mapped), no copies or fresh pages per query.
+        self.zero_copy = bool(self.device.type & cl.device_type.CPU)
         self.treelets = True        # load() lays the tree's nodes out in treelets
 
     @property
@@ -291,9 +294,12 @@ class Tracer:
             origins, directions = origins[order], directions[order]
         mf = cl.mem_flags
         ctx = self.context
-        o_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=origins)
-        d_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=directions)
-        out_bufs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in outs]
+        zero_copy = self.zero_copy and origins.flags.writeable and directions.flags.writeable
+        given = mf.USE_HOST_PTR if zero_copy else mf.COPY_HOST_PTR
+        o_buf = cl.Buffer(ctx, mf.READ_ONLY | given, hostbuf=origins)
+        d_buf = cl.Buffer(ctx, mf.READ_ONLY | given, hostbuf=directions)
+        out_bufs = [cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=a) if zero_copy
+                    else cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in outs]
         # Only the ray queries compile the packet kernels (render programs build without them).
         # Instanced scenes trace one ray per work-item (intersect.cl).
         instanced = self._loaded.instances is not None
@@ -308,7 +314,12 @@ class Tracer:
                scene["leaf_index32"], scene["leaf_index16"], scene["leaf_shift"],
                scene["tri_verts"], scene["bounds"], *self._toplevel_args(time, flags), *out_bufs)
         for host, buf in zip(outs, out_bufs):
-            cl.enqueue_copy(self.queue, host, buf)
+            if zero_copy:       # mapping makes the results in `host` current (no copy on PoCL)
+                mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0,
+                                                  host.shape, host.dtype)
+                mapped.base.release(self.queue)
+            else:
+                cl.enqueue_copy(self.queue, host, buf)
         self.queue.finish()
         if order is not None:
             for i, traced in enumerate(outs):

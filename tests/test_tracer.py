@@ -158,6 +158,36 @@ def test_intersect_matches_brute_force(tracer, name):
     assert np.abs(point_bary - point_ray).max() < 1e-4 * scale
 
 
+def test_zero_copy_queries_match_copied_ones_and_leave_the_rays_alone():
+    """On CPU devices the ray queries read the caller's arrays and write their results in place
+    (USE_HOST_PTR): the same answers as with copies, inputs untouched, read-only inputs fine,
+    and no result aliases another query's."""
+    tracer = Tracer("cpu")
+    assert tracer.zero_copy
+    rng = np.random.default_rng(7)
+    vertices, triangles = MESHES["sphere_on_plane"](rng)
+    load(tracer, vertices, triangles)
+    origins, directions = random_rays(vertices, 5_000, rng)
+    origins, directions = origins.astype(np.float32), directions.astype(np.float32)
+    kept = origins.copy(), directions.copy()
+    answers = {}
+    for zero_copy in (True, False):
+        tracer.zero_copy = zero_copy
+        answers[zero_copy] = (tracer.intersect(origins, directions),
+                              tracer.occluded(origins, directions, tmax=0.5))
+    (hits, blocked), (ref_hits, ref_blocked) = answers[True], answers[False]
+    for field in ("t", "triangle", "u", "v"):
+        assert np.array_equal(getattr(hits, field), getattr(ref_hits, field))
+    assert np.array_equal(blocked, ref_blocked) and 0 < blocked.mean() < 1
+    assert np.array_equal(origins, kept[0]) and np.array_equal(directions, kept[1])
+    tracer.zero_copy = True
+    frozen_o, frozen_d = origins.copy(), directions.copy()
+    frozen_o.flags.writeable = frozen_d.flags.writeable = False
+    again = tracer.intersect(frozen_o, frozen_d)
+    assert np.array_equal(again.t, ref_hits.t) and np.array_equal(again.triangle, ref_hits.triangle)
+    assert not np.shares_memory(again.t, hits.t)
+
+
 def test_hand_built_trees_agree(tracer):
     """The single leaf, a hand-built split, and the real tree give identical answers."""
     rng = np.random.default_rng(5)
