@@ -149,8 +149,12 @@ def test_blender_command_runs_the_slave_on_the_bundled_wheels(linux_zip, tmp_pat
         tracer.load(scene)
         view = make_view()
         assert_images_equal(images, tracer.render_tile(view, 0, 0, view.width, view.height))
-        status = subprocess.run([sys.executable, "-m", "slave", "--status", "--port", str(port)],
-                                cwd=ROOT, capture_output=True, text=True, timeout=30)
+        # The status port is the slave's port + 1 unless that was taken: the log says which.
+        [status_port] = re.findall(r"--status --status-port (\d+)",
+                                   (tmp_path / "slave.log").read_text())
+        status = subprocess.run([sys.executable, "-m", "slave", "--status", "--status-port",
+                                 status_port], cwd=ROOT, capture_output=True, text=True,
+                                timeout=30)
         assert status.returncode == 0, status.stderr
         assert "KD Trace slave blender-cli" in status.stdout
         assert f"1 frames, {len(results)} tiles" in status.stdout, status.stdout
