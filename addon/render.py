@@ -138,8 +138,7 @@ def render(engine, depsgraph):
         engine.update_stats("", "KD Trace | Exporting scene")
         exported_geometry, view, info = export_instanced_view(
             depsgraph, every_object=bool(engine.is_animation))
-        meshes = exported_geometry.meshes
-        hashes_reused = state.reuse_mesh_hashes(meshes)
+        meshes, hashes_reused = state.order_meshes(exported_geometry.meshes)
         for warning in info["warnings"]:
             engine.report({"WARNING"}, f"KD Trace: {warning}")
         exported = steps.mark("export")

@@ -13,6 +13,7 @@ from ..core.accel.kdtree_cl import build_standard, opencl_builder
 from ..core.net.slave_colors import slave_color
 from ..core.scene.model import SceneError
 from ..core.scene.scene import checked_depth, tree_digest
+from ..core.scene.spatial_order import spatial_order
 from ..core.scene.tree_files import TreeFiles
 from .local_slaves import LocalSlaves
 
@@ -171,27 +172,41 @@ class Session:
         self.local_reason = ""       # why the last render started local slaves ("": it did not)
         self.joined: list = []       # endpoints the LAN browser found during the last frame
         self.last_scene = None       # (key, Scene) of the last render (render.frame_scene)
+        self.mesh_orders: list = []  # each exported mesh's triangle order (order_meshes)
 
-    def reuse_mesh_hashes(self, meshes) -> int:
-        """Give each exported mesh that is the last render's mesh of its place, bit for bit, that
-        mesh's content hash instead of hashing it again (an F12 of an unchanged scene, an
-        animation frame where objects only moved): the tree cache and the frame's scene key
-        by it. Compared against the arrays the last scene holds anyway (of those the mesh had:
-        a scene fills in normals and UVs for meshes without, and a flat scene carries the
-        textures), so nothing more is kept between renders. How many hashes were reused."""
-        if self.last_scene is None:
-            return 0
-        (last_meshes, *_), last = self.last_scene
-        if last.instances is None:
-            held = [last.geometry]
-        else:
-            held = [geometry for geometry, _ in last.mesh_parts or ()]
-        reused = 0
-        for mesh, old, (digest, names) in zip(meshes, held, last_meshes):
-            arrays = old.arrays()
-            if set(names) <= arrays.keys():
-                reused += mesh.take_hash(digest, {name: arrays[name] for name in names})
-        return reused
+    def order_meshes(self, meshes) -> tuple[list, int]:
+        """The exported meshes with their triangles in spatial order (core/scene/spatial_order.py:
+        the builder, the compaction and the tracer then find neighbouring triangles in the same
+        cache lines), and how many kept the last render's content hash. A mesh that, put in the
+        order of the last render's mesh of its place, is that mesh bit for bit (an F12 of an
+        unchanged scene, an animation frame where objects only moved) takes its order and its
+        hash: neither sorted nor hashed again (the tree cache and the frame's scene key by the
+        hash). Compared against the arrays the last scene holds anyway (of those the mesh had: a
+        scene fills in normals and UVs for meshes without, and a flat scene carries the
+        textures); only the orders are kept besides."""
+        held, last_meshes = [], []
+        if self.last_scene is not None:
+            (last_meshes, *_), last = self.last_scene
+            held = ([last.geometry] if last.instances is None
+                    else [geometry for geometry, _ in last.mesh_parts or ()])
+        ordered, orders, reused = [], [], 0
+        for place, mesh in enumerate(meshes):
+            if place < min(len(held), len(last_meshes), len(self.mesh_orders)):
+                (digest, names), arrays = last_meshes[place], held[place].arrays()
+                order = self.mesh_orders[place]
+                if (set(names) <= arrays.keys()
+                        and mesh.triangle_count == held[place].triangle_count):
+                    candidate = mesh if order is None else spatial_order(mesh, order)[0]
+                    if candidate.take_hash(digest, {name: arrays[name] for name in names}):
+                        ordered.append(candidate)
+                        orders.append(order)
+                        reused += 1
+                        continue
+            mesh, order = spatial_order(mesh)
+            ordered.append(mesh)
+            orders.append(order)
+        self.mesh_orders = orders
+        return ordered, reused
 
     def start_legend(self, master) -> Legend:
         self.legend = Legend(master)

@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from core.accel.morton import morton_order
 from core.accel.reorder import treelet_order
 from core.layout import ACCUM, MESH, STATS, c_header
 from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
@@ -435,17 +436,6 @@ class Tracer:
 # pixels lie orders of magnitude closer. Queries this small keep their order.
 SCATTERED_RAY_STEP = 0.02
 MIN_REORDERED_RAYS = 4096
-_MORTON_BITS = 10
-
-
-@functools.lru_cache(maxsize=1)
-def _morton_spread() -> np.ndarray:
-    """The 10 bits of i spread to every third bit (a Morton code's lookup table)."""
-    i = np.arange(1 << _MORTON_BITS, dtype=np.int64)
-    out = np.zeros_like(i)
-    for bit in range(_MORTON_BITS):
-        out |= ((i >> bit) & 1) << (3 * bit)
-    return out
 
 
 def ray_order(origins: np.ndarray, bounds: np.ndarray):
@@ -461,17 +451,7 @@ def ray_order(origins: np.ndarray, bounds: np.ndarray):
     step = np.abs(sample[:, 1] - sample[:, 0]).max(axis=1).mean()
     if step < SCATTERED_RAY_STEP * size:
         return None
-    cells = (1 << _MORTON_BITS) - 1
-    scale = cells / np.maximum(hi - lo, 1e-30)
-    spread = _morton_spread()
-    key = np.zeros(n, np.int64)
-    for axis in range(3):
-        q = np.clip((origins[:, axis] - lo[axis]) * scale[axis], 0, cells).astype(np.int64)
-        key |= spread[q] << axis
-    # The 30-bit keys sorted in two stable 15-bit passes (numpy sorts 16-bit keys by radix:
-    # half the time of an argsort of the int64 keys).
-    low = np.argsort((key & 0x7FFF).astype(np.uint16), kind="stable")
-    return low[np.argsort((key[low] >> 15).astype(np.uint16), kind="stable")]
+    return morton_order(origins, lo, hi)
 
 
 @functools.lru_cache(maxsize=8)

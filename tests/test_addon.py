@@ -93,6 +93,7 @@ def test_slave_pass_shows_who_rendered_each_tile_and_combined_is_clean(tmp_path)
     assert len(two["tiles_per_slave"]) == 2 and len(one["tiles_per_slave"]) == 1
     # The same scene again: its one mesh (flat: everything realised) keeps the first's hash.
     assert (two["mesh_hashes_reused"], one["mesh_hashes_reused"]) == (0, 1)
+    assert two["triangles_in_spatial_order"] and one["triangles_in_spatial_order"]
     assert two["tree_built"] and not one["tree_built"]
 
     def load(slaves, name):

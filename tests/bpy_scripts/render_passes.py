@@ -24,7 +24,13 @@ for slaves in (2, 1):
     scene.kdtrace.local_slaves = slaves
     scene.render.filepath = f"{args['out']}/slaves{slaves}.exr"
     bpy.ops.render.render(write_still=True)
-    reports[slaves] = dict(addon.addon.session.current().last_render)
+    state = addon.addon.session.current()
+    reports[slaves] = dict(state.last_render)
+    # Whether the scene's triangles were put in spatial order (ordering again moves nothing).
+    spatial_order = addon.core.scene.spatial_order.spatial_order
+    reports[slaves]["triangles_in_spatial_order"] = (
+        spatial_order(state.last_scene[1].geometry)[1] is None
+        and any(order is not None for order in state.mesh_orders))
     for name, channels in exr_passes(scene.render.filepath).items():
         np.save(f"{args['out']}/slaves{slaves}-{name}.npy", np.stack(list(channels.values()), -1))
 
