@@ -20,8 +20,9 @@ U4 = np.uint32
 PRIVATE_GAPS = 64         # a triangle with more references keeps its lift stacks in the scratch
 TOPO_STACK = 64           # topo_subtrees' stack: more than the levels below its start
 TOPO_ROOTS = 4096         # topo_subtrees starts at the first level this wide
-PIECE_TRIANGLES = 1 << 19  # lift_candidates walks up the tree for each triangle: launches of
-                           # this many (about 0.1 s each on 2 CPU threads), so Esc is seen soon
+PIECE_CLIMBS = 1 << 19     # lift_candidates and neighbour_lcas walk up the tree for each
+                           # triangle or reference: launches of this many (about 0.1 s each on
+                           # 2 CPU threads), so Esc is seen soon
 PIECE_NODES = 1 << 22      # the other steps' launches: of this many nodes or references
                            # (smaller pieces cost time: 1 M, 5 % of 12 dragons' compaction)
 PIECE_SUBTREE_NODES = 1 << 20  # topo_subtrees' launches: roots of about this many nodes
@@ -183,7 +184,7 @@ class CompactorCL:
     def neighbour_lcas(self, s_pre, s_tri, climb, R):
         gap_node, gap_pre, gap_depth = (self.b._buffer(nbytes=4 * (R + 1)) for _ in range(3))
         self.run("neighbour_lcas", R + 1, s_pre, s_tri, climb, gap_node, gap_pre, gap_depth,
-                 U4(R))
+                 U4(R), piece=PIECE_CLIMBS)
         return gap_node, gap_pre, gap_depth
 
     def lift_candidates(self, tri_first, triangle_count, s_pre, gap_pre, gap_depth, climb, walk,
@@ -203,7 +204,7 @@ class CompactorCL:
             self.run("lift_candidates", triangle_count, tri_first, s_pre, gap_pre, gap_depth,
                      climb, walk, big_first, scratch, out,
                      used, U4(capacity), U4(triangle_count), U4(params.min_refs), *taus,
-                     piece=PIECE_TRIANGLES)
+                     piece=PIECE_CLIMBS)
             total = self.value_at(used, 0)
             if total <= capacity:
                 return out, total
