@@ -611,6 +611,7 @@ def test_launches_in_pieces_give_the_same_tree_and_see_the_callback(monkeypatch)
     monkeypatch.setattr(kcl, "PIECE_REFS", 64)
     monkeypatch.setattr(kcl, "PIECE_ITEMS", 256)
     monkeypatch.setattr(ccl, "PIECE_NODES", 256)
+    monkeypatch.setattr(ccl, "PIECE_CLIMBS", 256)
     pieces = small.build(vertices, triangles, progress=lambda f, m: calls.append(m))
     same_tree(reference, pieces)
     assert sum(m.startswith("kd-tree level") for m in calls) > 20
