@@ -26,6 +26,7 @@ from .nodes import PRINCIPLED_DEFAULTS, NodeProgram, input_value, material_param
 
 DEFAULT_COLOR = (0.8, 0.8, 0.8, 1.0)
 HALF_MAX = 65504.0          # the largest float16: texels travel as half floats
+MISSING_IMAGE_RGBA = (1.0, 0.0, 1.0, 1.0)   # Cycles' colour of an image it cannot load
 
 
 def export_view(depsgraph) -> tuple[Geometry, View, dict]:
@@ -82,7 +83,18 @@ def _export(depsgraph, instanced: bool, every_object: bool = False):
     view = View(_export_camera(depsgraph, warnings), *render_size(scene), shading,
                 render_region(scene), render_settings(scene), bool(scene.render.film_transparent))
     _motion_warnings(depsgraph, warnings, motion_handled)
+    _missing_warnings(scene, warnings)
     return geometry, view, warnings, materials
+
+
+def _missing_warnings(scene, warnings: list) -> None:
+    """One warning naming the objects that are placeholders of linked data Blender could not
+    load (a missing library file): they are not rendered, as in Cycles."""
+    missing = sorted(obj.name for obj in scene.objects
+                     if obj.is_missing or (obj.data is not None and obj.data.is_missing))
+    if missing:
+        warnings.append("linked from a missing library, not rendered: "
+                        + ", ".join(f"object '{name}'" for name in missing))
 
 
 def render_settings(scene) -> RenderSettings:
@@ -199,8 +211,14 @@ class _MaterialTable:
         material or world that uses it, for messages."""
         if image.name_full not in self._images:
             width, height = image.size
-            if width == 0 or height == 0:
-                raise SceneError(f"{owner}: image '{image.name}' has no pixels (missing file?)")
+            if width == 0 or height == 0 or image.channels == 0:
+                # Cycles renders an image it cannot load in magenta.
+                self._warnings.append(f"{owner}: image '{image.name}' could not be loaded "
+                                      f"(missing or unreadable file '{image.filepath}'); "
+                                      "rendered magenta as in Cycles")
+                self._images[image.name_full] = len(self.textures)
+                self.textures.append((np.array([MISSING_IMAGE_RGBA], np.float16), 1, 1))
+                return self._images[image.name_full]
             pixels = np.empty(width * height * image.channels, np.float32)
             image.pixels.foreach_get(pixels)
             pixels = pixels.reshape(-1, image.channels)
@@ -237,6 +255,35 @@ class _MaterialTable:
         return np.concatenate([t[0] for t in self.textures]), np.array(sizes, np.uint32)
 
 
+def object_inverse(matrix: np.ndarray) -> np.ndarray:
+    """The inverse of a finite 4 x 4 object transform as Cycles takes it (util/transform.cpp,
+    projection_inverse): a singular one (an axis scaled to 0) is inverted with 1e-8 added to
+    its diagonal, and one that still cannot be inverted is taken as the identity."""
+    try:
+        return np.linalg.inv(matrix)
+    except np.linalg.LinAlgError:
+        pass
+    try:
+        return np.linalg.inv(matrix + np.diag([1e-8, 1e-8, 1e-8, 0.0]))
+    except np.linalg.LinAlgError:
+        return np.eye(4)
+
+
+def normal_matrix(linear: np.ndarray) -> np.ndarray:
+    """The 3 x 3 map of normals under the linear part of an object transform: the inverse
+    transpose, or for a singular one (an axis scaled to 0) its cofactor matrix, which takes a
+    flattened object's normals onto the flattened axis (normals are normalised after)."""
+    with np.errstate(all="ignore"):
+        try:
+            inverse_transpose = np.linalg.inv(linear).T.astype(np.float32)
+            if np.isfinite(inverse_transpose).all():
+                return inverse_transpose
+        except np.linalg.LinAlgError:
+            pass
+    a, b, c = linear.T
+    return np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)], axis=1).astype(np.float32)
+
+
 class Placement:
     """Where an object instance is, for node programs: `matrices` maps "OBJECT" and
     "GENERATED" to 3 x 4 world -> coordinates matrices (Object: the inverse of its world
@@ -244,7 +291,7 @@ class Placement:
     axis, 0.5 where a size is 0); `key` tells placements apart."""
 
     def __init__(self, matrix_world, texspace_location, texspace_size):
-        to_object = np.linalg.inv(np.asarray(matrix_world, np.float64))[:3]
+        to_object = object_inverse(np.asarray(matrix_world, np.float64))[:3]
         size = np.asarray(texspace_size, np.float64)
         scale = np.where(size != 0, 0.5 / np.where(size != 0, size, 1.0), 0.0)
         offset = 0.5 - np.asarray(texspace_location, np.float64) * scale
@@ -355,7 +402,7 @@ class _MeshParts:
         self.vertex_count = 0
         self.warnings, self.warned = warnings, warned
 
-    def add(self, obj, arrays, slot_materials, matrix, textured) -> None:
+    def add(self, name, arrays, slot_materials, matrix, textured) -> None:
         vertices, triangles, slots = arrays["vertices"], arrays["triangles"], arrays["slots"]
         if np.array_equal(matrix, np.eye(4)):    # the same points (the product only makes -0 +0)
             placed32 = vertices
@@ -363,33 +410,35 @@ class _MeshParts:
             placed32 = (vertices.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]).astype(
                 np.float32)
         if not np.isfinite(placed32).all():
-            raise SceneError(f"object '{obj.name}' has vertices that are NaN or infinite")
+            self._warn(name, f"object '{name}' has vertices that are NaN or infinite "
+                            "where placed; skipped")
+            return
         keep = _nonzero_area(placed32, triangles)
         if keep.all():
             keep = None
         else:
-            self._warn(obj, f"object '{obj.name}': {int((~keep).sum())} zero-area face(s) dropped")
+            self._warn(name, f"object '{name}': {int((~keep).sum())} zero-area face(s) dropped")
             if not keep.any():
                 return
             keep = np.flatnonzero(keep)
         normals = arrays["normals"]
         if normals is not None:
-            normal_matrix = np.linalg.inv(matrix[:3, :3]).T.astype(np.float32)
-            if not np.allclose(normal_matrix, np.eye(3)):
-                n = normals.reshape(-1, 3) @ normal_matrix.T
+            normals_map = normal_matrix(matrix[:3, :3])
+            if not np.allclose(normals_map, np.eye(3)):
+                n = normals.reshape(-1, 3) @ normals_map.T
                 length = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
                 normals = (n / np.where(length > 0, length, 1.0)).reshape(-1, 3, 3)
         if textured and arrays["uvs"] is None:
-            self._warn(obj, f"object '{obj.name}' has a textured material but no UV map")
+            self._warn(name, f"object '{name}' has a textured material but no UV map")
         # triangles.view: the corners' int32 vertex indices (>= 0) as the uint32 stored.
         self.parts.append({"v": placed32, "t": triangles.view(np.uint32), "keep": keep,
                            "base": self.vertex_count, "m": slot_materials.take(slots, mode="clip"),
                            "n": normals, "uv": arrays["uvs"]})
         self.vertex_count += len(vertices)
 
-    def _warn(self, obj, message):
-        if obj.name not in self.warned:
-            self.warned.add(obj.name)
+    def _warn(self, name, message):
+        if name not in self.warned:
+            self.warned.add(name)
             self.warnings.append(message)
 
     @property
@@ -458,7 +507,7 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
     names of those it cannot blend, with a warning)."""
     mesh_cache = {}  # evaluated mesh pointer -> arrays, so instances of one mesh are read once
     warned = set()
-    placed = []      # (object, arrays, slot materials, matrix, end matrix or None, textured,
+    placed = []      # (object name, arrays, slot materials, matrix, end matrix or None, textured,
     #                   shared key or None)
     scene = depsgraph.scene
     blur = instanced and motion_handled is not None and scene.render.use_motion_blur
@@ -466,26 +515,31 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
         obj = instance.object
         if obj.type != "MESH" or not instance.show_self:
             continue
-        mesh = obj.data
+        mesh, name = obj.data, _instance_name(instance)
+        matrix = np.array(instance.matrix_world, np.float64)
+        if not np.isfinite(matrix).all():
+            if name not in warned:
+                warned.add(name)
+                warnings.append(f"object '{name}' has a transform that is NaN or infinite; "
+                                "skipped")
+            continue
         visibility = object_visibility(obj)
-        placement = Placement(instance.matrix_world, mesh.texspace_location, mesh.texspace_size)
+        placement = Placement(matrix, mesh.texspace_location, mesh.texspace_size)
         slot_materials = np.array(
-            [materials.index(slot.material, obj.name, visibility, placement)
+            [materials.index(slot.material, name, visibility, placement)
              for slot in obj.material_slots]
-            or [materials.index(None, obj.name, visibility)], np.uint16)
+            or [materials.index(None, name, visibility)], np.uint16)
         textured = any(materials.uses_texture(slot.material) for slot in obj.material_slots)
         key = (mesh.as_pointer(), textured)
         if key not in mesh_cache:
             mesh_cache[key] = _mesh_arrays(mesh, True, textured)
         arrays = mesh_cache[key]
         if len(arrays["triangles"]) == 0:
-            if obj.name not in warned:
-                warned.add(obj.name)
-                warnings.append(f"object '{obj.name}' has no faces; skipped")
+            if name not in warned:
+                warned.add(name)
+                warnings.append(f"object '{name}' has no faces; skipped")
             continue
-        matrix = np.array(instance.matrix_world, np.float64)
-        shareable = instanced and np.isfinite(matrix).all() and \
-            abs(np.linalg.det(matrix[:3, :3])) > 0 and \
+        shareable = instanced and abs(np.linalg.det(matrix[:3, :3])) > 0 and \
             not any(materials.world_space(i) for i in slot_materials)
         end = None
         if blur and shareable and not instance.is_instance and _is_animated(obj):
@@ -498,20 +552,20 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
                     warnings.append(f"object '{obj.name}': motion blur is not rendered (it "
                                     "turns or scales through zero within the shutter)")
                     motion_handled.add(obj.name)       # warned here, not again
-        placed.append((obj, arrays, slot_materials, matrix, end, textured,
+        placed.append((name, arrays, slot_materials, matrix, end, textured,
                        (key, slot_materials.tobytes()) if shareable else None))
     uses = {}
     for *_, shared in placed:
         uses[shared] = uses.get(shared, 0) + 1
     world = _MeshParts(warnings, warned)
     meshes, instance_mesh, to_world, to_world_end = {}, [], [], []   # shared key -> its parts
-    for obj, arrays, slot_materials, matrix, end, textured, shared in placed:
+    for name, arrays, slot_materials, matrix, end, textured, shared in placed:
         if shared is None or (uses[shared] < (1 if every_object else 2) and end is None):
-            world.add(obj, arrays, slot_materials, matrix, textured)
+            world.add(name, arrays, slot_materials, matrix, textured)
             continue
         if shared not in meshes:
             meshes[shared] = _MeshParts(warnings, warned)
-            meshes[shared].add(obj, arrays, slot_materials, np.eye(4), textured)
+            meshes[shared].add(name, arrays, slot_materials, np.eye(4), textured)
         if not meshes[shared].empty:
             instance_mesh.append(shared)
             to_world.append(matrix)
@@ -532,6 +586,15 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
     ends = np.array(to_world_end, np.float64).reshape(-1, 4, 4) if moving else None
     return out, np.array(instance_mesh, np.int64), np.array(to_world, np.float64).reshape(-1, 4, 4), \
         ends
+
+
+def _instance_name(instance) -> str:
+    """The name warnings give an instance: its object's, else (the evaluated mesh of a
+    metaball or curve can have none) the name of the object that makes it."""
+    name = instance.object.name
+    if not name and instance.parent is not None:
+        name = instance.parent.name
+    return name or "(unnamed)"
 
 
 def object_visibility(obj) -> int:
@@ -613,6 +676,10 @@ def _export_camera(depsgraph, warnings: list) -> Camera:
     else:
         raise SceneError(f"camera type {data.type} is not supported (use perspective or orthographic)")
     to_world = np.array(camera.matrix_world.normalized(), np.float64)
+    if not (np.isfinite(to_world).all() and
+            np.allclose(np.linalg.norm(to_world[:3, :3], axis=0), 1.0, atol=1e-4)):
+        raise SceneError(f"camera '{scene.camera.name}' has a transform that is NaN, infinite "
+                         "or scaled to 0 on an axis: it has no view to render")
     problems = []
     lens = {}
     dof = data.dof
@@ -740,6 +807,12 @@ def _export_lights(depsgraph, warnings: list) -> list:
             warned.add(obj.name)
             warnings.append(f"light '{obj.name}': {problem}")
         matrix = np.array(instance.matrix_world, np.float64)
+        if not np.isfinite(matrix).all():
+            if obj.name not in warned:
+                warned.add(obj.name)
+                warnings.append(f"light '{obj.name}' has a transform that is NaN or infinite; "
+                                "skipped")
+            continue
         axes = matrix[:3, :3] / np.maximum(np.linalg.norm(matrix[:3, :3], axis=0), 1e-30)
         scale = np.linalg.norm(matrix[:3, :3], axis=0)
         # Blender 4.2+: Exposure scales the power by 2^exposure; Temperature tints the colour.
@@ -763,8 +836,6 @@ def _export_lights(depsgraph, warnings: list) -> list:
             light.shape = data.shape
             light.size_u = float(data.size) * scale[0]
             light.size_v = float(data.size_y if data.shape in ("RECTANGLE", "ELLIPSE") else data.size) * scale[1]
-        if not all(math.isfinite(v) for v in light.position + light.direction):
-            raise SceneError(f"light '{obj.name}' has a position or direction that is not finite")
         lights.append(light)
     return lights
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import time
+import traceback
 
 import numpy as np
 
@@ -139,6 +140,7 @@ def render(engine, depsgraph):
         exported_geometry, view, info = export_instanced_view(
             depsgraph, every_object=bool(engine.is_animation))
         meshes, hashes_reused = state.order_meshes(exported_geometry.meshes)
+        state.last_warnings = info["warnings"]
         for warning in info["warnings"]:
             engine.report({"WARNING"}, f"KD Trace: {warning}")
         exported = steps.mark("export")
@@ -215,8 +217,12 @@ def render(engine, depsgraph):
     except RenderCancelled:
         return
     except (SceneError, RenderFailed, MasterError, ProtocolError, AuthError, OSError, RuntimeError) as error:
-        engine.report({"ERROR"}, f"KD Trace: {error}")
-        engine.error_set(f"KD Trace: {error}")
+        _fail(engine, str(error))
+        return
+    except Exception as error:      # a defect: the render ends with a report, Blender lives on
+        traceback.print_exc()
+        _fail(engine, f"internal error, {type(error).__name__}: {error} (the traceback is in "
+                      "the system console; please report it)")
         return
     per_slave = legend.tiles_per_slave()
     state.last_render = {
@@ -244,6 +250,11 @@ def render(engine, depsgraph):
                   if state.joined else ""))
     engine.update_stats("", f"KD Trace | Done: {summary}")
     engine.report({"INFO"}, f"KD Trace: {summary}")
+
+
+def _fail(engine, message: str) -> None:
+    engine.report({"ERROR"}, f"KD Trace: {message}")
+    engine.error_set(f"KD Trace: {message}")
 
 
 def frame_scene(state, meshes, trees, exported, tree_key) -> Scene:

@@ -168,6 +168,7 @@ class Session:
         self._browser = None
         self._browser_started = 0.0   # time.monotonic() when the browser started
         self.last_render: dict = {}  # timings and tiles per slave of the last render, for reports
+        self.last_warnings: list = []  # what the last export could not render as Cycles would
         self.legend: Legend | None = None
         self.local_reason = ""       # why the last render started local slaves ("": it did not)
         self.joined: list = []       # endpoints the LAN browser found during the last frame

@@ -135,7 +135,9 @@ def pack_lights(lights) -> np.ndarray:
         LIGHT.put(record, "position", light.position)
         LIGHT.put(record, "kind", LIGHT_CODES[light.kind])
         LIGHT.put(record, "direction", direction)
-        LIGHT.put(record, "intensity", light_intensity(light))
+        # As in Cycles, an area light without area (a size or scale of 0) emits nothing.
+        dark = light.kind == "AREA" and not light.size_u * light.size_v > 0
+        LIGHT.put(record, "intensity", (0.0, 0.0, 0.0) if dark else light_intensity(light))
         LIGHT.put(record, "sun_cos_half_angle", 1.0)
         if light.kind == "SPOT":
             cos_half = math.cos(light.spot_size / 2)

@@ -138,7 +138,8 @@ def node_material(name):
 
 def clear():
     for collection in (bpy.data.objects, bpy.data.meshes, bpy.data.materials, bpy.data.lights,
-                       bpy.data.cameras, bpy.data.worlds, bpy.data.images):
+                       bpy.data.cameras, bpy.data.worlds, bpy.data.images, bpy.data.curves,
+                       bpy.data.metaballs):
         for item in list(collection):
             collection.remove(item)
 
@@ -568,6 +569,39 @@ def build(name):
         links.new(checker.outputs["Color"], bsdf.inputs["Base Color"])
         floor(m, size=6.0)
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
+    elif name == "degenerate":
+        # Odd input Blender holds: a box flattened to a square (scale z = 0) with a checker in
+        # Object coordinates (the inverse of a singular transform), a ball scaled to nothing,
+        # a text object, a bevelled curve, a metaball, an image that cannot be loaded
+        # (magenta), an area light flattened to a line.
+        world((0.3, 0.32, 0.36))
+        m, nodes, links, bsdf = node_material("flat checker")
+        coords = nodes.new("ShaderNodeTexCoord")
+        checker = nodes.new("ShaderNodeTexChecker")
+        checker.inputs["Scale"].default_value = 2.0
+        links.new(coords.outputs["Object"], checker.inputs["Vector"])
+        links.new(checker.outputs["Color"], bsdf.inputs["Base Color"])
+        flat = add(bpy.ops.mesh.primitive_plane_add, m, size=1.2, location=(-0.8, 0.2, 0.3),
+                   rotation=(math.radians(-30), 0.0, 0.0))
+        flat.scale = (1.0, 1.0, 0.0)
+        sphere(material("gone"), (0.0, 0.0, 0.5)).scale = (0.0, 0.0, 0.0)
+        bpy.ops.object.text_add(location=(-1.2, -0.9, 0.01))
+        bpy.context.object.data.materials.append(material("letters", color=(0.2, 0.5, 0.8)))
+        bpy.ops.curve.primitive_bezier_circle_add(radius=0.4, location=(0.9, 0.5, 0.3))
+        bpy.context.object.data.bevel_depth = 0.1
+        bpy.ops.object.metaball_add(radius=0.6, location=(0.2, 0.8, 0.4))
+        m, nodes, links, bsdf = node_material("lost texture")
+        texture = nodes.new("ShaderNodeTexImage")
+        texture.image = bpy.data.images.new("lost", 4, 4)
+        texture.image.source, texture.image.filepath = "FILE", f"{OUT}/does-not-exist.png"
+        texture.image.reload()
+        links.new(texture.outputs["Color"], bsdf.inputs["Base Color"])
+        add(bpy.ops.mesh.primitive_cube_add, m, size=0.5, location=(1.0, -0.6, 0.25))
+        floor(size=6.0)
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        light("AREA", (-1.0, -1.0, 2.0), (0, 0, 0), energy=300.0, size=1.0)
+        bpy.data.objects["area.001"].scale = (0.0, 1.0, 1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "procedural":
         # Cycles' Noise Texture (its own Perlin noise and fBm): Color at the default Generated
