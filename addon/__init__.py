@@ -3,7 +3,7 @@ import atexit
 
 import bpy
 
-from . import browsing, engine, local_slaves, operators, properties, session, ui
+from . import browsing, engine, operators, properties, session, slave_command, ui
 
 _modules = (properties, operators, engine, ui)
 
@@ -14,13 +14,13 @@ def register():
             bpy.utils.register_class(cls)
     ui.register()
     browsing.register()
-    local_slaves.register_command()
+    slave_command.register_command()
     atexit.register(session.close)
 
 
 def unregister():
     atexit.unregister(session.close)
-    local_slaves.unregister_command()
+    slave_command.unregister_command()
     browsing.unregister()
     session.close()
     ui.unregister()

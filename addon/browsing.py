@@ -3,8 +3,8 @@ every slave already seen instead of waiting for answers.
 
 It starts when KD Trace is selected (a message-bus subscription on the render engine), when a
 file that uses it is loaded, when the Slaves panel is shown (draw() only schedules the start on
-a timer: no network work in draw) and at F12 at the latest (render.find_slaves). It stops when
-another engine is selected or LAN discovery is turned off, and with the session.
+a timer: no network work in draw) and at F12 at the latest (core/frame/render.py find_slaves).
+It stops when another engine is selected or LAN discovery is turned off, and with the session.
 """
 import bpy
 from bpy.app.handlers import persistent

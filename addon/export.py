@@ -12,10 +12,9 @@ exported only when the scene needs them (core/scene/features.py).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
-
 import numpy as np
 
+from ..core.frame.exported import InstancedExport
 from ..core.layout import VISIBILITY_CODES, VISIBLE_TO_ALL
 from ..core.scene.instances import blend_stays_invertible
 from ..core.scene.features import needed_arrays, scene_features, strip_geometry
@@ -36,18 +35,6 @@ def export_view(depsgraph) -> tuple[Geometry, View, dict]:
     # Only what the scene needs travels (and the kernel compiles only that).
     geometry = strip_geometry(geometry, scene_features(geometry, view))
     return geometry, view, {"warnings": warnings}
-
-
-class InstancedExport(NamedTuple):
-    """The geometry of an instanced export (docs/instances.md): object-space meshes (mesh 0
-    the realised triangles, where there are any) placed by instances, and the textures;
-    core.scene.scene.Scene.from_instances takes them with a tree per mesh."""
-    meshes: list                # Geometry per mesh, without textures
-    instance_mesh: np.ndarray   # (I,) mesh of each instance
-    to_world: np.ndarray        # (I, 4, 4) float64
-    texels: np.ndarray | None
-    texture_sizes: np.ndarray | None
-    to_world_end: np.ndarray | None = None  # (I, 4, 4) at shutter close where objects move
 
 
 def export_instanced_view(depsgraph, every_object: bool = False

@@ -6,6 +6,7 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
                        IntProperty, PointerProperty, StringProperty)
 
 from ..core.accel.compact import USER_SETTING_LIMITS as TREE_LIMITS, compact_params
+from ..core.frame.options import DISCOVERY_SECONDS_RANGE, LOCAL_SLAVES_RANGE, FrameOptions
 from ..core.net.master import DEFAULT_TILE_SIZE, DEFAULT_TILES_IN_FLIGHT, MAX_TILES_IN_FLIGHT
 from ..core.net.protocol import DEFAULT_MODEL, DEFAULT_PORT, MAX_TILE_SIZE
 from ..core.npz_folder import NpzFolder
@@ -15,6 +16,7 @@ from ..core.scene.tree_files import DEFAULT_LIMIT_MIB as TREE_FILES_MIB, LIMIT_M
 # Defaults and limits live with what they configure (core/); the panel only shows them.
 RENDER = RenderSettings()
 TREE = compact_params()             # the default mode, "ours", and its thresholds
+FRAME = FrameOptions()              # how slaves are found, tiles handed out
 
 
 class KDTraceHost(bpy.types.PropertyGroup):
@@ -35,7 +37,8 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
     discovery_seconds: FloatProperty(
         name="Discovery Time", description="How long F12 waits for a first slave to answer when "
         "the LAN browser has only just started (it browses while KD Trace is the render engine)",
-        default=3.0, min=0.1, max=30.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
+        default=FRAME.discovery_seconds, min=DISCOVERY_SECONDS_RANGE[0],
+        max=DISCOVERY_SECONDS_RANGE[1], subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
     tile_partition: EnumProperty(
         name="Tiles", description="How the image is cut into tiles",
         items=[("SIZE", "By Size", "Square tiles of Tile Size pixels", 0),
@@ -153,7 +156,7 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
     active_host: IntProperty(name="Active Host", default=0)
     local_slaves: IntProperty(
         name="Local Slaves", description="Slaves to start on this machine when no other slave answers",
-        default=2, min=0, max=64)
+        default=FRAME.local_slaves, min=LOCAL_SLAVES_RANGE[0], max=LOCAL_SLAVES_RANGE[1])
     use_local_slaves_always: BoolProperty(
         name="Always Use Local Slaves", description="Start local slaves even when slaves on the LAN answer",
         default=False)

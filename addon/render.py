@@ -1,35 +1,78 @@
-"""One F12: export, build (or reuse) the kd-tree, find slaves, hand out tiles, show them as they
-arrive. Runs on Blender's render thread; all socket work happens on the master's threads and
-comes back through job.next_result()."""
+"""One F12: export the evaluated scene, turn the panel's settings into core.frame's
+FrameOptions and render the frame through the slaves (core/frame/render.py), with Blender's
+engine as the host: each tile is shown as it arrives, framed in its slave's colour. Runs on
+Blender's render thread; all socket work happens on the master's threads."""
 from __future__ import annotations
 
-import hashlib
 import time
 import traceback
 
 import numpy as np
 
 from ..core.accel.compact import user_settings
-from ..core.net.master import Master, MasterError
-from ..core.net.protocol import AuthError, ProtocolError, load_secret
-from ..core.scene.model import SceneError
-from ..core.scene.scene import Scene, memory_report, memory_summary
+from ..core.frame.options import FrameOptions
+from ..core.frame.render import FRAME_ERRORS, FrameError, FrameHost, render_frame, summary
+from ..core.net.protocol import AuthError, load_secret
 from ..core.net.slave_colors import slave_color
 from . import session
 from .export import export_instanced_view
 from .properties import preferences, tree_folder
 
-POLL_SECONDS = 0.05  # how often the render thread checks for Esc while waiting for tiles
-SETTLE_SECONDS = 0.3  # after the first slave answers a young browser, for the others to answer
 FRAME_PIXELS = 2     # width of the slave-coloured frame drawn around tiles while rendering
 
 
-class RenderFailed(Exception):
-    """A problem the user must see in Blender's report, not a traceback."""
+def render(engine, depsgraph):
+    import bpy
+    started = time.perf_counter()
+    state = session.current()
+    try:
+        options = frame_options(depsgraph.scene.kdtrace, preferences(bpy.context),
+                                depsgraph.view_layer)
+        if options.use_zeroconf:
+            state.browser()   # if not running yet: it looks while the scene exports and builds
+        engine.update_stats("", "KD Trace | Exporting scene")
+        exported, view, info = export_instanced_view(depsgraph,
+                                                     every_object=bool(engine.is_animation))
+        report = render_frame(state, exported, view, options, EngineHost(engine),
+                              info["warnings"], started)
+    except FRAME_ERRORS as error:
+        _fail(engine, str(error))
+        return
+    except Exception as error:      # a defect: the render ends with a report, Blender lives on
+        traceback.print_exc()
+        _fail(engine, f"internal error, {type(error).__name__}: {error} (the traceback is in "
+                      "the system console; please report it)")
+        return
+    if report is not None:
+        line = summary(report)
+        engine.update_stats("", f"KD Trace | Done: {line}")
+        engine.report({"INFO"}, f"KD Trace: {line}")
 
 
-class RenderCancelled(Exception):
-    """The user pressed Esc during a long step (kd-tree build, starting slaves)."""
+def _fail(engine, message: str) -> None:
+    engine.report({"ERROR"}, f"KD Trace: {message}")
+    engine.error_set(f"KD Trace: {message}")
+
+
+def frame_options(settings, prefs, view_layer) -> FrameOptions:
+    """The panel's settings (scene.kdtrace), the add-on's preferences and the passes the view
+    layer shows (Combined always, Depth and Normal where enabled) as core.frame's options."""
+    passes = ("combined",) + (("depth",) if view_layer.use_pass_z else ()) \
+        + (("normal",) if view_layer.use_pass_normal else ())
+    return FrameOptions(
+        tree_mode=settings.kdtree_mode,
+        tree_settings=user_settings(settings.kdtree_mode, settings.tau_occu, settings.tau_freq,
+                                    settings.refs_per_path),
+        tree_folder=tree_folder(prefs), tree_cache_mib=prefs.tree_cache_mib,
+        hosts=listed_hosts(settings), use_zeroconf=settings.use_zeroconf,
+        discovery_seconds=settings.discovery_seconds, local_slaves=settings.local_slaves,
+        local_slaves_always=settings.use_local_slaves_always,
+        slave_python=prefs.slave_python, slave_device=prefs.slave_device,
+        secret=shared_secret(prefs),
+        tile_size=settings.tile_size, tiles_in_flight=settings.tiles_in_flight,
+        partition=None if settings.tile_partition == "SIZE" else int(settings.tile_partition),
+        model=settings.interaction, payload=settings.payload.split("_")[0].lower(),
+        compress=settings.payload.endswith("ZLIB"), passes=passes)
 
 
 def listed_hosts(settings) -> list[tuple[str, int]]:
@@ -40,7 +83,7 @@ def listed_hosts(settings) -> list[tuple[str, int]]:
             continue
         host = entry.host.strip().strip("[]")
         if not host or any(c.isspace() for c in host):
-            raise RenderFailed(f"host {number} in the slave list has no valid address: {entry.host!r}")
+            raise FrameError(f"host {number} in the slave list has no valid address: {entry.host!r}")
         endpoints.append((host, entry.port))
     return endpoints
 
@@ -50,7 +93,7 @@ def shared_secret(prefs) -> bytes | None:
     try:
         return load_secret(bpy_path(prefs.secret_file) if prefs.secret_file else None)
     except AuthError as error:
-        raise RenderFailed(str(error)) from None
+        raise FrameError(str(error)) from None
 
 
 def bpy_path(path: str) -> str:
@@ -58,294 +101,34 @@ def bpy_path(path: str) -> str:
     return bpy.path.abspath(path)
 
 
-def find_slaves(engine, settings, prefs, secret) -> list[tuple[str, int]]:
-    """Listed hosts and every slave the LAN browser knows; local slaves only when no other slave
-    is known (or when asked to always use them). The browser runs in the background while KD
-    Trace is the engine (browsing.py), so slaves seen before F12 are used at once: only a
-    browser younger than the discovery time is waited for, until a slave answers."""
-    state = session.current()
-    endpoints = listed_hosts(settings)
-    if settings.use_zeroconf:
-        state.browser()
-        settle_until = None
-        while state.browsing_seconds() < settings.discovery_seconds and not engine.test_break():
-            if endpoints or state.lan_endpoints():
-                # Give the others that answer a moment too, then go.
-                settle_until = settle_until or time.monotonic() + SETTLE_SECONDS
-                if time.monotonic() >= settle_until:
-                    break
-            engine.update_stats("", "KD Trace | Looking for slaves on the LAN")
-            time.sleep(POLL_SECONDS)
-        endpoints += [e for e in state.lan_endpoints() if e not in endpoints]
-    state.local_reason = local_slaves_reason(settings, endpoints, state.browsing_seconds())
-    state.joined = []
-    if state.local_reason:
-        engine.update_stats("", f"KD Trace | Starting {settings.local_slaves} local slave(s): "
-                                f"{state.local_reason}")
-        endpoints += state.local_slaves.ensure(settings.local_slaves, prefs.slave_python,
-                                               prefs.slave_device, secret,
-                                               cancelled=engine.test_break)
-    if not endpoints:
-        raise RenderFailed("no slave is reachable: none answered on the LAN, no host is listed "
-                           "and local slaves are off")
-    return endpoints
+class EngineHost(FrameHost):
+    """Blender's RenderEngine as the frame's host: Esc, the status line and progress bar,
+    reports, and the render result filled tile by tile (TileCanvas)."""
 
+    def __init__(self, engine):
+        self.engine = engine
+        self.canvas = None
 
-def local_slaves_reason(settings, known: list, browsed_seconds: float) -> str:
-    """Why this render starts local slaves, for the panel and the report ("": it does not)."""
-    if not settings.local_slaves:
-        return ""
-    if settings.use_local_slaves_always:
-        return "Always Use Local Slaves is on"
-    if known:
-        return ""
-    if settings.use_zeroconf:
-        return f"no slave answered on the LAN in {browsed_seconds:.1f} s and no host is listed"
-    return "LAN discovery is off and no host is listed"
+    def cancelled(self) -> bool:
+        return self.engine.test_break()
 
+    def status(self, message: str) -> None:
+        self.engine.update_stats("", f"KD Trace | {message}")
 
-def join_new_lan_slaves(master) -> None:
-    """A slave the LAN browser sees during a frame joins it (Master.join connects, uploads and
-    hands it tiles on the master's threads)."""
-    state = session.current()
-    for endpoint in state.lan_endpoints():
-        if endpoint not in master.endpoints:
-            state.joined.append(endpoint)
-            master.join(*endpoint)
+    def progress(self, fraction: float) -> None:
+        self.engine.update_progress(fraction)
 
+    def report(self, level: str, message: str) -> None:
+        self.engine.report({level}, message)
 
-def job_options(settings, view_layer) -> dict:
-    """The panel's tile and network settings as Master.render() arguments; only the passes the
-    view layer shows travel (Combined always, Depth and Normal where enabled)."""
-    passes = ["combined"] + (["depth"] if view_layer.use_pass_z else []) \
-        + (["normal"] if view_layer.use_pass_normal else [])
-    return {"tile_size": settings.tile_size, "tiles_in_flight": settings.tiles_in_flight,
-            "partition": None if settings.tile_partition == "SIZE" else int(settings.tile_partition),
-            "model": settings.interaction,
-            "payload": settings.payload.split("_")[0].lower(),
-            "compress": settings.payload.endswith("ZLIB"), "passes": passes}
+    def begin(self, job) -> None:
+        self.canvas = TileCanvas(self.engine, job)
 
+    def tile(self, tile) -> None:
+        self.canvas.add(tile)
 
-def render(engine, depsgraph):
-    import bpy
-    settings = depsgraph.scene.kdtrace
-    prefs = preferences(bpy.context)
-    state = session.current()
-    started = time.perf_counter()
-    steps = Steps()
-    try:
-        if settings.use_zeroconf:
-            state.browser()   # if not running yet: it looks while the scene exports and builds
-        engine.update_stats("", "KD Trace | Exporting scene")
-        exported_geometry, view, info = export_instanced_view(
-            depsgraph, every_object=bool(engine.is_animation))
-        meshes, hashes_reused = state.order_meshes(exported_geometry.meshes)
-        state.last_warnings = info["warnings"]
-        for warning in info["warnings"]:
-            engine.report({"WARNING"}, f"KD Trace: {warning}")
-        exported = steps.mark("export")
-
-        def tree_progress(fraction, message):
-            if engine.test_break():
-                raise RenderCancelled
-            engine.update_progress(0.5 * fraction)
-            engine.update_stats("", f"KD Trace | Building kd-tree: {message}")
-
-        stored = sum(m.triangle_count for m in meshes)
-        engine.update_stats("", f"KD Trace | Building kd-trees over {stored:,} triangles "
-                                f"({len(meshes)} mesh(es))")
-        tree_settings = user_settings(settings.kdtree_mode, settings.tau_occu,
-                                      settings.tau_freq, settings.refs_per_path)
-        # One tree per mesh (docs/instances.md), each cached by its mesh's content.
-        try:
-            state.trees.use_disk(tree_folder(prefs), prefs.tree_cache_mib)
-        except OSError as error:
-            state.trees.use_disk(None, 0)
-            engine.report({"WARNING"}, f"KD Trace: no kd-tree cache on disk: {error}")
-        trees, sources, done = [], [], 0.0
-        for mesh in meshes:
-            share = mesh.triangle_count / max(stored, 1)     # of the progress bar
-
-            def mesh_progress(fraction, message, done=done, share=share):
-                tree_progress(done + share * fraction, message)
-            tree, source = state.trees.get(mesh, settings.kdtree_mode, tree_settings,
-                                           mesh_progress, device=prefs.slave_device)
-            trees.append(tree)
-            sources.append(source)
-            done += share
-        if state.trees.disk_problem:
-            engine.report({"WARNING"}, f"KD Trace: {state.trees.disk_problem}")
-        built = "built" in sources
-        steps.mark("kd-tree cache")
-        scene = frame_scene(state, meshes, trees, exported_geometry,
-                            (settings.kdtree_mode, tuple(sorted(tree_settings.items()))))
-        steps.mark("scene")
-        scene.check_view(view)
-        memory = memory_report(scene)
-        tree_done = steps.mark("view check")
-        if engine.test_break():
-            return
-        secret = shared_secret(prefs)
-        endpoints = find_slaves(engine, settings, prefs, secret)
-        steps.mark("find slaves")
-        with Master(endpoints, secret=secret) as master:
-            legend = state.start_legend(master)   # the panel follows each slave from here on
-            master.connect()
-            steps.mark("connect")
-            engine.update_stats("", f"KD Trace | Sending scene to {len(master.slaves)} slave(s)")
-            master.load_scene(scene)
-            steps.mark("scene query")
-            for problem in master.errors:
-                engine.report({"WARNING"}, f"KD Trace: {problem}")
-            job = master.render(view, **job_options(settings, depsgraph.view_layer),
-                                hold_when_stranded=bool(settings.local_slaves))
-            canvas = TileCanvas(engine, job)
-            steps.mark("frame start")
-            try:
-                _receive_tiles(engine, job, canvas, legend, master,
-                               local_takeover(engine, settings, prefs, secret, master), steps)
-                steps.mark("other tiles")
-            finally:
-                canvas.finish()
-                steps.mark("image")
-            for problem in job.errors:
-                engine.report({"WARNING"}, f"KD Trace: {problem}")
-            if job.error and not job.cancelled:
-                raise RenderFailed(job.error)
-            uploaded_to, scene_bytes = list(master.uploaded_to), dict(master.scene_bytes)
-        finished = steps.mark("close")
-    except RenderCancelled:
-        return
-    except (SceneError, RenderFailed, MasterError, ProtocolError, AuthError, OSError, RuntimeError) as error:
-        _fail(engine, str(error))
-        return
-    except Exception as error:      # a defect: the render ends with a report, Blender lives on
-        traceback.print_exc()
-        _fail(engine, f"internal error, {type(error).__name__}: {error} (the traceback is in "
-                      "the system console; please report it)")
-        return
-    per_slave = legend.tiles_per_slave()
-    state.last_render = {
-        "export_seconds": exported - started, "tree_seconds": tree_done - exported,
-        "tree_built": built, "tree_sources": sources, "tree_stats": dict(trees[0].stats),
-        "render_seconds": finished - tree_done,
-        "mesh_hashes_reused": hashes_reused,
-        "steps": steps.seconds, "tile_render_ms": legend.render_ms(),
-        "triangles": memory["triangles_referenced"], "memory": memory,
-        "tiles_per_slave": per_slave,
-        "slave_colors": {name: slave_color(name) for name in per_slave},
-        "uploaded_to": uploaded_to, "scene_bytes": scene_bytes, "cancelled": job.cancelled,
-        "local_reason": state.local_reason,
-        "joined_during_frame": [f"{host}:{port}" for host, port in state.joined]}
-    how = ("built" if built else "read from disk" if "disk" in sources else "reused")
-    summary = (f"export {exported - started:.2f} s, kd-tree {how} "
-               f"{tree_done - exported:.2f} s ({trees[0].stats['mode']}: "
-               f"{sum(t.stats['nodes'] for t in trees):,} nodes, "
-               f"{sum(t.nbytes for t in trees) / 1e6:.1f} MB; {trees[0].stats['builder']} builder on "
-               f"{trees[0].stats['device']}); {memory_summary(memory)}; render "
-               f"{finished - tree_done:.2f} s; tiles: "
-               + ", ".join(f"{name} {count}" for name, count in sorted(per_slave.items()))
-               + (f"; local slaves started: {state.local_reason}" if state.local_reason else "")
-               + ("; joined during the frame: " + ", ".join(state.last_render["joined_during_frame"])
-                  if state.joined else ""))
-    engine.update_stats("", f"KD Trace | Done: {summary}")
-    engine.report({"INFO"}, f"KD Trace: {summary}")
-
-
-def _fail(engine, message: str) -> None:
-    engine.report({"ERROR"}, f"KD Trace: {message}")
-    engine.error_set(f"KD Trace: {message}")
-
-
-def frame_scene(state, meshes, trees, exported, tree_key) -> Scene:
-    """This frame's scene. Where its meshes, their kd-tree settings and the textures are the
-    last render's (an animation frame in which objects only moved), the last scene placed by
-    this frame's instances: the meshes' arrays and their checks are reused, only the instances
-    are checked and the top level built, and the slaves that hold the meshes are sent only the
-    instances (docs/instances.md, "Scene deltas"); a flat scene placed flat again is the last
-    scene itself."""
-    textures = hashlib.blake2b(digest_size=16)
-    for array in (exported.texels, exported.texture_sizes):
-        textures.update(b"-" if array is None else np.ascontiguousarray(array).tobytes())
-    key = (tuple((m.content_hash(), tuple(m.arrays())) for m in meshes), tree_key,
-           textures.hexdigest())
-    last_key, last = state.last_scene or (None, None)
-    if key == last_key:
-        if last.instances is not None:
-            return last.placed(exported.instance_mesh, exported.to_world,
-                               to_world_end=exported.to_world_end)
-        if Scene.places_flat(len(meshes), exported.instance_mesh, exported.to_world,
-                             exported.to_world_end):
-            return last     # the same flat scene (an F12 of an unchanged scene)
-    scene = Scene.from_instances(list(zip(meshes, trees)), exported.instance_mesh,
-                                 exported.to_world, texels=exported.texels,
-                                 texture_sizes=exported.texture_sizes,
-                                 to_world_end=exported.to_world_end)
-    state.last_scene = (key, scene)
-    return scene
-
-
-def local_takeover(engine, settings, prefs, secret, master):
-    """What to do when every slave is lost and none could be reconnected: once, local slaves
-    (where enabled) join the frame. The returned function says False when nothing is left."""
-    tried = []
-
-    def take_over() -> bool:
-        if tried or not settings.local_slaves:
-            return False
-        tried.append(True)
-        engine.update_stats("", f"KD Trace | Every slave lost: starting {settings.local_slaves} "
-                                "local slave(s)")
-        try:
-            endpoints = session.current().local_slaves.ensure(
-                settings.local_slaves, prefs.slave_python, prefs.slave_device, secret,
-                cancelled=engine.test_break)
-        except RuntimeError as error:
-            engine.report({"WARNING"}, f"KD Trace: local slaves did not start: {error}")
-            return False
-        for host, port in endpoints:
-            master.join(host, port)
-        return True
-
-    return take_over
-
-
-def _receive_tiles(engine, job, canvas, legend, master, take_over, steps):
-    """Show tiles as they arrive; stop promptly on Esc. `steps` marks the first tile."""
-    done, total = 0, len(job.tiles)
-    while not job.finished:
-        if engine.test_break():
-            job.cancel()
-            return
-        if job.stranded and not take_over():
-            job.give_up()    # its error names every slave and why it was lost
-        tiles = job.next_results(POLL_SECONDS)
-        if not tiles:
-            join_new_lan_slaves(master)
-            continue
-        for tile in tiles:
-            canvas.add(tile)
-            legend.tile_done(tile)
-        if done == 0:
-            steps.mark("first tile")
-        done += len(tiles)
-        engine.update_progress(0.5 + 0.5 * done / total)
-        engine.update_stats("", f"KD Trace | Tile {done}/{total} from {tile.slave_name}")
-
-
-class Steps:
-    """Wall seconds of a render's steps, each from the previous mark (the report's breakdown:
-    state.last_render["steps"], in order)."""
-
-    def __init__(self):
-        self.seconds: dict = {}
-        self._last = time.perf_counter()
-
-    def mark(self, name: str) -> float:
-        now = time.perf_counter()
-        self.seconds[name] = self.seconds.get(name, 0.0) + now - self._last
-        self._last = now
-        return now
+    def end(self, job) -> None:
+        self.canvas.finish()
 
 
 class TileCanvas:

@@ -162,7 +162,8 @@ class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
     bl_parent_id = "RENDER_PT_kdtrace"
 
     def draw(self, context):
-        from . import browsing, local_slaves, session
+        from ..core.frame.local_slaves import has_bundled_cpu_device
+        from . import browsing, session
         layout = self.layout
         settings = context.scene.kdtrace
         state = session.current()
@@ -176,7 +177,7 @@ class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
         sub.prop(settings, "discovery_seconds")
         col.prop(settings, "local_slaves")
         col.prop(settings, "use_local_slaves_always")
-        if settings.local_slaves and not local_slaves.has_bundled_cpu_device():
+        if settings.local_slaves and not has_bundled_cpu_device():
             layout.label(text="No CPU OpenCL device is bundled here: local slaves need an "
                               "OpenCL driver (README)", icon="ERROR")
 

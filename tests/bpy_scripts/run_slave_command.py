@@ -11,8 +11,8 @@ args, result_path = arguments()
 addon = install_extension(args["zip"])
 wheel_dirs = [p for p in sys.path if "extensions" in p and p.endswith("site-packages")]
 sys.path[:0] = wheel_dirs
-local_slaves = addon.addon.local_slaves
-registered = local_slaves._command_handle is not None
-status = local_slaves.run_command(args["argv"])
+command = addon.addon.slave_command
+registered = command._command_handle is not None
+status = command.run_command(args["argv"])
 write_result(result_path, {"status": status, "registered": registered, "wheel_dirs": wheel_dirs,
-                           "extension_root": str(local_slaves.EXTENSION_ROOT)})
+                           "extension_root": str(command.EXTENSION_ROOT)})

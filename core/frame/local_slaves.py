@@ -1,15 +1,6 @@
-"""Slaves on this machine: local slave processes, started when no other slave is known, and
-the `kdtrace_slave` command of Blender's command line.
-
-Each local slave is `python -m slave` run from the extension's root folder, bound to loopback
-and not advertised (only this Blender uses it). They are kept between renders and stopped when
-the add-on is disabled or Blender exits.
-
-`blender --background --command kdtrace_slave [slave options]` runs the standalone slave the
-same way, in the foreground, on a machine where the extension is installed and enabled: the
-same slave as `kdtrace-slave` (pyproject.toml), on Blender's own Python and the extension's
-wheels. (Blender's command ids must be Python identifiers: no "-".)
-"""
+"""Slaves on this machine: `python -m slave` processes run from the extension's root folder,
+bound to loopback and not advertised (only this master uses them). A frame session starts them
+when no other slave is known and keeps them between frames; closing it stops them."""
 from __future__ import annotations
 
 import os
@@ -17,19 +8,16 @@ import pathlib
 import platform
 import queue
 import re
-import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
 
-from ..core.net.protocol import SECRET_ENV
+from ..net.protocol import SECRET_ENV
 
-EXTENSION_ROOT = pathlib.Path(__file__).resolve().parent.parent
+EXTENSION_ROOT = pathlib.Path(__file__).resolve().parent.parent.parent
 READY_LINE = re.compile(r"listening on (?P<host>[^\s:]+):(?P<port>\d+)")
-COMMAND = "kdtrace_slave"
-_command_handle = None
 
 
 class LocalSlaveError(RuntimeError):
@@ -167,39 +155,3 @@ class LocalSlaves:
         for slave in self._slaves:
             slave.stop()
         self._slaves.clear()
-
-
-def run_command(argv: list) -> int:
-    """The `kdtrace_slave` command: the standalone slave with these arguments, as a child process
-    (the add-on never imports the slave), until it ends; SIGTERM and Ctrl-C stop it."""
-    env = slave_environment(KDTRACE_SLAVE_PROG=f"blender --background --command {COMMAND}")
-    process = subprocess.Popen([sys.executable, "-m", "slave", *argv], cwd=EXTENSION_ROOT, env=env)
-    previous = {}
-    for name in ("SIGTERM", "SIGINT"):
-        number = getattr(signal, name)
-        try:
-            previous[number] = signal.signal(number, lambda *_: process.terminate())
-        except ValueError:   # not Blender's main thread: nothing to pass on
-            pass
-    try:
-        return process.wait()
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
-        if process.poll() is None:
-            process.terminate()
-            process.wait()
-
-
-def register_command():
-    global _command_handle
-    import bpy
-    _command_handle = bpy.utils.register_cli_command(COMMAND, run_command)
-
-
-def unregister_command():
-    global _command_handle
-    if _command_handle is not None:
-        import bpy
-        bpy.utils.unregister_cli_command(_command_handle)
-        _command_handle = None
