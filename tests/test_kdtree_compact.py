@@ -13,10 +13,10 @@ import functools
 import numpy as np
 import pytest
 
+from core.accel.arrays import distinct_count
+from core.accel.compact import (LEAF_TAG, MODES, NO_TRIANGLE, _lift_candidates, _neighbour_lcas,
+                                _Topology, compact_params, compact_tree, geometry_nbytes)
 from core.accel.kdtree import KDTree, build_kdtree
-from core.accel.compact import (LEAF_TAG, MODES, NO_TRIANGLE, _distinct_count,
-                                 _lift_candidates, _neighbour_lcas, _Topology, compact_params,
-                                 compact_tree, geometry_nbytes)
 from tests.meshes import load_bunny, uv_sphere
 from tests.scenes_architecture import architecture_scene
 
@@ -658,4 +658,4 @@ def test_distinct_count_is_the_number_of_unique_values():
     rng = np.random.default_rng(7)
     for values in (rng.integers(0, 1000, 5000), rng.integers(0, 10, 3), np.zeros(0, np.int64),
                    np.array([0]), np.array([5, 5, 5], np.uint32)):
-        assert _distinct_count(values) == len(np.unique(values))
+        assert distinct_count(values) == len(np.unique(values))

@@ -31,6 +31,7 @@ import numpy as np
 from ..layout import (INNER_EMPTY_ABOVE, INNER_EMPTY_BELOW, INNER_GROUP, INNER_REF, LEAF16_BASE,
                       LEAF16_COUNT, LEAF16_INDEX_BITS, LEAF32_COUNT, LEAF_TAG, LEAF_WIDE,
                       NO_TRIANGLE, PLAIN_FIELD, PLAIN_TAG, TAG)
+from .arrays import concat_ranges, distinct_count, exclusive_cumsum, run_lengths, run_starts
 
 MODES = ("standard", "choi", "ours")
 MAX_GROUP_INDEX = INNER_GROUP.max
@@ -141,57 +142,6 @@ def geometry_nbytes(vertex_count: int, triangle_count: int, material_count: int 
     return parts
 
 
-# ---------------------------------------------------------------------------------------------
-# Helpers
-
-def _exclusive_cumsum(counts) -> np.ndarray:
-    out = np.zeros(len(counts) + 1, np.int64)
-    np.cumsum(counts, out=out[1:])
-    return out
-
-
-def _ranges(starts, lengths) -> np.ndarray:
-    """Concatenation of arange(s, s + n) for every (s, n)."""
-    lengths = np.asarray(lengths, np.int64)
-    total = int(lengths.sum())
-    if not total:
-        return np.zeros(0, np.int64)
-    shift = np.asarray(starts, np.int64) - _exclusive_cumsum(lengths)[:-1]
-    return np.arange(total, dtype=np.int64) + np.repeat(shift, lengths)
-
-
-def _run_lengths(values) -> np.ndarray:
-    """How often each distinct value occurs (np.unique's counts), without a sort where the
-    values come sorted (the kernel compaction's lifts come by node: 0.5 s less for 12
-    dragons' 5 M)."""
-    values = np.asarray(values)
-    if len(values) and not (values[1:] >= values[:-1]).all():
-        return np.unique(values, return_counts=True)[1]
-    return np.diff(np.append(_run_starts(values), len(values)))
-
-
-def _distinct_count(values) -> int:
-    """How many distinct values (non-negative integers) there are: marks in a bool array, half
-    the time of np.bincount's counts (12 dragons' 5 M lifted triangles: 0.10 s against 0.21 s,
-    a stretch without a progress call at the compaction's end)."""
-    values = np.asarray(values)
-    seen = np.zeros(int(values.max(initial=-1)) + 1, bool)
-    seen[values] = True
-    return int(np.count_nonzero(seen))
-
-
-def _run_starts(*keys) -> np.ndarray:
-    """Start positions of runs of equal consecutive key tuples."""
-    n = len(keys[0])
-    if not n:
-        return np.zeros(0, np.int64)
-    change = np.zeros(n, bool)
-    change[0] = True
-    for key in keys:
-        change[1:] |= key[1:] != key[:-1]
-    return np.flatnonzero(change)
-
-
 def level_ranges(is_leaf: np.ndarray, field: np.ndarray):
     """The level ranges of a tree in the builders' order (breadth-first, the k-th inner
     node's children at 1 + 2k: then level k + 1 starts where level k ends, and ends at 1 + 2
@@ -200,7 +150,7 @@ def level_ranges(is_leaf: np.ndarray, field: np.ndarray):
     if len(is_leaf) != 1 + 2 * len(inner) or not np.array_equal(
             field[inner], 1 + 2 * np.arange(len(inner))):
         return None
-    inner_before = _exclusive_cumsum(~is_leaf)
+    inner_before = exclusive_cumsum(~is_leaf)
     ranges = [(0, 1)]
     while True:
         a, b = ranges[-1]
@@ -383,7 +333,7 @@ class _Topology:
         count = self.field[leaves]
         offset = tree.nodes[leaves, 1].astype(np.int64)
         ref_leaf = np.repeat(leaves, count)
-        ref_tri = tree.leaf_indices[_ranges(offset, count)].astype(np.int64)
+        ref_tri = tree.leaf_indices[concat_ranges(offset, count)].astype(np.int64)
         return ref_leaf, ref_tri
 
 
@@ -530,12 +480,12 @@ def _choose_lifts(cand, removed, on_path_of, params):
     node, tri, r, first, end = node[live], tri[live], r[live], first[live], end[live]
     order = np.lexsort((tri, -r, node))
     node, tri, first, end = node[order], tri[order], first[order], end[order]
-    group = _run_starts(node)
+    group = run_starts(node)
     rank = np.arange(len(node)) - np.repeat(group, np.diff(np.append(group, len(node))))
     path_cap = params.refs_per_path if params.refs_per_path is not None else 1 << 30
     cap = np.minimum(params.refs_per_node, path_cap - on_path_of(node))
     take = rank < cap
-    removed[_ranges(first[take], end[take] - first[take])] = True
+    removed[concat_ranges(first[take], end[take] - first[take])] = True
     return node[take], tri[take], first[take]
 
 
@@ -552,7 +502,7 @@ def _select_lifts(topo, per_depth, ref_count, params):
         cand = per_depth[d] if d < len(per_depth) else None
         if cand is not None and len(cand[0]) and params.refs_per_node:
             taken, tri, first = _choose_lifts(cand, removed, lambda nodes: on_path[nodes], params)
-            runs = _run_starts(taken)                      # one run per node
+            runs = run_starts(taken)                      # one run per node
             refs_at[taken[runs]] += np.diff(np.append(runs, len(taken)))
             lift_node.append(taken)
             lift_tri.append(tri)
@@ -715,7 +665,7 @@ def _finish(tree, params, standard_nodes, reference_count, collapsed_subtrees, l
     _layout's result, item_count the final leaves' references, lift_node / lift_tri the lifts
     that stay."""
     nodes, leaf32, leaf16, shift, kinds, leaf_stats = laid_out
-    per_node = _run_lengths(lift_node)
+    per_node = run_lengths(lift_node)
     out = CompactTree(nodes, leaf32, leaf16, tree.bounds.astype(np.float32), shift, params)
     out.stats = {
         "mode": params.mode,
@@ -726,7 +676,7 @@ def _finish(tree, params, standard_nodes, reference_count, collapsed_subtrees, l
         "leaf_references": int(item_count),
         "references_removed": reference_count - int(item_count),
         "inner_references": int(len(lift_tri)),
-        "lifted_triangles": _distinct_count(lift_tri),
+        "lifted_triangles": distinct_count(lift_tri),
         "tref_nodes": int(len(per_node)),
         "nodes_with_two_refs": int((per_node > 1).sum()),
         "max_refs_on_path": max_path,
@@ -802,7 +752,7 @@ def _standard_reencoded(tree, triangles_count, params):
     leaves = np.flatnonzero(is_leaf)
     count = field[leaves]
     nonempty = count > 0
-    offset = _exclusive_cumsum(count)
+    offset = exclusive_cumsum(count)
     if (int(offset[-1]) != len(lists) or (count > MAX_LEAF32_COUNT).any()
             or not np.array_equal(nodes[leaves[nonempty], 1], offset[:-1][nonempty])):
         return None
@@ -850,7 +800,7 @@ def _layout(topo, params, is_final_leaf, dead, final_count, item_tri, lift_node,
     # Slot of every lift: 0 or 1 within its node.
     order = np.lexsort((lift_tri, lift_node))
     lift_node, lift_tri = lift_node[order], lift_tri[order]
-    first = _run_starts(lift_node)
+    first = run_starts(lift_node)
     slot = np.arange(len(lift_node)) - np.repeat(first, np.diff(np.append(first, len(lift_node))))
 
     new_index = np.full(topo.n, -1, np.int64)
@@ -873,7 +823,7 @@ def _layout(topo, params, is_final_leaf, dead, final_count, item_tri, lift_node,
         keep_b = (~elided[child]).astype(np.int64)
         keep_a = (~elided[child + 1]).astype(np.int64)
         sizes = has_ref + keep_b + keep_a
-        start = next_free + _exclusive_cumsum(sizes)[:-1]
+        start = next_free + exclusive_cumsum(sizes)[:-1]
         group_of[inner] = start
         new_index[child] = np.where(keep_b > 0, start + has_ref, -1)
         new_index[child + 1] = np.where(keep_a > 0, start + has_ref + keep_b, -1)
@@ -901,7 +851,7 @@ def _layout(topo, params, is_final_leaf, dead, final_count, item_tri, lift_node,
     leaves = np.flatnonzero(is_final_leaf & ~elided)
     count = final_count[leaves]
     shift = _leaf_shift(triangles_count)
-    starts = _exclusive_cumsum(final_count)[:-1][leaves]
+    starts = exclusive_cumsum(final_count)[:-1][leaves]
     nonempty = count > 0
     low = np.zeros(len(leaves), np.int64)
     high = np.zeros(len(leaves), np.int64)
@@ -916,8 +866,8 @@ def _layout(topo, params, is_final_leaf, dead, final_count, item_tri, lift_node,
     idx32 = item_tri[~item_is16].astype(np.uint32)
     idx16 = (item_tri[item_is16] - np.repeat((base << shift)[fits16], count[fits16])
              ).astype(np.uint16)
-    off32 = _exclusive_cumsum(np.where(fits16, 0, count))[:-1]
-    off16 = _exclusive_cumsum(np.where(fits16, count, 0))[:-1]
+    off32 = exclusive_cumsum(np.where(fits16, 0, count))[:-1]
+    off16 = exclusive_cumsum(np.where(fits16, count, 0))[:-1]
     word0 = np.where(fits16, TAG.put(LEAF_TAG) | LEAF_WIDE.bit | LEAF16_COUNT.put(count)
                      | LEAF16_BASE.put(base), TAG.put(LEAF_TAG) | LEAF32_COUNT.put(count))
     word1 = np.where(fits16, off16, np.where(nonempty, off32, 0))

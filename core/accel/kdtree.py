@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..layout import LEAF_TAG, PLAIN_FIELD     # the node format: core/layout.py PLAIN_NODE
+from .arrays import exclusive_cumsum
 
 MAX_NODE_FIELD = PLAIN_FIELD.max    # word 0 bits 2-31: child index or leaf reference count
 
@@ -82,12 +83,6 @@ def _round_up_f32(x: np.ndarray) -> np.ndarray:
     """The smallest float32 >= x (x float64)."""
     f = x.astype(np.float32)
     return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f)
-
-
-def _exclusive_cumsum(counts: np.ndarray) -> np.ndarray:
-    out = np.zeros(len(counts) + 1, np.int64)
-    np.cumsum(counts, out=out[1:])
-    return out
 
 
 # A reference is one row of 7 float32 words: box lo (3), box hi (3), triangle id (int32 bits),
@@ -220,7 +215,7 @@ def _split_piece_boxes(poly, count, axis, plane):
     cross_hi = np.full((3, K), -np.inf)
     if len(row):
         cut = np.flatnonzero(n_cross)
-        first = _exclusive_cumsum(n_cross[cut])[:-1]
+        first = exclusive_cumsum(n_cross[cut])[:-1]
         cross_lo[:, cut] = np.minimum.reduceat(point, first, axis=1)
         cross_hi[:, cut] = np.maximum.reduceat(point, first, axis=1)
     del point
@@ -329,7 +324,7 @@ def _binned_best_splits(params, cell_lo, cell_hi, counts, ref_lo, ref_hi):
     bins = np.clip(np.round(params.bins_per_reference * counts), params.min_bins,
                    params.max_bins).astype(np.int64)
     B = int(bins.max())
-    ref_start = _exclusive_cumsum(counts)[:-1]
+    ref_start = exclusive_cumsum(counts)[:-1]
     ref_row = np.repeat(np.arange(node_count) * B, counts)
     ref_last_bin = np.repeat(bins - 1, counts).astype(np.float32)
     k = np.arange(B)[None, :]
@@ -624,7 +619,9 @@ BINNED_CHUNK = 1024               # nodes per binned-SAH step (cost arrays stay 
 CHAIN = 6                         # later decisions carried down chains of empty-space cuts
 
 
-def _root_bounds(boxes_lo, boxes_hi, vertices):
+def root_bounds(boxes_lo, boxes_hi, vertices):
+    """The root cell (2, 3) float32: the boxes' bounds (the vertices' when there are none),
+    flat axes padded, rounded outward to float32; both builders take it from here."""
     if len(boxes_lo):
         lo, hi = boxes_lo.min(0).astype(np.float64), boxes_hi.max(0).astype(np.float64)
     elif len(vertices):
@@ -673,11 +670,11 @@ def _best_splits(params, cell_lo, cell_hi, counts, ref_start, refs, chain):
         if int(counts[big].sum()) < len(refs):       # the big nodes' references only
             big_counts = counts[big]
             ref_sel = np.arange(int(big_counts.sum())) + np.repeat(
-                ref_start[big] - _exclusive_cumsum(big_counts)[:-1], big_counts)
+                ref_start[big] - exclusive_cumsum(big_counts)[:-1], big_counts)
             refs = _gather_refs(refs, ref_sel)
         # In chunks of BINNED_CHUNK nodes: the (nodes, bins) cost arrays stay in cache.
         ref_lo, ref_hi = refs[:, 0:3], refs[:, 3:6]
-        big_first = _exclusive_cumsum(counts[big])
+        big_first = exclusive_cumsum(counts[big])
         for at in range(0, len(big), BINNED_CHUNK):
             part = big[at:at + BINNED_CHUNK]
             refs = slice(big_first[at], big_first[at + len(part)])
@@ -750,7 +747,7 @@ def _step(fr: _Frontier, level: int, ctx: _BuildContext):
     params = ctx.params
     cell_lo, cell_hi, counts, refs = fr.cell_lo, fr.cell_hi, fr.counts, fr.refs
     node_count = len(counts)
-    ref_start = _exclusive_cumsum(counts)
+    ref_start = exclusive_cumsum(counts)
     dims = cell_hi.astype(np.float64) - cell_lo
     area = _surface_area(dims)
 
@@ -788,7 +785,7 @@ def _step(fr: _Frontier, level: int, ctx: _BuildContext):
     cand = np.flatnonzero(has_plane)          # all non-empty
     sel = np.flatnonzero(ref_has_plane)
     sel_counts = counts[cand]
-    sel_starts = _exclusive_cumsum(sel_counts)[:-1]
+    sel_starts = exclusive_cumsum(sel_counts)[:-1]
     flat_index = REF_WORDS * sel + np.repeat(axis[cand], sel_counts)
     ref_plane = np.repeat(plane[cand], sel_counts)
     lo_on_axis = refs.reshape(-1)[flat_index]
@@ -868,18 +865,18 @@ def _step(fr: _Frontier, level: int, ctx: _BuildContext):
 
     # Children in parent order, each parent's below child first: node j's children are
     # 2 rank(j) and 2 rank(j) + 1. References keep their order within a child.
-    seg = _exclusive_cumsum(split_counts)[:-1]
+    seg = exclusive_cumsum(split_counts)[:-1]
     n_child_below = np.add.reduceat(goes_below, seg, dtype=np.int64)
     n_child_above = np.add.reduceat(goes_above, seg, dtype=np.int64)
     child_counts = np.stack([n_child_below, n_child_above], 1).reshape(-1)
-    child_start = _exclusive_cumsum(child_counts)
+    child_start = exclusive_cumsum(child_counts)
     total = int(child_start[-1])
     new_src = np.empty(total, np.int64)
     at_straddler = []
     for side, goes, n_child in ((0, goes_below, n_child_below), (1, goes_above, n_child_above)):
         pos_in_src = np.flatnonzero(goes)
         shift = child_start[0::2][:-1] if side == 0 else child_start[1::2]
-        shift = shift - _exclusive_cumsum(n_child)[:-1]
+        shift = shift - exclusive_cumsum(n_child)[:-1]
         where = np.arange(len(pos_in_src)) + np.repeat(shift, n_child)
         new_src[where] = src[pos_in_src]
         if len(straddles):
@@ -1002,7 +999,7 @@ def _write_nodes(levels: list) -> tuple:
         if (~make_leaf).any() and first_child.max() > MAX_NODE_FIELD:
             raise ValueError("kd-tree too large for the 30-bit child index")
         leaf_counts = np.where(make_leaf, PLAIN_FIELD.get(words[:, 0]), 0).astype(np.int64)
-        leaf_offset = leaf_total + _exclusive_cumsum(leaf_counts)[:-1]
+        leaf_offset = leaf_total + exclusive_cumsum(leaf_counts)[:-1]
         words[:, 0] |= np.where(make_leaf, 0, PLAIN_FIELD.put(first_child)).astype(np.uint32)
         words[:, 1] |= np.where(make_leaf, leaf_offset, 0).astype(np.uint32)
         level_base += len(words)
@@ -1047,7 +1044,7 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
     refs[:, 0:3] = corners[kept].min(1)                               # exact: corners are float32
     refs[:, 3:6] = corners[kept].max(1)
     refs[:, 6].view(np.int32)[:] = kept
-    bounds = _root_bounds(refs[:, 0:3], refs[:, 3:6], vertices)
+    bounds = root_bounds(refs[:, 0:3], refs[:, 3:6], vertices)
 
     ctx = _BuildContext(params, params.depth_cap(triangle_count), corners,
                         float(_surface_area(bounds[1].astype(np.float64) - bounds[0])))

@@ -27,9 +27,9 @@ import time
 import numpy as np
 
 from ..layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
+from .arrays import concat_ranges, exclusive_cumsum
 from .buffer_pool import MIN_POOLED_BYTES, BufferPool
-from .compact import _exclusive_cumsum, _ranges
-from .kdtree import KDTree, KDTreeParams, _root_bounds, checked_mesh
+from .kdtree import KDTree, KDTreeParams, checked_mesh, root_bounds
 
 KERNEL_FILES = ("build/fp64.cl", "build/common.cl", "build/split.cl", "build/big.cl",
                 "build/subtree.cl", "build/layout.cl")
@@ -372,7 +372,7 @@ class _BuildState:
         else:
             lo = hi = np.zeros(0, np.float32)
         self.refs, self.kept = refs, kept
-        return kept, _root_bounds(lo.reshape(-1, 3), hi.reshape(-1, 3), self.vertex_array) + np.float32(0)
+        return kept, root_bounds(lo.reshape(-1, 3), hi.reshape(-1, 3), self.vertex_array) + np.float32(0)
 
     # -- queue of subtree references ------------------------------------------------------------
     def _reserve_queue(self, extra):
@@ -389,7 +389,7 @@ class _BuildState:
     def _add_roots(self, lo, hi, level, bad, key, count):
         """New subtree roots whose references are about to be written to the queue, in this
         order; returns their first places in the queue."""
-        start = self.queue_used + _exclusive_cumsum(count)[:-1]
+        start = self.queue_used + exclusive_cumsum(count)[:-1]
         self._reserve_queue(int(count.sum()))
         self.queue_used += int(count.sum())
         self.roots.append(dict(lo=lo, hi=hi, level=np.broadcast_to(level, len(count)).astype(np.int64),
@@ -419,10 +419,10 @@ class _BuildState:
                         f"kd-tree level {level}: {len(count)} big nodes, {int(count.sum())} references")
             m = len(count)
             per_node = -(-count // CH)
-            chunk_first = _exclusive_cumsum(per_node)
+            chunk_first = exclusive_cumsum(per_node)
             C = int(chunk_first[-1])
             chunk_node = np.repeat(np.arange(m), per_node)
-            ref_first = _exclusive_cumsum(count)
+            ref_first = exclusive_cumsum(count)
             within = np.arange(C) - np.repeat(chunk_first[:-1], per_node)
             chunk_start = ref_first[:-1][chunk_node] + within * CH
             chunk_count = np.minimum(CH, count[chunk_node] - within * CH)
@@ -471,7 +471,7 @@ class _BuildState:
             # Next level: big children in node order, below before above.
             big_flat = big_child.reshape(-1)
             big_start = np.zeros(2 * m, np.int64)
-            big_start[big_flat] = _exclusive_cumsum(child_n.reshape(-1)[big_flat])[:-1]
+            big_start[big_flat] = exclusive_cumsum(child_n.reshape(-1)[big_flat])[:-1]
             next_total = int(child_n.reshape(-1)[big_flat].sum())
             # Queue: per node the leaf itself, or its small children, in node order.
             to_queue = np.zeros((m, 2), bool)
@@ -499,7 +499,7 @@ class _BuildState:
             for side in (0, 1):
                 flat = 2 * chunk_node + side
                 base = np.where(q_flat[flat], q_start[flat], big_start[flat])
-                offset = _exclusive_cumsum(out[:, side])
+                offset = exclusive_cumsum(out[:, side])
                 node_offset = offset[chunk_first[:-1]]
                 dest[:, 2 * side] = q_flat[flat]
                 dest[:, 2 * side + 1] = base + offset[:-1] - node_offset[chunk_node]
@@ -569,8 +569,8 @@ class _BuildState:
             rec_cap = f * (12 * n + 64)
             leaf_cap = f * (8 * n + 64)
             scr_cap = f * (4 * n + 64)
-            rec_off, leaf_off, scr_off = _exclusive_cumsum(rec_cap), _exclusive_cumsum(leaf_cap), _exclusive_cumsum(scr_cap)
-            lvl_off = _exclusive_cumsum(span[batch])
+            rec_off, leaf_off, scr_off = exclusive_cumsum(rec_cap), exclusive_cumsum(leaf_cap), exclusive_cumsum(scr_cap)
+            lvl_off = exclusive_cumsum(span[batch])
             need = (int(rec_off[-1]), int(leaf_off[-1]), int(scr_off[-1]))
             if any(x > y for x, y in zip(need, sizes)):
                 sizes = tuple(max(x, y) for x, y in zip(need, sizes))
@@ -616,7 +616,7 @@ class _BuildState:
                 levels_table = b._read(d_levels, u4, (int(lvl_off[-1]), 2))
                 n_rec, n_leaf = result[ok, 1], result[ok, 2]
                 self.levels[good] = result[ok, 3]
-                level_pieces.append((good, levels_table[_ranges(lvl_off[:-1][ok], result[ok, 3])]))
+                level_pieces.append((good, levels_table[concat_ranges(lvl_off[:-1][ok], result[ok, 3])]))
                 chunk, rec_at, leaf_at = store.append(records, leafbuf, rec_off[:-1][ok], n_rec,
                                                       leaf_off[:-1][ok], n_leaf)
                 self.chunk_of[good], self.rec_start[good], self.leaf_start[good] = \
@@ -631,9 +631,9 @@ class _BuildState:
                         f"kd-tree subtrees: {done_refs:,} of {total_refs:,} references")
         # Per-level counts in subtree order.
         self.level_counts = np.zeros((int(self.levels.sum()), 2), np.int64)
-        first = _exclusive_cumsum(self.levels)[:-1]
+        first = exclusive_cumsum(self.levels)[:-1]
         for ids, rows in level_pieces:
-            self.level_counts[_ranges(first[ids], self.levels[ids])] = rows
+            self.level_counts[concat_ranges(first[ids], self.levels[ids])] = rows
 
     # -- final layout -----------------------------------------------------------------------------
     def layout(self):
@@ -644,7 +644,7 @@ class _BuildState:
         levels = self.levels
         # Entries: every (subtree, relative level) and every big inner node.
         sub_of = np.repeat(np.arange(n_sub), levels)
-        rel = np.arange(int(levels.sum())) - np.repeat(_exclusive_cumsum(levels)[:-1], levels)
+        rel = np.arange(int(levels.sum())) - np.repeat(exclusive_cumsum(levels)[:-1], levels)
         counts = self.level_counts
         inner_level = np.concatenate([np.full(len(x["key"]), x["level"]) for x in self.inner]) \
             if self.inner else np.zeros(0, np.int64)
@@ -656,8 +656,8 @@ class _BuildState:
         order = np.lexsort((e_key, e_level))
         node_base = np.empty(len(order), np.int64)
         leaf_base = np.empty(len(order), np.int64)
-        node_base[order] = _exclusive_cumsum(e_nodes[order])[:-1]
-        leaf_base[order] = _exclusive_cumsum(e_leaf[order])[:-1]
+        node_base[order] = exclusive_cumsum(e_nodes[order])[:-1]
+        leaf_base[order] = exclusive_cumsum(e_leaf[order])[:-1]
         total_nodes = int(e_nodes.sum())
         total_refs = int(e_leaf.sum())
         if total_nodes - 1 > PLAIN_FIELD.max:
@@ -666,7 +666,7 @@ class _BuildState:
         nsub_entries = len(sub_of)
         bases = np.stack([node_base[:nsub_entries], leaf_base[:nsub_entries]], 1).astype(u4)
         places = np.stack([self.rec_start, self.rec_count, self.leaf_start,
-                           _exclusive_cumsum(levels)[:-1]], 1).astype(u4)
+                           exclusive_cumsum(levels)[:-1]], 1).astype(u4)
         d_nodes = b.buffers.standalone(8 * total_nodes)       # _take: they outlive the build
         d_leaves = b.buffers.standalone(4 * total_refs)
         d_bases = b._buffer(bases)
@@ -731,8 +731,8 @@ class _Store:
         if c is None or c.records + need_rec > c.rec_capacity or c.refs + need_refs > c.ref_capacity:
             c = _Chunk(b, max(need_rec, self.CHUNK_RECORDS), max(need_refs, self.CHUNK_REFS))
             self.chunks.append(c)
-        rec_dst = c.records + _exclusive_cumsum(rec_n)[:-1]
-        leaf_dst = c.refs + _exclusive_cumsum(leaf_n)[:-1]
+        rec_dst = c.records + exclusive_cumsum(rec_n)[:-1]
+        leaf_dst = c.refs + exclusive_cumsum(leaf_n)[:-1]
         moves = np.stack([rec_src, rec_dst, rec_n, leaf_src, leaf_dst, leaf_n], 1).astype(np.uint32)
         b._run(self.kernel, len(moves), records[0], records[1], leafbuf, b._buffer(moves),
                c.words, c.meta, c.leaf_refs, np.uint32(len(moves)))

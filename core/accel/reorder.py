@@ -20,7 +20,8 @@ import numpy as np
 
 from ..layout import (INNER_EMPTY_ABOVE, INNER_EMPTY_BELOW, INNER_GROUP, INNER_REF, LEAF16_COUNT,
                       LEAF32_COUNT, LEAF_TAG, LEAF_WIDE, TAG)
-from .compact import CompactTree, _exclusive_cumsum, _ranges
+from .arrays import concat_ranges, exclusive_cumsum
+from .compact import CompactTree
 
 # Levels per treelet. Measured on the dragon (docs/tracer.md): a treelet of 3 levels holds
 # about 8-12 nodes (one or two 64-byte lines); 2 and 4 levels are slower.
@@ -56,7 +57,7 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
         level = np.stack([below, above], 1)[stored]
         parents = np.stack([inner, inner], 1)[stored]      # a mask: faster than np.repeat
     inner = np.concatenate(inner_levels)                    # breadth-first order
-    level_start = _exclusive_cumsum([len(x) for x in inner_levels])
+    level_start = exclusive_cumsum([len(x) for x in inner_levels])
     depth = np.repeat(np.arange(len(inner_levels)), np.diff(level_start))
 
     def at_depth(d):
@@ -95,7 +96,7 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
     # One int64 key (preorder numbers are below 2^27 = INNER_GROUP's range, depths below 2^8).
     key = (preorder[root] << 35) | ((depth - depth[root]) << 27) | preorder
     order = np.argsort(key, kind="stable")
-    new_group = 1 + _exclusive_cumsum(group_size[order])[:-1]     # node 0 is the root
+    new_group = 1 + exclusive_cumsum(group_size[order])[:-1]     # node 0 is the root
     # Each group's nodes keep their places in it (a group has at most 3: one pass per place).
     new_index = np.zeros(len(nodes), np.int64)
     old_group, sizes = group[order], group_size[order]
@@ -120,8 +121,8 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
         pick = leaves[wide == is16]
         count = (LEAF16_COUNT if is16 else LEAF32_COUNT).get(w0[pick])
         offset = nodes[pick, 1].astype(np.int64)
-        lists[is16] = np.asarray(index)[_ranges(offset, count)]
-        new_offset = np.where(count > 0, _exclusive_cumsum(count)[:-1], 0)
+        lists[is16] = np.asarray(index)[concat_ranges(offset, count)]
+        new_offset = np.where(count > 0, exclusive_cumsum(count)[:-1], 0)
         out[new_index[pick], 1] = new_offset.astype(np.uint32)
     return CompactTree(out, np.ascontiguousarray(lists[False], np.uint32),
                        np.ascontiguousarray(lists[True], np.uint16), tree.bounds, tree.leaf_shift,

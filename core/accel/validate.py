@@ -7,7 +7,7 @@ import numpy as np
 from ..layout import (INNER_EMPTY_ABOVE, INNER_EMPTY_BELOW, INNER_GROUP, INNER_REF, LEAF16_BASE,
                       LEAF16_COUNT, LEAF32_COUNT, LEAF_TAG, LEAF_WIDE, MAX_LEAF_SHIFT,
                       NO_TRIANGLE, TAG)
-from .compact import _exclusive_cumsum, _ranges
+from .arrays import concat_ranges, exclusive_cumsum
 
 MAX_DEPTH = 1024
 PIECE = 1 << 21     # leaves decoded and checked between two heartbeats
@@ -129,8 +129,8 @@ def validate_compact(nodes, leaf_index32, leaf_index16, bounds, leaf_shift,
                 values = index[off[0]:ends[-1]]
                 starts = off - off[0]
             else:
-                values = index[_ranges(off, count)]
-                starts = _exclusive_cumsum(count)[:-1]
+                values = index[concat_ranges(off, count)]
+                starts = exclusive_cumsum(count)[:-1]
             top = np.maximum.reduceat(values, starts).astype(np.int64) + base
             if (top >= T).any():
                 raise ValueError("a kd-tree leaf refers to a triangle that does not exist")
