@@ -14,7 +14,7 @@ def _fill(builder, buffer, value, nbytes):
 
 
 def _read(builder, buffer, nbytes):
-    return builder._read(buffer, np.uint32, nbytes // 4)
+    return builder.read(buffer, np.uint32, nbytes // 4)
 
 
 def test_freed_regions_are_lent_again_and_held_ones_never():

@@ -291,12 +291,11 @@ __kernel void clip_cases(__global const float* corners, __global const float* ce
 
 
 def run_kernel(b, source, name, count, *arrays, out_shape, out_dtype):
-    cl = b._cl
-    buffers = [b._buffer(np.ascontiguousarray(a)) for a in arrays]
-    out = b._buffer(nbytes=np.dtype(out_dtype).itemsize * int(np.prod(out_shape)))
+    buffers = [b.buffer(np.ascontiguousarray(a)) for a in arrays]
+    out = b.buffer(nbytes=np.dtype(out_dtype).itemsize * int(np.prod(out_shape)))
     kernel = b.program(kernel_source(SPLIT_FILES) + source)[name]
     kernel(b.queue, (count,), None, *buffers, out, np.uint32(count))
-    return b._read(out, out_dtype, out_shape)
+    return b.read(out, out_dtype, out_shape)
 
 
 @pytest.mark.parametrize("soft", [False, True])
@@ -516,7 +515,6 @@ def test_kernel_compaction_topology_level_by_level_or_depth_first(builder, monke
     # last 4 levels, the compact tree is the same.
     monkeypatch.setattr(compact_cl, "TOPO_ROOTS", roots)
     monkeypatch.setattr(compact_cl, "TOPO_STACK", stack)
-    monkeypatch.setattr(builder, "_compactor", compact_cl.CompactorCL(builder), raising=False)
     tree, triangle_count = compact_scene("bunny")
     same_compact(compact_tree(tree, triangle_count, "ours", device=builder),
                  compact_tree(tree, triangle_count, "ours"))

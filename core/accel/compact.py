@@ -32,6 +32,7 @@ from ..layout import (INNER_EMPTY_ABOVE, INNER_EMPTY_BELOW, INNER_GROUP, INNER_R
                       LEAF16_COUNT, LEAF16_INDEX_BITS, LEAF32_COUNT, LEAF_TAG, LEAF_WIDE,
                       NO_TRIANGLE, PLAIN_FIELD, PLAIN_TAG, TAG)
 from .arrays import concat_ranges, distinct_count, exclusive_cumsum, run_lengths, run_starts
+from .compact_cl import compact_on_device
 
 MODES = ("standard", "choi", "ours")
 MAX_GROUP_INDEX = INNER_GROUP.max
@@ -567,10 +568,10 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
     `refs_per_path=-1` keeps the mode's default (8 for `ours`, unlimited for `choi`); None means
     unlimited. Other CompactParams fields (min_refs, collapse, elide_empty, leaf16) may be
     overridden by keyword. `progress(fraction, message)` is called after each step.
-    `device`: an OpenCL device (a core.opencl.select_device spec, or a
-    core.accel.kdtree_cl.KDTreeBuilderCL to share its context) that runs the heavy steps as
-    kernels (core/accel/compact_cl.py) for trees in the builders' order; the result is the
-    same, bit for bit. None: numpy only.
+    `device`: an OpenCL device (a core.accel.device.DeviceContext, such as the
+    core.accel.kdtree_cl.KDTreeBuilderCL that built the tree, or a core.opencl.select_device
+    spec) that runs the heavy steps as kernels (core/accel/compact_cl.py) for trees in the
+    builders' order; the result is the same, bit for bit. None: numpy only.
     """
     started = time.perf_counter()
     overrides = dict(tau_occu=tau_occu, tau_freq=tau_freq, refs_per_node=refs_per_node, **options)
@@ -590,10 +591,10 @@ def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float
             return out
 
     if device is not None:
-        from .compact_cl import compact_on_device
-        out = compact_on_device(device, tree, triangles_count, params, report, started)
-        if out is not None:
-            return out
+        parts = compact_on_device(device, tree, triangles_count, params,
+                                  _leaf_shift(triangles_count), report)
+        if parts is not None:
+            return _finish(tree, params, *parts, started, report)
 
     topo = _Topology(tree)
     ref_leaf, ref_tri = topo.leaf_references(tree)

@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import compact as host
+from ..layout import INNER_GROUP, LEAF16_INDEX_BITS, LEAF32_COUNT
+from ..opencl import kernel_source
 from .arrays import exclusive_cumsum, run_starts
+from .device import DeviceContext, device_for
 
 KERNEL_FILES = ("build/fp64.cl", "build/common.cl", "build/compact.cl")
 U4 = np.uint32
@@ -27,63 +29,33 @@ PIECE_CLIMBS = 1 << 19     # lift_candidates and neighbour_lcas walk up the tree
 PIECE_NODES = 1 << 22      # the other steps' launches: of this many nodes or references
                            # (smaller pieces cost time: 1 M, 5 % of 12 dragons' compaction)
 PIECE_SUBTREE_NODES = 1 << 20  # topo_subtrees' launches: roots of about this many nodes
-                           # (about 0.08 s on 2 CPU threads; 4 M nodes took 0.3 s)
-FILL_BYTES = 64 << 20      # zeros(): fills of this many bytes
 
 
 class CompactorCL:
-    """Kernel compaction on a kd-tree builder's device (core.accel.kdtree_cl.KDTreeBuilderCL)."""
+    """One compaction's kernel steps on a DeviceContext (device.py): its kernels, launched
+    over the tree's levels and ranges; every buffer comes from and goes back to the device's
+    pool."""
 
-    def __init__(self, builder, local_size=None):
-        from ..opencl import kernel_source
-        self.b = builder
+    def __init__(self, device: DeviceContext, local_size=None):
+        self.device = device
         # Many small work-items: work-groups of them (PoCL pays per work-group).
-        self.local_size = local_size or (256 if builder.is_cpu else 64)
-        options = [f"-DPRIVATE_GAPS={PRIVATE_GAPS}u", f"-DTOPO_STACK={TOPO_STACK}"]
-        if builder.soft_fp64:
-            options.append("-DKDTRACE_SOFT_FP64")
-        self.k = builder._programs.kernels(kernel_source(KERNEL_FILES), options)
+        self.local_size = local_size or (256 if device.is_cpu else 64)
+        self.k = device.kernels(kernel_source(KERNEL_FILES),
+                                [f"-DPRIVATE_GAPS={PRIVATE_GAPS}u", f"-DTOPO_STACK={TOPO_STACK}"])
 
     # -- helpers ---------------------------------------------------------------------------
     def run(self, name, count, *args, piece=None):
-        self.b._run(self.k[name], count, *args, local_size=self.local_size,
-                    piece=piece or PIECE_NODES)
-
-    def zeros(self, nbytes):
-        """A new buffer of zeros, filled in pieces: a fresh buffer's pages are first touched
-        by the fill (a 300 MB one took 0.2 s), and Esc is seen between the pieces."""
-        b = self.b
-        nbytes = max(int(nbytes), 4)
-        buffer = b._buffer(nbytes=nbytes)
-        for start in range(0, nbytes, FILL_BYTES):
-            b._cl.enqueue_fill_buffer(b.queue, buffer, np.uint8(0), start,
-                                      min(FILL_BYTES, nbytes - start))
-            if nbytes > FILL_BYTES:
-                b.heartbeat()
-        return buffer
-
-    def view(self, array):
-        """A read-only buffer of a host array: the array itself on CPU devices (no copy; the
-        array must outlive the buffer)."""
-        b, cl = self.b, self.b._cl
-        array = np.ascontiguousarray(array)
-        if b.is_cpu and array.nbytes:
-            return cl.Buffer(b.context, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR,
-                             hostbuf=array)
-        return b._buffer(array)
-
-    def value_at(self, buffer, index, dtype=U4) -> int:
-        out = np.empty(1, dtype)
-        self.b._cl.enqueue_copy(self.b.queue, out, buffer, src_offset=int(index) * out.itemsize)
-        return int(out[0])
+        """Kernel `name` over count work-items, in pieces of PIECE_NODES unless told."""
+        self.device.run(self.k[name], count, *args, local_size=self.local_size,
+                        piece=piece or PIECE_NODES)
 
     def gather(self, buffer, at, kernel="gather_values") -> np.ndarray:
         """buffer[at] on the host (uint32 values; kernel gather_bytes for uchar buffers)."""
         if not len(at):
             return np.zeros(0, np.int64)
-        out = self.b._buffer(nbytes=4 * len(at))
-        self.run(kernel, len(at), buffer, self.b._buffer(np.asarray(at, U4)), out, U4(len(at)))
-        return self.b._read(out, U4, len(at)).astype(np.int64)
+        out = self.device.buffer(nbytes=4 * len(at))
+        self.run(kernel, len(at), buffer, self.device.buffer(np.asarray(at, U4)), out, U4(len(at)))
+        return self.device.read(out, U4, len(at)).astype(np.int64)
 
     def set_counts(self, buffer, nodes):
         """buffer[node] += how often node appears in `nodes`."""
@@ -93,39 +65,39 @@ class CompactorCL:
     def add_at(self, buffer, places, values):
         """buffer[places] += values (distinct places)."""
         if len(places):
-            self.run("add_values", len(places), self.b._buffer(places.astype(U4)),
-                     self.b._buffer(values.astype(U4)), buffer, U4(len(places)))
+            self.run("add_values", len(places), self.device.buffer(places.astype(U4)),
+                     self.device.buffer(values.astype(U4)), buffer, U4(len(places)))
 
     def scan(self, values, n, out=None):
         """Exclusive prefix sum of n uints (into `out`, or in place); returns the total."""
-        b = self.b
+        d = self.device
         block = 4096
         blocks = max(1, -(-n // block))
-        sums = b._buffer(nbytes=8 * blocks)
+        sums = d.buffer(nbytes=8 * blocks)
         piece = max(1, PIECE_NODES // block)
-        b._run(self.k["block_sums"], blocks, values, sums, U4(n), U4(block), local_size=1,
-               piece=piece)
-        offsets = exclusive_cumsum(b._read(sums, np.uint64, blocks).astype(np.int64))
-        b._run(self.k["block_scan"], blocks, values, b._buffer(offsets[:-1].astype(np.uint64)),
-               values if out is None else out, U4(n), U4(block), local_size=1, piece=piece)
+        d.run(self.k["block_sums"], blocks, values, sums, U4(n), U4(block), local_size=1,
+              piece=piece)
+        offsets = exclusive_cumsum(d.read(sums, np.uint64, blocks).astype(np.int64))
+        d.run(self.k["block_scan"], blocks, values, d.buffer(offsets[:-1].astype(np.uint64)),
+              values if out is None else out, U4(n), U4(block), local_size=1, piece=piece)
         return int(offsets[-1])
 
     # -- steps -----------------------------------------------------------------------------
     def level_ranges(self, nodes, n):
         """The level ranges of a tree in the builders' order (compact.level_ranges), or None."""
-        flags = self.b._buffer(nbytes=4 * n)
+        flags = self.device.buffer(nbytes=4 * n)
         self.run("inner_flags", n, nodes, flags, U4(n))
         inner = self.scan(flags, n)                     # now: inner nodes before each node
         if n != 1 + 2 * inner:
             return None
-        bad = self.zeros(4)
+        bad = self.device.zeros(4)
         self.run("order_check", n, nodes, flags, bad, U4(n))
-        if self.value_at(bad, 0):
+        if self.device.value_at(bad, 0):
             return None
         ranges = [(0, 1)]
         while True:
             a, b = ranges[-1]
-            end = 1 + 2 * (inner if b == n else self.value_at(flags, b))
+            end = 1 + 2 * (inner if b == n else self.device.value_at(flags, b))
             if end == b:
                 return ranges
             ranges.append((b, end))
@@ -133,47 +105,47 @@ class CompactorCL:
     def topology(self, nodes, n, ranges, bounds):
         """Per node its preorder number (by node), and by preorder number the climb and walk
         records (compact.cl)."""
-        b = self.b
-        size, nonempty = b._buffer(nbytes=4 * n), b._buffer(nbytes=4 * n)
+        d = self.device
+        size, nonempty = d.buffer(nbytes=4 * n), d.buffer(nbytes=4 * n)
         for first, end in reversed(ranges):
             self.run("topo_up", end - first, nodes, size, nonempty, U4(first), U4(end))
-            b.heartbeat()
-        pre = b._buffer(nbytes=4 * n)
-        climb, walk = b._buffer(nbytes=16 * n), b._buffer(nbytes=16 * n)
+            d.heartbeat()
+        pre = d.buffer(nbytes=4 * n)
+        climb, walk = d.buffer(nbytes=16 * n), d.buffer(nbytes=16 * n)
         # Level by level down to the first wide level, then each of its subtrees depth first
         # (topo_subtrees: the records in preorder, one after another).
         wide = next((k for k, (a, e) in enumerate(ranges) if e - a >= TOPO_ROOTS), len(ranges))
         wide = max(wide, len(ranges) - TOPO_STACK)
         widest = max(e - a for a, e in ranges[:wide + 1])
-        cells = [b._buffer(nbytes=24 * widest), b._buffer(nbytes=24 * widest)]
-        self.k["topo_root"](b.queue, (1,), None,
-                            b._buffer(np.ascontiguousarray(bounds, np.float32).reshape(-1)),
-                            cells[0], size, nonempty, pre, climb, walk)
+        cells = [d.buffer(nbytes=24 * widest), d.buffer(nbytes=24 * widest)]
+        root_cell = d.buffer(np.ascontiguousarray(bounds, np.float32).reshape(-1))
+        d.run(self.k["topo_root"], 1, root_cell, cells[0], size, nonempty, pre, climb, walk,
+              local_size=1)
         for level, (first, end) in enumerate(ranges[:wide]):
             self.run("topo_down", end - first, nodes, cells[level % 2], cells[(level + 1) % 2],
                      size, nonempty, pre, climb, walk, U4(first), U4(end), U4(level))
-            b.heartbeat()
+            d.heartbeat()
         if wide < len(ranges):
             first, end = ranges[wide]
             roots = end - first
             # Small work-groups, as the subtrees differ in size.
-            b._run(self.k["topo_subtrees"], roots, nodes, cells[wide % 2], size, nonempty, pre,
-                   climb, walk, U4(first), U4(end), U4(wide),
-                   local_size=8 if b.is_cpu else self.local_size,
-                   piece=max(1, PIECE_SUBTREE_NODES * roots // (n - first)))
-            b.heartbeat()
+            d.run(self.k["topo_subtrees"], roots, nodes, cells[wide % 2], size, nonempty, pre,
+                  climb, walk, U4(first), U4(end), U4(wide),
+                  local_size=8 if d.is_cpu else self.local_size,
+                  piece=max(1, PIECE_SUBTREE_NODES * roots // (n - first)))
+            d.heartbeat()
         return pre, climb, walk
 
     def sorted_references(self, nodes, n, leaf_indices, pre, triangle_count):
         """References sorted by (triangle, preorder of the leaf): leaf, its preorder number,
         triangle, and each triangle's first place."""
-        b = self.b
+        d = self.device
         R = len(leaf_indices)
-        d_leaf_indices = self.view(leaf_indices)
+        d_leaf_indices = self.device.view(leaf_indices)
         # Counted on the device (numpy's bincount took 0.64 s of the 12 dragons' 35 M
         # references, with Esc unseen); the (T + 1)-th count is 0, so its prefix is R.
-        tri_first = self.zeros(4 * (triangle_count + 1))
-        s_leaf, s_pre, s_tri = (b._buffer(nbytes=4 * max(R, 1)) for _ in range(3))
+        tri_first = self.device.zeros(4 * (triangle_count + 1))
+        s_leaf, s_pre, s_tri = (d.buffer(nbytes=4 * max(R, 1)) for _ in range(3))
         rank = s_tri                  # each reference's place in its range, until refs_sort
         self.run("refs_count", R, d_leaf_indices, tri_first, rank, U4(R))
         self.scan(tri_first, triangle_count + 1)
@@ -183,7 +155,7 @@ class CompactorCL:
         return s_leaf, s_pre, s_tri, tri_first
 
     def neighbour_lcas(self, s_pre, s_tri, climb, R):
-        gap_node, gap_pre, gap_depth = (self.b._buffer(nbytes=4 * (R + 1)) for _ in range(3))
+        gap_node, gap_pre, gap_depth = (self.device.buffer(nbytes=4 * (R + 1)) for _ in range(3))
         self.run("neighbour_lcas", R + 1, s_pre, s_tri, climb, gap_node, gap_pre, gap_depth,
                  U4(R), piece=PIECE_CLIMBS)
         return gap_node, gap_pre, gap_depth
@@ -191,22 +163,22 @@ class CompactorCL:
     def lift_candidates(self, tri_first, triangle_count, s_pre, gap_pre, gap_depth, climb, walk,
                         R, params):
         """compact.py _lift_candidates: (a buffer of candidate rows, their number)."""
-        b = self.b
+        d = self.device
         # Triangles with more than PRIVATE_GAPS references keep their stacks in the scratch.
-        big_first = self.zeros(4 * (triangle_count + 1))
+        big_first = self.device.zeros(4 * (triangle_count + 1))
         self.run("scratch_spans", triangle_count, tri_first, big_first, U4(triangle_count))
-        scratch = b._buffer(nbytes=12 * max(self.scan(big_first, triangle_count + 1), 1))
+        scratch = d.buffer(nbytes=12 * max(self.scan(big_first, triangle_count + 1), 1))
         taus = (np.float64(params.tau_occu).view(np.uint64),
                 np.float64(params.tau_freq).view(np.uint64))
         capacity = max(R // 2, 1024)
         while True:
-            out = b._buffer(nbytes=24 * capacity)
-            used = self.zeros(4)
+            out = d.buffer(nbytes=24 * capacity)
+            used = self.device.zeros(4)
             self.run("lift_candidates", triangle_count, tri_first, s_pre, gap_pre, gap_depth,
                      climb, walk, big_first, scratch, out,
                      used, U4(capacity), U4(triangle_count), U4(params.min_refs), *taus,
                      piece=PIECE_CLIMBS)
-            total = self.value_at(used, 0)
+            total = self.device.value_at(used, 0)
             if total <= capacity:
                 return out, total
             capacity = total          # more candidates than room: again with room for all
@@ -214,11 +186,11 @@ class CompactorCL:
     def group_candidates(self, candidates, total, n):
         """The candidate rows grouped by node: (each node's end in `grouped`, grouped
         (triangle, references, first, end), each one's node)."""
-        b = self.b
-        node_next = self.zeros(4 * n)
+        d = self.device
+        node_next = self.device.zeros(4 * n)
         self.run("cand_count", total, candidates, node_next, U4(total))
         self.scan(node_next, n)                         # each node's first place
-        grouped, grouped_node = b._buffer(nbytes=16 * total), b._buffer(nbytes=4 * total)
+        grouped, grouped_node = d.buffer(nbytes=16 * total), d.buffer(nbytes=4 * total)
         self.run("cand_group", total, candidates, node_next, grouped, grouped_node, U4(total))
         return node_next, grouped, grouped_node         # node_next: now each node's end
 
@@ -226,132 +198,130 @@ class CompactorCL:
         """compact.py _select_lifts on the device (choose_lifts, level by level): (removed
         references: a uchar buffer; lift node, triangle, first: host arrays, by node; refs per
         node: a buffer)."""
-        b = self.b
+        d = self.device
         node_end, grouped, grouped_node = grouped_candidates
-        removed, taken, refs_at = self.zeros(R), self.zeros(4 * (total + 1)), self.zeros(4 * n)
+        removed, taken, refs_at = self.device.zeros(R), self.device.zeros(4 * (total + 1)), self.device.zeros(4 * n)
         limited = params.refs_per_path is not None
-        on_path = self.zeros(4 * n if limited else 4)
+        on_path = self.device.zeros(4 * n if limited else 4)
         for first, end in ranges:
             self.run("choose_lifts", end - first, node_end, grouped, removed, taken, refs_at,
                      on_path, U4(first), U4(end), U4(params.refs_per_node),
                      U4(params.refs_per_path or 0), U4(limited))
             if limited:
                 self.run("pass_down", end - first, nodes, refs_at, on_path, U4(first), U4(end))
-            b.heartbeat()
+            d.heartbeat()
         del on_path
         count = self.scan(taken, total + 1)
-        b.heartbeat()
-        lifts = [b._buffer(nbytes=4 * max(count, 1)) for _ in range(3)]
+        d.heartbeat()
+        lifts = [d.buffer(nbytes=4 * max(count, 1)) for _ in range(3)]
         self.run("lifts_out", total, taken, grouped, grouped_node, *lifts, U4(total))
-        node, tri, first = (b._read(x, U4, count).astype(np.int64) for x in lifts)
+        node, tri, first = (d.read(x, U4, count).astype(np.int64) for x in lifts)
         return removed, node, tri, first, refs_at
 
     def collapse(self, nodes, n, ranges, R, d_removed, s_leaf, gap_node, gap_depth, lift_node,
                  lift_first, refs_at, pre, walk, params):
         """compact.py _distinct_below and _collapse: the collapsed nodes (a buffer)."""
-        b = self.b
-        per_node = self.zeros(4 * n)
-        leaf_count = self.zeros(4 * n)
+        d = self.device
+        per_node = self.device.zeros(4 * n)
+        leaf_count = self.device.zeros(4 * n)
         self.run("distinct_refs", R, d_removed, s_leaf, gap_node, gap_depth, per_node, leaf_count,
                  U4(R))
-        self.run("distinct_lifts", len(lift_node), b._buffer(lift_node.astype(U4)),
-                 b._buffer(lift_first.astype(U4)), gap_node, gap_depth, per_node,
+        self.run("distinct_lifts", len(lift_node), d.buffer(lift_node.astype(U4)),
+                 d.buffer(lift_first.astype(U4)), gap_node, gap_depth, per_node,
                  U4(len(lift_node)))
         for first, end in reversed(ranges):
             self.run("subtree_sums", end - first, nodes, per_node, U4(first), U4(end))
-            b.heartbeat()
-        cost = b._buffer(nbytes=8 * n)
-        collapsed = b._buffer(nbytes=n)
+            d.heartbeat()
+        cost = d.buffer(nbytes=8 * n)
+        collapsed = d.buffer(nbytes=n)
         kt = np.float64(params.traversal_cost).view(np.uint64)
         ki = np.float64(params.intersection_cost).view(np.uint64)
         for first, end in reversed(ranges):
             self.run("collapse", end - first, nodes, pre, walk, leaf_count, refs_at, per_node,
                      cost, collapsed, U4(first), U4(end), kt, ki)
-            b.heartbeat()
+            d.heartbeat()
         return collapsed
 
     def owners(self, nodes, n, ranges, collapsed):
         """compact.py _owners: (dead, owner) buffers."""
-        dead, owner = self.zeros(n), self.zeros(4 * n)
+        dead, owner = self.device.zeros(n), self.device.zeros(4 * n)
         for first, end in ranges:
             self.run("owners", end - first, nodes, collapsed, dead, owner, U4(first), U4(end))
-            self.b.heartbeat()
+            self.device.heartbeat()
         return dead, owner
 
     def items(self, n, R, d_removed, s_leaf, s_tri, owner, extra_owner, extra_tri):
         """Every final leaf's triangles (kept references and the lifts of removed nodes),
         sorted, without repeats, one list after another in node order: buffers (count per
         node, first place per node, the lists) and the number of items."""
-        b = self.b
-        per_owner = self.zeros(4 * (n + 1))
+        d = self.device
+        per_owner = self.device.zeros(4 * (n + 1))
         self.run("items_count", R, d_removed, s_leaf, owner, per_owner, U4(R))
         # The lifts of removed nodes go first in their owner's bucket, then the references.
         order = np.argsort(extra_owner, kind="stable")
         by_owner = extra_owner[order]
         starts = run_starts(by_owner)
         runs = np.diff(np.append(starts, len(by_owner)))
-        cursor = self.zeros(4 * n)
+        cursor = self.device.zeros(4 * n)
         self.add_at(cursor, by_owner[starts], runs)
         self.add_at(per_owner, by_owner[starts], runs)
-        b.heartbeat()
-        owner_first = b._buffer(nbytes=4 * (n + 1))
+        d.heartbeat()
+        owner_first = d.buffer(nbytes=4 * (n + 1))
         total = self.scan(per_owner, n + 1, owner_first)
         del per_owner
-        b.heartbeat()
-        items = b._buffer(nbytes=4 * max(total, 1))
+        d.heartbeat()
+        items = d.buffer(nbytes=4 * max(total, 1))
         if len(extra_owner):
             rank = np.arange(len(by_owner)) - np.repeat(starts, runs)
             first = self.gather(owner_first, by_owner)
-            self.run("put_values", len(by_owner), b._buffer((first + rank).astype(U4)),
-                     b._buffer(extra_tri[order].astype(U4)), items, U4(len(by_owner)))
-            b.heartbeat()
+            self.run("put_values", len(by_owner), d.buffer((first + rank).astype(U4)),
+                     d.buffer(extra_tri[order].astype(U4)), items, U4(len(by_owner)))
+            d.heartbeat()
         self.run("items_scatter", R, d_removed, s_leaf, s_tri, owner, owner_first, cursor, items,
                  U4(R))
         del cursor
-        kept = b._buffer(nbytes=4 * (n + 1))
+        kept = d.buffer(nbytes=4 * (n + 1))
         self.run("items_unique", n, owner_first, items, kept, U4(n))
-        b.heartbeat()
-        item_first = b._buffer(nbytes=4 * (n + 1))
+        d.heartbeat()
+        item_first = d.buffer(nbytes=4 * (n + 1))
         item_count = self.scan(kept, n, item_first)
-        final_items = b._buffer(nbytes=4 * max(item_count, 1))
+        final_items = d.buffer(nbytes=4 * max(item_count, 1))
         self.run("close_buckets", n, owner_first, kept, item_first, items, final_items, U4(n))
         return kept, item_first, final_items, item_count
 
     def layout(self, nodes, n, params, dead, collapsed, final_count, item_first, items,
-               lift_node, lift_tri, triangles_count):
+               lift_node, lift_tri, shift):
         """compact.py _layout: (nodes, leaf_index32, leaf_index16, leaf_shift, node kinds,
         leaf stats), the refs per node of the kept lifts (a buffer), the collapsed nodes
         that stay."""
-        from ..layout import LEAF16_INDEX_BITS
-        b = self.b
-        classes = b._buffer(nbytes=n)
+        d = self.device
+        classes = d.buffer(nbytes=n)
         self.run("layout_classes", n, nodes, dead, collapsed, final_count, classes, U4(n))
-        refs_at = self.zeros(4 * n)
+        refs_at = self.device.zeros(4 * n)
         self.set_counts(refs_at, lift_node)
-        elided = self.zeros(n)
-        groups = b._buffer(nbytes=4 * n)
+        elided = self.device.zeros(n)
+        groups = d.buffer(nbytes=4 * n)
         self.run("layout_groups", n, nodes, classes, refs_at, elided, groups, U4(n),
                  U4(bool(params.elide_empty)))
         total = 1 + self.scan(groups, n)                 # now each live inner node's group - 1
-        if total - 1 > host.MAX_GROUP_INDEX:
+        if total - 1 > INNER_GROUP.max:
             raise ValueError(f"compact kd-tree too large: {total} nodes "
-                             f"(at most {host.MAX_GROUP_INDEX})")
-        b.heartbeat()
-        shift = host._leaf_shift(triangles_count)
-        off32, count16, base_of = (b._buffer(nbytes=4 * n) for _ in range(3))
+                             f"(at most {INNER_GROUP.max})")
+        d.heartbeat()
+        off32, count16, base_of = (d.buffer(nbytes=4 * n) for _ in range(3))
         self.run("layout_leaves", n, classes, elided, final_count, item_first, items, off32,
                  count16, base_of, U4(n), U4(shift), U4(bool(params.leaf16)),
                  U4(LEAF16_INDEX_BITS))
-        off16 = b._buffer(nbytes=4 * n)
+        off16 = d.buffer(nbytes=4 * n)
         total32 = self.scan(off32, n)
         total16 = self.scan(count16, n, off16)
-        out = b.buffers.standalone(8 * total)           # _take: the compact tree's arrays
-        index32 = b.buffers.standalone(4 * max(total32, 1))
-        index16 = b.buffers.standalone(2 * max(total16, 2))
-        new_index = b._buffer(nbytes=4 * n)
+        out = d.standalone(8 * total)           # take(): the compact tree's arrays
+        index32 = d.standalone(4 * max(total32, 1))
+        index16 = d.standalone(2 * max(total16, 2))
+        new_index = d.buffer(nbytes=4 * n)
         self.run("layout_places", n, nodes, classes, elided, refs_at, groups, new_index, out,
                  U4(n))
-        b.heartbeat()
+        d.heartbeat()
         self.run("layout_words", n, nodes, classes, elided, refs_at, groups, final_count,
                  item_first, items, count16, off32, off16, base_of, new_index, out, index32,
                  index16, U4(n), U4(shift))
@@ -364,23 +334,23 @@ class CompactorCL:
             first = run_starts(node_sorted)
             lifted_nodes = len(first)
             slot = np.arange(len(order)) - np.repeat(first, np.diff(np.append(first, len(order))))
-            self.run("layout_slots", len(order), b._buffer(node_sorted.astype(U4)),
-                     b._buffer(lift_tri[order].astype(U4)), b._buffer(slot.astype(U4)), groups,
+            self.run("layout_slots", len(order), d.buffer(node_sorted.astype(U4)),
+                     d.buffer(lift_tri[order].astype(U4)), d.buffer(slot.astype(U4)), groups,
                      out, U4(len(order)))
-            b.heartbeat()
+            d.heartbeat()
         block = 4096
         blocks = max(1, -(-n // block))
-        counters = b._buffer(nbytes=32 * blocks)
-        b._run(self.k["layout_stats"], blocks, classes, elided, final_count, count16, collapsed,
-               dead, counters, U4(n), U4(block), local_size=1)
-        per_block = b._read(counters, U4, (blocks, 8)).astype(np.int64)
-        b.heartbeat()
+        counters = d.buffer(nbytes=32 * blocks)
+        d.run(self.k["layout_stats"], blocks, classes, elided, final_count, count16, collapsed,
+              dead, counters, U4(n), U4(block), local_size=1)
+        per_block = d.read(counters, U4, (blocks, 8)).astype(np.int64)
+        d.heartbeat()
         stored, empty, elided_count, leaves16, leaves32, inner_count, _, kept_collapsed = (
             int(x) for x in per_block.sum(0))
-        if int(per_block[:, 6].max()) > host.MAX_LEAF32_COUNT:
+        if int(per_block[:, 6].max()) > LEAF32_COUNT.max:
             raise ValueError("a leaf holds too many triangles for the 32-bit list's count")
-        laid_out = (b._take(out, U4, (total, 2)), b._take(index32, U4, total32),
-                    b._take(index16, np.uint16, total16), shift,
+        laid_out = (d.take(out, U4, (total, 2)), d.take(index32, U4, total32),
+                    d.take(index16, np.uint16, total16), shift,
                     {"inner": inner_count, "tref": lifted_nodes, "leaf": stored},
                     {"leaves": stored, "empty_leaves_stored": empty,
                      "empty_leaves_elided": elided_count, "leaves_16bit": leaves16,
@@ -391,39 +361,35 @@ class CompactorCL:
         return laid_out, refs_at, kept_collapsed
 
     def max_refs_on_path(self, nodes, n, ranges, dead, refs_at) -> int:
-        on_path, most = self.zeros(4 * n), self.zeros(4)
+        on_path, most = self.device.zeros(4 * n), self.device.zeros(4)
         for first, end in ranges:
             self.run("path_refs", end - first, nodes, dead, refs_at, on_path, most, U4(first),
                      U4(end))
-            self.b.heartbeat()
-        return self.value_at(most, 0)
+            self.device.heartbeat()
+        return self.device.value_at(most, 0)
 
 
-def compactor_for(builder) -> CompactorCL:
-    """The builder's compactor (made once per builder)."""
-    c = getattr(builder, "_compactor", None)
-    if c is None:
-        c = builder._compactor = CompactorCL(builder)
-    return c
-
-
-def compact_on_device(device, tree, triangles_count, params, report, started):
-    """compact_tree with its steps in kernels (the choice of lifts and the stats on the host).
-    None when the tree is not in the builders' order."""
-    from .kdtree_cl import builder_for
-    builder = builder_for(device)
+def compact_on_device(device, tree, triangles_count, params, leaf_shift, report):
+    """compact.py's post-pass with its steps in kernels (the choice of lifts and the stats on
+    the host) on `device`, a DeviceContext (a KDTreeBuilderCL is one) or a select_device spec.
+    Returns what compact._finish makes the CompactTree of: (standard nodes, references,
+    collapsed subtrees kept, the laid-out arrays, the most references on a path, leaf
+    references, lift nodes, lift triangles); None when the tree is not in the builders'
+    order."""
+    if not isinstance(device, DeviceContext):
+        device = device_for(device)
     try:
-        return _compact(builder, tree, triangles_count, params, report, started)
+        return _compact(CompactorCL(device), tree, triangles_count, params, leaf_shift,
+                        device.reporting(report))
     finally:
-        builder.buffers.release()
+        device.release()
 
 
-def _compact(builder, tree, triangles_count, params, report, started):
-    c = compactor_for(builder)
-    report = builder.reporting(report)
+def _compact(c, tree, triangles_count, params, leaf_shift, report):
+    d = c.device
     plain = np.ascontiguousarray(tree.nodes, U4)
     n, R = len(plain), len(tree.leaf_indices)
-    nodes = c.view(plain)
+    nodes = d.view(plain)
     report(0.0, f"compact ({params.mode}): {n:,} nodes")
     ranges = c.level_ranges(nodes, n)
     if ranges is None:
@@ -450,9 +416,9 @@ def _compact(builder, tree, triangles_count, params, report, started):
         del grouped
     else:
         del climb, s_pre, tri_first
-        removed = c.zeros(R)
+        removed = d.zeros(R)
         lift_node = lift_tri = lift_first = np.zeros(0, np.int64)
-        refs_at = c.zeros(4 * n)
+        refs_at = d.zeros(4 * n)
     report(0.5, f"compact: {len(lift_tri)} triangle references lifted")
 
     if params.collapse:
@@ -460,7 +426,7 @@ def _compact(builder, tree, triangles_count, params, report, started):
                                lift_first, refs_at, pre, walk, params)
         del gap_node, gap_depth
     else:
-        collapsed = c.zeros(n)
+        collapsed = d.zeros(n)
     del refs_at, pre, walk
     report(0.7, "compact: subtrees collapsed")
 
@@ -475,8 +441,7 @@ def _compact(builder, tree, triangles_count, params, report, started):
     report(0.85, f"compact: {item_count:,} leaf references")
     laid_out, refs_at, kept_collapsed = c.layout(nodes, n, params, dead, collapsed, final_count,
                                                  item_first, items, lift_node, lift_tri,
-                                                 triangles_count)
+                                                 leaf_shift)
     del final_count, item_first, items, collapsed
     max_path = c.max_refs_on_path(nodes, n, ranges, dead, refs_at)
-    return host._finish(tree, params, n, R, kept_collapsed, laid_out, max_path, item_count,
-                        lift_node, lift_tri, started, report)
+    return n, R, kept_collapsed, laid_out, max_path, item_count, lift_node, lift_tri

@@ -27,9 +27,10 @@ import time
 import numpy as np
 
 from ..layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
+from ..opencl import kernel_source
 from .arrays import concat_ranges, exclusive_cumsum
-from .buffer_pool import MIN_POOLED_BYTES, BufferPool
-from .kdtree import KDTree, KDTreeParams, checked_mesh, root_bounds
+from .device import DeviceContext
+from .kdtree import KDTree, KDTreeParams, build_kdtree, checked_mesh, root_bounds
 
 KERNEL_FILES = ("build/fp64.cl", "build/common.cl", "build/split.cl", "build/big.cl",
                 "build/subtree.cl", "build/layout.cl")
@@ -80,8 +81,10 @@ def _leaf_counts(words) -> tuple[int, int]:
     return leaves, empties
 
 
-class KDTreeBuilderCL:
-    """Builds kd-trees on one OpenCL device; programs are built once per KDTreeParams.
+class KDTreeBuilderCL(DeviceContext):
+    """Builds kd-trees on one OpenCL device; programs are built once per KDTreeParams. The
+    builder is the device's DeviceContext (device.py), which compact_tree(device=builder)
+    shares for the compaction.
 
     subtree_refs: nodes with at most this many references are built by one work-item each
     (None: a size that suits the device kind); chunk_refs: references per work-item in the
@@ -93,22 +96,7 @@ class KDTreeBuilderCL:
                  chunk_refs: int | None = None, soft_fp64: bool | None = None,
                  local_size: int | None = None, profile_kernels: bool = False,
                  subtree_queue: bool | None = None):
-        from ..opencl import Programs, ensure_pocl_cache_dir, select_device
-        ensure_pocl_cache_dir()
-        import pyopencl as cl
-        self._cl = cl
-        self.device = select_device(cl, device)
-        self.context = cl.Context([self.device])
-        # profile_kernels: each launch's event is kept, so kernel_times() can sum device time
-        # per kernel (for the benchmark's profile; off otherwise).
-        self.queue = cl.CommandQueue(self.context, properties=(
-            cl.command_queue_properties.PROFILING_ENABLE if profile_kernels else 0))
-        self._events = [] if profile_kernels else None
-        self._programs = Programs(cl, self.context, self.device)
-        self.buffers = BufferPool(cl, self.context, self.device)
-        self.is_cpu = bool(self.device.type & cl.device_type.CPU)
-        has_fp64 = "cl_khr_fp64" in self.device.extensions.split()
-        self.soft_fp64 = (not has_fp64) if soft_fp64 is None else bool(soft_fp64)
+        super().__init__(device, soft_fp64, profile_kernels)
         self.subtree_refs = subtree_refs or (2048 if self.is_cpu else 64)
         self.chunk_refs = chunk_refs or (4096 if self.is_cpu else 256)
         self.local_size = local_size if local_size is not None else (1 if self.is_cpu else 32)
@@ -117,27 +105,9 @@ class KDTreeBuilderCL:
         self.subtree_queue = self.is_cpu if subtree_queue is None else bool(subtree_queue)
         self.batch_seconds = 0.15      # target time of one subtree launch (Esc stays prompt)
         self.last_profile: dict = {}
-        self._progress = None          # the running build's or compaction's callback
-        self._last_progress = (0.0, "")
-
-    def reporting(self, progress):
-        """A progress callback that also serves heartbeat() until replaced."""
-        if progress is None:
-            self._progress = None
-            return lambda fraction, message: None
-
-        def report(fraction, message):
-            self._last_progress = (fraction, message)
-            progress(fraction, message)
-        self._progress = progress
-        return report
-
-    @property
-    def device_name(self) -> str:
-        return f"{self.device.platform.name.strip()}: {self.device.name.strip()}"
 
     def build_options(self, params: KDTreeParams) -> list:
-        """The -D options of the build kernels: KDTreeParams and the double arithmetic."""
+        """The -D options of the build kernels: KDTreeParams and the subtree queue."""
         options = [f"-DKD_KT_BITS={_double_bits(params.traversal_cost)}",
                    f"-DKD_KI_BITS={_double_bits(params.intersection_cost)}",
                    f"-DKD_2KI_BITS={_double_bits(2 * params.intersection_cost)}",
@@ -149,8 +119,6 @@ class KDTreeBuilderCL:
                    f"-DKD_MIN_BINS={int(params.min_bins)}", f"-DKD_MAX_BINS={int(params.max_bins)}",
                    f"-DKD_MAX_BAD={int(params.max_bad_refines)}u",
                    f"-DKD_SMALL_NODE={int(params.small_node)}u", f"-DKD_EXACT_MAX={EXACT_MAX}u"]
-        if self.soft_fp64:
-            options.append("-DKDTRACE_SOFT_FP64")
         if self.subtree_queue:
             options.append("-DKD_SUBTREE_QUEUE")
         return options
@@ -158,85 +126,11 @@ class KDTreeBuilderCL:
     def program(self, source: str, params: KDTreeParams | None = None) -> dict:
         """Kernels of `source` (which includes kernels/build/ files) built with this builder's
         options: the build's own, or test kernels."""
-        return self._programs.kernels(source, self.build_options(params or KDTreeParams()))
+        return self.kernels(source, self.build_options(params or KDTreeParams()))
 
-    def _kernels(self, params: KDTreeParams) -> dict:
-        from ..opencl import kernel_source
-        return self.program(kernel_source(KERNEL_FILES), params)
-
-    # -- launching -------------------------------------------------------------------------
-    def _buffer(self, array=None, nbytes=None):
-        """A buffer of nbytes, or holding a copy of `array`, from the pool (buffer_pool.py)."""
-        cl = self._cl
-        if array is None:
-            return self.buffers.take(int(nbytes))
-        array = np.ascontiguousarray(array)
-        if array.nbytes < MIN_POOLED_BYTES:
-            if array.nbytes == 0:
-                array = np.zeros(4, np.uint8)
-            return cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR,
-                             hostbuf=array)
-        buffer = self.buffers.take(array.nbytes)
-        cl.enqueue_copy(self.queue, buffer, array)        # blocking: `array` may go after
-        return buffer
-
-    def _run(self, kernel, count, *args, local_size=None, piece=None):
-        """kernel over `count` work-items (padded to the work-group size; kernels skip ids
-        past their count). With `piece`, in launches of that many work-items (by global
-        offset), each waited for and followed by heartbeat(): the progress callback, whose
-        exception (Esc) then stops the work within one piece."""
-        if count == 0:
-            return
-        ls = local_size or self.local_size
-        count = int(count)
-        if piece is None or count <= piece:
-            self._launched(kernel, kernel(self.queue, (-(-count // ls) * ls,), (ls,), *args))
-            return
-        piece = -(-int(piece) // ls) * ls
-        for start in range(0, count, piece):
-            size = -(-min(piece, count - start) // ls) * ls
-            self._launched(kernel, kernel(self.queue, (size,), (ls,), *args,
-                                          global_offset=(start,)))
-            self.heartbeat()
-
-    def _launched(self, kernel, event):
-        if self._events is not None:
-            self._events.append((kernel.function_name, event))
-
-    def kernel_times(self) -> dict:
-        """Device seconds and launches per kernel since the last call (profile_kernels only)."""
-        self.queue.finish()
-        times = {}
-        for name, event in self._events or ():
-            seconds, launches = times.get(name, (0.0, 0))
-            times[name] = (seconds + (event.profile.end - event.profile.start) * 1e-9, launches + 1)
-        if self._events is not None:
-            self._events.clear()
-        return times
-
-    def heartbeat(self):
-        """Wait for the queued kernels, then call the current progress callback with the last
-        fraction and message: between steps, its exception (Esc) stops the work at once."""
-        if self._progress is not None:
-            self.queue.finish()
-            self._progress(*self._last_progress)
-
-    def _read(self, buffer, dtype, shape):
-        out = np.empty(shape, dtype)
-        if out.nbytes:
-            self._cl.enqueue_copy(self.queue, out, buffer)
-        return out
-
-    def _take(self, buffer, dtype, shape):
-        """A buffer's contents as a host array, for a buffer no kernel uses again: on a CPU
-        device the buffer's own memory, mapped (a copy of the tree's 100s of MB, into pages
-        first touched by the copy, took longer than the kernels that wrote them)."""
-        if not self.is_cpu or not np.prod(shape):
-            return self._read(buffer, dtype, shape)
-        cl = self._cl
-        array, _ = cl.enqueue_map_buffer(self.queue, buffer, cl.map_flags.READ | cl.map_flags.WRITE,
-                                         0, shape, dtype, is_blocking=True)
-        return array
+    def launch(self, kernel, count, *args, piece=None):
+        """run() with the builder's work-group size."""
+        self.run(kernel, count, *args, local_size=self.local_size, piece=piece)
 
     # -- the build -------------------------------------------------------------------------
     def build(self, vertices, triangles, params: KDTreeParams | None = None,
@@ -246,7 +140,7 @@ class KDTreeBuilderCL:
         try:
             return self._build(vertices, triangles, params, progress)
         finally:
-            self.buffers.release()
+            self.release()
 
     def _build(self, vertices, triangles, params, progress) -> KDTree:
         params = params or KDTreeParams()
@@ -275,7 +169,7 @@ class KDTreeBuilderCL:
         if not 0 <= depth_cap < MAX_STACK - 1:
             raise ValueError(f"depth cap {depth_cap} outside 0..{MAX_STACK - 2}")
 
-        kernels = self._kernels(params)
+        kernels = self.program(kernel_source(KERNEL_FILES), params)
         lap("programs")
         state = _BuildState(self, kernels, params, vertices, triangles, depth_cap, report)
         kept_count, bounds = state.first_refs()
@@ -306,7 +200,7 @@ class KDTreeBuilderCL:
             "bytes": tree.nbytes,
             "sah_cost": state.sah_fixed / 2.0**32,
             "build_seconds": time.perf_counter() - started,
-            "threads": int(self.device.max_compute_units),
+            "threads": self.compute_units,
             "builder": "opencl",
             "device": self.device_name,
         }
@@ -326,9 +220,9 @@ class _BuildState:
         self.report = report
         self.vertex_array = vertices
         self.triangle_count = len(triangles)
-        self.vertices = builder._buffer(vertices)
-        self.triangles = builder._buffer(triangles)
-        self.corners = builder._buffer(nbytes=36 * len(triangles))
+        self.vertices = builder.buffer(vertices)
+        self.triangles = builder.buffer(triangles)
+        self.corners = builder.buffer(nbytes=36 * len(triangles))
         self.max_bins = int(params.max_bins)
         self.queue_refs = None                 # device Ref array of subtree roots' references
         self.queue_used = 0
@@ -348,26 +242,26 @@ class _BuildState:
         b, k = self.b, self.k
         T = self.triangle_count
         u4 = np.uint32
-        refs = b._buffer(nbytes=32 * T)
-        keep = b._buffer(nbytes=T)
-        b._run(k["init_refs"], T, self.vertices, self.triangles, refs, keep, self.corners, u4(T),
-               piece=PIECE_ITEMS)
+        refs = b.buffer(nbytes=32 * T)
+        keep = b.buffer(nbytes=T)
+        b.launch(k["init_refs"], T, self.vertices, self.triangles, refs, keep, self.corners, u4(T),
+                 piece=PIECE_ITEMS)
         self.vertices = self.triangles = None
-        flags = b._read(keep, np.uint8, T)
+        flags = b.read(keep, np.uint8, T)
         kept = int(flags.sum())
         if kept < T:
             place = (np.cumsum(flags, dtype=np.int64) - flags).astype(u4)
-            out = b._buffer(nbytes=32 * kept)
-            b._run(k["compact_refs"], T, refs, keep, b._buffer(place), out, u4(T),
-                   piece=PIECE_ITEMS)
+            out = b.buffer(nbytes=32 * kept)
+            b.launch(k["compact_refs"], T, refs, keep, b.buffer(place), out, u4(T),
+                     piece=PIECE_ITEMS)
             refs = out
         del keep
         chunk = 1 << 16
         n_chunks = -(-kept // chunk)
         if n_chunks:
-            d_box = b._buffer(nbytes=32 * n_chunks)
-            b._run(k["chunk_bounds"], n_chunks, refs, d_box, u4(kept), u4(chunk))
-            box = b._read(d_box, np.float32, (n_chunks, 8))
+            d_box = b.buffer(nbytes=32 * n_chunks)
+            b.launch(k["chunk_bounds"], n_chunks, refs, d_box, u4(kept), u4(chunk))
+            box = b.read(d_box, np.float32, (n_chunks, 8))
             lo, hi = box[:, 0:3].min(0), box[:, 4:7].max(0)
         else:
             lo = hi = np.zeros(0, np.float32)
@@ -380,10 +274,9 @@ class _BuildState:
         if need <= self.queue_capacity:
             return
         capacity = max(need, int(1.25 * self.queue_capacity), 1024)
-        grown = self.b._buffer(nbytes=32 * capacity)
+        grown = self.b.buffer(nbytes=32 * capacity)
         if self.queue_used:
-            self.b._cl.enqueue_copy(self.b.queue, grown, self.queue_refs,
-                                    byte_count=32 * self.queue_used)
+            self.b.copy(grown, self.queue_refs, 32 * self.queue_used)
         self.queue_refs, self.queue_capacity = grown, capacity
 
     def _add_roots(self, lo, hi, level, bad, key, count):
@@ -410,7 +303,7 @@ class _BuildState:
         if n0 <= b.subtree_refs:
             self._add_roots(lo, hi, 0, bad, key, count)
             if n0:
-                b._cl.enqueue_copy(b.queue, self.queue_refs, level_refs, byte_count=32 * n0)
+                b.copy(self.queue_refs, level_refs, 32 * n0)
             return
         level = 0
         S, CH = b.subtree_refs, b.chunk_refs
@@ -431,26 +324,26 @@ class _BuildState:
             node_chunks = np.stack([chunk_first[:-1], per_node], 1).astype(u4)
             cells = np.zeros((m, 8), np.float32)
             cells[:, 0:3], cells[:, 4:7] = lo, hi
-            d_chunks, d_node_chunks = b._buffer(chunks), b._buffer(node_chunks)
-            d_cells, d_n, d_bad = b._buffer(cells), b._buffer(count.astype(u4)), b._buffer(bad.astype(u4))
-            d_hist = b._buffer(nbytes=4 * C * (6 * self.max_bins + HIST_PAD))
-            d_choice = b._buffer(nbytes=16 * m)
-            d_counts = b._buffer(nbytes=16 * C)
-            d_decision = b._buffer(nbytes=16 * m)
-            d_sah = b._buffer(nbytes=8 * m)
-            d_out = b._buffer(nbytes=8 * C)
+            d_chunks, d_node_chunks = b.buffer(chunks), b.buffer(node_chunks)
+            d_cells, d_n, d_bad = b.buffer(cells), b.buffer(count.astype(u4)), b.buffer(bad.astype(u4))
+            d_hist = b.buffer(nbytes=4 * C * (6 * self.max_bins + HIST_PAD))
+            d_choice = b.buffer(nbytes=16 * m)
+            d_counts = b.buffer(nbytes=16 * C)
+            d_decision = b.buffer(nbytes=16 * m)
+            d_sah = b.buffer(nbytes=8 * m)
+            d_out = b.buffer(nbytes=8 * C)
             piece = max(1, PIECE_REFS // CH)
-            b._run(k["big_bin"], C, level_refs, d_chunks, d_cells, d_n, d_hist, u4(C), piece=piece)
-            b._run(k["big_choose"], m, d_node_chunks, d_hist, d_cells, d_n, d_choice, u4(m))
-            b._run(k["big_recount"], C, level_refs, d_chunks, d_choice, d_counts, u4(C),
-                   piece=piece)
-            b._run(k["big_decide"], m, d_node_chunks, d_counts, d_choice, d_cells, d_n, d_bad,
-                   d_decision, d_sah, u4(m), u4(level), u4(self.depth_cap), self.pow2, self.inv_root)
-            b._run(k["big_classify"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
-                   d_out, u4(C), piece=piece)
-            decision = b._read(d_decision, u4, (m, 4))
-            out = b._read(d_out, u4, (C, 2)).astype(np.int64)
-            sah = b._read(d_sah, np.int64, m)
+            b.launch(k["big_bin"], C, level_refs, d_chunks, d_cells, d_n, d_hist, u4(C), piece=piece)
+            b.launch(k["big_choose"], m, d_node_chunks, d_hist, d_cells, d_n, d_choice, u4(m))
+            b.launch(k["big_recount"], C, level_refs, d_chunks, d_choice, d_counts, u4(C),
+                     piece=piece)
+            b.launch(k["big_decide"], m, d_node_chunks, d_counts, d_choice, d_cells, d_n, d_bad,
+                     d_decision, d_sah, u4(m), u4(level), u4(self.depth_cap), self.pow2, self.inv_root)
+            b.launch(k["big_classify"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
+                     d_out, u4(C), piece=piece)
+            decision = b.read(d_decision, u4, (m, 4))
+            out = b.read(d_out, u4, (C, 2)).astype(np.int64)
+            sah = b.read(d_sah, np.int64, m)
             del d_hist, d_choice, d_counts
             self.sah_fixed += int(sah.sum())
 
@@ -504,11 +397,11 @@ class _BuildState:
                 dest[:, 2 * side] = q_flat[flat]
                 dest[:, 2 * side + 1] = base + offset[:-1] - node_offset[chunk_node]
             b.heartbeat()     # after the host's part of the level
-            next_refs = b._buffer(nbytes=32 * max(next_total, 1))
-            d_dest = b._buffer(dest)
-            b._run(k["big_scatter"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
-                   d_dest, next_refs, self.queue_refs, u4(C), piece=piece)
-            b.queue.finish()
+            next_refs = b.buffer(nbytes=32 * max(next_total, 1))
+            d_dest = b.buffer(dest)
+            b.launch(k["big_scatter"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
+                     d_dest, next_refs, self.queue_refs, u4(C), piece=piece)
+            b.finish()
 
             # Inner nodes of this level (placed later), and the next level's big nodes.
             s_nodes = np.flatnonzero(split)
@@ -533,7 +426,7 @@ class _BuildState:
 
     # -- subtrees -------------------------------------------------------------------------------
     def subtree_stage(self):
-        b, k, cl = self.b, self.k, self.b._cl
+        b, k = self.b, self.k
         u4 = np.uint32
         roots = {name: np.concatenate([r[name] for r in self.roots])
                  for name in ("level", "bad", "key", "start", "count")}
@@ -556,10 +449,10 @@ class _BuildState:
         done_refs = 0
         factor = np.ones(n_sub, np.int64)             # capacity multiplier, grows on overflow
         pending = np.argsort(-roots["count"], kind="stable")   # big subtrees first
-        batch_refs = 4 * b.subtree_refs * max(1, int(b.device.max_compute_units))
+        batch_refs = 4 * b.subtree_refs * max(1, b.compute_units)
         scratch = records = leafbuf = None
         sizes = (0, 0, 0)
-        next_subtree = b._buffer(nbytes=4)
+        next_subtree = b.buffer(nbytes=4)
         while len(pending):
             take = max(1, int(np.searchsorted(np.cumsum(roots["count"][pending] * factor[pending]),
                                               batch_refs, side="right")))
@@ -574,9 +467,9 @@ class _BuildState:
             need = (int(rec_off[-1]), int(leaf_off[-1]), int(scr_off[-1]))
             if any(x > y for x, y in zip(need, sizes)):
                 sizes = tuple(max(x, y) for x, y in zip(need, sizes))
-                scratch = b._buffer(nbytes=32 * sizes[2])
-                records = (b._buffer(nbytes=8 * sizes[0]), b._buffer(nbytes=4 * sizes[0]))
-                leafbuf = b._buffer(nbytes=4 * sizes[1])
+                scratch = b.buffer(nbytes=32 * sizes[2])
+                records = (b.buffer(nbytes=8 * sizes[0]), b.buffer(nbytes=4 * sizes[0]))
+                leafbuf = b.buffer(nbytes=4 * sizes[1])
             words = np.zeros((len(batch), ROOT_WORDS), u4)
             words[:, 0:3] = roots["lo"][batch].view(u4)
             words[:, 3:6] = roots["hi"][batch].view(u4)
@@ -586,19 +479,19 @@ class _BuildState:
             words[:, 12], words[:, 13] = leaf_off[:-1], leaf_cap
             words[:, 14], words[:, 15] = scr_off[:-1], scr_cap
             words[:, 16], words[:, 17] = lvl_off[:-1], span[batch]
-            d_roots = b._buffer(words)
-            d_levels = b._buffer(nbytes=8 * int(lvl_off[-1]))
-            d_result = b._buffer(nbytes=16 * len(batch))
-            d_sah = b._buffer(nbytes=8 * len(batch))
+            d_roots = b.buffer(words)
+            d_levels = b.buffer(nbytes=8 * int(lvl_off[-1]))
+            d_result = b.buffer(nbytes=16 * len(batch))
+            d_sah = b.buffer(nbytes=8 * len(batch))
             t0 = time.perf_counter()
             workers = len(batch)
             if b.subtree_queue:     # a few work-items take the subtrees in turn
-                cl.enqueue_fill_buffer(b.queue, next_subtree, u4(0), 0, 4)
-                workers = min(workers, int(b.device.max_compute_units))
-            b._run(k["build_subtrees"], workers, self.queue_refs, self.corners, d_roots,
-                   scratch, records[0], records[1], leafbuf, d_levels, d_result, d_sah,
-                   next_subtree, u4(len(batch)), self.pow2, self.inv_root, u4(self.depth_cap))
-            result = b._read(d_result, u4, (len(batch), 4)).astype(np.int64)
+                b.clear(next_subtree, 4)
+                workers = min(workers, b.compute_units)
+            b.launch(k["build_subtrees"], workers, self.queue_refs, self.corners, d_roots,
+                     scratch, records[0], records[1], leafbuf, d_levels, d_result, d_sah,
+                     next_subtree, u4(len(batch)), self.pow2, self.inv_root, u4(self.depth_cap))
+            result = b.read(d_result, u4, (len(batch), 4)).astype(np.int64)
             seconds = time.perf_counter() - t0
             self.launches += 1
             status = result[:, 0]
@@ -611,9 +504,9 @@ class _BuildState:
                 pending = np.concatenate([failed, pending])
             good = batch[ok]
             if len(good):
-                sah = b._read(d_sah, np.int64, len(batch))
+                sah = b.read(d_sah, np.int64, len(batch))
                 self.sah_fixed += int(sah[ok].sum())
-                levels_table = b._read(d_levels, u4, (int(lvl_off[-1]), 2))
+                levels_table = b.read(d_levels, u4, (int(lvl_off[-1]), 2))
                 n_rec, n_leaf = result[ok, 1], result[ok, 2]
                 self.levels[good] = result[ok, 3]
                 level_pieces.append((good, levels_table[concat_ranges(lvl_off[:-1][ok], result[ok, 3])]))
@@ -667,18 +560,18 @@ class _BuildState:
         bases = np.stack([node_base[:nsub_entries], leaf_base[:nsub_entries]], 1).astype(u4)
         places = np.stack([self.rec_start, self.rec_count, self.leaf_start,
                            exclusive_cumsum(levels)[:-1]], 1).astype(u4)
-        d_nodes = b.buffers.standalone(8 * total_nodes)       # _take: they outlive the build
-        d_leaves = b.buffers.standalone(4 * total_refs)
-        d_bases = b._buffer(bases)
+        d_nodes = b.standalone(8 * total_nodes)       # _take: they outlive the build
+        d_leaves = b.standalone(4 * total_refs)
+        d_bases = b.buffer(bases)
         per_subtree = max(1, int(self.rec_count.sum()) // max(n_sub, 1))
         for c, chunk in enumerate(self.store.chunks):
             ids = np.flatnonzero(self.chunk_of == c)
-            b._run(k["place_subtrees"], len(ids), chunk.words, chunk.meta, chunk.leaf_refs,
-                   b._buffer(places[ids]), d_bases, d_nodes, d_leaves, u4(len(ids)),
-                   piece=max(1, PIECE_ITEMS // per_subtree))
+            b.launch(k["place_subtrees"], len(ids), chunk.words, chunk.meta, chunk.leaf_refs,
+                     b.buffer(places[ids]), d_bases, d_nodes, d_leaves, u4(len(ids)),
+                     piece=max(1, PIECE_ITEMS // per_subtree))
             b.heartbeat()
-        nodes = b._take(d_nodes, u4, (total_nodes, 2))
-        leaf_indices = b._take(d_leaves, u4, total_refs)
+        nodes = b.take(d_nodes, u4, (total_nodes, 2))
+        leaf_indices = b.take(d_leaves, u4, total_refs)
         self.store = None
         # Big inner nodes: their own place, and their children's (the entry at the next level
         # with the below child's key).
@@ -703,8 +596,8 @@ class _Chunk:
     """One piece of the store: record words, their meta, leaf references; how much is used."""
 
     def __init__(self, b, rec_capacity, ref_capacity):
-        self.words, self.meta = b._buffer(nbytes=8 * rec_capacity), b._buffer(nbytes=4 * rec_capacity)
-        self.leaf_refs = b._buffer(nbytes=4 * ref_capacity)
+        self.words, self.meta = b.buffer(nbytes=8 * rec_capacity), b.buffer(nbytes=4 * rec_capacity)
+        self.leaf_refs = b.buffer(nbytes=4 * ref_capacity)
         self.rec_capacity, self.ref_capacity = rec_capacity, ref_capacity
         self.records = self.refs = 0
 
@@ -734,8 +627,8 @@ class _Store:
         rec_dst = c.records + exclusive_cumsum(rec_n)[:-1]
         leaf_dst = c.refs + exclusive_cumsum(leaf_n)[:-1]
         moves = np.stack([rec_src, rec_dst, rec_n, leaf_src, leaf_dst, leaf_n], 1).astype(np.uint32)
-        b._run(self.kernel, len(moves), records[0], records[1], leafbuf, b._buffer(moves),
-               c.words, c.meta, c.leaf_refs, np.uint32(len(moves)))
+        b.launch(self.kernel, len(moves), records[0], records[1], leafbuf, b.buffer(moves),
+                 c.words, c.meta, c.leaf_refs, np.uint32(len(moves)))
         c.records += need_rec
         c.refs += need_refs
         return len(self.chunks) - 1, rec_dst, leaf_dst
@@ -757,12 +650,6 @@ def builder_for(device) -> KDTreeBuilderCL:
     return builder
 
 
-def build_kdtree_cl(vertices, triangles, params: KDTreeParams | None = None, progress=None,
-                    device=None) -> KDTree:
-    """build_kdtree() on an OpenCL device (see builder_for)."""
-    return builder_for(device).build(vertices, triangles, params, progress)
-
-
 def opencl_builder(device="auto"):
     """(builder_for(device), None), or (None, why not) when pyopencl is missing or there is no
     such OpenCL device."""
@@ -780,7 +667,6 @@ def build_standard(vertices, triangles, device="auto", params: KDTreeParams | No
     """The standard kd-tree, on the OpenCL device `device` (see builder_for) when there is one,
     else with numpy (core.accel.kdtree.build_kdtree: the same tree). Returns (tree, the builder
     or None); tree.stats["builder"] / ["device"] say which ran where."""
-    from .kdtree import build_kdtree
     builder, reason = opencl_builder(device)
     if builder is not None:
         return builder.build(vertices, triangles, params, progress), builder
