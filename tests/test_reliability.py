@@ -347,8 +347,8 @@ def test_array_spec_with_a_list_or_object_dtype_is_refused(slaves, scene, refere
 
 
 def test_an_exception_while_handling_a_slave_drops_that_slave(slaves, scene, reference, monkeypatch):
-    from core.net import master as master_module
-    real_handle = master_module._SlaveWorker._handle
+    from core.net import slave_worker
+    real_handle = slave_worker.SlaveWorker._handle
     victim_port = slaves[1].port
 
     def handle(worker, msg):
@@ -356,7 +356,7 @@ def test_an_exception_while_handling_a_slave_drops_that_slave(slaves, scene, ref
             raise RuntimeError("a bug in the master")
         return real_handle(worker, msg)
 
-    monkeypatch.setattr(master_module._SlaveWorker, "_handle", handle)
+    monkeypatch.setattr(slave_worker.SlaveWorker, "_handle", handle)
     with Master([s.endpoint for s in slaves], secret=None, retry_delays=()) as master:
         master.connect()
         master.load_scene(scene)

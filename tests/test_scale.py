@@ -12,7 +12,8 @@ import pytest
 
 from bench.standin import StandInTracer, calibrate
 from core.net import protocol
-from core.net.master import DEPTH_MISS, RESULTS_EVERY_S, Master, auto_tile_size
+from core.net.master import Master, auto_tile_size
+from core.net.render_job import DEPTH_MISS, RESULTS_EVERY_S
 from core.scene.scene import Scene
 from slave.server import SlaveServer
 from tests.linkemu import LinkEmulator
