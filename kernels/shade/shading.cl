@@ -234,9 +234,14 @@ inline float2 sincos_poly(float x)
 // Textures
 
 #if defined(HAS_TEXTURES) || defined(HAS_WORLD_TEXTURE)
-inline float4 texel(const Scene *sc, uint offset, int w, int x, int y)
+// Texel (x, y) of the w x h texture at `offset`, the coordinates clamped into it (a NaN or
+// infinite coordinate from a node program converts to any int) and the index taken in 64 bits:
+// no read leaves the texture, which the host checked lies inside texels (Geometry.validate).
+inline float4 texel(const Scene *sc, uint offset, int w, int h, int x, int y)
 {
-    return vload_half4(offset + (uint)(y * w + x), sc->texels);
+    x = clamp(x, 0, max(w - 1, 0));
+    y = clamp(y, 0, max(h - 1, 0));
+    return vload_half4((size_t)((ulong)offset + (ulong)y * (ulong)w + (ulong)x), sc->texels);
 }
 
 // Texel i of a row or column of n in an Image Texture extension mode (Cycles'); -1: outside
@@ -255,9 +260,9 @@ inline int wrap_texel(int i, int n, int extension)
     return i < 0 ? n - 1 : (i >= n ? 0 : i);           // repeat (i is in [-1, n])
 }
 
-inline float4 texel_or_clear(const Scene *sc, uint offset, int w, int x, int y)
+inline float4 texel_or_clear(const Scene *sc, uint offset, int w, int h, int x, int y)
 {
-    return x < 0 || y < 0 ? (float4)(0.0f, 0.0f, 0.0f, 0.0f) : texel(sc, offset, w, x, y);
+    return x < 0 || y < 0 ? (float4)(0.0f, 0.0f, 0.0f, 0.0f) : texel(sc, offset, w, h, x, y);
 }
 
 // Bilinear (or closest) lookup; uv (0, 0) is the first texel (Blender's bottom-left).
@@ -275,8 +280,8 @@ inline float4 texture_lookup_ext(const Scene *sc, int tex, float2 uv, bool close
     if (closest) {
         int x = (int)floor(uv.x * (float)w), y = (int)floor(uv.y * (float)h);
         if (extension == NODE_EXTENSION_REPEAT)
-            return texel(sc, offset, w, min(x, w - 1), min(y, h - 1));
-        return texel_or_clear(sc, offset, w, wrap_texel(x, w, extension),
+            return texel(sc, offset, w, h, x, y);
+        return texel_or_clear(sc, offset, w, h, wrap_texel(x, w, extension),
                               wrap_texel(y, h, extension));
     }
     float x = uv.x * (float)w - 0.5f, y = uv.y * (float)h - 0.5f;
@@ -284,8 +289,8 @@ inline float4 texture_lookup_ext(const Scene *sc, int tex, float2 uv, bool close
     float tx = x - fx, ty = y - fy;
     int x0 = wrap_texel((int)fx, w, extension), y0 = wrap_texel((int)fy, h, extension);
     int x1 = wrap_texel((int)fx + 1, w, extension), y1 = wrap_texel((int)fy + 1, h, extension);
-    float4 c00 = texel_or_clear(sc, offset, w, x0, y0), c10 = texel_or_clear(sc, offset, w, x1, y0);
-    float4 c01 = texel_or_clear(sc, offset, w, x0, y1), c11 = texel_or_clear(sc, offset, w, x1, y1);
+    float4 c00 = texel_or_clear(sc, offset, w, h, x0, y0), c10 = texel_or_clear(sc, offset, w, h, x1, y0);
+    float4 c01 = texel_or_clear(sc, offset, w, h, x0, y1), c11 = texel_or_clear(sc, offset, w, h, x1, y1);
     return (1.0f - ty) * ((1.0f - tx) * c00 + tx * c10) + ty * ((1.0f - tx) * c01 + tx * c11);
 }
 
