@@ -26,6 +26,7 @@ import os
 import secrets
 import socket
 import struct
+import sys
 import threading
 import time
 import zlib
@@ -718,8 +719,11 @@ def get_str(header: dict, key: str, max_length: int = 256) -> str:
 
 def get_float(header: dict, key: str) -> float:
     value = header.get(key)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ProtocolError(f"field {key!r} must be a finite number, got {value!r}")
+    # Compared, not converted: an integer past float's range (JSON has them) is refused, not an
+    # OverflowError; NaN and infinities fail the comparison.
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+            -sys.float_info.max <= value <= sys.float_info.max):
+        raise ProtocolError(f"field {key!r} must be a finite number, got {repr(value)[:64]}")
     return float(value)
 
 

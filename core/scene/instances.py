@@ -33,6 +33,7 @@ from .model import SceneError
 MAX_INSTANCES = 1 << 20
 MAX_MESHES = 1 << 16
 MAX_REFERENCED_TRIANGLES = (1 << 32) - 2     # hit keys are uint32; 0xFFFFFFFF is no hit
+MAX_MESH_BASE = (1 << 32) - 1                # the MESH table's bases are uint32
 VISIBILITY_BITS = 63                         # VISIBILITY_<RAY> bits and HOLDOUT
 # A transform whose linear part has |det| at most this fraction of its largest entry cubed
 # is singular (a scale of zero): its inverse would not be finite.
@@ -107,8 +108,9 @@ class InstanceSet:
         if not (np.isfinite(to_object).all() and np.abs(to_object).max() < 1e30):
             raise SceneError("an instance's inverse transform does not fit in float32")
         tri_counts = mesh_table[:, MESH.index("tri_count")].astype(np.int64)
+        # Exact in int64: at most MAX_INSTANCES (2^20, checked above) counts below 2^32.
         key_base = np.concatenate([[0], np.cumsum(tri_counts[mesh])])
-        if key_base[-1] > MAX_REFERENCED_TRIANGLES:
+        if int(key_base[-1]) > MAX_REFERENCED_TRIANGLES:
             raise SceneError(f"the instances reference {int(key_base[-1])} triangles, at most "
                              f"{MAX_REFERENCED_TRIANGLES}")
         world = world_boxes(matrix, mesh_bounds[mesh].astype(np.float64))

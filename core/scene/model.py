@@ -31,6 +31,13 @@ UV_DTYPE = np.dtype("<f4")
 TEXEL_DTYPE = np.dtype("<f2")      # linear RGBA, half precision
 TEXTURE_SIZE_DTYPE = np.dtype("<u4")
 MAX_TEXTURES = 4096
+# Texels a texture may have per side: then w x h <= 2^32, and the kernel's texel index
+# (kernels/shade/shading.cl `texel`) is exact. Blender's images are at most 65536 per side too.
+MAX_TEXTURE_SIDE = 65536
+# Triangles of a scene: the kernels address a triangle's corner rows as 3 * tri + k and its
+# TRIANGLE record as TRIANGLE_SIZE * tri in 32 bits (a billion triangles is 12 GiB of indices
+# alone, far past what a slave takes).
+MAX_TRIANGLES = 1 << 30
 MAX_RADIANCE = 1e30
 
 
@@ -41,7 +48,7 @@ class SceneError(ValueError):
 def _finite_floats(value, count: int, what: str) -> tuple:
     try:
         numbers = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):     # OverflowError: a JSON integer past float
         raise SceneError(f"{what} must be {count} numbers") from None
     if len(numbers) != count or not all(math.isfinite(v) for v in numbers):
         raise SceneError(f"{what} must be {count} finite numbers")
@@ -51,7 +58,7 @@ def _finite_floats(value, count: int, what: str) -> tuple:
 def _finite_float(value, what: str, low: float = -math.inf, high: float = math.inf) -> float:
     try:
         number = float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise SceneError(f"{what} must be a number") from None
     if not math.isfinite(number) or not low <= number <= high:
         raise SceneError(f"{what} must be a finite number in [{low}, {high}], got {value!r}")
@@ -128,6 +135,10 @@ class Geometry:
         return 0 if self.texture_sizes is None else len(self.texture_sizes)
 
     def validate(self, material_count: int | None = None) -> None:
+        """SceneError unless every index and size lies inside its array: bounds on the arrays'
+        numbers in Python integers (numpy's wrap), each size capped first."""
+        if len(self.triangles) > MAX_TRIANGLES:
+            raise SceneError(f"{len(self.triangles)} triangles, at most {MAX_TRIANGLES}")
         if len(self.material_ids) != len(self.triangles):
             raise SceneError(
                 f"{len(self.material_ids)} material ids for {len(self.triangles)} triangles")
@@ -149,12 +160,16 @@ class Geometry:
         if (self.texels is None) != (self.texture_sizes is None):
             raise SceneError("texels and texture_sizes come together")
         if self.texture_sizes is not None:
-            sizes = self.texture_sizes.astype(np.int64)
-            if len(sizes) > MAX_TEXTURES:
-                raise SceneError(f"more than {MAX_TEXTURES} textures")
-            if len(sizes) and ((sizes[:, 1] < 1).any() or (sizes[:, 2] < 1).any()
-                               or (sizes[:, 0] + sizes[:, 1] * sizes[:, 2] > len(self.texels)).any()):
-                raise SceneError("a texture reaches past the end of texels or is empty")
+            if len(self.texture_sizes) > MAX_TEXTURES:
+                raise SceneError(f"{len(self.texture_sizes)} textures, at most {MAX_TEXTURES}")
+            texel_count = len(self.texels)
+            for k, (offset, width, height) in enumerate(self.texture_sizes.tolist()):
+                if not (1 <= width <= MAX_TEXTURE_SIDE and 1 <= height <= MAX_TEXTURE_SIDE):
+                    raise SceneError(f"texture {k} is {width} x {height} texels; each side must "
+                                     f"be 1 to {MAX_TEXTURE_SIDE}")
+                if offset + width * height > texel_count:
+                    raise SceneError(f"texture {k} ({width} x {height} texels from texel "
+                                     f"{offset}) reaches past the end of the {texel_count} texels")
             if not np.isfinite(self.texels).all():
                 raise SceneError("texels contain NaN or infinity")
 

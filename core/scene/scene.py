@@ -25,7 +25,7 @@ from ..accel.kdtree import KDTree
 from ..accel.validate import validate_compact
 from ..layout import INSTANCE, MESH, VISIBLE_TO_ALL
 from .features import full_geometry, needed_arrays, program_textures, scene_features
-from .instances import MAX_MESHES, InstanceSet, as_3x4
+from .instances import MAX_MESH_BASE, MAX_MESHES, VISIBILITY_BITS, InstanceSet, as_3x4
 from .model import (INDEX_DTYPE, MATERIAL_ID_DTYPE, MATERIAL_PARAMS, MAX_LIGHTS, VERTEX_DTYPE,
                     Geometry, SceneError, View)
 
@@ -122,8 +122,7 @@ class Scene:
         instance_mesh = np.asarray(instance_mesh, np.int64).reshape(-1)
         matrices = as_3x4(to_world)
         motion = _motion_arrays(matrices, to_world_end)
-        visibility = np.full(len(instance_mesh), VISIBLE_TO_ALL, np.uint8) if visibility is None \
-            else np.asarray(visibility, np.uint8).reshape(-1)
+        visibility = _visibility_bits(visibility, len(instance_mesh))
         if len(instance_mesh) and (instance_mesh.min() < 0 or instance_mesh.max() >= len(meshes)):
             raise SceneError(f"an instance uses a mesh outside 0..{len(meshes) - 1}")
         parts, depths = [], []
@@ -165,12 +164,17 @@ class Scene:
         """`depths`: the mesh trees' depths where from_instances has validated the trees these
         arrays concatenate (else each mesh's slice of the arrays is validated here)."""
         counts = arrays["mesh_counts"].astype(np.int64)
-        totals = counts[:, :4].sum(axis=0)
+        if not 1 <= len(counts) <= MAX_MESHES:      # before any work per mesh
+            raise SceneError(f"an instanced scene has 1 to {MAX_MESHES} meshes, got {len(counts)}")
+        totals = _column_totals(counts[:, :4])
         sizes = (geometry.triangle_count, len(arrays["nodes"]), len(arrays["leaf_index32"]),
                  len(arrays["leaf_index16"]))
-        if tuple(int(v) for v in totals) != sizes:
+        if totals != sizes:
             raise SceneError(f"the meshes' triangles, nodes and leaf entries add up to "
-                             f"{tuple(int(v) for v in totals)}, the scene has {sizes}")
+                             f"{totals}, the scene has {sizes}")
+        if max(totals) > MAX_MESH_BASE:
+            raise SceneError(f"the meshes' triangles, nodes and leaf entries {totals} do not "
+                             f"fit the 32-bit bases of the mesh table (at most {MAX_MESH_BASE})")
         bases = np.concatenate([np.zeros((1, 4), np.int64), np.cumsum(counts[:, :4], axis=0)])
         table = np.zeros((len(counts), len(MESH.columns)), np.uint32)
         for column, k in (("tri_base", 0), ("node_base", 1), ("leaf32_base", 2),
@@ -230,11 +234,11 @@ class Scene:
         old = self.instances
         mesh = np.asarray(instance_mesh, np.int64).reshape(-1)
         matrices = as_3x4(to_world).astype(np.float32)
-        if visibility is None:
-            visibility = np.full(len(mesh), VISIBLE_TO_ALL, np.uint8)
-        if len(mesh) and mesh.min() < 0:
-            raise SceneError("an instance uses a negative mesh index")
-        return self._placed(mesh.astype(np.uint32), matrices, np.asarray(visibility, np.uint8),
+        meshes = len(old.mesh_table)
+        if len(mesh) and (mesh.min() < 0 or mesh.max() >= meshes):   # before the uint32 cast
+            raise SceneError(f"an instance uses a mesh outside 0..{meshes - 1}")
+        return self._placed(mesh.astype(np.uint32), matrices,
+                            _visibility_bits(visibility, len(mesh)),
                             **_motion_arrays(matrices, to_world_end))
 
     def placed_from_wire(self, arrays: dict) -> "Scene":
@@ -343,7 +347,7 @@ class Scene:
             sizes = (geometry.triangle_count, len(carried["nodes"]), len(carried["leaf_index32"]),
                      len(carried["leaf_index16"]))
             if len(counts) != int(new.sum()) or len(carried["mesh_bounds"]) != len(counts) or \
-                    tuple(int(v) for v in counts[:, :4].sum(axis=0)) != sizes:
+                    _column_totals(counts[:, :4]) != sizes:
                 raise SceneError(f"the carried meshes' counts do not add up to their arrays "
                                  f"({int(new.sum())} meshes marked new)")
             ends = np.cumsum(counts[:, 1:4], axis=0)
@@ -496,6 +500,25 @@ def _split_meshes(geometry: Geometry, tri_counts, trees) -> list | None:
         parts.append((Geometry(geometry.vertices[start:vertex_end], triangles - np.uint32(start),
                                geometry.material_ids[lo:hi], **corner), tree))
     return parts if vertex_end == len(geometry.vertices) else None
+
+
+def _column_totals(counts: np.ndarray) -> tuple:
+    """Each column's sum of a peer's (M, k) counts, in Python integers (numpy's sums wrap)."""
+    return tuple(sum(column) for column in counts.T.tolist())
+
+
+def _visibility_bits(visibility, count: int) -> np.ndarray:
+    """(count,) uint8 VISIBILITY bits of the instances (None: every ray): integers that fit
+    uint8, refused before the cast would wrap them (256 to 0); InstanceSet.checked checks the
+    bits."""
+    if visibility is None:
+        return np.full(count, VISIBLE_TO_ALL, np.uint8)
+    values = np.asarray(visibility).reshape(-1)
+    if values.dtype.kind not in "iub" or (len(values) and not (
+            0 <= int(values.min()) and int(values.max()) <= np.iinfo(np.uint8).max)):
+        raise SceneError(f"instance visibility must be integers of VISIBILITY bits "
+                         f"(0..{VISIBILITY_BITS})")
+    return values.astype(np.uint8)
 
 
 def _check_array_specs(arrays: dict, specs: dict) -> None:
