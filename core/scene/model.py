@@ -511,8 +511,11 @@ def check_node_program(rows, starts) -> np.ndarray:
             if start != w1[1] or not 2 <= start or not pc + start <= n - tables[op]:
                 raise SceneError(f"node program row {pc}: table outside the program")
             ramps.append((pc + start, pc + start + tables[op]))
-        if op not in (NODE_OP_CODES["CONST"], NODE_OP_CODES["END"]):
-            refs = (w0[2], w0[3], w1[0])
+        if op != NODE_OP_CODES["END"]:
+            # A CONST's second row is its value (the kernel reads its first lane as an
+            # operand too: kernels/shade/shading.cl node_operand must clamp it); its
+            # register and first-row operands are checked as every instruction's.
+            refs = (w0[2], w0[3]) if op == NODE_OP_CODES["CONST"] else (w0[2], w0[3], w1[0])
             if any(r != int(r) or not 0 <= r < NODE_REGISTERS * NODE_REF_REGISTER for r in refs) \
                     or not 0 <= w0[1] < NODE_REGISTERS:
                 raise SceneError(f"node program row {pc}: register out of range")
@@ -526,11 +529,17 @@ def check_node_program(rows, starts) -> np.ndarray:
                 pc = hi
         if pc % 2:
             raise SceneError("node program tables must end on an even row")
+    # Instructions from each instruction row to the END that stops it (None: a table row or
+    # the program's end comes first), counted once from the last row back: a walk per start
+    # costs up to 1024 steps, and 65535 materials may start at 65535 rows (2.5 s).
+    to_end = {}
+    for pc in reversed(instructions):
+        after = to_end.get(pc + 2)
+        to_end[pc] = 0 if instructions[pc] == NODE_OP_CODES["END"] else \
+            None if after is None else after + 1
     for start in (int(v) for v in starts if v >= 0):
-        pc = start
-        while instructions.get(pc, -1) > 0 and pc < 2 * 1024 + start:
-            pc += 2
-        if instructions.get(pc) != NODE_OP_CODES["END"]:
+        steps = to_end.get(start)
+        if steps is None or steps > 1024:       # the kernel runs at most 1024 instructions
             raise SceneError(f"the node program at row {start} does not end (with END) in its rows")
     return program
 
