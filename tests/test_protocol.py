@@ -258,6 +258,17 @@ def test_a_geometry_takes_a_hash_only_from_the_same_bits():
     # Inner node with a reference slot naming triangle 9, two leaves.
     (lambda s: s.update(nodes=np.array([[(1 << 5) | 4, 0], [9, 0xFFFFFFFF], [3, 0], [3, 0]],
                                        np.uint32)), "slot names a triangle"),
+    # Indices at 32 bits (tests/test_bounds.py): a 32-bit leaf of one triangle at offset
+    # 2^32 - 1 or 2^31; a 16-bit leaf whose (base << leaf_shift) + entry is 2^32 - 1; a slot.
+    (lambda s: s.update(nodes=np.array([[(1 << 3) | 3, 2 ** 32 - 1]], np.uint32)),
+     "past the end of leaf_index32"),
+    (lambda s: s.update(nodes=np.array([[(1 << 3) | 3, 2 ** 31]], np.uint32)),
+     "past the end of leaf_index32"),
+    (lambda s: s.update(nodes=np.array([[(0xFFFF << 16) | (1 << 3) | 4 | 3, 0]], np.uint32),
+                        leaf_index16=np.array([0xFFFF], np.uint16),
+                        leaf_shift=np.array([16], np.uint32)), "triangle that does not exist"),
+    (lambda s: s.update(nodes=np.array([[(1 << 5) | 4, 0], [2 ** 32 - 2, 0xFFFFFFFF], [3, 0],
+                                        [3, 0]], np.uint32)), "slot names a triangle"),
     (lambda s: s.update(leaf_shift=np.array([40], np.uint32)), "leaf_shift"),
     (lambda s: s.update(leaf_shift=np.array([0, 0], np.uint32)), "'leaf_shift' must be"),
     (lambda s: s.pop("leaf_index16"), "must carry the arrays"),
