@@ -124,13 +124,10 @@ elif args["scene"] == "bad":
     bad.vertices[1].co = (float("nan"), 0.0, 0.0)
     bad.update()
     bpy.context.view_layer.update()
-    try:
-        export.export_view(bpy.context.evaluated_depsgraph_get())
-        error = None
-    except Exception as exc:        # SceneError from the add-on package
-        error = f"{type(exc).__name__}: {exc}"
-    write_result(result_path, {"warnings": info["warnings"], "triangles": triangles, "error": error,
-                               "arrays": arrays})
+    nan_geometry, _, nan_info = export.export_view(bpy.context.evaluated_depsgraph_get())
+    write_result(result_path, {"warnings": info["warnings"], "triangles": triangles,
+                               "arrays": arrays, "nan_warnings": nan_info["warnings"],
+                               "nan_triangles": nan_geometry.triangle_count})
     raise SystemExit(0)
 
 bpy.context.view_layer.update()
