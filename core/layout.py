@@ -1,7 +1,8 @@
 """Every layout that the host and the kernels share, as tables: the kd-tree node words (the
 builder's plain nodes and the tracer's compact nodes), the records of the tracer's buffers
 (lights, materials, camera, world, emissive triangles, tree bounds, triangle corners, texture
-sizes, accumulators) and the codes stored in them.
+sizes, accumulators), the builder's and compactor's rows and element sizes, and the codes
+stored in them.
 
 The builder and the compactor (core/accel/), the validator and the packers (slave/buffers.py)
 take their numbers from here, and `c_header()` writes the same tables as the C header that
@@ -115,7 +116,8 @@ class Record:
 
 @dataclass(frozen=True)
 class Columns:
-    """A row of `columns` integers per item (C: PREFIX_COLUMNS, PREFIX_<NAME> per column)."""
+    """A row of `columns` 32-bit words per item, integers unless the title says float32 (C:
+    PREFIX_COLUMNS, PREFIX_<NAME> per column)."""
 
     prefix: str
     title: str
@@ -123,6 +125,23 @@ class Columns:
 
     def index(self, name: str) -> int:
         return self.columns.index(name)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of one row."""
+        return 4 * len(self.columns)
+
+
+@dataclass(frozen=True)
+class Element:
+    """An element of a buffer whose fields only kernels read: its C type (an OpenCL vector
+    type, or a struct a kernel file defines) and its size, by which the host allocates (C:
+    PREFIX_BYTES; tests/test_layout.py checks sizeof(ctype) on the device)."""
+
+    prefix: str
+    title: str
+    ctype: str
+    nbytes: int
 
 
 @dataclass(frozen=True)
@@ -237,6 +256,10 @@ NODE_TRANSFORM_SIZE = 4         # TRANSFORM: the hit point through a 3 x 4 matri
 # The top-level BVH of instanced scenes (core/accel/toplevel.py; TOPLEVEL_NODE below).
 TOPLEVEL_LEAF_MAX = 4           # instances in a top-level leaf
 TOPLEVEL_MAX_DEPTH = 48         # levels of the top-level BVH (its traversal stack)
+# The kd-tree builder (SUBTREE_RESULT below) and compactor (compact.cl lift_candidates: per
+# reference of a triangle, its nearest gaps on the left and right and a stack).
+SUBTREE_STATUS = {"OK": 0, "SCRATCH": 1, "RECORDS": 2, "LEAF_REFS": 3, "RANKS": 4}
+LIFT_SCRATCH_WORDS = 3
 CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("LIGHT_SHAPE", "Area light shapes (LIGHT_AREA_SHAPE)", AREA_SHAPE_CODES),
          Codes("CAMERA", "Camera kinds (CAMERA_KIND)", CAMERA_CODES),
@@ -258,7 +281,9 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
                {"LEAF_MAX": TOPLEVEL_LEAF_MAX, "MAX_DEPTH": TOPLEVEL_MAX_DEPTH}),
          Codes("NODE", "Shader node program sizes",
                {"REGISTERS": NODE_REGISTERS, "REF_REGISTER": NODE_REF_REGISTER,
-                "RAMP_SIZE": NODE_RAMP_SIZE, "TRANSFORM_SIZE": NODE_TRANSFORM_SIZE}))
+                "RAMP_SIZE": NODE_RAMP_SIZE, "TRANSFORM_SIZE": NODE_TRANSFORM_SIZE}),
+         Codes("SUBTREE", "Outcomes of a subtree's build (SUBTREE_RESULT_STATUS)", SUBTREE_STATUS),
+         Codes("LIFT_SCRATCH", "lift_candidates' scratch", {"WORDS": LIFT_SCRATCH_WORDS}))
 
 LIGHT = Record("LIGHT", "A light (lights buffer, light_count records)", 6, (
     Slot("position", 0, "xyz", "position"),
@@ -392,7 +417,47 @@ TEXTURE_SIZE = Columns("TEXTURE_SIZE", "A texture (texture_sizes, uint32 rows)",
 # concatenated buffers (its tree's node, leaf-list and triangle indices count from these bases).
 MESH = Columns("MESH", "A mesh of an instanced scene (meshes, uint32 rows)",
                ("tri_base", "tri_count", "node_base", "leaf32_base", "leaf16_base", "leaf_shift"))
-COLUMNS = (TEXTURE_SIZE, MESH)
+
+# ---------------------------------------------------------------------------------------------
+# The kd-tree builder's and compactor's buffers (core/accel/kdtree_cl.py, compact_cl.py;
+# kernels/build/): rows the host writes or reads by column, and the elements it only sizes.
+
+# A subtree root of the build (kdtree_cl.py _BuildState.subtree_stage; subtree.cl): its cell,
+# where its references wait in the queue, and where its outputs go (offset and capacity in
+# the batch's buffers; a subtree that outgrows one is built again with more room).
+SUBTREE_ROOT = Columns("SUBTREE_ROOT", "A subtree root (roots buffer, uint32 rows; lo and hi "
+                       "float32 bits)",
+                       ("lo_x", "lo_y", "lo_z", "hi_x", "hi_y", "hi_z", "level", "bad_refines",
+                        "ref_first", "ref_count", "record_offset", "record_capacity",
+                        "leaf_offset", "leaf_capacity", "scratch_offset", "scratch_capacity",
+                        "level_offset", "level_span"))
+SUBTREE_RESULT = Columns("SUBTREE_RESULT", "A built subtree (result buffer, uint32 rows): a "
+                         "SUBTREE_<STATUS> code, its node records, leaf references and levels",
+                         ("status", "records", "leaf_refs", "levels"))
+CELL = Columns("CELL", "A node's cell (cells buffers, float32 rows): the big-node passes' by node "
+               "of the level, the compaction's topology's by place in the level",
+               ("lo_x", "lo_y", "lo_z", "hi_x", "hi_y", "hi_z"))
+# The compaction (compact_cl.py; compact.cl).
+LIFT_CANDIDATE = Columns("LIFT_CANDIDATE", "A lift candidate (lift_candidates' output, uint32 "
+                         "rows): the run of a triangle's references first .. end - 1 below node",
+                         ("depth", "node", "triangle", "references", "first", "end"))
+LAYOUT_COUNTS = Columns("LAYOUT_COUNTS", "A block of nodes' counts for the compact tree's stats "
+                        "(layout_stats, uint32 rows)",
+                        ("leaves", "empty_leaves_stored", "empty_leaves_elided", "leaves_16bit",
+                         "leaves_32bit", "inner", "largest_leaf", "collapsed_kept"))
+COLUMNS = (TEXTURE_SIZE, MESH, SUBTREE_ROOT, SUBTREE_RESULT, CELL, LIFT_CANDIDATE,
+           LAYOUT_COUNTS)
+
+BUILD_REF = Element("BUILD_REF", "A triangle reference of the build (split.cl): its box, the "
+                    "triangle's uint bits in lo.w", "Ref", 32)
+CLIMB = Element("CLIMB", "A node's climb record by preorder number (compact.cl): end of its "
+                "preorder range, the parent's number, depth, the node", "uint4", 16)
+WALK = Element("WALK", "A node's walk record by preorder number (compact.cl): area, the "
+               "parent's number, non-empty leaves below and whether the area never shrinks up",
+               "WalkRecord", 16)
+LIFT_GROUPED = Element("LIFT_GROUPED", "A lift candidate grouped by node (cand_group): triangle, "
+                       "references, first, end", "uint4", 16)
+ELEMENTS = (BUILD_REF, CLIMB, WALK, LIFT_GROUPED)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -457,5 +522,8 @@ def c_header() -> str:
                   f"#define {table.prefix}_COLUMNS {len(table.columns)}"]
         lines += [f"#define {table.prefix}_{name.upper()} {i}"
                   for i, name in enumerate(table.columns)]
+    for element in ELEMENTS:
+        lines += ["", _comment(f"{element.title}: {element.ctype}"),
+                  f"#define {element.prefix}_BYTES {element.nbytes}"]
     lines += ["", "#endif", ""]
     return "\n".join(lines)

@@ -39,6 +39,7 @@ def header_numbers() -> dict:
         numbers[f"{table.prefix}_COLUMNS"] = len(table.columns)
         numbers.update({f"{table.prefix}_{name.upper()}": table.index(name)
                         for name in table.columns})
+    numbers.update({f"{element.prefix}_BYTES": element.nbytes for element in layout.ELEMENTS})
     return numbers
 
 
@@ -108,7 +109,8 @@ def test_node_fields_tile_their_words():
 
 # Names under the layout's prefixes that kernels define for their own purposes (not layouts).
 LAYOUT_PREFIXES = ("KD_", "LIGHT_", "MATERIAL_", "CAMERA_", "BOUNDS_", "TRIANGLE_", "ACCUM_",
-                   "STATS_", "TEXTURE_SIZE_")
+                   "STATS_", "TEXTURE_SIZE_", "SUBTREE_", "CELL_", "LIFT_", "LAYOUT_COUNTS_",
+                   "BUILD_REF_", "CLIMB_", "WALK_")
 
 
 def kernel_files():
@@ -483,11 +485,59 @@ FIELD_BY_NUMBER = re.compile(r"(>>|<<)\s*\d|&\s*(0x[0-9a-fA-F]+|\d+)u?\b")
 SIGN_MASK = "& 0x7FFFFFFFu"      # |x| as a bit operation: not a layout
 
 
+# In the builder's kernels: a column of a subtree root, cell, candidate or count row read by
+# number (`root[6]`, `cell[3 + a]`), or such a buffer indexed with a literal stride.
+BUILD_ROW_BY_NUMBER = re.compile(
+    r"\b(root|cell|cells|out)\s*\[\s*\d+\s*[\]+]"
+    r"|\b(roots|result|cand|cells|next_cells|stats|scratch|block)\s*[+\[]\s*\d+\s*\*")
+
+
 def test_kernels_read_records_and_node_words_by_name():
     for path in kernel_files():
         for number, line in enumerate(path.read_text().splitlines(), 1):
             code = line.split("//")[0]
             assert not RECORD_BY_NUMBER.search(code), f"{path.name}:{number}: {line.strip()}"
+            if path.parent.name == "build":
+                assert not BUILD_ROW_BY_NUMBER.search(code), f"{path.name}:{number}: {line.strip()}"
             if path.parent.name == "trace":
                 code = code.replace(SIGN_MASK, "")
                 assert not FIELD_BY_NUMBER.search(code), f"{path.name}:{number}: {line.strip()}"
+
+
+# ---------------------------------------------------------------------------------------------
+# The kd-tree builder's and compactor's buffers (kernels/build/)
+
+OPENCL_SCALAR_OR_VECTOR = re.compile(r"u?(char|short|int|long)\d*|float\d*|double\d*")
+
+
+def test_build_elements_are_their_types_sizes():
+    """The host sizes the buffers whose fields only kernels read by core/layout.py's ELEMENTS:
+    each is sizeof(its C type) in the program that uses it, on the device, so that a struct
+    changed on one side alone fails here."""
+    from core.accel import compact_cl, kdtree_cl
+    from core.accel.kdtree import KDTreeParams
+    builder = kdtree_cl.KDTreeBuilderCL("cpu")
+    programs = [(kdtree_cl.KERNEL_FILES, builder.build_options(KDTreeParams())),
+                (compact_cl.KERNEL_FILES, compact_cl.program_options())]
+    measured = {}
+    for files, options in programs:
+        source = kernel_source(files)
+        known = [e for e in layout.ELEMENTS if OPENCL_SCALAR_OR_VECTOR.fullmatch(e.ctype)
+                 or re.search(r"}\s*%s\s*;" % e.ctype, source)]
+        body = "".join(f"    out[{i}] = sizeof({e.ctype});\n" for i, e in enumerate(known))
+        probe = f"__kernel void element_sizes(__global uint* out)\n{{\n{body}}}\n"
+        out = builder.buffer(nbytes=4 * len(known))
+        builder.run(builder.kernels(source + probe, options)["element_sizes"], 1, out,
+                    local_size=1)
+        sizes = builder.read(out, np.uint32, len(known))
+        measured.update({e.prefix: int(size) for e, size in zip(known, sizes)})
+    assert measured == {e.prefix: e.nbytes for e in layout.ELEMENTS}
+
+
+def test_corner_columns_follow_each_other():
+    """Kernels read a row's corner as NAME_X + a for a = 0, 1, 2."""
+    for table in layout.COLUMNS:
+        for name in table.columns:
+            if name.endswith("_x"):
+                base = table.index(name)
+                assert [table.index(name[:-1] + c) for c in "xyz"] == [base, base + 1, base + 2]

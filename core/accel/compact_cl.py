@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..layout import INNER_GROUP, LEAF16_INDEX_BITS, LEAF32_COUNT
+from ..layout import (CELL, CLIMB, INNER_GROUP, LAYOUT_COUNTS, LEAF16_INDEX_BITS, LEAF32_COUNT,
+                      LIFT_CANDIDATE, LIFT_GROUPED, LIFT_SCRATCH_WORDS, WALK)
 from ..opencl import kernel_source
 from .arrays import exclusive_cumsum, run_starts
 from .device import DeviceContext, device_for
@@ -31,6 +32,11 @@ PIECE_NODES = 1 << 22      # the other steps' launches: of this many nodes or re
 PIECE_SUBTREE_NODES = 1 << 20  # topo_subtrees' launches: roots of about this many nodes
 
 
+def program_options() -> list:
+    """The -D options of compact.cl (besides the device's double arithmetic)."""
+    return [f"-DPRIVATE_GAPS={PRIVATE_GAPS}u", f"-DTOPO_STACK={TOPO_STACK}"]
+
+
 class CompactorCL:
     """One compaction's kernel steps on a DeviceContext (device.py): its kernels, launched
     over the tree's levels and ranges; every buffer comes from and goes back to the device's
@@ -40,8 +46,7 @@ class CompactorCL:
         self.device = device
         # Many small work-items: work-groups of them (PoCL pays per work-group).
         self.local_size = local_size or (256 if device.is_cpu else 64)
-        self.k = device.kernels(kernel_source(KERNEL_FILES),
-                                [f"-DPRIVATE_GAPS={PRIVATE_GAPS}u", f"-DTOPO_STACK={TOPO_STACK}"])
+        self.k = device.kernels(kernel_source(KERNEL_FILES), program_options())
 
     # -- helpers ---------------------------------------------------------------------------
     def run(self, name, count, *args, piece=None):
@@ -51,11 +56,12 @@ class CompactorCL:
 
     def gather(self, buffer, at, kernel="gather_values") -> np.ndarray:
         """buffer[at] on the host (uint32 values; kernel gather_bytes for uchar buffers)."""
+        d = self.device
         if not len(at):
             return np.zeros(0, np.int64)
-        out = self.device.buffer(nbytes=4 * len(at))
-        self.run(kernel, len(at), buffer, self.device.buffer(np.asarray(at, U4)), out, U4(len(at)))
-        return self.device.read(out, U4, len(at)).astype(np.int64)
+        out = d.buffer(nbytes=4 * len(at))
+        self.run(kernel, len(at), buffer, d.buffer(np.asarray(at, U4)), out, U4(len(at)))
+        return d.read(out, U4, len(at)).astype(np.int64)
 
     def set_counts(self, buffer, nodes):
         """buffer[node] += how often node appears in `nodes`."""
@@ -64,9 +70,10 @@ class CompactorCL:
 
     def add_at(self, buffer, places, values):
         """buffer[places] += values (distinct places)."""
+        d = self.device
         if len(places):
-            self.run("add_values", len(places), self.device.buffer(places.astype(U4)),
-                     self.device.buffer(values.astype(U4)), buffer, U4(len(places)))
+            self.run("add_values", len(places), d.buffer(places.astype(U4)),
+                     d.buffer(values.astype(U4)), buffer, U4(len(places)))
 
     def scan(self, values, n, out=None):
         """Exclusive prefix sum of n uints (into `out`, or in place); returns the total."""
@@ -85,19 +92,20 @@ class CompactorCL:
     # -- steps -----------------------------------------------------------------------------
     def level_ranges(self, nodes, n):
         """The level ranges of a tree in the builders' order (compact.level_ranges), or None."""
-        flags = self.device.buffer(nbytes=4 * n)
+        d = self.device
+        flags = d.buffer(nbytes=4 * n)
         self.run("inner_flags", n, nodes, flags, U4(n))
         inner = self.scan(flags, n)                     # now: inner nodes before each node
         if n != 1 + 2 * inner:
             return None
-        bad = self.device.zeros(4)
+        bad = d.zeros(4)
         self.run("order_check", n, nodes, flags, bad, U4(n))
-        if self.device.value_at(bad, 0):
+        if d.value_at(bad, 0):
             return None
         ranges = [(0, 1)]
         while True:
             a, b = ranges[-1]
-            end = 1 + 2 * (inner if b == n else self.device.value_at(flags, b))
+            end = 1 + 2 * (inner if b == n else d.value_at(flags, b))
             if end == b:
                 return ranges
             ranges.append((b, end))
@@ -111,13 +119,13 @@ class CompactorCL:
             self.run("topo_up", end - first, nodes, size, nonempty, U4(first), U4(end))
             d.heartbeat()
         pre = d.buffer(nbytes=4 * n)
-        climb, walk = d.buffer(nbytes=16 * n), d.buffer(nbytes=16 * n)
+        climb, walk = d.buffer(nbytes=CLIMB.nbytes * n), d.buffer(nbytes=WALK.nbytes * n)
         # Level by level down to the first wide level, then each of its subtrees depth first
         # (topo_subtrees: the records in preorder, one after another).
         wide = next((k for k, (a, e) in enumerate(ranges) if e - a >= TOPO_ROOTS), len(ranges))
         wide = max(wide, len(ranges) - TOPO_STACK)
         widest = max(e - a for a, e in ranges[:wide + 1])
-        cells = [d.buffer(nbytes=24 * widest), d.buffer(nbytes=24 * widest)]
+        cells = [d.buffer(nbytes=CELL.nbytes * widest) for _ in range(2)]
         root_cell = d.buffer(np.ascontiguousarray(bounds, np.float32).reshape(-1))
         d.run(self.k["topo_root"], 1, root_cell, cells[0], size, nonempty, pre, climb, walk,
               local_size=1)
@@ -141,10 +149,10 @@ class CompactorCL:
         triangle, and each triangle's first place."""
         d = self.device
         R = len(leaf_indices)
-        d_leaf_indices = self.device.view(leaf_indices)
+        d_leaf_indices = d.view(leaf_indices)
         # Counted on the device (numpy's bincount took 0.64 s of the 12 dragons' 35 M
         # references, with Esc unseen); the (T + 1)-th count is 0, so its prefix is R.
-        tri_first = self.device.zeros(4 * (triangle_count + 1))
+        tri_first = d.zeros(4 * (triangle_count + 1))
         s_leaf, s_pre, s_tri = (d.buffer(nbytes=4 * max(R, 1)) for _ in range(3))
         rank = s_tri                  # each reference's place in its range, until refs_sort
         self.run("refs_count", R, d_leaf_indices, tri_first, rank, U4(R))
@@ -165,20 +173,21 @@ class CompactorCL:
         """compact.py _lift_candidates: (a buffer of candidate rows, their number)."""
         d = self.device
         # Triangles with more than PRIVATE_GAPS references keep their stacks in the scratch.
-        big_first = self.device.zeros(4 * (triangle_count + 1))
+        big_first = d.zeros(4 * (triangle_count + 1))
         self.run("scratch_spans", triangle_count, tri_first, big_first, U4(triangle_count))
-        scratch = d.buffer(nbytes=12 * max(self.scan(big_first, triangle_count + 1), 1))
+        scratch = d.buffer(nbytes=4 * LIFT_SCRATCH_WORDS
+                           * max(self.scan(big_first, triangle_count + 1), 1))
         taus = (np.float64(params.tau_occu).view(np.uint64),
                 np.float64(params.tau_freq).view(np.uint64))
         capacity = max(R // 2, 1024)
         while True:
-            out = d.buffer(nbytes=24 * capacity)
-            used = self.device.zeros(4)
+            out = d.buffer(nbytes=LIFT_CANDIDATE.nbytes * capacity)
+            used = d.zeros(4)
             self.run("lift_candidates", triangle_count, tri_first, s_pre, gap_pre, gap_depth,
                      climb, walk, big_first, scratch, out,
                      used, U4(capacity), U4(triangle_count), U4(params.min_refs), *taus,
                      piece=PIECE_CLIMBS)
-            total = self.device.value_at(used, 0)
+            total = d.value_at(used, 0)
             if total <= capacity:
                 return out, total
             capacity = total          # more candidates than room: again with room for all
@@ -187,10 +196,11 @@ class CompactorCL:
         """The candidate rows grouped by node: (each node's end in `grouped`, grouped
         (triangle, references, first, end), each one's node)."""
         d = self.device
-        node_next = self.device.zeros(4 * n)
+        node_next = d.zeros(4 * n)
         self.run("cand_count", total, candidates, node_next, U4(total))
         self.scan(node_next, n)                         # each node's first place
-        grouped, grouped_node = d.buffer(nbytes=16 * total), d.buffer(nbytes=4 * total)
+        grouped = d.buffer(nbytes=LIFT_GROUPED.nbytes * total)
+        grouped_node = d.buffer(nbytes=4 * total)
         self.run("cand_group", total, candidates, node_next, grouped, grouped_node, U4(total))
         return node_next, grouped, grouped_node         # node_next: now each node's end
 
@@ -200,9 +210,9 @@ class CompactorCL:
         node: a buffer)."""
         d = self.device
         node_end, grouped, grouped_node = grouped_candidates
-        removed, taken, refs_at = self.device.zeros(R), self.device.zeros(4 * (total + 1)), self.device.zeros(4 * n)
+        removed, taken, refs_at = d.zeros(R), d.zeros(4 * (total + 1)), d.zeros(4 * n)
         limited = params.refs_per_path is not None
-        on_path = self.device.zeros(4 * n if limited else 4)
+        on_path = d.zeros(4 * n if limited else 4)
         for first, end in ranges:
             self.run("choose_lifts", end - first, node_end, grouped, removed, taken, refs_at,
                      on_path, U4(first), U4(end), U4(params.refs_per_node),
@@ -222,8 +232,8 @@ class CompactorCL:
                  lift_first, refs_at, pre, walk, params):
         """compact.py _distinct_below and _collapse: the collapsed nodes (a buffer)."""
         d = self.device
-        per_node = self.device.zeros(4 * n)
-        leaf_count = self.device.zeros(4 * n)
+        per_node = d.zeros(4 * n)
+        leaf_count = d.zeros(4 * n)
         self.run("distinct_refs", R, d_removed, s_leaf, gap_node, gap_depth, per_node, leaf_count,
                  U4(R))
         self.run("distinct_lifts", len(lift_node), d.buffer(lift_node.astype(U4)),
@@ -244,10 +254,11 @@ class CompactorCL:
 
     def owners(self, nodes, n, ranges, collapsed):
         """compact.py _owners: (dead, owner) buffers."""
-        dead, owner = self.device.zeros(n), self.device.zeros(4 * n)
+        d = self.device
+        dead, owner = d.zeros(n), d.zeros(4 * n)
         for first, end in ranges:
             self.run("owners", end - first, nodes, collapsed, dead, owner, U4(first), U4(end))
-            self.device.heartbeat()
+            d.heartbeat()
         return dead, owner
 
     def items(self, n, R, d_removed, s_leaf, s_tri, owner, extra_owner, extra_tri):
@@ -255,14 +266,14 @@ class CompactorCL:
         sorted, without repeats, one list after another in node order: buffers (count per
         node, first place per node, the lists) and the number of items."""
         d = self.device
-        per_owner = self.device.zeros(4 * (n + 1))
+        per_owner = d.zeros(4 * (n + 1))
         self.run("items_count", R, d_removed, s_leaf, owner, per_owner, U4(R))
         # The lifts of removed nodes go first in their owner's bucket, then the references.
         order = np.argsort(extra_owner, kind="stable")
         by_owner = extra_owner[order]
         starts = run_starts(by_owner)
         runs = np.diff(np.append(starts, len(by_owner)))
-        cursor = self.device.zeros(4 * n)
+        cursor = d.zeros(4 * n)
         self.add_at(cursor, by_owner[starts], runs)
         self.add_at(per_owner, by_owner[starts], runs)
         d.heartbeat()
@@ -297,9 +308,9 @@ class CompactorCL:
         d = self.device
         classes = d.buffer(nbytes=n)
         self.run("layout_classes", n, nodes, dead, collapsed, final_count, classes, U4(n))
-        refs_at = self.device.zeros(4 * n)
+        refs_at = d.zeros(4 * n)
         self.set_counts(refs_at, lift_node)
-        elided = self.device.zeros(n)
+        elided = d.zeros(n)
         groups = d.buffer(nbytes=4 * n)
         self.run("layout_groups", n, nodes, classes, refs_at, elided, groups, U4(n),
                  U4(bool(params.elide_empty)))
@@ -340,33 +351,35 @@ class CompactorCL:
             d.heartbeat()
         block = 4096
         blocks = max(1, -(-n // block))
-        counters = d.buffer(nbytes=32 * blocks)
+        counters = d.buffer(nbytes=LAYOUT_COUNTS.nbytes * blocks)
         d.run(self.k["layout_stats"], blocks, classes, elided, final_count, count16, collapsed,
               dead, counters, U4(n), U4(block), local_size=1)
-        per_block = d.read(counters, U4, (blocks, 8)).astype(np.int64)
+        per_block = d.read(counters, U4, (blocks, len(LAYOUT_COUNTS.columns))).astype(np.int64)
         d.heartbeat()
-        stored, empty, elided_count, leaves16, leaves32, inner_count, _, kept_collapsed = (
-            int(x) for x in per_block.sum(0))
-        if int(per_block[:, 6].max()) > LEAF32_COUNT.max:
+        if int(per_block[:, LAYOUT_COUNTS.index("largest_leaf")].max()) > LEAF32_COUNT.max:
             raise ValueError("a leaf holds too many triangles for the 32-bit list's count")
+        counts = dict(zip(LAYOUT_COUNTS.columns, (int(x) for x in per_block.sum(0))))
+        stored, leaves16, leaves32 = (counts[name] for name in ("leaves", "leaves_16bit",
+                                                                 "leaves_32bit"))
         laid_out = (d.take(out, U4, (total, 2)), d.take(index32, U4, total32),
                     d.take(index16, np.uint16, total16), shift,
-                    {"inner": inner_count, "tref": lifted_nodes, "leaf": stored},
-                    {"leaves": stored, "empty_leaves_stored": empty,
-                     "empty_leaves_elided": elided_count, "leaves_16bit": leaves16,
-                     "leaves_32bit": leaves32,
+                    {"inner": counts["inner"], "tref": lifted_nodes, "leaf": stored},
+                    {"leaves": stored, "empty_leaves_stored": counts["empty_leaves_stored"],
+                     "empty_leaves_elided": counts["empty_leaves_elided"],
+                     "leaves_16bit": leaves16, "leaves_32bit": leaves32,
                      "leaf16_share": float(leaves16 / max(leaves16 + leaves32, 1)),
                      "leaf_shift": shift})
         assert sum(laid_out[4].values()) == total
-        return laid_out, refs_at, kept_collapsed
+        return laid_out, refs_at, counts["collapsed_kept"]
 
     def max_refs_on_path(self, nodes, n, ranges, dead, refs_at) -> int:
-        on_path, most = self.device.zeros(4 * n), self.device.zeros(4)
+        d = self.device
+        on_path, most = d.zeros(4 * n), d.zeros(4)
         for first, end in ranges:
             self.run("path_refs", end - first, nodes, dead, refs_at, on_path, most, U4(first),
                      U4(end))
-            self.device.heartbeat()
-        return self.device.value_at(most, 0)
+            d.heartbeat()
+        return d.value_at(most, 0)
 
 
 def compact_on_device(device, tree, triangles_count, params, leaf_shift, report):

@@ -26,7 +26,8 @@ import time
 
 import numpy as np
 
-from ..layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
+from ..layout import (BUILD_REF, CELL, LEAF_TAG, PLAIN_FIELD, PLAIN_TAG, SUBTREE_RESULT,
+                      SUBTREE_ROOT, SUBTREE_STATUS)
 from ..opencl import kernel_source
 from .arrays import concat_ranges, exclusive_cumsum
 from .device import DeviceContext
@@ -35,7 +36,6 @@ from .kdtree import KDTree, KDTreeParams, build_kdtree, checked_mesh, root_bound
 KERNEL_FILES = ("build/fp64.cl", "build/common.cl", "build/split.cl", "build/big.cl",
                 "build/subtree.cl", "build/layout.cl")
 EXACT_MAX = 16          # nodes with up to this many references get exact SAH (as kdtree.py)
-ROOT_WORDS = 18         # subtree.cl's root record
 MAX_STACK = 64          # subtree.cl's KD_STACK: a subtree spans fewer levels than this
 FLT_MIN = np.float32(np.finfo(np.float32).tiny)
 HIST_PAD = 6            # histogram words per chunk: 6 * max_bins + 6
@@ -66,6 +66,19 @@ def _half_area_f32(lo: np.ndarray, hi: np.ndarray, pow2: np.float32) -> np.float
     """split.cl's cell_dims().half_area, in the same float32 operations."""
     d = [np.float32(hi[a]) * pow2 - np.float32(lo[a]) * pow2 for a in range(3)]
     return np.float32(d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
+
+
+def _root_rows(**columns) -> np.ndarray:
+    """The subtree roots' rows (core/layout.py SUBTREE_ROOT) from their columns by name; lo and
+    hi, float32 (n, 3), go to their three columns as bits."""
+    lo, hi = columns.pop("lo"), columns.pop("hi")
+    rows = np.zeros((len(lo), len(SUBTREE_ROOT.columns)), np.uint32)
+    for corner, name in ((lo, "lo_x"), (hi, "hi_x")):
+        first = SUBTREE_ROOT.index(name)
+        rows[:, first:first + 3] = corner.view(np.uint32)
+    for name, values in columns.items():
+        rows[:, SUBTREE_ROOT.index(name)] = values
+    return rows
 
 
 def _leaf_counts(words) -> tuple[int, int]:
@@ -242,7 +255,7 @@ class _BuildState:
         b, k = self.b, self.k
         T = self.triangle_count
         u4 = np.uint32
-        refs = b.buffer(nbytes=32 * T)
+        refs = b.buffer(nbytes=BUILD_REF.nbytes * T)
         keep = b.buffer(nbytes=T)
         b.launch(k["init_refs"], T, self.vertices, self.triangles, refs, keep, self.corners, u4(T),
                  piece=PIECE_ITEMS)
@@ -251,7 +264,7 @@ class _BuildState:
         kept = int(flags.sum())
         if kept < T:
             place = (np.cumsum(flags, dtype=np.int64) - flags).astype(u4)
-            out = b.buffer(nbytes=32 * kept)
+            out = b.buffer(nbytes=BUILD_REF.nbytes * kept)
             b.launch(k["compact_refs"], T, refs, keep, b.buffer(place), out, u4(T),
                      piece=PIECE_ITEMS)
             refs = out
@@ -274,9 +287,9 @@ class _BuildState:
         if need <= self.queue_capacity:
             return
         capacity = max(need, int(1.25 * self.queue_capacity), 1024)
-        grown = self.b.buffer(nbytes=32 * capacity)
+        grown = self.b.buffer(nbytes=BUILD_REF.nbytes * capacity)
         if self.queue_used:
-            self.b.copy(grown, self.queue_refs, 32 * self.queue_used)
+            self.b.copy(grown, self.queue_refs, BUILD_REF.nbytes * self.queue_used)
         self.queue_refs, self.queue_capacity = grown, capacity
 
     def _add_roots(self, lo, hi, level, bad, key, count):
@@ -303,7 +316,7 @@ class _BuildState:
         if n0 <= b.subtree_refs:
             self._add_roots(lo, hi, 0, bad, key, count)
             if n0:
-                b.copy(self.queue_refs, level_refs, 32 * n0)
+                b.copy(self.queue_refs, level_refs, BUILD_REF.nbytes * n0)
             return
         level = 0
         S, CH = b.subtree_refs, b.chunk_refs
@@ -322,8 +335,9 @@ class _BuildState:
             chunks = np.zeros((C, 4), u4)
             chunks[:, 0], chunks[:, 1], chunks[:, 2] = chunk_node, chunk_start, chunk_count
             node_chunks = np.stack([chunk_first[:-1], per_node], 1).astype(u4)
-            cells = np.zeros((m, 8), np.float32)
-            cells[:, 0:3], cells[:, 4:7] = lo, hi
+            cells = np.zeros((m, len(CELL.columns)), np.float32)
+            cells[:, CELL.index("lo_x"):CELL.index("lo_z") + 1] = lo
+            cells[:, CELL.index("hi_x"):CELL.index("hi_z") + 1] = hi
             d_chunks, d_node_chunks = b.buffer(chunks), b.buffer(node_chunks)
             d_cells, d_n, d_bad = b.buffer(cells), b.buffer(count.astype(u4)), b.buffer(bad.astype(u4))
             d_hist = b.buffer(nbytes=4 * C * (6 * self.max_bins + HIST_PAD))
@@ -333,12 +347,14 @@ class _BuildState:
             d_sah = b.buffer(nbytes=8 * m)
             d_out = b.buffer(nbytes=8 * C)
             piece = max(1, PIECE_REFS // CH)
-            b.launch(k["big_bin"], C, level_refs, d_chunks, d_cells, d_n, d_hist, u4(C), piece=piece)
+            b.launch(k["big_bin"], C, level_refs, d_chunks, d_cells, d_n, d_hist, u4(C),
+                     piece=piece)
             b.launch(k["big_choose"], m, d_node_chunks, d_hist, d_cells, d_n, d_choice, u4(m))
             b.launch(k["big_recount"], C, level_refs, d_chunks, d_choice, d_counts, u4(C),
                      piece=piece)
             b.launch(k["big_decide"], m, d_node_chunks, d_counts, d_choice, d_cells, d_n, d_bad,
-                     d_decision, d_sah, u4(m), u4(level), u4(self.depth_cap), self.pow2, self.inv_root)
+                     d_decision, d_sah, u4(m), u4(level), u4(self.depth_cap), self.pow2,
+                     self.inv_root)
             b.launch(k["big_classify"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
                      d_out, u4(C), piece=piece)
             decision = b.read(d_decision, u4, (m, 4))
@@ -397,7 +413,7 @@ class _BuildState:
                 dest[:, 2 * side] = q_flat[flat]
                 dest[:, 2 * side + 1] = base + offset[:-1] - node_offset[chunk_node]
             b.heartbeat()     # after the host's part of the level
-            next_refs = b.buffer(nbytes=32 * max(next_total, 1))
+            next_refs = b.buffer(nbytes=BUILD_REF.nbytes * max(next_total, 1))
             d_dest = b.buffer(dest)
             b.launch(k["big_scatter"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
                      d_dest, next_refs, self.queue_refs, u4(C), piece=piece)
@@ -462,26 +478,24 @@ class _BuildState:
             rec_cap = f * (12 * n + 64)
             leaf_cap = f * (8 * n + 64)
             scr_cap = f * (4 * n + 64)
-            rec_off, leaf_off, scr_off = exclusive_cumsum(rec_cap), exclusive_cumsum(leaf_cap), exclusive_cumsum(scr_cap)
+            rec_off, leaf_off, scr_off = (exclusive_cumsum(c) for c in (rec_cap, leaf_cap, scr_cap))
             lvl_off = exclusive_cumsum(span[batch])
             need = (int(rec_off[-1]), int(leaf_off[-1]), int(scr_off[-1]))
             if any(x > y for x, y in zip(need, sizes)):
                 sizes = tuple(max(x, y) for x, y in zip(need, sizes))
-                scratch = b.buffer(nbytes=32 * sizes[2])
+                scratch = b.buffer(nbytes=BUILD_REF.nbytes * sizes[2])
                 records = (b.buffer(nbytes=8 * sizes[0]), b.buffer(nbytes=4 * sizes[0]))
                 leafbuf = b.buffer(nbytes=4 * sizes[1])
-            words = np.zeros((len(batch), ROOT_WORDS), u4)
-            words[:, 0:3] = roots["lo"][batch].view(u4)
-            words[:, 3:6] = roots["hi"][batch].view(u4)
-            words[:, 6], words[:, 7] = roots["level"][batch], roots["bad"][batch]
-            words[:, 8], words[:, 9] = roots["start"][batch], n
-            words[:, 10], words[:, 11] = rec_off[:-1], rec_cap
-            words[:, 12], words[:, 13] = leaf_off[:-1], leaf_cap
-            words[:, 14], words[:, 15] = scr_off[:-1], scr_cap
-            words[:, 16], words[:, 17] = lvl_off[:-1], span[batch]
+            words = _root_rows(lo=roots["lo"][batch], hi=roots["hi"][batch],
+                               level=roots["level"][batch], bad_refines=roots["bad"][batch],
+                               ref_first=roots["start"][batch], ref_count=n,
+                               record_offset=rec_off[:-1], record_capacity=rec_cap,
+                               leaf_offset=leaf_off[:-1], leaf_capacity=leaf_cap,
+                               scratch_offset=scr_off[:-1], scratch_capacity=scr_cap,
+                               level_offset=lvl_off[:-1], level_span=span[batch])
             d_roots = b.buffer(words)
             d_levels = b.buffer(nbytes=8 * int(lvl_off[-1]))
-            d_result = b.buffer(nbytes=16 * len(batch))
+            d_result = b.buffer(nbytes=SUBTREE_RESULT.nbytes * len(batch))
             d_sah = b.buffer(nbytes=8 * len(batch))
             t0 = time.perf_counter()
             workers = len(batch)
@@ -491,13 +505,15 @@ class _BuildState:
             b.launch(k["build_subtrees"], workers, self.queue_refs, self.corners, d_roots,
                      scratch, records[0], records[1], leafbuf, d_levels, d_result, d_sah,
                      next_subtree, u4(len(batch)), self.pow2, self.inv_root, u4(self.depth_cap))
-            result = b.read(d_result, u4, (len(batch), 4)).astype(np.int64)
+            result = b.read(d_result, u4, (len(batch), len(SUBTREE_RESULT.columns)))
+            status, n_rec, n_leaf, n_levels = (
+                result[:, SUBTREE_RESULT.index(name)].astype(np.int64)
+                for name in ("status", "records", "leaf_refs", "levels"))
             seconds = time.perf_counter() - t0
             self.launches += 1
-            status = result[:, 0]
-            if (status == 4).any():
+            if (status == SUBTREE_STATUS["RANKS"]).any():
                 raise ValueError("a kd-tree subtree has more than 2^26 nodes on one level")
-            ok = status == 0
+            ok = status == SUBTREE_STATUS["OK"]
             failed = batch[~ok]
             if len(failed):
                 factor[failed] *= 4
@@ -507,14 +523,14 @@ class _BuildState:
                 sah = b.read(d_sah, np.int64, len(batch))
                 self.sah_fixed += int(sah[ok].sum())
                 levels_table = b.read(d_levels, u4, (int(lvl_off[-1]), 2))
-                n_rec, n_leaf = result[ok, 1], result[ok, 2]
-                self.levels[good] = result[ok, 3]
-                level_pieces.append((good, levels_table[concat_ranges(lvl_off[:-1][ok], result[ok, 3])]))
-                chunk, rec_at, leaf_at = store.append(records, leafbuf, rec_off[:-1][ok], n_rec,
-                                                      leaf_off[:-1][ok], n_leaf)
+                self.levels[good] = n_levels[ok]
+                level_pieces.append((good, levels_table[concat_ranges(lvl_off[:-1][ok],
+                                                                      n_levels[ok])]))
+                chunk, rec_at, leaf_at = store.append(records, leafbuf, rec_off[:-1][ok],
+                                                      n_rec[ok], leaf_off[:-1][ok], n_leaf[ok])
                 self.chunk_of[good], self.rec_start[good], self.leaf_start[good] = \
                     chunk, rec_at, leaf_at
-                self.rec_count[good] = n_rec
+                self.rec_count[good] = n_rec[ok]
                 done_refs += int(n[ok].sum())
             # Aim each launch at batch_seconds, so that Esc is seen promptly.
             if seconds > 0:

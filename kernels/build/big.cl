@@ -1,6 +1,6 @@
 /* The big nodes of one level, data-parallel over their references: one work-item per chunk
    (consecutive references of one node, sequential in the chunk) or per node. Chunk words:
-   node, first reference, reference count. Node cells: 8 floats (lo xyz, pad, hi xyz, pad).
+   node, first reference, reference count. Node cells: CELL rows (core/layout.py).
 
    big_bin -> big_choose: binned SAH (histograms summed over a node's chunks);
    big_recount -> big_decide: exact counts at the chosen plane, leaf or split;
@@ -14,8 +14,8 @@ inline Cell load_cell(__global const float* cells, uint node)
 {
     Cell c;
     for (int a = 0; a < 3; a++) {
-        c.lo[a] = cells[8 * node + a];
-        c.hi[a] = cells[8 * node + 4 + a];
+        c.lo[a] = cells[CELL_COLUMNS * node + CELL_LO_X + a];
+        c.hi[a] = cells[CELL_COLUMNS * node + CELL_HI_X + a];
     }
     return c;
 }

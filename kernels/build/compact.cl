@@ -110,8 +110,8 @@ __kernel void topo_root(__global const float* restrict bounds, __global float* r
     for (int a = 0; a < 3; a++) {
         lo[a] = bounds[a];
         hi[a] = bounds[3 + a];
-        cells[a] = lo[a];
-        cells[3 + a] = hi[a];
+        cells[CELL_LO_X + a] = lo[a];
+        cells[CELL_HI_X + a] = hi[a];
     }
     dbl A = cell_area(lo, hi);
     pre[0] = 0u;
@@ -136,22 +136,22 @@ __kernel void topo_down(__global const uint2* restrict nodes, __global const flo
     uint p = pre[i];
     WalkRecord parent = walk[p];
     int stops = parent.nonempty_stops >> 31;
-    __global const float* cell = cells + 6 * (i - first);
+    __global const float* cell = cells + CELL_COLUMNS * (i - first);
     for (int side = 0; side < 2; side++) {
         float lo[3], hi[3];
         for (int a = 0; a < 3; a++) {
-            lo[a] = cell[a];
-            hi[a] = cell[3 + a];
+            lo[a] = cell[CELL_LO_X + a];
+            hi[a] = cell[CELL_HI_X + a];
         }
         if (side)
             lo[axis] = split;
         else
             hi[axis] = split;
         uint child = c + (uint)side;
-        __global float* out = next_cells + 6 * (child - end);
+        __global float* out = next_cells + CELL_COLUMNS * (child - end);
         for (int a = 0; a < 3; a++) {
-            out[a] = lo[a];
-            out[3 + a] = hi[a];
+            out[CELL_LO_X + a] = lo[a];
+            out[CELL_HI_X + a] = hi[a];
         }
         uint pc = side ? p + 1u + size[c] : p + 1u;
         pre[child] = pc;
@@ -181,10 +181,10 @@ __kernel void topo_subtrees(__global const uint2* restrict nodes, __global const
     int s_stops[TOPO_STACK];
     int sp = 0;
     float lo[3], hi[3];
-    __global const float* cell = cells + 6 * (i - first);
+    __global const float* cell = cells + CELL_COLUMNS * (i - first);
     for (int a = 0; a < 3; a++) {
-        lo[a] = cell[a];
-        hi[a] = cell[3 + a];
+        lo[a] = cell[CELL_LO_X + a];
+        hi[a] = cell[CELL_HI_X + a];
     }
     uint node = i, p = pre[i], depth = level;
     WalkRecord own = walk[p];
@@ -453,8 +453,8 @@ inline dbl run_area(__global const WalkRecord* walk, __global const uint* s_pre,
     return n > 1u ? D_ADD(head, pairwise_sum(walk, s_pre, first + 1u, n - 1u)) : head;
 }
 
-/* Candidate words (6 uints): depth, node, triangle, references, first, end; appended in
-   blocks through `used` (any order: the host sorts them). */
+/* Candidates (LIFT_CANDIDATE rows, core/layout.py) are appended in blocks through `used`
+   (in any order: cand_group groups them). */
 #define CANDIDATE_BLOCK 32
 /* PRIVATE_GAPS (-D, compact_cl.py): triangles with more references use the scratch. */
 
@@ -492,9 +492,9 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
     /* Nearest gap to the left with depth <= ours, to the right with depth < ours (by gap
        index relative to a; private arrays, or for a triangle with many references its
        part of the scratch: three arrays of its reference count). */
-    uint own[3 * PRIVATE_GAPS];
+    uint own[LIFT_SCRATCH_WORDS * PRIVATE_GAPS];
     uint span = e - a;
-    __global uint* far = scratch + 3 * (size_t)big_first[t];
+    __global uint* far = scratch + LIFT_SCRATCH_WORDS * (size_t)big_first[t];
     uint* near = own;
     int private_gaps = span <= PRIVATE_GAPS;
 #define LEFT(g) (private_gaps ? near[(g) - a] : far[(g) - a])
@@ -522,7 +522,7 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
         SET((private_gaps ? 2 * PRIVATE_GAPS : 2 * span) + sp, g);
         sp++;
     }
-    uint block[6 * CANDIDATE_BLOCK];
+    uint block[LIFT_CANDIDATE_COLUMNS * CANDIDATE_BLOCK];
     uint held = 0u;
     /* Runs of two or more references (one per gap that is the first of its depth in its
        run), then, with min_refs <= 1, every single reference below the root. */
@@ -572,17 +572,18 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
             if (ok) {
                 if (held == CANDIDATE_BLOCK) {
                     uint at = atomic_add(used, held);
-                    for (uint i = 0; i < 6 * held && at + held <= capacity; i++)
-                        out[6 * (size_t)at + i] = block[i];
+                    uint words = LIFT_CANDIDATE_COLUMNS * held;
+                    for (uint i = 0; i < words && at + held <= capacity; i++)
+                        out[LIFT_CANDIDATE_COLUMNS * (size_t)at + i] = block[i];
                     held = 0u;
                 }
-                uint* c = block + 6 * held++;
-                c[0] = (uint)d;
-                c[1] = climb[node].w;
-                c[2] = t;
-                c[3] = r;
-                c[4] = run_lo;
-                c[5] = run_hi;
+                uint* c = block + LIFT_CANDIDATE_COLUMNS * held++;
+                c[LIFT_CANDIDATE_DEPTH] = (uint)d;
+                c[LIFT_CANDIDATE_NODE] = climb[node].w;
+                c[LIFT_CANDIDATE_TRIANGLE] = t;
+                c[LIFT_CANDIDATE_REFERENCES] = r;
+                c[LIFT_CANDIDATE_FIRST] = run_lo;
+                c[LIFT_CANDIDATE_END] = run_hi;
             }
             if (!(d > top_depth && (ok || !(w.nonempty_stops >> 31))))
                 break;
@@ -592,8 +593,8 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
     }
     if (held) {
         uint at = atomic_add(used, held);
-        for (uint i = 0; i < 6 * held && at + held <= capacity; i++)
-            out[6 * (size_t)at + i] = block[i];
+        for (uint i = 0; i < LIFT_CANDIDATE_COLUMNS * held && at + held <= capacity; i++)
+            out[LIFT_CANDIDATE_COLUMNS * (size_t)at + i] = block[i];
     }
 }
 
@@ -607,7 +608,7 @@ __kernel void cand_count(__global const uint* restrict cand, __global uint* rest
 {
     uint j = get_global_id(0);
     if (j < count)
-        atomic_inc(node_next + cand[6 * (size_t)j + 1]);
+        atomic_inc(node_next + cand[LIFT_CANDIDATE_COLUMNS * (size_t)j + LIFT_CANDIDATE_NODE]);
 }
 
 /* Per candidate: into its node's range, in any order (the choice ranks them by a total
@@ -619,10 +620,11 @@ __kernel void cand_group(__global const uint* restrict cand, __global uint* rest
     uint j = get_global_id(0);
     if (j >= count)
         return;
-    __global const uint* c = cand + 6 * (size_t)j;
-    uint at = atomic_inc(node_next + c[1]);
-    grouped[at] = (uint4)(c[2], c[3], c[4], c[5]);      /* triangle, references, first, end */
-    grouped_node[at] = c[1];
+    __global const uint* c = cand + LIFT_CANDIDATE_COLUMNS * (size_t)j;
+    uint at = atomic_inc(node_next + c[LIFT_CANDIDATE_NODE]);
+    grouped[at] = (uint4)(c[LIFT_CANDIDATE_TRIANGLE], c[LIFT_CANDIDATE_REFERENCES],
+                          c[LIFT_CANDIDATE_FIRST], c[LIFT_CANDIDATE_END]);
+    grouped_node[at] = c[LIFT_CANDIDATE_NODE];
 }
 
 /* Per node of a level: of its candidates whose run no lift above removed, the ones that
@@ -1077,9 +1079,9 @@ __kernel void gather_values(__global const uint* restrict values, __global const
         out[j] = values[at[j]];
 }
 
-/* Counts for the layout's stats, per block of nodes: stored leaves, empty stored leaves,
-   elided leaves, 16-bit leaves, 32-bit non-empty leaves, live inner nodes, the largest stored
-   leaf's count, collapsed nodes that survive. */
+/* Counts for the layout's stats, per block of nodes (a LAYOUT_COUNTS row, core/layout.py):
+   stored leaves, empty stored leaves, elided leaves, 16-bit leaves, 32-bit non-empty leaves,
+   live inner nodes, the largest stored leaf's count, collapsed nodes that survive. */
 __kernel void layout_stats(__global const uchar* restrict classes, __global const uchar* restrict elided,
                            __global const uint* restrict final_count,
                            __global const uint* restrict count16,
@@ -1090,24 +1092,27 @@ __kernel void layout_stats(__global const uchar* restrict classes, __global cons
     uint g = get_global_id(0), first, last;
     if (!item_block(block, n, &first, &last))
         return;
-    uint c[8] = {0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u};
+    uint c[LAYOUT_COUNTS_COLUMNS];
+    for (int k = 0; k < LAYOUT_COUNTS_COLUMNS; k++)
+        c[k] = 0u;
     for (uint i = first; i < last; i++) {
         uchar cls = classes[i];
-        c[7] += collapsed[i] && !dead[i];
-        c[5] += (cls >> 1) & 1u;
-        c[2] += elided[i];
+        c[LAYOUT_COUNTS_COLLAPSED_KEPT] += collapsed[i] && !dead[i];
+        c[LAYOUT_COUNTS_INNER] += (cls >> 1) & 1u;
+        c[LAYOUT_COUNTS_EMPTY_LEAVES_ELIDED] += elided[i];
         if (!(cls & 1u) || elided[i])
             continue;
         uint count = final_count[i];
-        c[0]++;
+        c[LAYOUT_COUNTS_LEAVES]++;
         if (count == 0u)
-            c[1]++;
+            c[LAYOUT_COUNTS_EMPTY_LEAVES_STORED]++;
         else if (count16[i])
-            c[3]++;
+            c[LAYOUT_COUNTS_LEAVES_16BIT]++;
         else
-            c[4]++;
-        c[6] = c[6] > count ? c[6] : count;
+            c[LAYOUT_COUNTS_LEAVES_32BIT]++;
+        uint largest = c[LAYOUT_COUNTS_LARGEST_LEAF];
+        c[LAYOUT_COUNTS_LARGEST_LEAF] = largest > count ? largest : count;
     }
-    for (int k = 0; k < 8; k++)
-        stats[8 * g + k] = c[k];
+    for (int k = 0; k < LAYOUT_COUNTS_COLUMNS; k++)
+        stats[LAYOUT_COUNTS_COLUMNS * g + k] = c[k];
 }

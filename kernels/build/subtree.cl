@@ -15,11 +15,7 @@
    does not depend on their sizes). */
 
 #define KD_STACK 64            /* the host keeps every subtree's depth span below this */
-#define ROOT_WORDS 18
 #define RANK_LIMIT (1u << 26)
-
-enum { SUBTREE_OK = 0, SUBTREE_SCRATCH = 1, SUBTREE_RECORDS = 2, SUBTREE_LEAF_REFS = 3,
-       SUBTREE_RANKS = 4 };
 
 typedef struct {
     Cell cell;
@@ -27,10 +23,8 @@ typedef struct {
     int chained;           /* same references as the exact node decided last: reuse its counts */
 } Entry;
 
-/* Root words: cell lo (3 floats), cell hi (3), absolute level, bad refines, first reference in
-   the queue, reference count, then offset and capacity of its records, leaf references and
-   scratch, and of its per-level counts. */
-/* Subtree s of the launch. */
+/* Subtree s of the launch: its root is row s of `roots` (SUBTREE_ROOT, core/layout.py), its
+   outcome goes to row s of `result` (SUBTREE_RESULT). */
 inline void build_subtree(uint s, __global const Ref* restrict queue,
                           __global const float* restrict corners,
                           __global const uint* restrict roots,
@@ -39,15 +33,18 @@ inline void build_subtree(uint s, __global const Ref* restrict queue,
                           __global uint* restrict rec_meta,
                           __global uint* restrict leaf_refs,
                           __global uint2* restrict level_counts,
-                          __global uint4* restrict result,
+                          __global uint* restrict result,
                           __global long* restrict sah,
                           float pow2, float inv_root_half_area, uint depth_cap)
 {
-    __global const uint* root = roots + ROOT_WORDS * s;
-    uint root_level = root[6], ref_start = root[8], n = root[9];
-    uint rec_off = root[10], rec_cap = root[11], leaf_off = root[12], leaf_cap = root[13];
-    uint scr_cap = root[15], lvl_off = root[16], span = root[17];
-    __global Ref* scr = scratch + root[14];
+    __global const uint* root = roots + SUBTREE_ROOT_COLUMNS * s;
+    uint root_level = root[SUBTREE_ROOT_LEVEL], ref_start = root[SUBTREE_ROOT_REF_FIRST];
+    uint n = root[SUBTREE_ROOT_REF_COUNT];
+    uint rec_off = root[SUBTREE_ROOT_RECORD_OFFSET], rec_cap = root[SUBTREE_ROOT_RECORD_CAPACITY];
+    uint leaf_off = root[SUBTREE_ROOT_LEAF_OFFSET], leaf_cap = root[SUBTREE_ROOT_LEAF_CAPACITY];
+    uint scr_cap = root[SUBTREE_ROOT_SCRATCH_CAPACITY];
+    uint lvl_off = root[SUBTREE_ROOT_LEVEL_OFFSET], span = root[SUBTREE_ROOT_LEVEL_SPAN];
+    __global Ref* scr = scratch + root[SUBTREE_ROOT_SCRATCH_OFFSET];
 
     uint node_count[KD_STACK], leaf_prefix[KD_STACK];
     for (uint l = 0; l < span; l++) {
@@ -64,13 +61,13 @@ inline void build_subtree(uint s, __global const Ref* restrict queue,
     uint sp = 0u;
     Entry first;
     for (int a = 0; a < 3; a++) {
-        first.cell.lo[a] = as_float(root[a]);
-        first.cell.hi[a] = as_float(root[3 + a]);
+        first.cell.lo[a] = as_float(root[SUBTREE_ROOT_LO_X + a]);
+        first.cell.hi[a] = as_float(root[SUBTREE_ROOT_HI_X + a]);
     }
     first.start = 0u;
     first.count = n;
     first.level = 0u;
-    first.bad = root[7];
+    first.bad = root[SUBTREE_ROOT_BAD_REFINES];
     first.rank = 0u;
     first.chained = 0;
     if (n > scr_cap)
@@ -223,7 +220,11 @@ inline void build_subtree(uint s, __global const Ref* restrict queue,
 
     for (uint l = 0; l < levels; l++)
         level_counts[lvl_off + l] = (uint2)(node_count[l], leaf_prefix[l]);
-    result[s] = (uint4)((uint)status, recs, lrefs, levels);
+    __global uint* out = result + SUBTREE_RESULT_COLUMNS * s;
+    out[SUBTREE_RESULT_STATUS] = (uint)status;
+    out[SUBTREE_RESULT_RECORDS] = recs;
+    out[SUBTREE_RESULT_LEAF_REFS] = lrefs;
+    out[SUBTREE_RESULT_LEVELS] = levels;
     sah[s] = sah_sum;
 }
 
@@ -241,7 +242,7 @@ __kernel void build_subtrees(__global const Ref* restrict queue,
                              __global uint* restrict rec_meta,
                              __global uint* restrict leaf_refs,
                              __global uint2* restrict level_counts,
-                             __global uint4* restrict result,
+                             __global uint* restrict result,
                              __global long* restrict sah,
                              volatile __global uint* next_subtree,
                              uint subtree_count, float pow2, float inv_root_half_area,
