@@ -1,10 +1,9 @@
 """Device memory of the kd-tree builder and compactor, reused within a build or compaction.
 
-A new buffer's memory is new pages, which the operating system zeroes at their first touch:
-the 12-dragon compaction creates about 12 GB of buffers over its run (per level and step, up
-to 400 MB each), and 6-9 s of its process time went to those page faults (3.7 s of the
-build's). So the builder's large buffers are sub-buffers of a few big ones (chunks): a region
-that is free again is lent again, its pages already touched. The chunks go when the build or
+A new buffer's memory is new pages, which the operating system zeroes at their first touch,
+and a compaction creates many times its peak in buffers over its run (per level and step;
+docs/kdtree_native.md, "Device memory"). So the builder's large buffers are sub-buffers of a
+few big ones (chunks): a region that is free again is lent again, its pages already touched. The chunks go when the build or
 compaction ends (release), so nothing is held between renders.
 
 Reuse is safe on the builder's in-order queue: everything that reads or writes a pooled

@@ -24,11 +24,11 @@ U4 = np.uint32
 PRIVATE_GAPS = 64         # a triangle with more references keeps its lift stacks in the scratch
 TOPO_STACK = 64           # topo_subtrees' stack: more than the levels below its start
 TOPO_ROOTS = 4096         # topo_subtrees starts at the first level this wide
-PIECE_CLIMBS = 1 << 19     # lift_candidates and neighbour_lcas walk up the tree for each
-                           # triangle or reference: launches of this many (about 0.1 s each on
-                           # 2 CPU threads), so Esc is seen soon
+# Launches in pieces, so that Esc is seen soon; smaller pieces cost time (the sizes' figures:
+# docs/kdtree_native.md, "Progress and Esc").
+PIECE_CLIMBS = 1 << 19     # lift_candidates and neighbour_lcas, which walk up the tree for each
+                           # triangle or reference: launches of this many
 PIECE_NODES = 1 << 22      # the other steps' launches: of this many nodes or references
-                           # (smaller pieces cost time: 1 M, 5 % of 12 dragons' compaction)
 PIECE_SUBTREE_NODES = 1 << 20  # topo_subtrees' launches: roots of about this many nodes
 
 
@@ -150,8 +150,8 @@ class CompactorCL:
         d = self.device
         R = len(leaf_indices)
         d_leaf_indices = d.view(leaf_indices)
-        # Counted on the device (numpy's bincount took 0.64 s of the 12 dragons' 35 M
-        # references, with Esc unseen); the (T + 1)-th count is 0, so its prefix is R.
+        # Counted on the device (numpy's bincount over all references was a long stretch
+        # with Esc unseen); the (T + 1)-th count is 0, so its prefix is R.
         tri_first = d.zeros(4 * (triangle_count + 1))
         s_leaf, s_pre, s_tri = (d.buffer(nbytes=4 * max(R, 1)) for _ in range(3))
         rank = s_tri                  # each reference's place in its range, until refs_sort
@@ -339,7 +339,7 @@ class CompactorCL:
         lifted_nodes = 0
         if len(lift_node):
             # By (node, triangle): the lifts come by node, so this stable sort of a combined
-            # key is nearly linear (a lexsort took 0.31 s of the 12 dragons' 5 M lifts).
+            # key is nearly linear, unlike a lexsort.
             order = np.argsort((lift_node << 32) | lift_tri, kind="stable")
             node_sorted = lift_node[order]
             first = run_starts(node_sorted)

@@ -34,7 +34,10 @@ MAX_NODE_FIELD = PLAIN_FIELD.max    # word 0 bits 2-31: child index or leaf refe
 
 @dataclass(frozen=True)
 class KDTreeParams:
-    """Tunables of the build; defaults follow Wald & Havran 2006 and pbrt."""
+    """Tunables of the build. The cost model and its constants are Wald & Havran 2006's (K_T
+    15, K_I 20, lambda 0.8; pbrt's kd-tree prices differently: traversal 1, intersection 80,
+    empty bonus 0.5); the depth cap and the allowance of bad refines follow pbrt
+    (docs/kdtree.md)."""
 
     traversal_cost: float = 15.0      # K_T: cost of visiting an inner node
     intersection_cost: float = 20.0   # K_I: cost of one ray/triangle test
@@ -42,7 +45,7 @@ class KDTreeParams:
     max_bins: int = 32                # SAH bins per axis for big nodes
     min_bins: int = 4                 # bins per axis for the smallest nodes
     bins_per_reference: float = 2.0   # small nodes get this many bins per reference (clamped)
-    max_bad_refines: int = 3          # pbrt: give up after this many splits costlier than a leaf
+    max_bad_refines: int = 3          # as pbrt: a leaf once a path has refined badly this often
     small_node: int = 16              # nodes with fewer references never refine badly
     max_depth: int | None = None      # None: 8 + 1.3 log2(triangle count), rounded
     threads: int | None = None        # None: every CPU this process may run on

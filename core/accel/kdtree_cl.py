@@ -83,7 +83,7 @@ def _root_rows(**columns) -> np.ndarray:
 
 def _leaf_counts(words) -> tuple[int, int]:
     """Leaves and empty leaves among plain nodes' first words, a slice at a time: whole-tree
-    temporaries are fresh pages (0.7-1.4 s for 74 M nodes), slices stay in cache."""
+    temporaries are fresh pages, slices stay in cache."""
     tag_mask = np.uint32(PLAIN_TAG.put(PLAIN_TAG.max))
     leaf_tag = np.uint32(PLAIN_TAG.put(LEAF_TAG))        # also an empty leaf's whole word
     leaves = empties = 0
@@ -621,7 +621,7 @@ class _Chunk:
 class _Store:
     """Subtree records and leaf references of the finished subtrees, on the device, in chunks
     that are never copied (growing one buffer meant copying all of it, a memcpy the next
-    subtree launch waited for: 1.6 s of one 12-dragon launch, with Esc unseen). A batch's
+    subtree launch waited for, with Esc unseen; docs/kdtree_native.md). A batch's
     subtrees go wholly into one chunk."""
 
     CHUNK_RECORDS = 1 << 22

@@ -19,7 +19,8 @@ from ..layout import TOPLEVEL_LEAF_MAX, TOPLEVEL_MAX_DEPTH, TOPLEVEL_NODE
 MEDIAN_DEPTH = TOPLEVEL_MAX_DEPTH - 24
 # SAH constants (relative): a traversal step costs this much against one instance's test.
 TRAVERSAL_COST = 0.5
-BINS = 8                # per axis: 16 gave trees of 1 % lower SAH cost at twice the build time
+BINS = 8                # per axis: 16 gave trees of slightly lower SAH cost at a longer build
+                        # (docs/instances.md)
 
 
 class TopLevel(NamedTuple):

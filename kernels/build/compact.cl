@@ -166,7 +166,7 @@ __kernel void topo_down(__global const uint2* restrict nodes, __global const flo
    write touching a cache line of its own). The node's own record and cell come from the
    level above. The node being split stays in registers and only the above child is pushed,
    field by field: a stack of structs, written a field at a time and read back whole, stalled
-   on store forwarding (a quarter of the kernel's time). */
+   on store forwarding (docs/kdtree_native.md). */
 __kernel void topo_subtrees(__global const uint2* restrict nodes, __global const float* restrict cells,
                             __global const uint* restrict size, __global const uint* restrict nonempty,
                             __global uint* restrict pre, __global uint4* restrict climb,
@@ -256,7 +256,7 @@ __kernel void refs_count(__global const uint* restrict leaf_indices, __global ui
 
 /* Per node (leaves only): its references scattered into their triangles' ranges. No atomics
    here: a locked instruction waits for the stores before it, and these stores miss the cache
-   (with the rank taken here, that wait was 80 % of the kernel). */
+   (with the rank taken here, that wait was most of the kernel; docs/kdtree_native.md). */
 __kernel void refs_scatter(__global const uint2* restrict nodes,
                            __global const uint* restrict leaf_indices,
                            __global const uint* restrict tri_first, __global const uint* restrict rank,
@@ -1020,9 +1020,9 @@ __kernel void path_refs(__global const uint2* restrict nodes, __global const uch
     if (!level_node(first, end, &i))
         return;
     uint here = on_path[i] + refs_at[i];
-    /* Only a value above the largest seen so far goes to the atomic (every node's took 1 s of
-       12 dragons' 74 M, the two threads taking the line from each other); the plain read may
-       be stale, but only lower, which costs an atomic, never the maximum. */
+    /* Only a value above the largest seen so far goes to the atomic (every node's atomic was a
+       long stretch: the threads take the line from each other); the plain read may be stale,
+       but only lower, which costs an atomic, never the maximum. */
     if (!dead[i] && here > *most)
         atomic_max(most, here);
     uint c = first_child(nodes[i]);
