@@ -74,7 +74,7 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         default=RENDER.samples_per_axis, min=LIMITS["samples_per_axis"][0],
         max=LIMITS["samples_per_axis"][1])
     adaptive: BoolProperty(
-        name="Noise Threshold", description="Adaptive sampling: stop sampling a pixel once its "
+        name="Adaptive Sampling", description="Stop sampling a pixel once its "
         "noise, estimated as Cycles does, is below the threshold", default=RENDER.adaptive)
     adaptive_threshold: FloatProperty(
         name="Noise Threshold", description="Noise level below which a pixel gets no more "
