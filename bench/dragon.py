@@ -2,7 +2,8 @@
 
     .venv/bin/python bench/dragon.py [--size 1024] [--repeat 3] [--mode ours]
 
-Export (the installed add-on's exporter on Blender's evaluated depsgraph), kd-tree build, a full
+Export (the installed add-on's exporter on Blender's evaluated depsgraph, in a Blender process of
+its own: tests/bpy_scripts/export_dragon.py), kd-tree build, a full
 render of the image (primary rays, shadow rays to each light, diffuse shading) on the OpenCL
 tracer, and the camera's primary rays through our intersect() and through Embree (embreex), one
 core each (PoCL limited to one thread, the process pinned to one CPU for Embree). The render uses
@@ -21,7 +22,6 @@ import time
 os.environ["POCL_MAX_PTHREAD_COUNT"] = "1"  # before pyopencl loads PoCL
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests" / "bpy_scripts"))
 
 import numpy as np  # noqa: E402
 from core.scene.scene import Scene  # noqa: E402
@@ -55,34 +55,14 @@ def main():
     print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs); one core for each tracer")
 
     work = pathlib.Path(tempfile.mkdtemp(prefix="kdtrace-bench-"))
-    os.environ["BLENDER_USER_RESOURCES"] = str(work / "blender-user")
-    from tests.blender import build_extension
-    import bpy
-    from blender_setup import install_extension, mesh_object
-    from tests.meshes import load_dragon
-    addon = install_extension(str(build_extension(work / "dist")))
-
-    vertices, triangles = load_dragon()
-    vertices = vertices[:, [0, 2, 1]] * np.array([1, -1, 1], np.float32)  # z up
-    mesh_object("dragon", vertices, triangles)
-    scene = bpy.context.scene
-    # Frame the dragon: look at its centre from the front, slightly from above.
-    centre = (vertices.min(0) + vertices.max(0)) / 2
-    camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
-    camera.location = centre + np.array([0.0, -0.24, 0.05])
-    camera.rotation_euler = (np.pi / 2 - 0.2, 0.0, 0.0)
-    camera.data.lens = 35
-    scene.collection.objects.link(camera)
-    scene.camera = camera
-    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
-    sun.rotation_euler = (0.6, 0.2, 0.3)
-    scene.collection.objects.link(sun)
-    scene.render.resolution_x = scene.render.resolution_y = args.size
-    scene.render.resolution_percentage = 100
-
-    export = addon.addon.export.export_view
-    depsgraph = bpy.context.evaluated_depsgraph_get()
-    export_s, (geometry, view, _) = best_time(lambda: export(depsgraph), args.repeat)
+    # Blender exports in a process of its own; this one runs core and the slave's tracer.
+    from tests.blender import build_extension, run_bpy_script
+    from core.frame.exported import load_export
+    export_s = run_bpy_script("export_dragon", work, zip=str(build_extension(work / "dist")),
+                              out=str(work / "dragon.npz"), size=args.size,
+                              repeat=args.repeat)["export_seconds"]
+    exported, view = load_export(work / "dragon.npz")
+    geometry = exported.meshes[0]       # the dragon, placed by the identity
     print(f"dragon: {geometry.triangle_count:,} triangles, {args.size}x{args.size}")
     print(f"export:        {export_s:8.3f} s")
 
