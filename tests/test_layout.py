@@ -109,8 +109,10 @@ def test_node_fields_tile_their_words():
 
 # Names under the layout's prefixes that kernels define for their own purposes (not layouts).
 LAYOUT_PREFIXES = ("KD_", "LIGHT_", "MATERIAL_", "CAMERA_", "BOUNDS_", "TRIANGLE_", "ACCUM_",
-                   "STATS_", "TEXTURE_SIZE_", "SUBTREE_", "CELL_", "LIFT_", "LAYOUT_COUNTS_",
-                   "BUILD_REF_", "CLIMB_", "WALK_")
+                   "STATS_", "TEXTURE_SIZE_", "SUBTREE_", "STORE_MOVE_", "LEVEL_COUNT_",
+                   "LEVEL_BASE_", "CORNERS_", "CELL_", "BIG_", "NODE_CHUNKS_", "PLANE_COUNTS_",
+                   "CHILD_COUNTS_", "DECISION_", "HISTOGRAM_", "CLIMB_", "LIFT_", "LAYOUT_COUNTS_",
+                   "BUILD_REF_", "WALK_")
 
 
 def kernel_files():
@@ -532,6 +534,25 @@ def test_build_elements_are_their_types_sizes():
         sizes = builder.read(out, np.uint32, len(known))
         measured.update({e.prefix: int(size) for e, size in zip(known, sizes)})
     assert measured == {e.prefix: e.nbytes for e in layout.ELEMENTS}
+
+
+def test_vector_rows_name_every_lane(device):
+    """A row that kernels load as one vector has a lane per column, and PREFIX_<NAME>_OF(v) is
+    that column's lane, to write and to read."""
+    tables = [table for table in layout.COLUMNS if table.vector]
+    assert tables
+    lines = []
+    for k, table in enumerate(tables):
+        assert int(re.search(r"\d+$", table.vector).group()) == len(table.columns), table.prefix
+        lines.append(f"    {{ {table.vector} v = ({table.vector})(0u);")
+        lines += [f"      {table.prefix}_{name.upper()}_OF(v) = {i}u;"
+                  for i, name in enumerate(table.columns)]
+        lines += [f"      out[{4 * k + i}] = v.s{i};" for i in range(len(table.columns))]
+        lines.append("    }")
+    source = "__kernel void lanes(__global uint *out)\n{\n" + "\n".join(lines) + "\n}\n"
+    got = run_kernel(device, source, "lanes", 4 * len(tables)).reshape(-1, 4)
+    for table, row in zip(tables, got):
+        assert row[:len(table.columns)].tolist() == list(range(len(table.columns))), table.prefix
 
 
 def test_corner_columns_follow_each_other():

@@ -26,8 +26,11 @@ import time
 
 import numpy as np
 
-from ..layout import (BUILD_REF, CELL, LEAF_TAG, PLAIN_FIELD, PLAIN_TAG, SUBTREE_RESULT,
-                      SUBTREE_ROOT, SUBTREE_STATUS)
+from ..layout import (BIG_CHOICE, BIG_CHUNK, BIG_DECISION, BIG_DEST, BUILD_REF, CELL,
+                      CHILD_COUNTS, CORNERS, DECISION_FLAGS, HISTOGRAM_BOUND_WORDS,
+                      HISTOGRAM_WORDS_PER_BIN, LEAF_TAG, LEVEL_BASE, LEVEL_COUNT, NODE_CHUNKS,
+                      PLAIN_FIELD, PLAIN_TAG, PLANE_COUNTS, STORE_MOVE, SUBTREE_PLACE,
+                      SUBTREE_LEVELS, SUBTREE_RESULT, SUBTREE_ROOT, SUBTREE_STATUS)
 from ..opencl import kernel_source
 from .arrays import concat_ranges, exclusive_cumsum
 from .device import DeviceContext
@@ -36,9 +39,7 @@ from .kdtree import KDTree, KDTreeParams, build_kdtree, checked_mesh, root_bound
 KERNEL_FILES = ("build/fp64.cl", "build/common.cl", "build/split.cl", "build/big.cl",
                 "build/subtree.cl", "build/layout.cl")
 EXACT_MAX = 16          # nodes with up to this many references get exact SAH (as kdtree.py)
-MAX_STACK = 64          # subtree.cl's KD_STACK: a subtree spans fewer levels than this
 FLT_MIN = np.float32(np.finfo(np.float32).tiny)
-HIST_PAD = 6            # histogram words per chunk: 6 * max_bins + 6
 # Launches over more than this many references (big-node passes) or items (one work-item
 # each) go in pieces, with the progress callback between them: Esc is seen within a piece.
 PIECE_REFS = 1 << 20
@@ -68,17 +69,27 @@ def _half_area_f32(lo: np.ndarray, hi: np.ndarray, pow2: np.float32) -> np.float
     return np.float32(d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
 
 
-def _root_rows(**columns) -> np.ndarray:
-    """The subtree roots' rows (core/layout.py SUBTREE_ROOT) from their columns by name; lo and
-    hi, float32 (n, 3), go to their three columns as bits."""
-    lo, hi = columns.pop("lo"), columns.pop("hi")
-    rows = np.zeros((len(lo), len(SUBTREE_ROOT.columns)), np.uint32)
-    for corner, name in ((lo, "lo_x"), (hi, "hi_x")):
-        first = SUBTREE_ROOT.index(name)
-        rows[:, first:first + 3] = corner.view(np.uint32)
+def _rows(table, dtype=np.uint32, **columns) -> np.ndarray:
+    """Rows of a core/layout.py table from its columns by name (the others 0). A name whose
+    table has NAME_x, NAME_y, NAME_z takes (n, 3) values; float32 ones go to a uint32 table
+    as their bits."""
+    rows = np.zeros((len(next(iter(columns.values()))), len(table.columns)), dtype)
     for name, values in columns.items():
-        rows[:, SUBTREE_ROOT.index(name)] = values
+        if name in table.columns:
+            rows[:, table.index(name)] = values
+            continue
+        values = np.asarray(values)
+        if values.dtype.kind == "f" and rows.dtype.kind != "f":
+            values = values.view(rows.dtype)
+        first = table.index(f"{name}_x")
+        rows[:, first:first + 3] = values
     return rows
+
+
+def _corner(rows, table, name) -> np.ndarray:
+    """The (n, 3) columns NAME_x, NAME_y, NAME_z of a table's rows."""
+    first = table.index(f"{name}_x")
+    return rows[:, first:first + 3]
 
 
 def _leaf_counts(words) -> tuple[int, int]:
@@ -179,8 +190,8 @@ class KDTreeBuilderCL(DeviceContext):
         triangles = np.ascontiguousarray(triangles, np.uint32)
         triangle_count = len(triangles)
         depth_cap = params.depth_cap(triangle_count)
-        if not 0 <= depth_cap < MAX_STACK - 1:
-            raise ValueError(f"depth cap {depth_cap} outside 0..{MAX_STACK - 2}")
+        if not 0 <= depth_cap < SUBTREE_LEVELS - 1:
+            raise ValueError(f"depth cap {depth_cap} outside 0..{SUBTREE_LEVELS - 2}")
 
         kernels = self.program(kernel_source(KERNEL_FILES), params)
         lap("programs")
@@ -235,7 +246,7 @@ class _BuildState:
         self.triangle_count = len(triangles)
         self.vertices = builder.buffer(vertices)
         self.triangles = builder.buffer(triangles)
-        self.corners = builder.buffer(nbytes=36 * len(triangles))
+        self.corners = builder.buffer(nbytes=CORNERS.nbytes * len(triangles))
         self.max_bins = int(params.max_bins)
         self.queue_refs = None                 # device Ref array of subtree roots' references
         self.queue_used = 0
@@ -272,10 +283,10 @@ class _BuildState:
         chunk = 1 << 16
         n_chunks = -(-kept // chunk)
         if n_chunks:
-            d_box = b.buffer(nbytes=32 * n_chunks)
+            d_box = b.buffer(nbytes=CELL.nbytes * n_chunks)
             b.launch(k["chunk_bounds"], n_chunks, refs, d_box, u4(kept), u4(chunk))
-            box = b.read(d_box, np.float32, (n_chunks, 8))
-            lo, hi = box[:, 0:3].min(0), box[:, 4:7].max(0)
+            box = b.read(d_box, np.float32, (n_chunks, len(CELL.columns)))
+            lo, hi = _corner(box, CELL, "lo").min(0), _corner(box, CELL, "hi").max(0)
         else:
             lo = hi = np.zeros(0, np.float32)
         self.refs, self.kept = refs, kept
@@ -332,20 +343,19 @@ class _BuildState:
             within = np.arange(C) - np.repeat(chunk_first[:-1], per_node)
             chunk_start = ref_first[:-1][chunk_node] + within * CH
             chunk_count = np.minimum(CH, count[chunk_node] - within * CH)
-            chunks = np.zeros((C, 4), u4)
-            chunks[:, 0], chunks[:, 1], chunks[:, 2] = chunk_node, chunk_start, chunk_count
-            node_chunks = np.stack([chunk_first[:-1], per_node], 1).astype(u4)
-            cells = np.zeros((m, len(CELL.columns)), np.float32)
-            cells[:, CELL.index("lo_x"):CELL.index("lo_z") + 1] = lo
-            cells[:, CELL.index("hi_x"):CELL.index("hi_z") + 1] = hi
+            chunks = _rows(BIG_CHUNK, node=chunk_node, ref_first=chunk_start,
+                           ref_count=chunk_count)
+            node_chunks = _rows(NODE_CHUNKS, first=chunk_first[:-1], count=per_node)
+            cells = _rows(CELL, np.float32, lo=lo, hi=hi)
             d_chunks, d_node_chunks = b.buffer(chunks), b.buffer(node_chunks)
             d_cells, d_n, d_bad = b.buffer(cells), b.buffer(count.astype(u4)), b.buffer(bad.astype(u4))
-            d_hist = b.buffer(nbytes=4 * C * (6 * self.max_bins + HIST_PAD))
-            d_choice = b.buffer(nbytes=16 * m)
-            d_counts = b.buffer(nbytes=16 * C)
-            d_decision = b.buffer(nbytes=16 * m)
+            d_hist = b.buffer(nbytes=4 * C * (HISTOGRAM_WORDS_PER_BIN * self.max_bins
+                                              + HISTOGRAM_BOUND_WORDS))
+            d_choice = b.buffer(nbytes=BIG_CHOICE.nbytes * m)
+            d_counts = b.buffer(nbytes=PLANE_COUNTS.nbytes * C)
+            d_decision = b.buffer(nbytes=BIG_DECISION.nbytes * m)
             d_sah = b.buffer(nbytes=8 * m)
-            d_out = b.buffer(nbytes=8 * C)
+            d_out = b.buffer(nbytes=CHILD_COUNTS.nbytes * C)
             piece = max(1, PIECE_REFS // CH)
             b.launch(k["big_bin"], C, level_refs, d_chunks, d_cells, d_n, d_hist, u4(C),
                      piece=piece)
@@ -357,18 +367,19 @@ class _BuildState:
                      self.inv_root)
             b.launch(k["big_classify"], C, level_refs, d_chunks, d_decision, d_cells, self.corners,
                      d_out, u4(C), piece=piece)
-            decision = b.read(d_decision, u4, (m, 4))
-            out = b.read(d_out, u4, (C, 2)).astype(np.int64)
+            decision = b.read(d_decision, u4, (m, len(BIG_DECISION.columns)))
+            out = b.read(d_out, u4, (C, len(CHILD_COUNTS.columns))).astype(np.int64)
             sah = b.read(d_sah, np.int64, m)
             del d_hist, d_choice, d_counts
             self.sah_fixed += int(sah.sum())
 
-            is_leaf = (decision[:, 0] & 1) == 1
-            new_bad = decision[:, 1].astype(np.int64)
-            axis = decision[:, 2].astype(np.int64)
-            plane_bits = decision[:, 3]
-            n_below = np.add.reduceat(out[:, 0], chunk_first[:-1])
-            n_above = np.add.reduceat(out[:, 1], chunk_first[:-1])
+            flags, new_bad, axis, plane_bits = (decision[:, BIG_DECISION.index(name)]
+                                                for name in BIG_DECISION.columns)
+            is_leaf = (flags & DECISION_FLAGS["LEAF"]) != 0
+            new_bad, axis = new_bad.astype(np.int64), axis.astype(np.int64)
+            per_side = [out[:, CHILD_COUNTS.index(side)] for side in ("below", "above")]
+            n_below = np.add.reduceat(per_side[0], chunk_first[:-1])
+            n_above = np.add.reduceat(per_side[1], chunk_first[:-1])
             n_above[is_leaf] = 0
             split = ~is_leaf
             # Streams per node: "below" is the below child (or the leaf itself), "above" the
@@ -404,14 +415,15 @@ class _BuildState:
             q_start = np.zeros(2 * m, np.int64)
             q_start[q_flat] = self._add_roots(q_lo, q_hi, q_level, q_bad, q_key, q_counts)
             # Per chunk: destination kind and first place of both streams.
-            dest = np.zeros((C, 4), u4)
-            for side in (0, 1):
+            dest = np.zeros((C, len(BIG_DEST.columns)), u4)
+            for side, name in enumerate(("below", "above")):
                 flat = 2 * chunk_node + side
                 base = np.where(q_flat[flat], q_start[flat], big_start[flat])
-                offset = exclusive_cumsum(out[:, side])
+                offset = exclusive_cumsum(per_side[side])
                 node_offset = offset[chunk_first[:-1]]
-                dest[:, 2 * side] = q_flat[flat]
-                dest[:, 2 * side + 1] = base + offset[:-1] - node_offset[chunk_node]
+                dest[:, BIG_DEST.index(f"{name}_to_queue")] = q_flat[flat]
+                dest[:, BIG_DEST.index(f"{name}_first")] = (base + offset[:-1]
+                                                            - node_offset[chunk_node])
             b.heartbeat()     # after the host's part of the level
             next_refs = b.buffer(nbytes=BUILD_REF.nbytes * max(next_total, 1))
             d_dest = b.buffer(dest)
@@ -486,15 +498,15 @@ class _BuildState:
                 scratch = b.buffer(nbytes=BUILD_REF.nbytes * sizes[2])
                 records = (b.buffer(nbytes=8 * sizes[0]), b.buffer(nbytes=4 * sizes[0]))
                 leafbuf = b.buffer(nbytes=4 * sizes[1])
-            words = _root_rows(lo=roots["lo"][batch], hi=roots["hi"][batch],
-                               level=roots["level"][batch], bad_refines=roots["bad"][batch],
-                               ref_first=roots["start"][batch], ref_count=n,
-                               record_offset=rec_off[:-1], record_capacity=rec_cap,
-                               leaf_offset=leaf_off[:-1], leaf_capacity=leaf_cap,
-                               scratch_offset=scr_off[:-1], scratch_capacity=scr_cap,
-                               level_offset=lvl_off[:-1], level_span=span[batch])
+            words = _rows(SUBTREE_ROOT, lo=roots["lo"][batch], hi=roots["hi"][batch],
+                          level=roots["level"][batch], bad_refines=roots["bad"][batch],
+                          ref_first=roots["start"][batch], ref_count=n,
+                          record_offset=rec_off[:-1], record_capacity=rec_cap,
+                          leaf_offset=leaf_off[:-1], leaf_capacity=leaf_cap,
+                          scratch_offset=scr_off[:-1], scratch_capacity=scr_cap,
+                          level_offset=lvl_off[:-1], level_span=span[batch])
             d_roots = b.buffer(words)
-            d_levels = b.buffer(nbytes=8 * int(lvl_off[-1]))
+            d_levels = b.buffer(nbytes=LEVEL_COUNT.nbytes * int(lvl_off[-1]))
             d_result = b.buffer(nbytes=SUBTREE_RESULT.nbytes * len(batch))
             d_sah = b.buffer(nbytes=8 * len(batch))
             t0 = time.perf_counter()
@@ -522,7 +534,7 @@ class _BuildState:
             if len(good):
                 sah = b.read(d_sah, np.int64, len(batch))
                 self.sah_fixed += int(sah[ok].sum())
-                levels_table = b.read(d_levels, u4, (int(lvl_off[-1]), 2))
+                levels_table = b.read(d_levels, u4, (int(lvl_off[-1]), len(LEVEL_COUNT.columns)))
                 self.levels[good] = n_levels[ok]
                 level_pieces.append((good, levels_table[concat_ranges(lvl_off[:-1][ok],
                                                                       n_levels[ok])]))
@@ -539,7 +551,7 @@ class _BuildState:
             self.report(0.15 + 0.8 * done_refs / total_refs,
                         f"kd-tree subtrees: {done_refs:,} of {total_refs:,} references")
         # Per-level counts in subtree order.
-        self.level_counts = np.zeros((int(self.levels.sum()), 2), np.int64)
+        self.level_counts = np.zeros((int(self.levels.sum()), len(LEVEL_COUNT.columns)), np.int64)
         first = exclusive_cumsum(self.levels)[:-1]
         for ids, rows in level_pieces:
             self.level_counts[concat_ranges(first[ids], self.levels[ids])] = rows
@@ -560,8 +572,10 @@ class _BuildState:
         inner_key = np.concatenate([x["key"] for x in self.inner]) if self.inner else np.zeros(0, np.uint64)
         e_level = np.concatenate([roots["level"][sub_of] + rel, inner_level])
         e_key = np.concatenate([roots["key"][sub_of], inner_key])
-        e_nodes = np.concatenate([counts[:, 0], np.ones(len(inner_key), np.int64)])
-        e_leaf = np.concatenate([counts[:, 1], np.zeros(len(inner_key), np.int64)])
+        e_nodes = np.concatenate([counts[:, LEVEL_COUNT.index("nodes")],
+                                  np.ones(len(inner_key), np.int64)])
+        e_leaf = np.concatenate([counts[:, LEVEL_COUNT.index("leaf_refs")],
+                                 np.zeros(len(inner_key), np.int64)])
         order = np.lexsort((e_key, e_level))
         node_base = np.empty(len(order), np.int64)
         leaf_base = np.empty(len(order), np.int64)
@@ -573,10 +587,10 @@ class _BuildState:
             raise ValueError("kd-tree too large for the 30-bit child index")
         self.depth = int(e_level.max()) if len(e_level) else 0
         nsub_entries = len(sub_of)
-        bases = np.stack([node_base[:nsub_entries], leaf_base[:nsub_entries]], 1).astype(u4)
-        places = np.stack([self.rec_start, self.rec_count, self.leaf_start,
-                           exclusive_cumsum(levels)[:-1]], 1).astype(u4)
-        d_nodes = b.standalone(8 * total_nodes)       # _take: they outlive the build
+        bases = _rows(LEVEL_BASE, node=node_base[:nsub_entries], leaf=leaf_base[:nsub_entries])
+        places = _rows(SUBTREE_PLACE, record_first=self.rec_start, records=self.rec_count,
+                       leaf_first=self.leaf_start, level_offset=exclusive_cumsum(levels)[:-1])
+        d_nodes = b.standalone(8 * total_nodes)       # take(): they outlive the build
         d_leaves = b.standalone(4 * total_refs)
         d_bases = b.buffer(bases)
         per_subtree = max(1, int(self.rec_count.sum()) // max(n_sub, 1))
@@ -642,7 +656,8 @@ class _Store:
             self.chunks.append(c)
         rec_dst = c.records + exclusive_cumsum(rec_n)[:-1]
         leaf_dst = c.refs + exclusive_cumsum(leaf_n)[:-1]
-        moves = np.stack([rec_src, rec_dst, rec_n, leaf_src, leaf_dst, leaf_n], 1).astype(np.uint32)
+        moves = _rows(STORE_MOVE, record_from=rec_src, record_to=rec_dst, records=rec_n,
+                      leaf_from=leaf_src, leaf_to=leaf_dst, leaf_refs=leaf_n)
         b.launch(self.kernel, len(moves), records[0], records[1], leafbuf, b.buffer(moves),
                  c.words, c.meta, c.leaf_refs, np.uint32(len(moves)))
         c.records += need_rec

@@ -1,6 +1,7 @@
 /* The big nodes of one level, data-parallel over their references: one work-item per chunk
-   (consecutive references of one node, sequential in the chunk) or per node. Chunk words:
-   node, first reference, reference count. Node cells: CELL rows (core/layout.py).
+   (consecutive references of one node, sequential in the chunk) or per node. Chunks, node
+   cells and what the passes hand each other are rows of core/layout.py: BIG_CHUNK, CELL,
+   NODE_CHUNKS, BIG_CHOICE, PLANE_COUNTS, BIG_DECISION, CHILD_COUNTS, BIG_DEST.
 
    big_bin -> big_choose: binned SAH (histograms summed over a node's chunks);
    big_recount -> big_decide: exact counts at the chosen plane, leaf or split;
@@ -29,19 +30,19 @@ __kernel void big_bin(__global const Ref* restrict refs, __global const uint4* r
     if (c >= chunk_count)
         return;
     uint4 ch = chunks[c];
-    Cell cell = load_cell(cells, ch.x);
+    uint node = BIG_CHUNK_NODE_OF(ch), first = BIG_CHUNK_REF_FIRST_OF(ch);
+    Cell cell = load_cell(cells, node);
     BinPlanes bp;
-    bin_planes(&cell, node_n[ch.x], &bp);
+    bin_planes(&cell, node_n[node], &bp);
     uint h[HIST_WORDS];
     hist_clear(h);
-    for (uint i = ch.y; i < ch.y + ch.z; i++)
+    for (uint i = first; i < first + BIG_CHUNK_REF_COUNT_OF(ch); i++)
         hist_add(h, &bp, refs[i]);
     for (int k = 0; k < HIST_WORDS; k++)
         hist[(size_t)HIST_WORDS * c + k] = h[k];
 }
 
-/* Per node: its chunks' histograms summed (node_chunks: first chunk, chunk count), the best
-   binned split as (found, axis, plane bits, 0). */
+/* Per node: its chunks' histograms summed, the best binned split. */
 __kernel void big_choose(__global const uint2* restrict node_chunks,
                          __global const uint* restrict hist, __global const float* restrict cells,
                          __global const uint* restrict node_n, __global uint4* restrict choice,
@@ -53,7 +54,8 @@ __kernel void big_choose(__global const uint2* restrict node_chunks,
     uint2 nc = node_chunks[j];
     uint h[HIST_WORDS];
     hist_clear(h);
-    for (uint c = nc.x; c < nc.x + nc.y; c++) {
+    uint chunk_end = NODE_CHUNKS_FIRST_OF(nc) + NODE_CHUNKS_COUNT_OF(nc);
+    for (uint c = NODE_CHUNKS_FIRST_OF(nc); c < chunk_end; c++) {
         __global const uint* src = hist + (size_t)HIST_WORDS * c;
         for (int k = 0; k < HIST_BOUNDS; k++)
             h[k] += src[k];
@@ -68,7 +70,11 @@ __kernel void big_choose(__global const uint2* restrict node_chunks,
     BinPlanes bp;
     bin_planes(&cell, node_n[j], &bp);
     Choice best = choose_binned(h, &bp, &cell, node_n[j]);
-    choice[j] = (uint4)((uint)best.valid, (uint)best.axis, as_uint(best.plane), 0u);
+    uint4 k = (uint4)(0u);
+    BIG_CHOICE_VALID_OF(k) = (uint)best.valid;
+    BIG_CHOICE_AXIS_OF(k) = (uint)best.axis;
+    BIG_CHOICE_PLANE_OF(k) = as_uint(best.plane);
+    choice[j] = k;
 }
 
 /* Per chunk: references below, above and planar at its node's chosen plane. */
@@ -80,17 +86,22 @@ __kernel void big_recount(__global const Ref* restrict refs, __global const uint
     if (c >= chunk_count)
         return;
     uint4 ch = chunks[c];
-    uint4 k = choice[ch.x];
-    int axis = (int)k.y;
-    float plane = as_float(k.z);
+    uint4 k = choice[BIG_CHUNK_NODE_OF(ch)];
+    int axis = (int)BIG_CHOICE_AXIS_OF(k);
+    float plane = as_float(BIG_CHOICE_PLANE_OF(k));
     uint n[3] = {0u, 0u, 0u};
-    for (uint i = ch.y; i < ch.y + ch.z; i++)
+    uint first = BIG_CHUNK_REF_FIRST_OF(ch);
+    for (uint i = first; i < first + BIG_CHUNK_REF_COUNT_OF(ch); i++)
         count_at_plane(refs[i], axis, plane, n);
-    counts[c] = (uint4)(n[0], n[1], n[2], 0u);
+    uint4 out = (uint4)(0u);
+    PLANE_COUNTS_BELOW_OF(out) = n[0];
+    PLANE_COUNTS_ABOVE_OF(out) = n[1];
+    PLANE_COUNTS_PLANAR_OF(out) = n[2];
+    counts[c] = out;
 }
 
-/* Per node: leaf or split. decision = (bit 0 leaf, bit 1 planar below; bad refines; axis;
-   plane bits); sah: the node's SAH share if it splits (a leaf's is taken by its subtree). */
+/* Per node: leaf or split (its BIG_DECISION); sah: the node's SAH share if it splits (a leaf's
+   is taken by its subtree). */
 __kernel void big_decide(__global const uint2* restrict node_chunks,
                          __global const uint4* restrict counts,
                          __global const uint4* restrict choice,
@@ -104,39 +115,53 @@ __kernel void big_decide(__global const uint2* restrict node_chunks,
         return;
     uint2 nc = node_chunks[j];
     uint nb = 0u, na = 0u, np = 0u;
-    for (uint c = nc.x; c < nc.x + nc.y; c++) {
-        nb += counts[c].x;
-        na += counts[c].y;
-        np += counts[c].z;
+    uint chunk_end = NODE_CHUNKS_FIRST_OF(nc) + NODE_CHUNKS_COUNT_OF(nc);
+    for (uint c = NODE_CHUNKS_FIRST_OF(nc); c < chunk_end; c++) {
+        uint4 n = counts[c];
+        nb += PLANE_COUNTS_BELOW_OF(n);
+        na += PLANE_COUNTS_ABOVE_OF(n);
+        np += PLANE_COUNTS_PLANAR_OF(n);
     }
     uint4 k = choice[j];
-    Choice ch = {(int)k.x, (int)k.y, as_float(k.z)};
+    Choice ch = {(int)BIG_CHOICE_VALID_OF(k), (int)BIG_CHOICE_AXIS_OF(k),
+                 as_float(BIG_CHOICE_PLANE_OF(k))};
     Cell cell = load_cell(cells, j);
     Decision d = decide(node_n[j], level, depth_cap, node_bad[j], ch, nb, na, np, &cell);
-    decision[j] = (uint4)((uint)d.leaf | ((uint)d.planar_below << 1), d.bad, k.y, k.z);
+    uint4 out;
+    BIG_DECISION_FLAGS_OF(out) = (d.leaf ? DECISION_LEAF : 0u)
+                                 | (d.planar_below ? DECISION_PLANAR_BELOW : 0u);
+    BIG_DECISION_BAD_REFINES_OF(out) = d.bad;
+    BIG_DECISION_AXIS_OF(out) = BIG_CHOICE_AXIS_OF(k);
+    BIG_DECISION_PLANE_OF(out) = BIG_CHOICE_PLANE_OF(k);
+    decision[j] = out;
     sah[j] = d.leaf ? 0 : sah_fixed(&cell, pow2, inv_root_half_area, KD_KT);
 }
 
 /* A chunk's references split at its node's decision d, counted or, where below_to and
-   above_to are given, also written there in order; returns (below, above) counts. A leaf's
+   above_to are given, also written there in order; returns their CHILD_COUNTS. A leaf's
    references all go "below", as they are. */
 inline uint2 split_chunk(__global const Ref* refs, uint4 ch, uint4 d,
                          __global const float* cells, __global const float* corners,
                          __global Ref* below_to, __global Ref* above_to)
 {
-    if (d.x & 1u) {
+    uint first = BIG_CHUNK_REF_FIRST_OF(ch), count = BIG_CHUNK_REF_COUNT_OF(ch);
+    uint flags = BIG_DECISION_FLAGS_OF(d);
+    uint2 out = (uint2)(0u);
+    if (flags & DECISION_LEAF) {
         if (below_to)
-            for (uint i = 0; i < ch.z; i++)
-                below_to[i] = refs[ch.y + i];
-        return (uint2)(ch.z, 0u);
+            for (uint i = 0; i < count; i++)
+                below_to[i] = refs[first + i];
+        CHILD_COUNTS_BELOW_OF(out) = count;
+        return out;
     }
-    Cell cell = load_cell(cells, ch.x);
-    int axis = (int)d.z;
-    float plane = as_float(d.w);
+    Cell cell = load_cell(cells, BIG_CHUNK_NODE_OF(ch));
+    int axis = (int)BIG_DECISION_AXIS_OF(d);
+    float plane = as_float(BIG_DECISION_PLANE_OF(d));
+    int planar_below = (flags & DECISION_PLANAR_BELOW) != 0u;
     uint nb = 0u, na = 0u;
-    for (uint i = ch.y; i < ch.y + ch.z; i++) {
+    for (uint i = first; i < first + count; i++) {
         Ref below, above;
-        int sides = ref_children(corners, refs[i], &cell, axis, plane, (d.x >> 1) & 1u, &below,
+        int sides = ref_children(corners, refs[i], &cell, axis, plane, planar_below, &below,
                                  &above);
         if (sides & 1) {
             if (below_to)
@@ -149,7 +174,9 @@ inline uint2 split_chunk(__global const Ref* refs, uint4 ch, uint4 d,
             na++;
         }
     }
-    return (uint2)(nb, na);
+    CHILD_COUNTS_BELOW_OF(out) = nb;
+    CHILD_COUNTS_ABOVE_OF(out) = na;
+    return out;
 }
 
 /* Per chunk: how many of its references each child receives. */
@@ -161,11 +188,11 @@ __kernel void big_classify(__global const Ref* restrict refs, __global const uin
 {
     uint c = get_global_id(0);
     if (c < chunk_count)
-        out[c] = split_chunk(refs, chunks[c], decision[chunks[c].x], cells, corners, 0, 0);
+        out[c] = split_chunk(refs, chunks[c], decision[BIG_CHUNK_NODE_OF(chunks[c])], cells,
+                             corners, 0, 0);
 }
 
-/* Per chunk, its references written to their children's places; dest per chunk: (below goes
-   to the queue?, first below place, above to the queue?, first above place). */
+/* Per chunk, its references written to their children's places (its BIG_DEST). */
 __kernel void big_scatter(__global const Ref* restrict refs, __global const uint4* restrict chunks,
                           __global const uint4* restrict decision,
                           __global const float* restrict cells,
@@ -177,13 +204,14 @@ __kernel void big_scatter(__global const Ref* restrict refs, __global const uint
     if (c >= chunk_count)
         return;
     uint4 to = dest[c];
-    split_chunk(refs, chunks[c], decision[chunks[c].x], cells, corners,
-                (to.x ? queue : next) + to.y, (to.z ? queue : next) + to.w);
+    split_chunk(refs, chunks[c], decision[BIG_CHUNK_NODE_OF(chunks[c])], cells, corners,
+                (BIG_DEST_BELOW_TO_QUEUE_OF(to) ? queue : next) + BIG_DEST_BELOW_FIRST_OF(to),
+                (BIG_DEST_ABOVE_TO_QUEUE_OF(to) ? queue : next) + BIG_DEST_ABOVE_FIRST_OF(to));
 }
 
 /* The first references: box of every triangle and whether it is kept (its cross product in
    double is not exactly zero, the same operations as numpy's np.cross in kdtree.py); and the
-   triangles' corners side by side (9 floats each) for the clipping. */
+   triangles' corners side by side (CORNERS rows) for the clipping. */
 __kernel void init_refs(__global const float* restrict vertices,
                         __global const uint* restrict triangles, __global Ref* restrict refs,
                         __global uchar* restrict keep, __global float* restrict corners,
@@ -197,7 +225,7 @@ __kernel void init_refs(__global const float* restrict vertices,
         uint v = triangles[3 * t + k];
         for (int a = 0; a < 3; a++) {
             p[k][a] = vertices[3 * v + a];
-            corners[9 * (size_t)t + 3 * k + a] = p[k][a];
+            corners[CORNERS_COLUMNS * (size_t)t + CORNERS_V0_X + 3 * k + a] = p[k][a];
         }
     }
     dbl e1[3], e2[3];
@@ -232,7 +260,7 @@ __kernel void compact_refs(__global const Ref* restrict refs, __global const uch
         out[place[t]] = refs[t];
 }
 
-/* Per chunk of references: the box around them (lo xyz, pad, hi xyz, pad). */
+/* Per chunk of references: the box around them (a CELL row). */
 __kernel void chunk_bounds(__global const Ref* restrict refs, __global float* restrict out,
                            uint ref_count, uint chunk)
 {
@@ -246,7 +274,7 @@ __kernel void chunk_bounds(__global const Ref* restrict refs, __global float* re
         hi = r.hi > hi ? r.hi : hi;
     }
     for (int a = 0; a < 3; a++) {
-        out[8 * c + a] = axis_of(lo, a);
-        out[8 * c + 4 + a] = axis_of(hi, a);
+        out[CELL_COLUMNS * c + CELL_LO_X + a] = axis_of(lo, a);
+        out[CELL_COLUMNS * c + CELL_HI_X + a] = axis_of(hi, a);
     }
 }

@@ -52,11 +52,11 @@ __kernel void order_check(__global const uint2* restrict nodes,
 
 /* ----------------------------------------------------------------------------------------
    Topology (compact.py _Topology, _falls_going_up, subtree sums), level by level: subtree
-   sizes and non-empty leaves going up, then going down the cells (6 floats per node, by
-   position in its level), areas and preorder numbers, and each node's records at its
-   preorder number p (so that climbing stays near its start: a below child follows its
-   parent directly):
-     climb[p] = (end of its preorder range, the parent's preorder number, depth, the node);
+   sizes and non-empty leaves going up, then going down the cells (CELL rows, by position in
+   its level), areas and preorder numbers, and each node's records at its preorder number p
+   (so that climbing stays near its start: a below child follows its parent directly):
+     climb[p], a CLIMB row: end of its preorder range, the parent's preorder number, depth,
+                the node;
      walk[p] = (area, the parent's preorder number, non-empty leaves below | whether the area
                 never shrinks from here up to the root << 31). */
 
@@ -92,7 +92,12 @@ inline int put_records(uint x, uint p, uint parent_pre, uint depth, int parent_s
                         __global WalkRecord* walk)
 {
     int stops = d_finite(A) && D_LT(D_ZERO, A) && parent_stops && D_GE(parent_area, A);
-    climb[p] = (uint4)(p + size[x], parent_pre, depth, x);
+    uint4 c;
+    CLIMB_END_OF(c) = p + size[x];
+    CLIMB_PARENT_OF(c) = parent_pre;
+    CLIMB_DEPTH_OF(c) = depth;
+    CLIMB_NODE_OF(c) = x;
+    climb[p] = c;
     WalkRecord w;
     w.area = A;
     w.parent = parent_pre;
@@ -363,13 +368,13 @@ __kernel void neighbour_lcas(__global const uint* restrict s_pre, __global const
     }
     uint x = s_pre[j - 1], b = s_pre[j];
     uint4 cx = climb[x];
-    while (!(x <= b && b < cx.x)) {
-        x = cx.y;
+    while (!(x <= b && b < CLIMB_END_OF(cx))) {
+        x = CLIMB_PARENT_OF(cx);
         cx = climb[x];
     }
-    gap_node[j] = cx.w;
+    gap_node[j] = CLIMB_NODE_OF(cx);
     gap_pre[j] = x;
-    gap_depth[j] = (int)cx.z;
+    gap_depth[j] = (int)CLIMB_DEPTH_OF(cx);
 }
 
 /* ----------------------------------------------------------------------------------------
@@ -546,7 +551,7 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
         } else {
             uint k = a + (g - e);
             uint leaf = s_pre[k];
-            uint leaf_depth = climb[leaf].z;
+            uint leaf_depth = CLIMB_DEPTH_OF(climb[leaf]);
             if (leaf_depth == 0u)
                 continue;
             run_lo = k;
@@ -579,7 +584,7 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
                 }
                 uint* c = block + LIFT_CANDIDATE_COLUMNS * held++;
                 c[LIFT_CANDIDATE_DEPTH] = (uint)d;
-                c[LIFT_CANDIDATE_NODE] = climb[node].w;
+                c[LIFT_CANDIDATE_NODE] = CLIMB_NODE_OF(climb[node]);
                 c[LIFT_CANDIDATE_TRIANGLE] = t;
                 c[LIFT_CANDIDATE_REFERENCES] = r;
                 c[LIFT_CANDIDATE_FIRST] = run_lo;
@@ -622,8 +627,12 @@ __kernel void cand_group(__global const uint* restrict cand, __global uint* rest
         return;
     __global const uint* c = cand + LIFT_CANDIDATE_COLUMNS * (size_t)j;
     uint at = atomic_inc(node_next + c[LIFT_CANDIDATE_NODE]);
-    grouped[at] = (uint4)(c[LIFT_CANDIDATE_TRIANGLE], c[LIFT_CANDIDATE_REFERENCES],
-                          c[LIFT_CANDIDATE_FIRST], c[LIFT_CANDIDATE_END]);
+    uint4 g;
+    LIFT_GROUPED_TRIANGLE_OF(g) = c[LIFT_CANDIDATE_TRIANGLE];
+    LIFT_GROUPED_REFERENCES_OF(g) = c[LIFT_CANDIDATE_REFERENCES];
+    LIFT_GROUPED_FIRST_OF(g) = c[LIFT_CANDIDATE_FIRST];
+    LIFT_GROUPED_END_OF(g) = c[LIFT_CANDIDATE_END];
+    grouped[at] = g;
     grouped_node[at] = c[LIFT_CANDIDATE_NODE];
 }
 
@@ -652,10 +661,14 @@ __kernel void choose_lifts(__global const uint* restrict node_end, __global uint
         uint4 bc = (uint4)(0u);
         for (uint j = a + k; j < b; j++) {
             uint4 c = grouped[j];
-            if (removed[c.z])
+            if (removed[LIFT_GROUPED_FIRST_OF(c)])
                 continue;
-            if (best == b || c.y > bc.y || (c.y == bc.y && (c.x < bc.x
-                                                            || (c.x == bc.x && c.z < bc.z)))) {
+            uint refs = LIFT_GROUPED_REFERENCES_OF(c), best_refs = LIFT_GROUPED_REFERENCES_OF(bc);
+            uint tri = LIFT_GROUPED_TRIANGLE_OF(c), best_tri = LIFT_GROUPED_TRIANGLE_OF(bc);
+            if (best == b || refs > best_refs
+                || (refs == best_refs && (tri < best_tri
+                                          || (tri == best_tri && LIFT_GROUPED_FIRST_OF(c)
+                                                                 < LIFT_GROUPED_FIRST_OF(bc))))) {
                 best = j;
                 bc = c;
             }
@@ -665,7 +678,7 @@ __kernel void choose_lifts(__global const uint* restrict node_end, __global uint
         grouped[best] = grouped[a + k];
         grouped[a + k] = bc;
         taken[a + k] = 1u;
-        for (uint r = bc.z; r < bc.w; r++)
+        for (uint r = LIFT_GROUPED_FIRST_OF(bc); r < LIFT_GROUPED_END_OF(bc); r++)
             removed[r] = 1;
     }
     refs_at[i] = k;
@@ -684,8 +697,8 @@ __kernel void lifts_out(__global const uint* restrict slot, __global const uint4
     uint s = slot[j];
     uint4 c = grouped[j];
     lift_node[s] = grouped_node[j];
-    lift_tri[s] = c.x;
-    lift_first[s] = c.z;
+    lift_tri[s] = LIFT_GROUPED_TRIANGLE_OF(c);
+    lift_first[s] = LIFT_GROUPED_FIRST_OF(c);
 }
 
 /* ----------------------------------------------------------------------------------------

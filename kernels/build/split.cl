@@ -164,8 +164,8 @@ inline int bin_of_high(const BinPlanes* bp, int axis, float x)
 
 /* Histogram words of one node or chunk: [axis][low ends, high ends][bin], then the tight
    bounds (min lo, max hi per axis, as float bits). */
-#define HIST_WORDS (6 * KD_MAX_BINS + 6)
-#define HIST_BOUNDS (6 * KD_MAX_BINS)
+#define HIST_WORDS (HISTOGRAM_WORDS_PER_BIN * KD_MAX_BINS + HISTOGRAM_BOUND_WORDS)
+#define HIST_BOUNDS (HISTOGRAM_WORDS_PER_BIN * KD_MAX_BINS)
 
 inline void hist_clear(uint* h)
 {
@@ -556,7 +556,7 @@ inline int clip_face(dbl p[3][CLIP_VERTS], int n, int axis, dbl value, int keep_
     return m;
 }
 
-/* Clip the triangle of a straddling reference (its corners: 9 floats per triangle) for both
+/* Clip the triangle of a straddling reference (its corners: a CORNERS row) for both
    children. Returns bit 1 if the below half is kept (its box in *below), bit 2 for the above
    half. */
 inline int clip_straddler(__global const float* corners, uint tri, const Cell* c, int axis,
@@ -565,7 +565,7 @@ inline int clip_straddler(__global const float* corners, uint tri, const Cell* c
     float corner[3][3];
     for (int k = 0; k < 3; k++)
         for (int a = 0; a < 3; a++)
-            corner[k][a] = corners[9 * (size_t)tri + 3 * k + a];
+            corner[k][a] = corners[CORNERS_COLUMNS * (size_t)tri + CORNERS_V0_X + 3 * k + a];
     dbl p[3][CLIP_VERTS];
     int flat[3];
     int n = 3;

@@ -14,8 +14,14 @@
    stops the work-item with a status; the host runs it again with larger buffers (the result
    does not depend on their sizes). */
 
-#define KD_STACK 64            /* the host keeps every subtree's depth span below this */
-#define RANK_LIMIT (1u << 26)
+/* A record's meta: its relative level (below SUBTREE_MAX_LEVELS, which the host keeps every
+   subtree's depth span below) in the low 6 bits, its rank in that level above them (layout.cl
+   reads it back). */
+#define META_LEVEL_BITS 6
+#define RANK_LIMIT (1u << (32 - META_LEVEL_BITS))
+#define META(level, rank) ((level) | ((rank) << META_LEVEL_BITS))
+#define META_LEVEL(meta) ((meta) & ((1u << META_LEVEL_BITS) - 1u))
+#define META_RANK(meta) ((meta) >> META_LEVEL_BITS)
 
 typedef struct {
     Cell cell;
@@ -46,7 +52,7 @@ inline void build_subtree(uint s, __global const Ref* restrict queue,
     uint lvl_off = root[SUBTREE_ROOT_LEVEL_OFFSET], span = root[SUBTREE_ROOT_LEVEL_SPAN];
     __global Ref* scr = scratch + root[SUBTREE_ROOT_SCRATCH_OFFSET];
 
-    uint node_count[KD_STACK], leaf_prefix[KD_STACK];
+    uint node_count[SUBTREE_MAX_LEVELS], leaf_prefix[SUBTREE_MAX_LEVELS];
     for (uint l = 0; l < span; l++) {
         node_count[l] = 0u;
         leaf_prefix[l] = 0u;
@@ -56,7 +62,7 @@ inline void build_subtree(uint s, __global const Ref* restrict queue,
     long sah_sum = 0;
     int status = SUBTREE_OK;
 
-    Entry stack[KD_STACK];
+    Entry stack[SUBTREE_MAX_LEVELS];
     ExactBoxes x;              /* the last exact node's boxes and counts */
     uint sp = 0u;
     Entry first;
@@ -126,7 +132,7 @@ inline void build_subtree(uint s, __global const Ref* restrict queue,
             status = SUBTREE_RECORDS;
             break;
         }
-        uint meta = e.level | (e.rank << 6);
+        uint meta = META(e.level, e.rank);
         if (d.leaf) {
             if (lrefs + e.count > leaf_cap) {
                 status = SUBTREE_LEAF_REFS;
@@ -218,8 +224,12 @@ inline void build_subtree(uint s, __global const Ref* restrict queue,
         stack[sp++] = child;
     }
 
-    for (uint l = 0; l < levels; l++)
-        level_counts[lvl_off + l] = (uint2)(node_count[l], leaf_prefix[l]);
+    for (uint l = 0; l < levels; l++) {
+        uint2 count;
+        LEVEL_COUNT_NODES_OF(count) = node_count[l];
+        LEVEL_COUNT_LEAF_REFS_OF(count) = leaf_prefix[l];
+        level_counts[lvl_off + l] = count;
+    }
     __global uint* out = result + SUBTREE_RESULT_COLUMNS * s;
     out[SUBTREE_RESULT_STATUS] = (uint)status;
     out[SUBTREE_RESULT_RECORDS] = recs;
