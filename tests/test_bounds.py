@@ -110,10 +110,10 @@ def test_texel_reads_never_leave_the_texture():
     before the clamp). Every lookup, and texel() at any int, reads the texture's own texels,
     never its neighbours' (sentinels 7 and 9 around a 3 x 2 texture)."""
     from core.opencl import kernel_source
+    from slave.tracer import kernel_files_through
     from tests.opencl_programs import programs_on
     cl, context, queue, programs = programs_on("cpu")
-    source = kernel_source(["trace/trace.cl", "shade/sampling.cl", "shade/ggx_albedo.cl",
-                            "shade/shading.cl"]) + TEXEL_PROBE
+    source = kernel_source(kernel_files_through("shade/textures.cl")) + TEXEL_PROBE
     kernel = programs.kernels(source, ["-DKD_STACK_SIZE=32", "-DHAS_TEXTURES"])["probe"]
     w, h = 3, 2
     texels = np.full((4 + w * h + 4, 4), 7.0, np.float16)

@@ -1,4 +1,4 @@
-"""The BSDF (kernels/shade/shading.cl): GGX reflection and transmission at any roughness,
+"""The BSDF (kernels/shade/bsdf.cl): GGX reflection and transmission at any roughness,
 checked on the device against its own definitions (sampled densities equal evaluated ones,
 energy preserved as Cycles' Multiscatter GGX preserves it), in a white furnace, for
 continuity across roughness, and for convergence of rough glossy and glass."""
@@ -16,7 +16,7 @@ from core.opencl import KERNEL_DIR, kernel_source
 from core.scene.model import (Camera, Geometry, Light, RenderSettings, Shading, View,
                               default_material_params)
 from core.scene.scene import Scene
-from slave.tracer import Tracer
+from slave.tracer import Tracer, kernel_files_through
 from tests.meshes import grid_plane, look_at, merge, uv_sphere
 
 # metallic, roughness, transmission, ior, specular (Principled inputs)
@@ -106,8 +106,7 @@ __kernel void pdf_integral(float metallic, float roughness, float transmission, 
 def probe():
     import pyopencl as cl
     tracer = Tracer()
-    source = kernel_source(("trace/trace.cl", "shade/sampling.cl", "shade/ggx_albedo.cl",
-                            "shade/shading.cl")) + PROBE
+    source = kernel_source(kernel_files_through("shade/bsdf.cl")) + PROBE
     program = cl.Program(tracer.context, source).build(
         options=["-DKD_STACK_SIZE=32", "-DHAS_SPECULAR", "-DHAS_TRANSMISSION"])
     items = 256

@@ -1,5 +1,6 @@
-// Random numbers and sample warps. No transcendental built-ins (their accuracy differs between
-// devices): sin/cos are short polynomials on [-pi/4, pi/4], everything else is + * / sqrt.
+// Random numbers, sample warps and angles. No transcendental built-ins (their accuracy differs
+// between devices): sin/cos are short polynomials on [-pi/4, pi/4], atan2 one on [0, 1],
+// everything else is + * / sqrt.
 //
 // Seeds come from the GLOBAL pixel index (py * width + px), the sample number and the frame
 // seed, never from the work-item or the slave, so a tile gives the same pixels wherever it runs.
@@ -109,6 +110,54 @@ inline float cos_small(float x)
 {
     float x2 = x * x;
     return 1.0f - x2 / 2.0f * (1.0f - x2 / 12.0f * (1.0f - x2 / 30.0f * (1.0f - x2 / 56.0f)));
+}
+
+// Angles without transcendental built-ins: atan2 and the sin and cos of any angle.
+
+// atan of t in [-tan(pi/8), tan(pi/8)]: Taylor to t^15 (error below 2e-8).
+inline float atan_small(float t)
+{
+    float t2 = t * t;
+    float p = 1.0f / 15.0f;
+    p = 1.0f / 13.0f - t2 * p;
+    p = 1.0f / 11.0f - t2 * p;
+    p = 1.0f / 9.0f - t2 * p;
+    p = 1.0f / 7.0f - t2 * p;
+    p = 1.0f / 5.0f - t2 * p;
+    p = 1.0f / 3.0f - t2 * p;
+    return t * (1.0f - t2 * p);
+}
+
+inline float atan_unit(float a)         // a in [0, 1]
+{
+    return a > 0.41421356f ? M_PI_4_F + atan_small((a - 1.0f) / (a + 1.0f)) : atan_small(a);
+}
+
+inline float atan2_poly(float y, float x)
+{
+    float ax = fabs(x), ay = fabs(y);
+    if (ax == 0.0f && ay == 0.0f)
+        return 0.0f;
+    float a = ax >= ay ? atan_unit(ay / ax) : M_PI_2_F - atan_unit(ax / ay);
+    if (x < 0.0f)
+        a = M_PI_F - a;
+    return y < 0.0f ? -a : a;
+}
+
+// sin and cos of any x in [-2 pi, 2 pi]: quarter turns, then the short polynomials.
+inline float2 sincos_poly(float x)
+{
+    float q = floor(x * M_2_PI_F + 0.5f);
+    float r = x - q * M_PI_2_F;
+    float s = sin_small(r), c = cos_small(r);
+    int k = ((int)q) & 3;
+    if (k == 1)
+        return (float2)(c, -s);
+    if (k == 2)
+        return (float2)(-s, -c);
+    if (k == 3)
+        return (float2)(-c, s);
+    return (float2)(s, c);
 }
 
 // Shirley-Chiu concentric map of [0,1)^2 onto the unit disk (stratification is preserved).

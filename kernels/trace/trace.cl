@@ -1,13 +1,13 @@
 // Ray queries against the kd-tree: the watertight ray/triangle test, the compact tree's node
 // format decoded (load_node, inner_node, tref_slot, leaf_node: the one place that reads node
 // words, for trace_ray here and trace_packet in packet.cl) and trace_ray, the one-ray
-// traversal that intersect.cl, shading.cl and render.cl use. OpenCL C 1.2, single precision,
-// no extensions. Node fields, buffer slots and codes are the names of the layout header that
+// traversal that intersect.cl and the shading (kernels/shade/) use. OpenCL C 1.2, single
+// precision, no extensions. Node fields, buffer slots and codes are the names of the layout header that
 // core/opencl.py kernel_source puts before the kernel files (generated from core/layout.py).
 //
 // Build options (slave/tracer.py kernel_options): KD_STACK_SIZE (>= tree depth + 1),
 // KD_PACKET (packet.cl), KD_PREFETCH (CPU devices: prefetch_triangle), HAS_<FEATURE>
-// (shading.cl), and KDTRACE_HASH (core/opencl.py: a hash of source and options, so no driver
+// (kernels/shade/), and KDTRACE_HASH (core/opencl.py: a hash of source and options, so no driver
 // cache can serve a stale binary).
 
 // Same rounding on every device: no silent a*b+c -> fma contraction.
