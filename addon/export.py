@@ -21,7 +21,8 @@ from ..core.scene.features import needed_arrays, scene_features, strip_geometry
 from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
                                 MAX_MATERIALS, RenderSettings, SceneError, Shading, View,
                                 WorldTexture)
-from .nodes import PRINCIPLED_DEFAULTS, NodeProgram, input_value, material_parameters, socket_value
+from .nodes import (PRINCIPLED_DEFAULTS, NodeProgram, cycles_output, input_value, mapping_affine,
+                    material_parameters, socket_value)
 
 DEFAULT_COLOR = (0.8, 0.8, 0.8, 1.0)
 HALF_MAX = 65504.0          # the largest float16: texels travel as half floats
@@ -127,6 +128,7 @@ class _MaterialTable:
         self.node_rows = []         # the node programs of all materials, float4 rows
         self._spatial = {}          # material key -> its NodeProgram reading the hit's position
         self._uv_programs = set()   # keys of the materials whose node program reads UVs
+        self.named_uv_maps = {}     # material key -> UV maps its UV Map nodes name
 
     def index(self, material, obj_name: str | None = None,
               visibility: int = VISIBLE_TO_ALL, placement=None) -> int:
@@ -171,6 +173,8 @@ class _MaterialTable:
                     self._spatial[key] = program
                 if program.reads_uv:
                     self._uv_programs.add(key)
+                if program.uv_maps:
+                    self.named_uv_maps[key] = program.uv_maps
             if problems:        # one warning per material, naming everything it lacks
                 on = f" (on object '{obj_name}')" if obj_name else ""
                 self._warnings.append(f"material '{material.name}'{on}: " + "; ".join(problems))
@@ -327,16 +331,23 @@ def _mesh_arrays(mesh, want_normals: bool, want_uvs: bool) -> dict:
         normals = np.empty(len(mesh.loops) * 3, np.float32)
         mesh.corner_normals.foreach_get("vector", normals)
         out["normals"] = per_corner(normals.reshape(-1, 3)).reshape(-1, 3, 3)
-    if want_uvs and len(triangles) and mesh.uv_layers.active is not None:
-        name = mesh.uv_layers.active.name
-        if _attribute_of(mesh, name, "CORNER", "FLOAT2") is not None:
-            uv = _attribute(mesh, name, np.float32, 2)
+    layer = render_uv_layer(mesh)
+    if want_uvs and len(triangles) and layer is not None:
+        if _attribute_of(mesh, layer.name, "CORNER", "FLOAT2") is not None:
+            uv = _attribute(mesh, layer.name, np.float32, 2)
         else:
             uv = np.empty(len(mesh.loops) * 2, np.float32)
-            mesh.uv_layers.active.uv.foreach_get("vector", uv)
+            layer.uv.foreach_get("vector", uv)
             uv = uv.reshape(-1, 2)
         out["uvs"] = per_corner(uv).reshape(-1, 3, 2)
     return out
+
+
+def render_uv_layer(mesh):
+    """The UV map Cycles reads where a material names none: the one active for rendering
+    (the camera icon in the UV Maps list), else the active one; None without UVs."""
+    return next((layer for layer in mesh.uv_layers if layer.active_render),
+                mesh.uv_layers.active)
 
 
 def _attribute_of(mesh, name: str, domain: str, data_type: str):
@@ -517,6 +528,7 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
              for slot in obj.material_slots]
             or [materials.index(None, name, visibility)], np.uint16)
         textured = any(materials.uses_texture(slot.material) for slot in obj.material_slots)
+        _warn_other_uv_maps(obj, mesh, name, materials, warnings, warned)
         key = (mesh.as_pointer(), textured)
         if key not in mesh_cache:
             mesh_cache[key] = _mesh_arrays(mesh, True, textured)
@@ -573,6 +585,21 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
     ends = np.array(to_world_end, np.float64).reshape(-1, 4, 4) if moving else None
     return out, np.array(instance_mesh, np.int64), np.array(to_world, np.float64).reshape(-1, 4, 4), \
         ends
+
+
+def _warn_other_uv_maps(obj, mesh, name, materials, warnings, warned) -> None:
+    """One warning for an object whose material's UV Map node names a UV map other than the
+    one exported (render_uv_layer): KD Trace carries one UV map per mesh."""
+    layer = render_uv_layer(mesh)
+    for slot in obj.material_slots:
+        key = slot.material.name_full if slot.material is not None else None
+        other = sorted(m for m in materials.named_uv_maps.get(key, ()) if
+                       layer is None or m != layer.name)
+        if other and (name, "uv") not in warned:
+            warned.add((name, "uv"))
+            warnings.append(f"object '{name}': material '{slot.material.name}' reads UV map(s) "
+                            f"{', '.join(repr(m) for m in other)}; KD Trace renders one UV map "
+                            f"per mesh, {layer.name if layer else 'none'!r}")
 
 
 def _instance_name(instance) -> str:
@@ -839,11 +866,10 @@ def export_world(scene, textures: _MaterialTable, warnings: list):
     if not (world.use_nodes and world.node_tree):
         return tuple(float(c) for c in world.color), None
     problems = []
-    outputs = [n for n in world.node_tree.nodes if n.type == "OUTPUT_WORLD"]
-    active = [n for n in outputs if n.is_active_output] or outputs
+    output = cycles_output(world.node_tree, "OUTPUT_WORLD")
     node = None
-    if active and active[0].inputs["Surface"].is_linked:
-        node = active[0].inputs["Surface"].links[0].from_node
+    if output is not None and output.inputs["Surface"].is_linked:
+        node = output.inputs["Surface"].links[0].from_node
     if node is None or node.type not in ("BACKGROUND", "EMISSION"):
         if node is not None:
             problems.append(f"its surface is '{node.name}' ({node.bl_idname}), which KD Trace "
@@ -906,9 +932,9 @@ def _environment(node, textures: _MaterialTable, name: str, problems: list):
 
 
 def _mapping_matrix(node, problems: list) -> np.ndarray:
-    """The Mapping node's map of a direction (its linear part), as 3x3 for world directions
-    into texture directions; a location on a Point mapping is not used (directions)."""
-    from mathutils import Euler
+    """The Mapping node's map of a direction (its linear part, nodes.mapping_affine), as 3x3
+    for world directions into texture directions; a location on a Point mapping is not used
+    (directions)."""
     values = {}
     for socket_name in ("Location", "Rotation", "Scale"):
         socket = node.inputs.get(socket_name)
@@ -918,13 +944,7 @@ def _mapping_matrix(node, problems: list) -> np.ndarray:
         if socket.is_linked:
             problems.append(f"input '{socket_name}' of '{node.name}' is linked; using its value")
         values[socket_name] = np.array(socket_value(socket), np.float64)
-    rotation = np.array(Euler(values["Rotation"].tolist(), "XYZ").to_matrix(), np.float64)
-    scale = values["Scale"]
     if node.vector_type == "POINT" and np.abs(values["Location"]).max() > 0:
         problems.append(f"the Location of '{node.name}' moves points, not directions; ignored")
-    with np.errstate(divide="ignore", invalid="ignore"):
-        if node.vector_type == "TEXTURE":
-            return np.diag(1.0 / scale) @ rotation.T
-        if node.vector_type == "NORMAL":
-            return rotation @ np.diag(1.0 / scale)
-        return rotation @ np.diag(scale)
+    return mapping_affine(node.vector_type, values["Location"], values["Rotation"],
+                          values["Scale"])[0]

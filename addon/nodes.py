@@ -52,7 +52,8 @@ class NodeProgram:
     register; constants for unlinked inputs. Nodes: Image Texture (UV, Linear/Closest,
     Repeat), Texture Coordinate and UV Map (UV), Separate/Combine Color (RGB) and XYZ, Mix
     (float, colour and vector; Mix, Add, Multiply, Subtract, Screen, Difference, Darken,
-    Lighten), Math (the NODE_MATH_CODES operations), Invert, Checker Texture, Noise Texture (every
+    Lighten), Math (the NODE_MATH_CODES operations), Mapping (Point, Texture, Vector, Normal),
+    Invert, Checker Texture, Noise Texture (every
     type, 1D to 4D), Color Ramp, Value and RGB; into a BSDF's Normal: Normal Map (tangent, object, world
     space) and Bump; emission as colour x strength. Another node makes its input keep its value, and the problem names it."""
 
@@ -65,6 +66,7 @@ class NodeProgram:
         self._next = 0
         self.outputs = []
         self.transforms = []                    # (instruction index, "OBJECT" or "GENERATED")
+        self.uv_maps = set()                    # UV maps UV Map nodes name ("": the default)
         self._step = 0                          # compiling a Bump's height: its step 0, 1, 2
 
     @property
@@ -208,6 +210,8 @@ class NodeProgram:
     def _node(self, node, out):
         kind, name = node.type, out.name
         if kind in ("TEX_COORD", "UVMAP") and name == "UV":
+            if kind == "UVMAP" and node.uv_map:
+                self.uv_maps.add(node.uv_map)
             return self._uv()
         if kind == "TEX_COORD" and name in ("Generated", "Object") and node.object is None:
             return self._coordinates(name.upper())
@@ -225,7 +229,7 @@ class NodeProgram:
                        params=(self._texture_index(node.image), float(node.interpolation == "Closest"),
                                float(NODE_EXTENSION_CODES[node.extension])))
             return self._lane(register, 3) if name == "Alpha" else self._whole(register)
-        if kind in ("SEPARATE_COLOR", "SEPRGB", "SEPARATE_XYZ") and \
+        if kind in ("SEPARATE_COLOR", "SEPRGB", "SEPXYZ") and \
                 getattr(node, "mode", "RGB") == "RGB":
             source = self._input(node, 0)
             register = source // NODE_REF_REGISTER
@@ -233,7 +237,7 @@ class NodeProgram:
                 return source
             lanes = {"Red": 0, "Green": 1, "Blue": 2, "R": 0, "G": 1, "B": 2, "X": 0, "Y": 1, "Z": 2}
             return self._lane(register, lanes[name])
-        if kind in ("COMBINE_COLOR", "COMBRGB", "COMBINE_XYZ") and \
+        if kind in ("COMBINE_COLOR", "COMBRGB", "COMBXYZ") and \
                 getattr(node, "mode", "RGB") == "RGB":
             a, b, c = (self._input(node, k) for k in range(3))
             register = self._register()
@@ -333,6 +337,8 @@ class NodeProgram:
             return self._whole(register)
         if kind == "BUMP":
             return self._bump(node)
+        if kind == "MAPPING":
+            return self._mapping(node)
         raise _Unsupported(f"node '{node.name}' ({node.bl_idname}) is not evaluated")
 
     def _noise(self, node, name):
@@ -384,6 +390,44 @@ class NodeProgram:
                    params=(float(node.invert), float(normal.is_linked)))
         return self._whole(register)
 
+    def _mapping(self, node):
+        """Mapping (Point, Texture, Vector, Normal) with unlinked Location, Rotation and Scale:
+        three dot products with the rows of its matrix, its offset added, combined (and
+        normalised for Normal)."""
+        values = {}
+        for name, default in (("Location", (0.0,) * 3), ("Rotation", (0.0,) * 3),
+                              ("Scale", (1.0,) * 3)):
+            socket = node.inputs.get(name)
+            if socket is None or not socket.enabled:
+                values[name] = default
+                continue
+            if socket.is_linked:
+                raise _Unsupported(f"node '{node.name}' (Mapping, linked {name}) is not evaluated")
+            values[name] = tuple(socket_value(socket))[:3]
+        matrix, offset = mapping_affine(node.vector_type, values["Location"], values["Rotation"],
+                                        values["Scale"])
+        vector = self._input(node, "Vector")
+        axes = []
+        for row, add in zip(matrix, offset):
+            register = self._register()
+            self._emit("DOT", register, vector, params=tuple(float(v) for v in row))
+            axis = self._lane(register, 0)
+            if add:
+                total = self._register()
+                self._emit("MATH", total, axis, self._constant(float(add)), 0,
+                           params=(NODE_MATH_CODES["ADD"], 0.0))
+                axis = self._lane(total, 0)
+            axes.append(axis)
+        register = self._register()
+        self._emit("COMBINE", register, *axes)
+        if node.vector_type == "NORMAL":
+            normal = self._register()
+            self._emit("VECTOR_MATH", normal, self._whole(register), 0, 0,
+                       params=(NODE_VECTOR_MATH_CODES["NORMALIZE"],))
+            register = normal
+        self._kinds[self._whole(register)] = "VECTOR"
+        return self._whole(register)
+
     def _pack(self, node, names):
         """Up to three float inputs in the lanes of one register: a constant when none is
         linked."""
@@ -427,14 +471,45 @@ class NodeProgram:
         return self._linked(socket) if socket.is_linked else self._constant(socket_value(socket))
 
 
+def cycles_output(tree, kind: str = "OUTPUT_MATERIAL"):
+    """The output node (of type `kind`: material, world or light) that Cycles renders, as
+    Blender picks it for the Cycles target (ntreeShaderOutputNode): one targeting Cycles before
+    one targeting All, the active one among equals; outputs for EEVEE only are never used.
+    None without one."""
+    best = None
+    for node in tree.nodes:
+        if node.type != kind or node.target not in ("ALL", "CYCLES"):
+            continue
+        if best is None or (best.target == "ALL" and node.target == "CYCLES") or \
+                (best.target == node.target and node.is_active_output and not best.is_active_output):
+            best = node
+    return best
+
+
 def _surface_node(material):
-    """The node linked to the active Material Output's Surface, or None."""
-    tree = material.node_tree
-    outputs = [n for n in tree.nodes if n.type == "OUTPUT_MATERIAL"]
-    active = [n for n in outputs if n.is_active_output] or outputs
-    if not active or not active[0].inputs["Surface"].is_linked:
+    """The node linked to the Surface of the Material Output Cycles renders, or None."""
+    output = cycles_output(material.node_tree)
+    if output is None or not output.inputs["Surface"].is_linked:
         return None
-    return active[0].inputs["Surface"].links[0].from_node
+    return output.inputs["Surface"].links[0].from_node
+
+
+def mapping_affine(vector_type: str, location, rotation, scale) -> tuple:
+    """The Mapping node as an affine map (3 x 3 matrix, offset) of its Vector, as Cycles'
+    svm_mapping computes it: Point R (v s) + L, Texture (R^T (v - L)) / s, Vector R (v s),
+    Normal R (v / s) (then normalised); R the XYZ Euler rotation, a division by a scale of 0
+    gives 0 (safe_divide)."""
+    from mathutils import Euler
+    rotation = np.array(Euler([float(r) for r in rotation], "XYZ").to_matrix(), np.float64)
+    scale, location = np.asarray(scale, np.float64), np.asarray(location, np.float64)
+    inverse = np.divide(1.0, scale, out=np.zeros(3), where=scale != 0)
+    if vector_type == "TEXTURE":
+        matrix = np.diag(inverse) @ rotation.T
+        return matrix, -matrix @ location
+    if vector_type == "NORMAL":
+        return rotation @ np.diag(inverse), np.zeros(3)
+    matrix = rotation @ np.diag(scale)
+    return matrix, (location if vector_type == "POINT" else np.zeros(3))
 
 
 def input_value(node, name, problems, program=None, output=None):

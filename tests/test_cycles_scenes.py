@@ -3,7 +3,9 @@ add-on, local slaves) at matched settings (tests/bpy_scripts/cycles_scenes.py): 
 a colour (sky fill) and as an HDRI (equirectangular and mirror ball, through a Mapping node),
 a room lit only by an emissive mesh, the BSDF nodes and Principled inputs, glass under an area
 light, Film > Transparent with a holdout, ray visibility, depth of field, camera and
-object motion blur, shader node programs and procedural textures, and odd input (an object
+object motion blur, shader node programs and procedural textures, texture coordinates through
+Mapping nodes (as Blender's glTF importer makes them), the Material and World Output Cycles
+uses where there are several, and odd input (an object
 scaled to 0 on an axis and on all, text, curve and metaball objects, an image that cannot be
 loaded, an area light flattened to a line). Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
 uses; what is not supported is named in warnings. docs/cycles_features.md lists the rows."""
@@ -38,6 +40,8 @@ SCENES = {
     "nodes": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "nodes_more": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "generated": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "WORLD"}),
+    "mapping": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
+    "outputs": (12, {"AREA", "BOUNCES", "SMOOTH", "SPECULAR", "WORLD"}),
     "degenerate": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "procedural": (12, {"AREA", "BOUNCES", "BUMP", "EMISSION", "NODES", "NOISE", "NORMAL_MAP",
                         "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
@@ -129,5 +133,6 @@ def test_unsupported_things_are_named(renders):
     one("light 'narrow area'", "spread")
     one("object 'moving box'", "motion blur", "parents")
     one("object 'spinning box'", "motion blur", "turns or scales through zero")
+    one("object 'two maps'", "material 'second uvs'", "'second'", "one UV map per mesh")
     one("material 'noisy'", "object 'noisy cube'", "Voronoi Texture")
-    assert len(warnings) == 7, warnings
+    assert len(warnings) == 8, warnings

@@ -570,6 +570,112 @@ def build(name):
         floor(m, size=6.0)
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
+    elif name == "mapping":
+        # What Blender's glTF importer builds for texture transforms: an image through a
+        # Mapping node (Point: location, rotation, scale) from a UV Map node; a Texture mapping
+        # of Object coordinates into a checker; UVs flipped through Separate XYZ, Math and
+        # Combine XYZ; a Normal mapping's result as a colour; a Vector mapping into a gradient.
+        world((0.3, 0.32, 0.36))
+        data = data_image()
+        m, nodes, links, bsdf = node_material("mapped image")
+        uv_map = nodes.new("ShaderNodeUVMap")
+        uv_map.uv_map = "UVMap"            # named, as the importer does: the cube's only one
+        mapping = nodes.new("ShaderNodeMapping")
+        mapping.inputs["Location"].default_value = (0.25, -0.1, 0.0)
+        mapping.inputs["Rotation"].default_value = (0.0, 0.0, math.radians(30))
+        mapping.inputs["Scale"].default_value = (2.0, 1.5, 1.0)
+        image = nodes.new("ShaderNodeTexImage")
+        image.image = data
+        links.new(uv_map.outputs["UV"], mapping.inputs["Vector"])
+        links.new(mapping.outputs["Vector"], image.inputs["Vector"])
+        links.new(image.outputs["Color"], bsdf.inputs["Base Color"])
+        add(bpy.ops.mesh.primitive_cube_add, m, size=0.8, location=(-0.9, 0.3, 0.4),
+            rotation=(0, 0, math.radians(25)))
+        m, nodes, links, bsdf = node_material("texture mapping")
+        coords = nodes.new("ShaderNodeTexCoord")
+        mapping = nodes.new("ShaderNodeMapping")
+        mapping.vector_type = "TEXTURE"
+        mapping.inputs["Location"].default_value = (0.3, 0.0, 0.1)
+        mapping.inputs["Rotation"].default_value = (math.radians(20), 0.0, math.radians(45))
+        mapping.inputs["Scale"].default_value = (0.5, 0.5, 1.0)
+        checker = nodes.new("ShaderNodeTexChecker")
+        checker.inputs["Scale"].default_value = 2.0
+        links.new(coords.outputs["Object"], mapping.inputs["Vector"])
+        links.new(mapping.outputs["Vector"], checker.inputs["Vector"])
+        links.new(checker.outputs["Color"], bsdf.inputs["Base Color"])
+        sphere(m, (0.9, 0.4, 0.6))
+        m, nodes, links, bsdf = node_material("flipped uvs")
+        coords = nodes.new("ShaderNodeTexCoord")
+        separate = nodes.new("ShaderNodeSeparateXYZ")
+        flip = nodes.new("ShaderNodeMath")
+        flip.operation = "SUBTRACT"
+        flip.inputs[0].default_value = 1.0
+        combine = nodes.new("ShaderNodeCombineXYZ")
+        image = nodes.new("ShaderNodeTexImage")
+        image.image = data
+        links.new(coords.outputs["UV"], separate.inputs["Vector"])
+        links.new(separate.outputs["X"], combine.inputs["X"])
+        links.new(separate.outputs["Y"], flip.inputs[1])
+        links.new(flip.outputs[0], combine.inputs["Y"])
+        links.new(combine.outputs["Vector"], image.inputs["Vector"])
+        links.new(image.outputs["Color"], bsdf.inputs["Base Color"])
+        floor(m, size=6.0)
+        m, nodes, links, bsdf = node_material("normal mapping")
+        coords = nodes.new("ShaderNodeTexCoord")
+        mapping = nodes.new("ShaderNodeMapping")
+        mapping.vector_type = "NORMAL"
+        mapping.inputs["Rotation"].default_value = (0.0, math.radians(40), 0.0)
+        mapping.inputs["Scale"].default_value = (1.0, 2.0, 0.5)
+        absolute = vector_math(nodes, links, "ABSOLUTE", mapping.outputs["Vector"])
+        links.new(coords.outputs["Object"], mapping.inputs["Vector"])
+        links.new(absolute, bsdf.inputs["Base Color"])
+        add(bpy.ops.mesh.primitive_cube_add, m, size=0.5, location=(0.2, -0.6, 0.25))
+        m, nodes, links, bsdf = node_material("vector mapping")
+        coords = nodes.new("ShaderNodeTexCoord")
+        mapping = nodes.new("ShaderNodeMapping")
+        mapping.vector_type = "VECTOR"
+        mapping.inputs["Rotation"].default_value = (0.0, 0.0, math.radians(60))
+        mapping.inputs["Scale"].default_value = (3.0, 1.0, 1.0)
+        gradient = nodes.new("ShaderNodeTexGradient")
+        links.new(coords.outputs["Generated"], mapping.inputs["Vector"])
+        links.new(mapping.outputs["Vector"], gradient.inputs["Vector"])
+        links.new(gradient.outputs["Color"], bsdf.inputs["Base Color"])
+        sphere(m, (-0.1, 0.9, 0.4), radius=0.35)
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
+    elif name == "outputs":
+        # Two Material Outputs, one for EEVEE (active, a bright emission) and one for Cycles
+        # (a diffuse surface), as Blender's versioning leaves old files and users make them;
+        # a world with an active All output and a Cycles one.
+        m = bpy.data.materials.new("two outputs")
+        m.use_nodes = True
+        nodes, links = m.node_tree.nodes, m.node_tree.links
+        nodes["Principled BSDF"].inputs["Base Color"].default_value = (0.2, 0.6, 0.3, 1)
+        cycles_out = nodes["Material Output"]
+        cycles_out.target = "CYCLES"
+        eevee_out = nodes.new("ShaderNodeOutputMaterial")
+        eevee_out.target = "EEVEE"
+        glow = nodes.new("ShaderNodeEmission")
+        glow.inputs["Strength"].default_value = 5.0
+        links.new(glow.outputs[0], eevee_out.inputs["Surface"])
+        nodes.active = eevee_out
+        eevee_out.is_active_output = True
+        sphere(m, (-0.6, 0.3, 0.6))
+        w = bpy.data.worlds.new("two outputs world")
+        w.use_nodes = True
+        wnodes, wlinks = w.node_tree.nodes, w.node_tree.links
+        wnodes["Background"].inputs["Color"].default_value = (1.0, 0.2, 0.2, 1)
+        wnodes["World Output"].target = "ALL"
+        cycles_world = wnodes.new("ShaderNodeOutputWorld")
+        cycles_world.target = "CYCLES"
+        sky_fill = wnodes.new("ShaderNodeBackground")
+        sky_fill.inputs["Color"].default_value = (0.3, 0.32, 0.36, 1)
+        wlinks.new(sky_fill.outputs[0], cycles_world.inputs["Surface"])
+        wnodes["World Output"].is_active_output = True
+        bpy.context.scene.world = w
+        floor()
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "degenerate":
         # Odd input Blender holds: a box flattened to a square (scale z = 0) with a checker in
         # Object coordinates (the inverse of a singular transform), a ball scaled to nothing,
@@ -723,6 +829,16 @@ def build(name):
         add(bpy.ops.mesh.primitive_cube_add, noisy, size=0.4, location=(-1.5, 0.0, 0.2)).name = "noisy cube"
         light("AREA", (0, 0, 3), (0, 0, 0), energy=100.0, size=1.0, spread=math.radians(60))
         bpy.data.objects["area"].name = "narrow area"
+        # A UV Map node naming a second UV map (KD Trace carries one per mesh).
+        second, nodes, links, bsdf = node_material("second uvs")
+        uv_map = nodes.new("ShaderNodeUVMap")
+        uv_map.uv_map = "second"
+        checker = nodes.new("ShaderNodeTexChecker")
+        links.new(uv_map.outputs["UV"], checker.inputs["Vector"])
+        links.new(checker.outputs["Color"], bsdf.inputs["Base Color"])
+        two_maps = add(bpy.ops.mesh.primitive_cube_add, second, size=0.3, location=(0.8, -0.8, 0.15))
+        two_maps.name = "two maps"
+        two_maps.data.uv_layers.new(name="second")
         # Motion blur of an object moved by its parent is named, not rendered.
         mover = add(bpy.ops.mesh.primitive_cube_add, material("box"), size=0.5,
                     location=(1.5, 0.0, 0.25))
