@@ -15,7 +15,7 @@ from ..core.scene.tree_files import DEFAULT_LIMIT_MIB as TREE_FILES_MIB, LIMIT_M
 
 # Defaults and limits live with what they configure (core/); the panel only shows them.
 RENDER = RenderSettings()
-TREE = compact_params()             # the default mode, "ours", and its thresholds
+TREE = compact_params()             # the default mode, compressed, and its thresholds
 FRAME = FrameOptions()              # how slaves are found, tiles handed out
 
 
@@ -133,7 +133,7 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         items=[("standard", "Standard", "SAH kd-tree in the 8-byte node layout (Wald 2004)", 0),
                ("choi", "Choi et al.", "One triangle reference per inner node, no path limit, "
                 "2-byte leaves", 1),
-               ("ours", "Compressed", "Up to two triangle references per inner node and 8 per "
+               ("compressed", "Compressed", "Up to two triangle references per inner node and 8 per "
                 "path, 2-byte leaves (the paper's kd-tree)", 2)],
         default=TREE.mode)
     tau_occu: FloatProperty(

@@ -131,7 +131,7 @@ class RENDER_PT_kdtrace_kdtree(KDTracePanel, bpy.types.Panel):
         col.prop(settings, "tau_occu")
         col.prop(settings, "tau_freq")
         row = col.row()
-        row.active = settings.kdtree_mode == "ours"        # choi: unlimited per path
+        row.active = settings.kdtree_mode == "compressed"        # choi: unlimited per path
         row.prop(settings, "refs_per_path")
 
 

@@ -1,7 +1,7 @@
 """The kd-tree build and compaction in OpenCL kernels against Embree's BVH build (issue 11).
 
     .venv/bin/python bench/build_vs_embree.py [--scenes bunny dragon dragons4 dragons12]
-        [--numpy bunny dragon] [--render dragon] [--rounds 5] [--mode ours]
+        [--numpy bunny dragon] [--render dragon] [--rounds 5] [--mode compressed]
 
 For every scene, each in a child process of its own (so that its peak memory is its own):
 - ours: core.accel.kdtree_cl's build on PoCL's CPU device (all its threads), then compact_tree
@@ -303,12 +303,12 @@ def main():
     parser.add_argument("--subtree-refs", nargs="+", type=int, default=[512, 2048, 8192])
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--size", type=int, default=512)
-    parser.add_argument("--mode", default="ours", choices=("standard", "choi", "ours"))
+    parser.add_argument("--mode", default="compressed", choices=("standard", "choi", "compressed"))
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         stage, name = args.child[:2]
-        result = {"ours": lambda: stage_ours(name, args.mode), "embree": lambda: stage_embree(name),
+        result = {"compressed": lambda: stage_ours(name, args.mode), "embree": lambda: stage_embree(name),
                   "numpy": lambda: stage_numpy(name, args.mode),
                   "profile": lambda: stage_profile(name, args.mode),
                   "first_use": lambda: stage_first_use(name, args.mode),
@@ -324,7 +324,7 @@ def main():
     rows = {}
     for name in args.scenes:
         print(f"{name} ...", file=sys.stderr, flush=True)
-        ours = child("ours", name, "--mode", args.mode)
+        ours = child("compressed", name, "--mode", args.mode)
         embree = child("embree", name)
         numpy_run = child("numpy", name, "--mode", args.mode) if name in args.numpy else None
         rows[name] = (ours, embree, numpy_run)

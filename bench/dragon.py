@@ -1,14 +1,14 @@
 """Issue 2's benchmark: the Stanford dragon at 1024x1024 through the whole pipeline, against Embree.
 
-    .venv/bin/python bench/dragon.py [--size 1024] [--repeat 3] [--mode ours]
+    .venv/bin/python bench/dragon.py [--size 1024] [--repeat 3] [--mode compressed]
 
 Export (the installed add-on's exporter on Blender's evaluated depsgraph, in a Blender process of
 its own: tests/bpy_scripts/export_dragon.py), kd-tree build, a full
 render of the image (primary rays, shadow rays to each light, diffuse shading) on the OpenCL
 tracer, and the camera's primary rays through our intersect() and through Embree (embreex), one
 core each (PoCL limited to one thread, the process pinned to one CPU for Embree). The render uses
-the compact tree of --mode (the add-on's default, "ours"); the primary rays are timed on both the
-"standard" and the "ours" tree, with intersect()'s 8-ray packets (the CPU default) and with one
+the compact tree of --mode (the add-on's default, "compressed"); the primary rays are timed on both the
+"standard" and the "compressed" tree, with intersect()'s 8-ray packets (the CPU default) and with one
 ray per work-item. Ray timings are process CPU time (the best of --repeat), so other jobs on the
 machine do not count.
 """
@@ -48,7 +48,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=1024)
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--mode", choices=("ours", "standard", "choi"), default="ours",
+    parser.add_argument("--mode", choices=("compressed", "standard", "choi"), default="compressed",
                         help="compact kd-tree mode of the render (the add-on's default: ours)")
     args = parser.parse_args()
     print("command:", " ".join(["python"] + sys.argv))
@@ -74,7 +74,7 @@ def main():
           f"{tree.nbytes / 2**20:.1f} MiB")
 
     from core.accel.compact import compact_tree
-    modes = [args.mode] + [m for m in ("ours", "standard") if m != args.mode]
+    modes = [args.mode] + [m for m in ("compressed", "standard") if m != args.mode]
     compact = {}
     for mode in modes:
         compact_s, compact[mode] = best_time(

@@ -3,7 +3,7 @@
     .venv/bin/python bench/instances.py [--instances 1000] [--realised 4] [--size 1024]
     .venv/bin/python bench/instances.py --animation [--frames 24] [--instances 1000] [--size 256]
 
-The dragon's kd-tree is built once (mode ours) and placed --instances times on a grid (random
+The dragon's kd-tree is built once (mode compressed) and placed --instances times on a grid (random
 turns and scales, every third mirrored); the top level is built over them. Recorded: the build
 times, the bytes a slave is sent (the scene's wire arrays), the memory report (triangles
 referenced vs stored, bytes per level) and a render (primary rays, one sun's shadow rays,
@@ -57,9 +57,9 @@ def forest(count: int, size: float, seed: int = 0) -> np.ndarray:
 
 
 def build_tree(geometry):
-    """The compact tree (mode ours) as the add-on builds it: on the PoCL CPU device."""
+    """The compact tree (mode compressed) as the add-on builds it: on the PoCL CPU device."""
     tree, builder = build_standard(geometry.vertices, geometry.triangles, "cpu")
-    return compact_tree(tree, geometry.triangle_count, "ours", device=builder)
+    return compact_tree(tree, geometry.triangle_count, "compressed", device=builder)
 
 
 def wire_bytes(scene) -> int:

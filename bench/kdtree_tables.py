@@ -13,7 +13,7 @@ memory is the larger of the two processes' peaks.
 --table3: render time per mode (Table 3): render_tile of an S x S image (1 sample per pixel, one
 point light: primary and shadow rays) on PoCL with POCL_MAX_PTHREAD_COUNT=1, the three modes
 side by side in one process, R rounds (each round renders every mode once, in turn), median
-reported. --collapse-sweep K_T... renders "ours" with those collapse traversal costs beside
+reported. --collapse-sweep K_T... renders "compressed" with those collapse traversal costs beside
 standard the same way (tree bytes and render time as % of standard). --check-rays N also runs N random rays through the OpenCL kernel for every mode: the
 three must agree exactly, and a sample of them with the kernel's own brute force (one leaf
 holding every triangle).
@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 from core.scene.scene import Scene  # noqa: E402
 
-MODES = ("standard", "choi", "ours")
+MODES = ("standard", "choi", "compressed")
 MB = 1e6
 
 
@@ -247,16 +247,16 @@ SWEEP = [
 ]
 ABLATIONS = [
     ("standard + collapse + empty elision + 2-byte leaves (no lifting)",
-     "ours", {"refs_per_node": 0}),
-    ("ours without collapse", "ours", {"collapse": False}),
-    ("ours without empty-leaf elision", "ours", {"elide_empty": False}),
-    ("ours without 2-byte leaves", "ours", {"leaf16": False}),
-    ("ours, 2 refs/node, no path limit", "ours", {"refs_per_path": None}),
+     "compressed", {"refs_per_node": 0}),
+    ("ours without collapse", "compressed", {"collapse": False}),
+    ("ours without empty-leaf elision", "compressed", {"elide_empty": False}),
+    ("ours without 2-byte leaves", "compressed", {"leaf16": False}),
+    ("ours, 2 refs/node, no path limit", "compressed", {"refs_per_path": None}),
 ]
 
 
 def sweep(results, cache):
-    print("\nThreshold sweep (mode ours; tree MB as % of standard, inner references, "
+    print("\nThreshold sweep (mode compressed; tree MB as % of standard, inner references, "
           "leaf references removed)")
     for name, (built, modes) in results.items():
         base = modes["standard"]["bytes"]
@@ -266,7 +266,7 @@ def sweep(results, cache):
                   f"collapsed subtrees | compaction s |")
             print("|---|---|---|---|---|---|---|")
             for value in values:
-                r = child(cache, "compact", name, "ours", json.dumps(
+                r = child(cache, "compact", name, "compressed", json.dumps(
                     {"triangles": built["triangles"], param: value, **fixed}))
                 s = r["stats"]
                 print(f"| {value} | {percent(r['bytes'], base)} | {s['inner_references']:,} | "
@@ -395,19 +395,19 @@ def table3(names, cache, repeats, size):
         base = r["standard"][0]
         print(f"| {name} | {base:.3f} [{r['standard'][1]:.3f}] | "
               + " | ".join(f"{r[m][0]:.3f} [{r[m][1]:.3f}] ({100 * r[m][0] / base:.1f} %)"
-                           for m in ("choi", "ours")) + " |")
+                           for m in ("choi", "compressed")) + " |")
 
 
 def collapse_sweep(names, cache, costs, repeats, size):
-    """What the collapse's traversal cost K_T trades in mode ours: tree bytes against render
+    """What the collapse's traversal cost K_T trades in mode compressed: tree bytes against render
     time, both as % of standard, rendered side by side."""
-    print(f"\nCollapse sweep (mode ours, K_I = 20): {size}x{size} render as Table 3, {repeats} "
+    print(f"\nCollapse sweep (mode compressed, K_I = 20): {size}x{size} render as Table 3, {repeats} "
           "rounds (median)")
     print("| scene | collapse K_T | tree MB (% of standard) | render s (% of standard) |")
     print("|---|---|---|---|")
     for name in names:
         variants = {"standard": ("standard", {})}
-        variants.update({f"K_T {k:g}": ("ours", {"traversal_cost": k}) for k in costs})
+        variants.update({f"K_T {k:g}": ("compressed", {"traversal_cost": k}) for k in costs})
         r = render_times(name, cache, variants, repeats, size)
         base_s, base_bytes = r["standard"][0], r["standard"][2]
         for k in costs:
@@ -440,7 +440,7 @@ def check_kernel(names, cache, count, brute_sample=1000):
             hits[mode] = tracer.intersect(origins, directions)
             print(f"  {name} {mode}: {time.perf_counter() - started:.1f} s, "
                   f"{np.isfinite(hits[mode].t).mean():.1%} hit", flush=True)
-        for mode in ("choi", "ours"):
+        for mode in ("choi", "compressed"):
             diff_tri = int((hits[mode].triangle != hits["standard"].triangle).sum())
             diff_t = int((hits[mode].t != hits["standard"].t).sum())
             print(f"  {name} {mode} vs standard: {diff_tri} rays with another triangle, "

@@ -1,7 +1,7 @@
 """The traversal kernels of kernels/ against another copy of them, side by side in one process.
 
     .venv/bin/python bench/kernels_side_by_side.py --old /tmp/old_kernels [--new kernels]
-        [--size 1024] [--rays 250000] [--repeat 7] [--mode ours] [--cases "camera, packets" ...]
+        [--size 1024] [--rays 250000] [--repeat 7] [--mode compressed] [--cases "camera, packets" ...]
 
 `--old` is a copy of the kernels/ folder (e.g. `cp -r kernels /tmp/old_kernels` before a
 change), `--new` another (default: kernels/). Both are built on the same CPU device and run with
@@ -135,7 +135,7 @@ def main():
     parser.add_argument("--size", type=int, default=1024)
     parser.add_argument("--rays", type=int, default=250_000)
     parser.add_argument("--repeat", type=int, default=7)
-    parser.add_argument("--mode", default="ours")
+    parser.add_argument("--mode", default="compressed")
     parser.add_argument("--cases", nargs="*", help="only these cases (default: all four)")
     args = parser.parse_args()
     from core.scene.model import Geometry

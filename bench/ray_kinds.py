@@ -1,7 +1,7 @@
 """The rays a renderer traces, our tracer against Embree (embreex), one core each.
 
     .venv/bin/python bench/ray_kinds.py [--scenes dragon architecture dragons12] [--size 512]
-        [--repeat 3] [--mode ours] [--variant LABEL=SPEC ...] [--out bench/out]
+        [--repeat 3] [--mode compressed] [--variant LABEL=SPEC ...] [--out bench/out]
 
 Per scene, from the camera of bench/kdtree_tables.py's Table 3 (the dragon from the front; the
 architecture from inside a ground-floor room): primary rays in row order and in the tracer's
@@ -298,7 +298,7 @@ def main():
                         help="dragon, architecture, dragons12")
     parser.add_argument("--size", type=int, default=512)
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--mode", default="ours", choices=("standard", "choi", "ours"))
+    parser.add_argument("--mode", default="compressed", choices=("standard", "choi", "compressed"))
     parser.add_argument("--variant", action="append", default=[], metavar="LABEL=SPEC",
                         help="another tracer timed beside the current one (make_tracer's SPEC), "
                              "e.g. previous=kernels:/tmp/old/kernels+breadth-first+given-order")
@@ -313,12 +313,12 @@ def main():
         pinned = "pinned to one CPU"
     except (AttributeError, OSError):
         pinned = "NOT pinned (no sched_setaffinity)"
-    specs = {"ours": "current", **dict(v.split("=", 1) for v in args.variant)}
+    specs = {"compressed": "current", **dict(v.split("=", 1) for v in args.variant)}
     tracers = {label: make_tracer(spec) for label, spec in specs.items()}
     print("command:", " ".join([os.path.basename(sys.executable)] + sys.argv))
     print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs); process {pinned}; "
           f"load average {os.getloadavg()[0]:.1f}")
-    print("device:", tracers["ours"].device_info["name"], "| tracers:",
+    print("device:", tracers["compressed"].device_info["name"], "| tracers:",
           ", ".join(f"{label} = {spec}" for label, spec in specs.items()))
     print("per kind: Mrays/s of each, (ratio to Embree in rays/s, agreement with Embree)")
     report = {"command": sys.argv, "machine": cpu_model(), "size": args.size, "tracers": specs,

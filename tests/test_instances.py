@@ -53,7 +53,7 @@ def _sphere_normals(vertices, triangles):
 def _mesh(vertices, triangles, material=0, normals=None):
     geometry = Geometry(vertices, triangles, np.full(len(triangles), material, np.uint16), normals)
     return geometry, compact_tree(build_kdtree(geometry.vertices, geometry.triangles),
-                                  geometry.triangle_count, mode="ours")
+                                  geometry.triangle_count, mode="compressed")
 
 
 def _realised(meshes, which, matrices):

@@ -470,13 +470,13 @@ def test_progress_is_reported_and_an_exception_stops_the_build(builder):
 # ---------------------------------------------------------------------------------------------
 # The compaction in kernels (core/accel/compact_cl.py): compact_tree's result, bit for bit
 
-COMPACT_VARIANTS = [("standard", {}), ("ours", {}), ("choi", {}),
-                    ("ours", dict(tau_occu=0.05, tau_freq=0.05)),
-                    ("ours", dict(refs_per_path=1, tau_occu=0.1, tau_freq=0.1)),
-                    ("ours", dict(min_refs=1, tau_occu=0.2, tau_freq=0.2)),
-                    ("ours", dict(collapse=False)), ("ours", dict(elide_empty=False)),
-                    ("ours", dict(leaf16=False)), ("ours", dict(refs_per_node=0)),
-                    ("ours", dict(refs_per_path=None)), ("choi", dict(tau_occu=0.0, tau_freq=0.0))]
+COMPACT_VARIANTS = [("standard", {}), ("compressed", {}), ("choi", {}),
+                    ("compressed", dict(tau_occu=0.05, tau_freq=0.05)),
+                    ("compressed", dict(refs_per_path=1, tau_occu=0.1, tau_freq=0.1)),
+                    ("compressed", dict(min_refs=1, tau_occu=0.2, tau_freq=0.2)),
+                    ("compressed", dict(collapse=False)), ("compressed", dict(elide_empty=False)),
+                    ("compressed", dict(leaf16=False)), ("compressed", dict(refs_per_node=0)),
+                    ("compressed", dict(refs_per_path=None)), ("choi", dict(tau_occu=0.0, tau_freq=0.0))]
 
 
 def same_compact(a, b):
@@ -501,7 +501,7 @@ def compact_scene(name):
 @pytest.mark.parametrize("name", ["sphere", "bunny", "architecture", "building"])
 def test_kernel_compaction_is_compact_tree(builder, name):
     tree, triangle_count = compact_scene(name)
-    variants = COMPACT_VARIANTS if name != "building" else [("ours", {}), ("choi", {})]
+    variants = COMPACT_VARIANTS if name != "building" else [("compressed", {}), ("choi", {})]
     for mode, options in variants:
         same_compact(compact_tree(tree, triangle_count, mode, device=builder, **options),
                      compact_tree(tree, triangle_count, mode, **options))
@@ -516,8 +516,8 @@ def test_kernel_compaction_topology_level_by_level_or_depth_first(builder, monke
     monkeypatch.setattr(compact_cl, "TOPO_ROOTS", roots)
     monkeypatch.setattr(compact_cl, "TOPO_STACK", stack)
     tree, triangle_count = compact_scene("bunny")
-    same_compact(compact_tree(tree, triangle_count, "ours", device=builder),
-                 compact_tree(tree, triangle_count, "ours"))
+    same_compact(compact_tree(tree, triangle_count, "compressed", device=builder),
+                 compact_tree(tree, triangle_count, "compressed"))
 
 
 def with_copies_in_leaves(tree):
@@ -538,7 +538,7 @@ def test_kernel_compaction_with_copies_in_a_leaf(builder):
     tree, triangle_count = compact_scene("bunny")
     copies = with_copies_in_leaves(tree)
     assert len(copies.leaf_indices) > len(tree.leaf_indices)
-    for mode in ("ours", "choi"):
+    for mode in ("compressed", "choi"):
         same_compact(compact_tree(copies, triangle_count, mode, device=builder),
                      compact_tree(copies, triangle_count, mode))
         same_compact(compact_tree(copies, triangle_count, mode, device=builder, min_refs=1),
@@ -547,7 +547,7 @@ def test_kernel_compaction_with_copies_in_a_leaf(builder):
 
 def test_kernel_compaction_with_software_double(soft_builder):
     tree, triangle_count = compact_scene("architecture")
-    for mode in ("ours", "choi"):
+    for mode in ("compressed", "choi"):
         same_compact(compact_tree(tree, triangle_count, mode, device=soft_builder),
                      compact_tree(tree, triangle_count, mode))
 
@@ -577,7 +577,7 @@ def test_kernel_compaction_falls_back_for_other_orders(builder):
     other = depth_first(tree)
     assert level_ranges(PLAIN_TAG.get(other.nodes[:, 0]) == LEAF_TAG,
                         PLAIN_FIELD.get(other.nodes[:, 0]).astype(np.int64)) is None
-    for mode in ("ours", "standard"):
+    for mode in ("compressed", "standard"):
         same_compact(compact_tree(other, triangle_count, mode, device=builder),
                      compact_tree(other, triangle_count, mode))
 
@@ -623,6 +623,6 @@ def test_launches_in_pieces_give_the_same_tree_and_see_the_callback(monkeypatch)
             raise Stop
     with pytest.raises(Stop):
         small.build(vertices, triangles, progress=stop_at_the_second_call_of_a_level)
-    ct = compact_tree(reference, len(triangles), "ours", device=small,
+    ct = compact_tree(reference, len(triangles), "compressed", device=small,
                       progress=lambda f, m: calls.append(m))
-    same_compact(ct, compact_tree(reference, len(triangles), "ours"))
+    same_compact(ct, compact_tree(reference, len(triangles), "compressed"))

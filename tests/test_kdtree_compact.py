@@ -496,7 +496,7 @@ def test_invariants(name, mode):
 
 def test_shadow_rays_stop_at_any_hit():
     vertices, triangles, corners, tree = scene("architecture")
-    ct = compact_tree(tree, len(triangles), "ours")
+    ct = compact_tree(tree, len(triangles), "compressed")
     origins, directions, (bt, _) = reference_hits("architecture")
     tmax = np.where(np.isfinite(bt), bt * 1.5, 10.0)
     t, tri, _ = trace_compact(ct, corners, origins, directions, tmax=tmax, any_hit=True)
@@ -506,7 +506,7 @@ def test_shadow_rays_stop_at_any_hit():
 @pytest.mark.parametrize("refs_per_path", [0, 1, 3])
 def test_path_limit_respected(refs_per_path):
     vertices, triangles, corners, tree = scene("architecture")
-    ct = compact_tree(tree, len(triangles), "ours", refs_per_path=refs_per_path,
+    ct = compact_tree(tree, len(triangles), "compressed", refs_per_path=refs_per_path,
                       tau_occu=0.05, tau_freq=0.05)
     path_refs = check_invariants(tree, ct, len(triangles))
     assert path_refs.max(initial=0) <= refs_per_path
@@ -514,8 +514,8 @@ def test_path_limit_respected(refs_per_path):
 
 def test_tight_thresholds_lift_more():
     vertices, triangles, corners, tree = scene("architecture")
-    loose = compact_tree(tree, len(triangles), "ours", tau_occu=0.2, tau_freq=0.2)
-    strict = compact_tree(tree, len(triangles), "ours", tau_occu=2.0, tau_freq=0.9)
+    loose = compact_tree(tree, len(triangles), "compressed", tau_occu=0.2, tau_freq=0.2)
+    strict = compact_tree(tree, len(triangles), "compressed", tau_occu=2.0, tau_freq=0.9)
     assert loose.stats["inner_references"] > strict.stats["inner_references"]
 
 
@@ -523,7 +523,7 @@ def test_16bit_leaves_round_trip():
     # More than 65,536 triangles: the base of a 16-bit list matters (leaf_shift > 0).
     vertices, triangles = architecture_scene(rooms=(6, 4), floors=3, seed=1)
     tree = build_kdtree(vertices, triangles)
-    ct = compact_tree(tree, len(triangles), "ours")
+    ct = compact_tree(tree, len(triangles), "compressed")
     assert len(triangles) > 65536 and ct.leaf_shift > 0
     assert ct.stats["leaves_16bit"] > 0
     check_invariants(tree, ct, len(triangles))
@@ -539,9 +539,9 @@ def test_params_validation():
     with pytest.raises(ValueError):
         compact_params("fancy")
     with pytest.raises(ValueError):
-        compact_params("ours", refs_per_node=3)
+        compact_params("compressed", refs_per_node=3)
     assert compact_params("choi").refs_per_path is None
-    assert compact_params("ours").refs_per_path == 8
+    assert compact_params("compressed").refs_per_path == 8
 
 
 def naive_candidates(tree, params):
@@ -599,7 +599,7 @@ def test_lift_candidates_match_definition(thresholds, stretched):
         nodes[inner, 1] = (split + np.float32(3) * np.sign(split)).view(np.uint32)
         tree = KDTree(nodes, tree.leaf_indices, tree.bounds)
     tau_occu, tau_freq, min_refs = thresholds
-    params = compact_params("ours", tau_occu=tau_occu, tau_freq=tau_freq, min_refs=min_refs)
+    params = compact_params("compressed", tau_occu=tau_occu, tau_freq=tau_freq, min_refs=min_refs)
     expected = naive_candidates(tree, params)
     assert expected
     assert fast_candidates(tree, params) == expected

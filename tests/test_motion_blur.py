@@ -19,7 +19,7 @@ from tests.meshes import uv_sphere
 def _mesh(vertices, triangles):
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
     return geometry, compact_tree(build_kdtree(geometry.vertices, geometry.triangles),
-                                  geometry.triangle_count, mode="ours")
+                                  geometry.triangle_count, mode="compressed")
 
 
 def _turn(angle):

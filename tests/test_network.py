@@ -171,11 +171,11 @@ def test_two_slaves_render_the_same_pixels_as_one_and_as_the_tracer(slaves, refe
 
 
 def test_compressed_kdtree_renders_the_same_pixels_over_the_network(slaves, reference):
-    """Mode "ours" (triangle references in inner nodes, 2-byte leaves) travels to real slaves,
+    """Mode "compressed" (triangle references in inner nodes, 2-byte leaves) travels to real slaves,
     gets its own scene hash (another upload), and renders what the standard tree renders."""
     from core.accel.compact import compact_tree
     geometry, tree = make_scene()
-    ours = compact_tree(tree, geometry.triangle_count, "ours")
+    ours = compact_tree(tree, geometry.triangle_count, "compressed")
     assert ours.stats["inner_references"] > 0 and ours.stats["leaves_16bit"] > 0
     view = make_view()
     with Master([s.endpoint for s in slaves]) as master:

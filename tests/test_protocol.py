@@ -201,16 +201,16 @@ def test_scene_hash_depends_on_the_kdtree_mode():
     vertices, triangles = uv_sphere(32, 16)
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
     tree = build_kdtree(vertices, triangles)
-    trees = {mode: compact_tree(tree, len(triangles), mode) for mode in ("standard", "choi", "ours")}
+    trees = {mode: compact_tree(tree, len(triangles), mode) for mode in ("standard", "choi", "compressed")}
     hashes = {mode: Scene.from_parts(geometry, ct).hash for mode, ct in trees.items()}
     assert len(set(hashes.values())) == 3
     assert Scene.from_parts(geometry, tree).hash == hashes["standard"]   # plain = standard
-    loose = compact_tree(tree, len(triangles), "ours", tau_occu=0.05, tau_freq=0.05)
-    assert Scene.from_parts(geometry, loose).hash != hashes["ours"]
-    received = Scene.from_wire(Scene.from_parts(geometry, trees["ours"]).wire_arrays())
-    assert received.hash == hashes["ours"]
-    assert np.array_equal(received.tree.leaf_index16, trees["ours"].leaf_index16)
-    assert received.tree.leaf_shift == trees["ours"].leaf_shift
+    loose = compact_tree(tree, len(triangles), "compressed", tau_occu=0.05, tau_freq=0.05)
+    assert Scene.from_parts(geometry, loose).hash != hashes["compressed"]
+    received = Scene.from_wire(Scene.from_parts(geometry, trees["compressed"]).wire_arrays())
+    assert received.hash == hashes["compressed"]
+    assert np.array_equal(received.tree.leaf_index16, trees["compressed"].leaf_index16)
+    assert received.tree.leaf_shift == trees["compressed"].leaf_shift
 
 
 def test_a_geometry_takes_a_hash_only_from_the_same_bits():

@@ -58,7 +58,7 @@ def test_treelet_order_is_the_same_tree(name, mode, height):
 
 def test_treelets_keep_groups_near_their_nodes():
     corners, tree = scene("bunny")[2:]
-    ct = compact_tree(tree, len(corners), "ours")
+    ct = compact_tree(tree, len(corners), "compressed")
     assert group_distance(treelet_order(ct)) < 0.05 * group_distance(ct)
     with pytest.raises(ValueError):
         treelet_order(ct, 0)

@@ -83,7 +83,7 @@ def test_the_tracer_finds_the_same_hits_in_the_new_order():
     tracer = Tracer()
     hits = []
     for g in (geometry, ordered):
-        tree = compact_tree(build_kdtree(g.vertices, g.triangles), g.triangle_count, "ours")
+        tree = compact_tree(build_kdtree(g.vertices, g.triangles), g.triangle_count, "compressed")
         tracer.load(Scene.from_parts(Geometry(g.vertices, g.triangles, g.material_ids), tree))
         hits.append(tracer.intersect(origins, directions))
     before, after = hits

@@ -201,7 +201,7 @@ def test_scattered_rays_are_traced_in_origin_order(tracer):
     cam_o, cam_d = camera_fan(geometry, 5000, seed=1)
     assert ray_order(cam_o, bounds) is None
     assert ray_order(origins[:MIN_REORDERED_RAYS - 1], bounds) is None
-    tracer.load(Scene.from_parts(geometry, compact_tree(tree, geometry.triangle_count, "ours")))
+    tracer.load(Scene.from_parts(geometry, compact_tree(tree, geometry.triangle_count, "compressed")))
     results = []
     for reorder in (True, False):
         tracer.reorder_rays = reorder
@@ -233,7 +233,7 @@ def test_16bit_leaves_with_a_shift(tracer):
     triangles = np.arange(3 * count, dtype=np.uint32).reshape(-1, 3)
     geometry = Geometry(vertices, triangles, np.zeros(count, np.uint16))
     tree = build_kdtree(vertices, triangles)
-    ct = compact_tree(tree, count, "ours")
+    ct = compact_tree(tree, count, "compressed")
     assert ct.leaf_shift == 1 and ct.stats["leaves_16bit"] > 0
     origins = rng.uniform(-1.5, 1.5, (1000, 3)).astype(np.float32)
     directions = (rng.uniform(-1, 1, (1000, 3)) - origins).astype(np.float32)
@@ -275,14 +275,14 @@ def test_render_tile_identical_across_modes(tracer):
         tracer.load(Scene.from_parts(geometry, compact_tree(tree, geometry.triangle_count, mode)))
         images[mode] = tracer.render_tile(view, 0, 0, 64, 64)
     assert (images["standard"]["depth"] < 1e10).mean() > 0.5
-    for mode in ("choi", "ours"):
+    for mode in ("choi", "compressed"):
         for name in ("combined", "depth", "normal"):
             assert np.array_equal(images[mode][name], images["standard"][name]), (mode, name)
 
 
 def test_bad_compact_trees_are_rejected(tracer):
     geometry, tree, _, _ = scene("sphere")
-    ct = compact_tree(tree, geometry.triangle_count, "ours")
+    ct = compact_tree(tree, geometry.triangle_count, "compressed")
     T = geometry.triangle_count
 
     def broken(**changes):

@@ -22,7 +22,7 @@ def bunny():
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
     standard = build_kdtree(geometry.vertices, geometry.triangles)
     return geometry, {mode: compact_tree(standard, geometry.triangle_count, mode)
-                      for mode in ("ours", "choi", "standard")}
+                      for mode in ("compressed", "choi", "standard")}
 
 
 def same_tree(a, b):
@@ -51,12 +51,12 @@ def test_the_key_names_mesh_mode_settings_and_builder_version(bunny, tmp_path):
     geometry, _ = bunny
     files = TreeFiles(tmp_path, 1 << 30)
     content = geometry.content_hash()
-    keys = {files.key(content, "ours", {"tau_occu": 0.5}),
-            files.key(content, "ours", {"tau_occu": 0.25}),
+    keys = {files.key(content, "compressed", {"tau_occu": 0.5}),
+            files.key(content, "compressed", {"tau_occu": 0.25}),
             files.key(content, "choi", {"tau_occu": 0.5}),
-            files.key(content[::-1], "ours", {"tau_occu": 0.5})}
+            files.key(content[::-1], "compressed", {"tau_occu": 0.5})}
     assert len(keys) == 4
-    assert files.key(content, "ours", {"a": 1, "b": 2}) == files.key(content, "ours", {"b": 2, "a": 1})
+    assert files.key(content, "compressed", {"a": 1, "b": 2}) == files.key(content, "compressed", {"b": 2, "a": 1})
     # Any change to a source that decides a tree gives another version, so another key.
     copy = tmp_path / "copy"
     for name in DECIDING_SOURCES:
@@ -75,8 +75,8 @@ def test_the_key_names_mesh_mode_settings_and_builder_version(bunny, tmp_path):
 def test_a_damaged_or_foreign_file_is_deleted_not_used(bunny, tmp_path, damage):
     geometry, trees = bunny
     files = TreeFiles(tmp_path, 1 << 30)
-    key = files.key(geometry.content_hash(), "ours", {})
-    tree, count = trees["ours"], geometry.triangle_count
+    key = files.key(geometry.content_hash(), "compressed", {})
+    tree, count = trees["compressed"], geometry.triangle_count
     files.write(key, tree, count)
     path = files.files.path(key)
     if damage == "truncated":
@@ -89,7 +89,7 @@ def test_a_damaged_or_foreign_file_is_deleted_not_used(bunny, tmp_path, damage):
         elif damage == "moved bound":     # still a valid tree: only the digest tells
             arrays["bounds"][0, 0] = np.nextafter(arrays["bounds"][0, 0], np.float32(-np.inf))
         else:
-            arrays["stats"] = np.frombuffer(b'{"mode": "ours"}', np.uint8)
+            arrays["stats"] = np.frombuffer(b'{"mode": "compressed"}', np.uint8)
         with open(path, "wb") as handle:
             np.savez(handle, **arrays)
     elif damage == "not npz":
@@ -127,16 +127,16 @@ def test_the_folder_keeps_to_its_limit_least_recently_used_first(bunny, tmp_path
         files.write(names[mode], tree, geometry.triangle_count)
         os.utime(files.files.path(names[mode]), (1000 + number, 1000 + number))
     sizes = {mode: files.files.path(name).stat().st_size for mode, name in names.items()}
-    # "ours" is the oldest; reading it makes it the newest, so "choi" goes first.
-    assert files.read(names["ours"], geometry.triangle_count) is not None
-    small = TreeFiles(tmp_path, sizes["ours"] + sizes["standard"] + 1000)
-    again = small.key(geometry.content_hash(), "ours", {"other": 1})
-    small.write(again, trees["ours"], geometry.triangle_count)
+    # "compressed" is the oldest; reading it makes it the newest, so "choi" goes first.
+    assert files.read(names["compressed"], geometry.triangle_count) is not None
+    small = TreeFiles(tmp_path, sizes["compressed"] + sizes["standard"] + 1000)
+    again = small.key(geometry.content_hash(), "compressed", {"other": 1})
+    small.write(again, trees["compressed"], geometry.triangle_count)
     kept = {mode for mode, name in names.items() if small.files.path(name).exists()}
-    assert small.files.path(again).exists() and kept == {"ours"}
+    assert small.files.path(again).exists() and kept == {"compressed"}
     # A tree bigger than the whole limit is not written (and nothing else is dropped for it).
     tiny = TreeFiles(tmp_path, 100)
-    tiny.write("cd" * 16, trees["ours"], geometry.triangle_count)
+    tiny.write("cd" * 16, trees["compressed"], geometry.triangle_count)
     assert not tiny.files.path("cd" * 16).exists() and small.files.path(again).exists()
 
 
@@ -150,17 +150,17 @@ def test_a_read_only_folder_serves_its_trees_and_reading_never_raises(bunny, tmp
     import core.npz_folder as npz_folder
     geometry, trees = bunny
     files = TreeFiles(tmp_path, 1 << 30)
-    key = files.key(geometry.content_hash(), "ours", {})
-    files.write(key, trees["ours"], geometry.triangle_count)
+    key = files.key(geometry.content_hash(), "compressed", {})
+    files.write(key, trees["compressed"], geometry.triangle_count)
 
     def refused(*args, **kwargs):
         raise PermissionError("read-only file system")
     monkeypatch.setattr(npz_folder.os, "utime", refused)
     monkeypatch.setattr(npz_folder.os, "replace", refused)
     monkeypatch.setattr(pathlib.Path, "unlink", refused)
-    same_tree(files.read(key, geometry.triangle_count), trees["ours"])
+    same_tree(files.read(key, geometry.triangle_count), trees["compressed"])
     with pytest.raises(OSError):
-        files.write(files.key("other", "ours", {}), trees["ours"], geometry.triangle_count)
+        files.write(files.key("other", "compressed", {}), trees["compressed"], geometry.triangle_count)
     path = files.files.path(key)
     data = path.read_bytes()
     monkeypatch.undo()
@@ -174,8 +174,8 @@ def test_esc_while_a_tree_is_read_stops_the_read_and_keeps_the_file(bunny, tmp_p
     # exception (Esc in Blender) is not damage: it goes up and the file stays for next time.
     geometry, trees = bunny
     files = TreeFiles(tmp_path, 1 << 30)
-    key = files.key(geometry.content_hash(), "ours", {})
-    files.write(key, trees["ours"], geometry.triangle_count)
+    key = files.key(geometry.content_hash(), "compressed", {})
+    files.write(key, trees["compressed"], geometry.triangle_count)
 
     class Esc(Exception):
         pass
@@ -189,5 +189,5 @@ def test_esc_while_a_tree_is_read_stops_the_read_and_keeps_the_file(bunny, tmp_p
         files.read(key, geometry.triangle_count, esc_at_the_third_call)
     assert files.files.path(key).exists()
     counted = []
-    same_tree(files.read(key, geometry.triangle_count, lambda: counted.append(1)), trees["ours"])
-    assert len(counted) >= Scene.from_parts(geometry, trees["ours"]).depth   # once a level at least
+    same_tree(files.read(key, geometry.triangle_count, lambda: counted.append(1)), trees["compressed"])
+    assert len(counted) >= Scene.from_parts(geometry, trees["compressed"]).depth   # once a level at least

@@ -3,11 +3,11 @@
 A post-pass over the standard SAH tree of core/accel/kdtree.py (it only reads `KDTree.nodes`,
 `leaf_indices` and `bounds`), in vectorised numpy with loops per tree level only:
 
-1. **Lifting** (modes `choi` and `ours`): a triangle that is duplicated into many leaves of a
+1. **Lifting** (modes `choi` and `compressed`): a triangle that is duplicated into many leaves of a
    subtree is referenced once at the subtree's root (an inner node) and removed from every leaf
    below it. Which triangles and where is decided by the occupancy and frequency thresholds
    (docs/kdtree_compression.md), under a limit of references per inner node (1 for `choi`, 2 for
-   `ours`) and per root-to-leaf path (unlimited for `choi`, 8 for `ours`).
+   `compressed`) and per root-to-leaf path (unlimited for `choi`, 8 for `compressed`).
 2. **Collapsing**: a subtree whose leaves lost (most of) their references is replaced by a single
    leaf when that is not more expensive by the SAH (with the subtree's exact, bottom-up cost).
 3. **Layout**: one node format for all three modes (`standard` uses none of the extras), 8 bytes
@@ -34,7 +34,7 @@ from ..layout import (INNER_EMPTY_ABOVE, INNER_EMPTY_BELOW, INNER_GROUP, INNER_R
 from .arrays import concat_ranges, distinct_count, exclusive_cumsum, run_lengths, run_starts
 from .compact_cl import compact_on_device
 
-MODES = ("standard", "choi", "ours")
+MODES = ("standard", "choi", "compressed")
 MAX_GROUP_INDEX = INNER_GROUP.max
 MAX_LEAF16_COUNT = LEAF16_COUNT.max
 MAX_LEAF32_COUNT = LEAF32_COUNT.max
@@ -44,7 +44,7 @@ MAX_LEAF32_COUNT = LEAF32_COUNT.max
 class CompactParams:
     """What the post-pass does; `compact_params(mode)` gives each mode's defaults."""
 
-    mode: str = "ours"
+    mode: str = "compressed"
     tau_occu: float = 0.5          # lift t to n only if occupancy(t, n) >= tau_occu
     tau_freq: float = 0.4          # ... and frequency(t, n) >= tau_freq
     refs_per_node: int = 2         # triangle references per inner node (1 or 2)
@@ -60,7 +60,7 @@ class CompactParams:
     intersection_cost: float = 20.0
 
 
-def compact_params(mode: str = "ours", **overrides) -> CompactParams:
+def compact_params(mode: str = "compressed", **overrides) -> CompactParams:
     """Defaults of a mode (`standard`: the plain tree in the common layout), then overrides."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -89,13 +89,13 @@ USER_SETTING_LIMITS = {"tau_occu": (0.0, 16.0), "tau_freq": (0.0, 1.0), "refs_pe
 
 def user_settings(mode: str, tau_occu: float, tau_freq: float, refs_per_path: int) -> dict:
     """The compact_tree keyword arguments of a user's settings, only those that `mode` uses
-    (standard: none; choi: the thresholds, its path is unlimited; ours: all three), so that
+    (standard: none; choi: the thresholds, its path is unlimited; compressed: all three), so that
     settings which cannot change the tree do not make another tree (or another scene hash)."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     chosen = {"tau_occu": float(tau_occu), "tau_freq": float(tau_freq),
               "refs_per_path": int(refs_per_path)}
-    used = {"standard": (), "choi": ("tau_occu", "tau_freq"), "ours": tuple(chosen)}[mode]
+    used = {"standard": (), "choi": ("tau_occu", "tau_freq"), "compressed": tuple(chosen)}[mode]
     return {name: chosen[name] for name in used}
 
 
@@ -559,13 +559,13 @@ def _collapse(topo, leaf_count, refs_at, distinct, params):
 # ---------------------------------------------------------------------------------------------
 # The post-pass
 
-def compact_tree(tree, triangles_count: int, mode: str = "ours", tau_occu: float | None = None,
+def compact_tree(tree, triangles_count: int, mode: str = "compressed", tau_occu: float | None = None,
                  tau_freq: float | None = None, refs_per_node: int | None = None,
                  refs_per_path: int | None = -1, progress=None, device=None,
                  **options) -> CompactTree:
     """Rewrite a standard kd-tree (core.accel.kdtree.KDTree) in the compact layout of `mode`.
 
-    `refs_per_path=-1` keeps the mode's default (8 for `ours`, unlimited for `choi`); None means
+    `refs_per_path=-1` keeps the mode's default (8 for `compressed`, unlimited for `choi`); None means
     unlimited. Other CompactParams fields (min_refs, collapse, elide_empty, leaf16) may be
     overridden by keyword. `progress(fraction, message)` is called after each step.
     `device`: an OpenCL device (a core.accel.device.DeviceContext, such as the
