@@ -62,3 +62,53 @@ def test_nothing_is_unpickled_or_evaluated():
 def test_kernels_hold_only_opencl_sources():
     files = [p for p in (ROOT / "kernels").rglob("*") if p.is_file()]
     assert files and all(p.suffix in (".cl", ".h") for p in files), files
+
+
+CORE_ORDER = ("accel", "scene", "net", "frame")   # each imports only those before it
+
+
+def core_packages_imported(path: pathlib.Path) -> set[str]:
+    """The packages of core/ (CORE_ORDER's names, or "" for core's own modules) that a file in
+    core/ imports, relatively or as `core.<package>`."""
+    package = list(path.relative_to(ROOT).parent.parts)
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and node.level:
+            base = package[:len(package) - (node.level - 1)]
+            parts = base + (node.module.split(".") if node.module else [])
+        elif isinstance(node, ast.ImportFrom) and node.module.startswith("core"):
+            parts = node.module.split(".")
+        else:
+            continue
+        if parts[:1] == ["core"]:
+            sub = parts[1] if len(parts) > 1 else ""
+            found.add(sub if sub in CORE_ORDER else "")
+    return found
+
+
+def test_core_packages_import_in_pipeline_order():
+    """accel <- scene <- net <- frame (core/__init__.py); core's own modules (layout, opencl,
+    denoise, npz_folder) import none of the packages."""
+    for path in sources("core"):
+        parts = path.relative_to(ROOT / "core").parts
+        own = parts[0] if len(parts) > 1 else ""
+        allowed = {""} | (set(CORE_ORDER[:CORE_ORDER.index(own) + 1]) if own else set())
+        imported = core_packages_imported(path)
+        assert imported <= allowed, f"{path.relative_to(ROOT)} imports core/{imported - allowed}"
+
+
+def defined_names(path: pathlib.Path) -> set[str]:
+    """Classes and functions defined at the top of a module."""
+    return {node.name for node in ast.parse(path.read_text(), str(path)).body
+            if isinstance(node, (ast.ClassDef, ast.FunctionDef))}
+
+
+def test_the_addon_holds_no_frame_logic():
+    """The frame pipeline lives in core/frame (it runs without Blender); the add-on imports it
+    and defines none of it again."""
+    frame = set().union(*(defined_names(p) for p in sources("core/frame")))
+    for path in sources("addon"):
+        again = defined_names(path) & frame
+        assert not again, f"{path.relative_to(ROOT)} defines {again}, which core/frame has"
+    render = (ROOT / "addon" / "render.py").read_text()
+    assert "from ..core.frame.render import" in render and "render_frame(" in render
