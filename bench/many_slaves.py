@@ -41,6 +41,7 @@ from core.net.tiles import TileGrid  # noqa: E402
 from core.scene.scene import Scene  # noqa: E402
 from tests.linkemu import LinkEmulator, SharedMedium  # noqa: E402
 from tests.test_network import make_view, network_settings  # noqa: E402
+from bench.farm import bench_farm  # noqa: E402
 
 SIZE = 1024
 SAMPLES_PER_AXIS = 4            # 16 samples per pixel: ~25 s of one core per frame
@@ -98,7 +99,8 @@ def serve_slaves(count: int, first: int, speeds: list) -> None:
     for i in range(count):
         speed = speeds[(first + i) % len(speeds)]
         server = SlaveServer(StandInTracer(calibration, speed, f"standin-{first + i}"),
-                             f"standin-{first + i}", bind="127.0.0.1", port=0)
+                             f"standin-{first + i}", bind="127.0.0.1", port=0,
+                             secret=bench_farm())
         server.start()
         servers.append(server)
     print(json.dumps([s.address[1] for s in servers]), flush=True)
@@ -156,7 +158,7 @@ def measure(endpoints, scene, view, reps, options, warm=True) -> dict:
     """Median frame time and the master's CPU per frame over `reps` frames, after one warm-up
     frame (`warm`): the master learns the slaves' speeds ("auto" sizes) and the tiles' costs
     (it hands out the most expensive first) from it, as it does from one frame to the next."""
-    with Master([("127.0.0.1", p) for p in endpoints], secret=None, name="bench") as master:
+    with Master([("127.0.0.1", p) for p in endpoints], name="bench") as master:
         master.connect()
         master.load_scene(scene)
         if warm:
@@ -273,7 +275,7 @@ def profile_loop(ports, scene, view, reps, tile_size) -> None:
     options = {"tile_size": tile_size, "tiles_in_flight": 2, "passes": ["combined"],
                "payload": "f32"}
     profile = cProfile.Profile(time.thread_time)
-    with Master([("127.0.0.1", p) for p in ports], secret=None, name="bench") as master:
+    with Master([("127.0.0.1", p) for p in ports], name="bench") as master:
         master.connect()
         master.load_scene(scene)
         run_frame(master, view, release=False, **options)
@@ -382,6 +384,7 @@ def save(path, out) -> None:
 
 
 def main():
+    bench_farm()      # one farm secret for the master and every slave of the run
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reps", type=int, default=2)
     parser.add_argument("--hosts", type=int, default=4, help="slave host processes")

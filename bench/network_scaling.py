@@ -34,6 +34,7 @@ from core.scene.model import Geometry  # noqa: E402
 from core.scene.scene import Scene  # noqa: E402
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere  # noqa: E402
 from tests.test_network import make_view  # noqa: E402
+from bench.farm import bench_farm  # noqa: E402
 
 LINKS = {"wifi": (0.003, 300e6), "loopback": (0.0, None)}
 
@@ -92,7 +93,7 @@ class Session:
     def __init__(self, slaves: Slaves, count: int, link: str, scene):
         latency, bandwidth = LINKS[link]
         self.links = [LinkEmulator(ep, latency, bandwidth).start() for ep in slaves.endpoints[:count]]
-        self.master = Master([l.endpoint for l in self.links], secret=None, name="bench")
+        self.master = Master([l.endpoint for l in self.links], name="bench")
         self.master.connect()
         start = time.perf_counter()
         self.master.load_scene(Scene.from_parts(*scene))
@@ -165,6 +166,7 @@ def simulate(tile_ms, tile_bytes, slaves, link_latency_s, bandwidth_bps, in_flig
 
 
 def main():
+    bench_farm()      # one farm secret for the master and every slave of the run
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=1024, help="image width and height")
     parser.add_argument("--reps", type=int, default=3)

@@ -51,6 +51,7 @@ from core.net.protocol import HEADER, MsgType  # noqa: E402
 from core.scene.model import SCENE_FORMAT_VERSION, Light  # noqa: E402
 from core.scene.scene import Scene  # noqa: E402
 from tests.test_network import make_view, network_settings  # noqa: E402
+from bench.farm import bench_farm  # noqa: E402
 
 
 def rss_mib(pid: int) -> float | None:
@@ -357,6 +358,7 @@ def render_frame(master, view, options, reference, timeout: float):
 
 
 def main(argv=None) -> int:
+    bench_farm()      # one farm secret for the master and every slave of the run
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--minutes", type=float, default=30.0)
     parser.add_argument("--slaves", type=int, default=3)
@@ -386,7 +388,7 @@ def main(argv=None) -> int:
     log_dir = pathlib.Path(os.environ.get("TMPDIR", "/tmp")) / f"kdtrace-soak-{os.getpid()}"
     log_dir.mkdir(parents=True, exist_ok=True)
     slots = [SlaveSlot(i, log_dir) for i in range(args.slaves)]
-    master = Master([s.endpoint for s in slots], secret=None, name="soak")
+    master = Master([s.endpoint for s in slots], name="soak")
     fuzzer = Fuzzer(slots, args.mutated, seconds, scene, views[0][1], args.seed)
     idle = IdleSockets(slots, args.idle, seconds, args.seed + 1)
     stop = threading.Event()

@@ -3,8 +3,9 @@ from a checkout or the extension's folder, `blender --background --command kdtra
 the extension installed (addon/slave_command.py registers the command).
 
 On start it prints one line to stdout, flushed, that a launcher can parse:
-    KD Trace slave <name> listening on <host>:<port> device <device name>
-Then it logs to stderr (and --log-file), with timestamps: connections and one line per frame.
+    KD Trace slave <name> listening on <host>:<port> id <ID> device <device name>
+Then it logs to stderr (and --log-file), with timestamps: its short ID, whom it serves (and,
+on a first start, how to pair a master), connections and one line per frame.
 `--status` asks a running slave on this machine what it is doing (slave/status.py).
 Bad arguments or an unusable device print one line and exit with status 2 (no traceback).
 """
@@ -37,7 +38,7 @@ def default_prog() -> str:
 
 
 try:
-    from core.net import protocol
+    from core.net import protocol, trust
 except ModuleNotFoundError as missing:  # a Python without the slave's packages
     sys.exit(f"{default_prog()}: error: the slave needs {missing.name}, which this Python lacks: "
              "install the slave with pip (README: \"A slave on every other machine\")")
@@ -78,6 +79,28 @@ def _name(text: str) -> str:
     return text
 
 
+def _master_id(text: str) -> str:
+    from core.net.identity import check_id_pattern
+    try:
+        return check_id_pattern(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def default_identity_dir() -> str:
+    """$KDTRACE_SLAVE_HOME, else kdtrace-slave in this user's configuration folder."""
+    if os.environ.get("KDTRACE_SLAVE_HOME"):
+        return os.environ["KDTRACE_SLAVE_HOME"]
+    home = os.path.expanduser("~")
+    if sys.platform == "win32":
+        base = os.environ.get("APPDATA") or os.path.join(home, "AppData", "Roaming")
+    elif sys.platform == "darwin":
+        base = os.path.join(home, "Library", "Application Support")
+    else:
+        base = os.environ.get("XDG_CONFIG_HOME") or os.path.join(home, ".config")
+    return os.path.join(base, "kdtrace-slave")
+
+
 def _status_port(text: str):
     return text if text in ("auto", "off") else _port(text)
 
@@ -99,9 +122,24 @@ def parse_args(argv, prog: str = "python -m slave"):
     parser.add_argument("--max-scene-mib", type=int, default=4096,
                         help="largest scene upload accepted, MiB (default 4096)")
     parser.add_argument("--secret-file", default=None,
-                        help="file holding the secret shared with masters (default: the "
-                             f"{protocol.SECRET_ENV} environment variable; neither: no "
-                             "authentication)")
+                        help="file holding the farm secret: masters that prove it are served "
+                             f"(default: the {trust.SECRET_ENV} environment variable)")
+    parser.add_argument("--new-secret", metavar="FILE", default=None,
+                        help="write a new farm secret to FILE (readable by you only) and exit; "
+                             "give the same file to every slave and to the add-on")
+    parser.add_argument("--allow", type=_master_id, action="append", default=[],
+                        metavar="MASTER_ID",
+                        help="serve the master with this ID (the Slaves panel shows it as "
+                             "'This computer'), from now on (kept in the identity folder); "
+                             "repeatable")
+    parser.add_argument("--pair", action="store_true",
+                        help="show a one-time pairing code for one more master (one is shown "
+                             "anyway while no master is allowed and there is no farm secret)")
+    parser.add_argument("--identity-dir", default=None,
+                        help="folder of this slave's identity (key, certificate, allowed "
+                             "masters; default: $KDTRACE_SLAVE_HOME, else kdtrace-slave in "
+                             "your configuration folder)")
+    parser.add_argument("--show-id", action="store_true", help="print this slave's ID and exit")
     parser.add_argument("--cache-dir", default=None,
                         help="also keep uploaded scenes on disk in this folder")
     parser.add_argument("--cache-disk-mib", type=int, default=2048,
@@ -192,8 +230,8 @@ def _start_status(server, choice, name: str, shown_address: str):
     from .status import StatusServer
 
     def status() -> dict:
-        return {"name": name, "listening": shown_address, "device": server.device_info["name"],
-                **server.activity.status()}
+        return {"name": name, "id": server.identity.short_id, "listening": shown_address,
+                "device": server.device_info["name"], **server.activity.status()}
 
     listening = server.address[1]
     ports = [choice] if choice != "auto" else [listening + 1 if listening < 65535 else 0, 0]
@@ -214,18 +252,54 @@ def _stop_on_signals(stop: threading.Event) -> None:
             pass
 
 
+def load_trust(args):
+    """(identity, allowed masters, farm secret or None) of this slave, from its options."""
+    from core.net.identity import Identity, IdentityError
+    folder = args.identity_dir or default_identity_dir()
+    try:
+        identity = Identity.load_or_create(folder, "slave")
+        allowed = trust.AllowList(path=os.path.join(folder, trust.ALLOWED_MASTERS_FILE))
+        for master_id in args.allow:
+            if allowed.add(master_id, "--allow"):
+                log.info("master %s allowed from now on (kept in %s)", master_id,
+                         allowed.path)
+        secret = trust.load_secret(args.secret_file)
+    except (IdentityError, trust.AuthError, OSError) as exc:
+        raise UsageError(str(exc)) from None
+    return identity, allowed, secret
+
+
+def pairing_instructions(name: str, identity, code: str, prog: str) -> list:
+    """What the owner reads on a start that serves no master yet (or with --pair)."""
+    return [f"To let a master use this slave, once: in Blender, Render Properties > KD Trace > "
+            f"Slaves, click Pair beside {name} (ID {identity.short_id}) and enter the pairing "
+            f"code {code}.",
+            f"Or allow the master by its ID (the Slaves panel shows 'This computer: ID ...'): "
+            f"{prog} --allow MASTER-ID; or give this slave and the add-on the same farm secret "
+            f"({prog} --new-secret FILE, then --secret-file FILE here and the file in the "
+            f"add-on's preferences)."]
+
+
 def run(args) -> int:
     if args.list_devices:
         return list_devices()
     if args.status:
         return print_status(args)
+    if args.new_secret:
+        try:
+            trust.write_new_secret(args.new_secret)
+        except (trust.AuthError, OSError) as exc:
+            raise UsageError(str(exc)) from None
+        print(f"farm secret written to {args.new_secret} (readable by you only): give the "
+              f"same file to every slave (--secret-file) and to the add-on (its preferences)",
+              flush=True)
+        return 0
+    identity, allowed, secret = load_trust(args)
+    if args.show_id:
+        print(identity.id, flush=True)
+        return 0
     from .server import SlaveServer
     from .tracer import Tracer
-
-    try:
-        secret = protocol.load_secret(args.secret_file)
-    except protocol.AuthError as exc:
-        raise UsageError(str(exc)) from None
     try:
         tracer = Tracer(device=args.device)
     except Exception as exc:
@@ -233,10 +307,13 @@ def run(args) -> int:
     name = args.name or _default_name()
     limits = protocol.Limits(max_scene_bytes=args.max_scene_mib * 2 ** 20)
     try:
+        pairing = trust.PairingCode() if args.pair or (secret is None and not len(allowed)) \
+            else None
         server = SlaveServer(tracer, name, args.bind, args.port, limits,
                              cache_size=args.cache_scenes, secret=secret,
                              cache_dir=args.cache_dir,
-                             cache_disk_bytes=args.cache_disk_mib * 2 ** 20)
+                             cache_disk_bytes=args.cache_disk_mib * 2 ** 20, identity=identity,
+                             allowed=allowed, pairing=pairing)
     except OSError as exc:
         raise UsageError(f"cannot listen on {args.bind}:{args.port}: {exc.strerror or exc}") from None
 
@@ -254,13 +331,14 @@ def run(args) -> int:
                 advertisement = advertise(name, port, {
                     "protocol": protocol.PROTOCOL_VERSION, "name": name, "id": server.slave_id,
                     "device": info["name"], "compute_units": info["compute_units"],
-                    "memory": info["memory"], "auth": "hmac" if secret else "none"},
-                    addresses, interfaces)
+                    "memory": info["memory"], "farm": "1" if secret else "0",
+                    "pairing": "1" if pairing is not None else "0"},
+                    addresses, interfaces, instance=server.instance)
             except Exception as exc:  # no multicast here: masters can still connect by address
                 log.warning("zeroconf advertising failed: %s", exc)
         shown_host = addresses[0] if host == "0.0.0.0" else host
-        print(f"KD Trace slave {name} listening on {shown_host}:{port} device {server.device_info['name']}",
-              flush=True)
+        print(f"KD Trace slave {name} listening on {shown_host}:{port} id {identity.id} "
+              f"device {server.device_info['name']}", flush=True)
         if args.status_port != "off":
             status_server = _start_status(server, args.status_port, name, f"{shown_host}:{port}")
         log.info("slave %s ready on %s:%d (%s), device %s%s", name, shown_host, port,
@@ -268,6 +346,14 @@ def run(args) -> int:
                  server.device_info["name"],
                  f"; status: {args.prog} --status --status-port {status_server.port}"
                  if status_server else "")
+        serves = [f"{len(allowed)} allowed master(s) ({allowed.path})"] if len(allowed) else []
+        serves += ["masters that prove the farm secret"] if secret is not None else []
+        serves += [f"one master that pairs with the code {pairing.code}"] if pairing else []
+        log.info("slave ID %s (full: %s); serves %s; all traffic TLS 1.3", identity.short_id,
+                 identity.id, ", ".join(serves))
+        if pairing is not None:
+            for line in pairing_instructions(name, identity, pairing.code, args.prog):
+                log.info("%s", line)
         while not stop.wait(0.5):
             pass
     except KeyboardInterrupt:

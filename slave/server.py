@@ -18,15 +18,20 @@ Connections in their handshake are a pool of their own with a deadline for the w
 so unauthenticated peers never hold the slots of authenticated masters; a master that finds
 every slot taken by masters at work is told "slave busy" with the reason.
 
+Every connection is TLS 1.3 with the master's identity certificate (core/net/secure.py); the
+slave serves a master whose ID its owner allowed, that pairs with the slave's pairing code or
+that proves the farm secret (core/net/trust.py), and renders for a connection only the scenes
+it uploaded or proved it holds.
+
 A misbehaving master (garbage, truncated or oversized frames) gets an ERROR message if possible
 and its connection is closed with a logged reason; the server keeps serving the others.
 """
 from __future__ import annotations
 
 import collections
-import ipaddress
 import logging
 import socket
+import ssl
 import threading
 import time
 import uuid
@@ -34,7 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.net import protocol
+from core.net import protocol, secure, trust
+from core.net.identity import Identity, short_id
 from core.net.protocol import MsgType, ProtocolError
 from core.net.tiles import TileGrid
 from core.scene.model import SCENE_FORMAT_VERSION, SceneError, View
@@ -189,7 +195,12 @@ class MasterConnection:
 
     def __init__(self, server: "SlaveServer", sock: socket.socket, peer: str):
         self.server, self.peer = server, peer
-        self.channel = protocol.Channel(sock, "slave", grace_s=HANDSHAKE_TIMEOUT_S)
+        self.sock = sock                 # the TCP socket, then the TLS socket
+        self.channel: protocol.Channel | None = None     # once TLS is up
+        self.master_id = ""              # pinned in the TLS handshake
+        self.slave_nonce = trust.new_nonce()   # this connection's, for holder proofs
+        self.granted: set = set()        # scene hashes this connection uploaded or proved
+        self.meshes_proven: set = set()  # meshes hashes it proved it holds
         self.accepted = time.monotonic()
         self.work = WorkQueue()
         self.outbox = Outbox()
@@ -241,99 +252,171 @@ class MasterConnection:
         self.work.close()
         self.outbox.close()
 
+    def abort(self) -> None:
+        """Close the connection under whichever thread uses it (eviction, the server's close)."""
+        try:
+            socket.socket.shutdown(self.sock, socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self.sock.close()
+
     def _close_socket(self, linger: bool, reader: threading.Thread | None = None) -> None:
         """Close so that the master reads our last message: end our direction, let it close
         (reading and discarding what it still sends), then close."""
-        sock = self.channel.sock
         if linger:
             try:
-                sock.shutdown(socket.SHUT_WR)
+                protocol.end_writing(self.sock)
             except OSError:
                 linger = False
         if linger and reader is not None and reader.is_alive():
             reader.join(LINGER_S)
+        elif linger and self.channel is not None:
+            self.channel.drain(LINGER_S)
         elif linger:
             deadline = time.monotonic() + LINGER_S
             try:
                 while time.monotonic() < deadline:
                     try:
-                        if not sock.recv(65536):
+                        self.sock.settimeout(protocol.POLL_S)
+                        if not self.sock.recv(65536):
                             break
                     except socket.timeout:
                         pass
             except OSError:
                 pass
-        self.channel.close()
+        if self.channel is not None:
+            self.channel.close()
+        else:
+            self.abort()
         if reader is not None:
             reader.join(LINGER_S)
 
     def _handshake(self) -> bool:
+        """OPEN, TLS (the master's certificate: its ID), HELLO, admission, WELCOME."""
         deadline = self.accepted + HANDSHAKE_TIMEOUT_S
+        server = self.server
         try:
-            msg = self.channel.recv(self.server.limits, {MsgType.HELLO}, deadline=deadline)
+            tls, self.master_id = secure.open_server(self.sock, server.identity, deadline)
+        except protocol.VersionMismatch as exc:
+            return self._refuse_plain(f"protocol version mismatch: master speaks version "
+                                      f"{exc.peer_version}, slave speaks version "
+                                      f"{protocol.PROTOCOL_VERSION}")
+        except protocol.ConnectionClosed:
+            return False
+        except ProtocolError as exc:
+            return self._refuse_plain(str(exc) or type(exc).__name__)
+        except ssl.SSLError as exc:
+            log.warning("master %s refused: TLS handshake failed (%s): a master must present "
+                        "a KD Trace identity", self.peer, exc.reason or exc)
+            return False
+        except OSError as exc:
+            log.info("master %s: left during the handshake: %s", self.peer, exc)
+            return False
+        self.sock = tls
+        self.channel = protocol.Channel(tls, "slave", grace_s=HANDSHAKE_TIMEOUT_S)
+        self.peer = f"{self.peer} (ID {short_id(self.master_id)})"
+        try:
+            msg = self.channel.recv(server.limits, {MsgType.HELLO}, deadline=deadline)
             peer_scene = msg.header.get("scene_format_version")
             if peer_scene != SCENE_FORMAT_VERSION:
                 raise ProtocolError(f"scene format version mismatch: master uses version "
                                     f"{peer_scene}, slave uses version {SCENE_FORMAT_VERSION}")
-            self.peer = f"{protocol.get_str(msg.header, 'name', 64) or '?'}@{self.peer}"
+            name = trust.sanitize(protocol.get_str(msg.header, "name", 64)) or "?"
+            self.peer = f"{name}@{self.peer}"
             if "heartbeat_s" in msg.header:
                 low, high = protocol.HEARTBEAT_RANGE_S
                 self.heartbeat_s = min(max(protocol.get_float(msg.header, "heartbeat_s"), low), high)
-            key = None
-            if self.server.secret is not None:
-                key = self._authenticate(msg.header.get("nonce"), deadline)
-                if key is None:
-                    return False
-            admitted, reason = self.server._admit(self)
+            nonce = protocol.get_str(msg.header, "nonce", trust.NONCE_HEX)
+            if len(nonce) != trust.NONCE_HEX:
+                raise ProtocolError("bad master nonce")
+            admission = self._admission(msg.header, nonce, name)
+            if admission is None:
+                return False
+            admitted_by, proved = admission
+            admitted, reason = server._admit(self)
             if not admitted:
                 return self._refuse(f"slave busy: {reason}", busy=True)
         except protocol.VersionMismatch as exc:
             return self._refuse(f"protocol version mismatch: master speaks version "
                                 f"{exc.peer_version}, slave speaks version {protocol.PROTOCOL_VERSION}")
+        except protocol.ConnectionClosed:
+            log.info("master %s left before its HELLO (it does not know this slave's ID)",
+                     self.peer)
+            return False
         except (ProtocolError, OSError) as exc:
             return self._refuse(str(exc) or type(exc).__name__)
         try:
-            if key is not None:
-                self.channel.authenticate(key)
             self.channel.grace_s = protocol.SILENCE_S
-            info = self.server.device_info
-            self.channel.send(MsgType.WELCOME, {
-                "protocol_version": protocol.PROTOCOL_VERSION,
-                "scene_format_version": SCENE_FORMAT_VERSION,
-                "name": self.server.name, "id": self.server.slave_id,
-                "device": info["name"], "compute_units": info["compute_units"],
-                "memory": info["memory"], "platform": info.get("platform", ""),
-                "authenticated": key is not None})
+            info = server.device_info
+            welcome = {"protocol_version": protocol.PROTOCOL_VERSION,
+                       "scene_format_version": SCENE_FORMAT_VERSION,
+                       "name": server.name, "id": server.slave_id, "nonce": self.slave_nonce,
+                       "instance": server.instance,
+                       "device": info["name"], "compute_units": info["compute_units"],
+                       "memory": info["memory"], "platform": info.get("platform", ""),
+                       "admitted_by": admitted_by}
+            if proved:      # only after the master proved the secret: nothing guessable before
+                welcome["proof"] = trust.slave_farm_proof(server.secret, nonce, self.slave_nonce,
+                                                          self.master_id, server.slave_id)
+            self.channel.send(MsgType.WELCOME, welcome)
         except (ProtocolError, OSError) as exc:
             log.info("master %s: left during the handshake: %s", self.peer, exc)
             self.server._connection_closed(self)
             return False
         self.last_heard = time.monotonic()
-        log.info("master %s connected", self.peer)
+        log.info("master %s connected (%s)", self.peer, {
+            "allowed": "allowed by ID", "farm secret": "proved the farm secret",
+            "pairing": "paired with the pairing code"}[admitted_by])
         self.server.activity.master_connected(self.peer)
         return True
 
-    def _authenticate(self, master_nonce, deadline: float) -> bytes | None:
-        """The HMAC challenge-response (see core.net.protocol); nothing else is accepted before
-        it. Returns the session key, or None (refused)."""
-        if master_nonce is None:
-            self._refuse("this slave requires authentication: the master sent no nonce")
-            return None
-        master_nonce = protocol.check_hex(master_nonce, protocol.NONCE_HEX, "master nonce")
-        secret, nonce = self.server.secret, protocol.new_nonce()
-        self.channel.send(MsgType.CHALLENGE, {
-            "nonce": nonce, "proof": protocol.auth_proof(secret, "slave", master_nonce, nonce)})
-        try:
-            reply = self.channel.recv(protocol.DEFAULT_LIMITS, {MsgType.AUTH}, deadline=deadline)
-        except protocol.ConnectionClosed:
-            log.warning("master %s refused: it left during authentication (no or another "
-                        "secret)", self.peer)
-            return None
-        if not protocol.proof_ok(secret, "master", master_nonce, nonce, reply.header.get("proof")):
+    def _admission(self, hello: dict, nonce: str, name: str):
+        """(how the master is admitted: "allowed", "farm secret" or "pairing", whether it
+        proved the farm secret), or None after refusing it. The master proves first; nothing
+        derived from a secret goes to a master that has not."""
+        server, master_id = self.server, self.master_id
+        proved = None
+        if server.secret is not None and "proof" in hello:
+            proved = trust.proof_ok(trust.master_farm_proof(server.secret, nonce, master_id,
+                                                            server.slave_id), hello.get("proof"))
+        if server.allowed.allows(master_id):
+            return "allowed", bool(proved)
+        if proved:
+            return "farm secret", True
+        if proved is False:
             time.sleep(0.2)  # a little friction for guessers
-            self._refuse("authentication failed: wrong shared secret")
+            self._refuse("authentication failed: wrong farm secret")
             return None
-        return protocol.session_key(secret, master_nonce, nonce)
+        if "pairing" in hello and server.pairing is not None:
+            if server.pairing.check(hello.get("pairing"), nonce, master_id, server.slave_id):
+                server.allowed.add(master_id, f"{name}, paired {time.strftime('%Y-%m-%d %H:%M')}")
+                log.info("master %s paired with the pairing code: allowed from now on (the code "
+                         "is used up)", self.peer)
+                return "pairing", False
+            time.sleep(0.2)
+            left = max(0, trust.PAIRING_TRIES - server.pairing.failures)
+            self._refuse("pairing failed: wrong pairing code" + (
+                f" ({left} tries left)" if left else
+                "; the code is retired after too many wrong tries: restart the slave with "
+                "--pair for a new one"))
+            return None
+        self._refuse(f"this slave does not serve master ID {short_id(master_id)}: it serves the "
+                     f"masters its owner allowed" + (" or that prove its farm secret"
+                                                     if server.secret is not None else "")
+                     + f"; to allow this one, on the slave: kdtrace-slave --allow "
+                     f"{short_id(master_id)} (or pair with the code the slave shows)")
+        return None
+
+    def _refuse_plain(self, reason: str) -> bool:
+        """Refuse before TLS (a bad opening): the reason in plaintext, the opening's framing."""
+        log.warning("master %s refused: %s", self.peer, reason)
+        self._refused = True
+        try:
+            self.sock.settimeout(1.0)
+            protocol.send_message(self.sock, MsgType.ERROR, {"message": reason})
+        except OSError:
+            pass
+        return False
 
     def _refuse(self, reason: str, busy: bool = False) -> bool:
         log.warning("master %s refused: %s", self.peer, reason)
@@ -362,6 +445,11 @@ class MasterConnection:
         except ProtocolError as exc:
             log.warning("master %s: closing connection: %s", self.peer, exc)
             self._end(str(exc))
+        except ssl.SSLError as exc:
+            if not self.ended.is_set():
+                log.warning("master %s: closing connection: TLS refused what arrived (%s): "
+                            "injected, replayed or damaged on the way", self.peer,
+                            exc.reason or exc)
         except OSError as exc:
             if not self.ended.is_set():
                 log.info("master %s: connection lost: %s", self.peer, exc)
@@ -491,7 +579,7 @@ class MasterConnection:
         finally:
             self._end()
             try:   # our direction is over: the master sees the end after our last message
-                self.channel.sock.shutdown(socket.SHUT_WR)
+                protocol.end_writing(self.channel.sock)
             except OSError:
                 pass
 
@@ -500,12 +588,21 @@ class MasterConnection:
     def _handle(self, msg: protocol.Message) -> None:
         h = msg.header
         if msg.type == MsgType.SCENE_QUERY:
+            # A scene held here counts as present for this connection only if the master
+            # proves it holds it too (its hash alone is not enough: hashes are no secret).
             scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
-            present = self.server.scenes.get(scene_hash) is not None
+            present = self._proved(self.server.scenes.get(scene_hash), "scene", scene_hash,
+                                   h.get("holds"))
+            if present:
+                self.granted.add(scene_hash)
             answer, held = {"scene_hash": scene_hash, "present": present}, None
             if not present and "meshes_hash" in h:
                 meshes_hash = protocol.check_scene_hash(h.get("meshes_hash"))
-                answer["meshes_present"] = self.server.scenes.with_meshes(meshes_hash) is not None
+                base = self.server.scenes.with_meshes(meshes_hash)
+                answer["meshes_present"] = self._proved(base, "meshes", meshes_hash,
+                                                        h.get("meshes_holds"))
+                if answer["meshes_present"]:
+                    self.meshes_proven.add(meshes_hash)
             if not present and not answer.get("meshes_present") and "mesh_hashes" in msg.arrays:
                 held = {"mesh_held": self._held_meshes(msg.arrays["mesh_hashes"])}
             self.outbox.put((MsgType.SCENE_READY, answer, held))
@@ -517,7 +614,8 @@ class MasterConnection:
             scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
             scene = self._checked_scene(scene_hash, "upload", lambda: Scene.from_wire(msg.arrays))
             self.server.scenes.put(scene)
-            log.info("master %s uploaded scene %s (%d triangles)", self.peer, scene_hash,
+            self.granted.add(scene_hash)
+            log.info("master %s uploaded scene %s (%d triangles)", self.peer, scene_hash[:12],
                      scene.geometry.triangle_count)
             self.outbox.put((MsgType.SCENE_READY, {"scene_hash": scene_hash, "present": True}, None))
         elif msg.type == MsgType.FRAME_START:
@@ -546,13 +644,17 @@ class MasterConnection:
         arrays, checked once; only the top level is built. SCENE_READY present=false when the
         meshes went since the query (the master then uploads the whole scene)."""
         scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
-        base = self.server.scenes.with_meshes(protocol.check_scene_hash(h.get("meshes_hash")))
+        meshes_hash = protocol.check_scene_hash(h.get("meshes_hash"))
+        # Only meshes this connection proved it holds (in its SCENE_QUERY).
+        base = (self.server.scenes.with_meshes(meshes_hash)
+                if meshes_hash in self.meshes_proven else None)
         if base is not None:
             scene = self._checked_scene(scene_hash, "instances",
                                         lambda: base.placed_from_wire(arrays))
             self.server.scenes.put(scene, to_disk=False)
+            self.granted.add(scene_hash)
             log.info("master %s placed scene %s (%d instances of held meshes)", self.peer,
-                     scene_hash, scene.instances.count)
+                     scene_hash[:12], scene.instances.count)
         self.outbox.put((MsgType.SCENE_READY, {"scene_hash": scene_hash,
                                                "present": base is not None}, None))
 
@@ -572,15 +674,36 @@ class MasterConnection:
         new, hashes = arrays.get("mesh_new"), arrays.get("mesh_hashes")
         if hashes is None or new is None or new.dtype != np.uint8 or new.shape != hashes.shape[:1]:
             raise ProtocolError("SCENE_MESHES needs mesh_hashes u1 (M, 16) and mesh_new u1 (M,)")
+        proofs = arrays.get("mesh_proofs")
+        if proofs is None or proofs.dtype != np.uint8 or \
+                proofs.shape != (len(new), trust.MESH_PROOF_BYTES):
+            raise ProtocolError(f"SCENE_MESHES needs mesh_proofs u1 (M, {trust.MESH_PROOF_BYTES})")
         lacking = bool(((new == 0) & (self._held_meshes(hashes) == 0)).any())
+        # Each mesh taken from the cache only for a master that proves it holds it.
+        for m in np.flatnonzero(new == 0):
+            if lacking:
+                break
+            held = cache.held_mesh(bytes(hashes[m]))
+            lacking = held is None or not trust.mesh_proof_ok(
+                held[0].content_hash(), bytes(hashes[m]), self.slave_nonce, bytes(proofs[m]))
         if not lacking:
+            mesh_arrays = {name: a for name, a in arrays.items() if name != "mesh_proofs"}
             scene = self._checked_scene(scene_hash, "meshes",
-                                        lambda: Scene.from_mesh_wire(arrays, cache.held_mesh))
+                                        lambda: Scene.from_mesh_wire(mesh_arrays, cache.held_mesh))
             cache.put(scene)
+            self.granted.add(scene_hash)
             log.info("master %s sent %d of the %d meshes of scene %s", self.peer,
-                     int(new.sum()), len(new), scene_hash)
+                     int(new.sum()), len(new), scene_hash[:12])
         self.outbox.put((MsgType.SCENE_READY, {"scene_hash": scene_hash,
                                                "present": not lacking}, None))
+
+    def _proved(self, scene: Scene | None, what: str, public_hash: str, proof) -> bool:
+        """`scene` is held here and the master proved it holds it (what: "scene" or
+        "meshes", whose hash is `public_hash`)."""
+        if scene is None:
+            return False
+        return trust.proof_ok(trust.holder_proof(scene.geometry.content_hash(), what,
+                                                 public_hash, self.slave_nonce), proof)
 
     def _checked_scene(self, scene_hash: str, what: str, make) -> Scene:
         """make() (validating what arrived; the keeper heartbeats `loading` meanwhile), whose
@@ -606,7 +729,9 @@ class MasterConnection:
         self.frame = None
         try:
             scene_hash = protocol.check_scene_hash(h.get("scene_hash"))
-            scene = self.server.scenes.get(scene_hash)
+            # Only scenes this connection uploaded or proved it holds; the same words for a
+            # scene held for others, so that a frame is no oracle for what the cache holds.
+            scene = self.server.scenes.get(scene_hash) if scene_hash in self.granted else None
             if scene is None:
                 raise SceneError(f"scene {scene_hash} is not loaded on this slave")
             view = View.from_dict(h.get("view"))
@@ -642,14 +767,24 @@ class SlaveServer:
     def __init__(self, tracer, name: str, bind: str = "0.0.0.0", port: int = 0,
                  limits: protocol.Limits = protocol.DEFAULT_LIMITS, cache_size: int = 2,
                  secret: bytes | None = None, cache_dir=None,
-                 cache_disk_bytes: int = 2 * 1024 ** 3):
-        """`secret`: masters must pass the HMAC challenge-response (None: anyone may connect).
-        `cache_dir`: also keep scenes on disk there, up to `cache_disk_bytes`."""
+                 cache_disk_bytes: int = 2 * 1024 ** 3, *, identity: Identity | None = None,
+                 allowed: trust.AllowList | None = None,
+                 pairing: trust.PairingCode | None = None):
+        """Serves masters whose ID is `allowed`, that pair with `pairing` (the code is used up
+        by the first) or that prove the farm `secret` (generated: trust.new_farm_secret); no
+        other. `identity`: this slave's (None: a new one for this server only). `cache_dir`:
+        also keep scenes on disk there (a folder private to this user), up to
+        `cache_disk_bytes`."""
         self.tracer, self.name = tracer, name
         self.device_info = dict(tracer.device_info)
-        self.slave_id = uuid.uuid4().hex[:12]
+        self.identity = identity or Identity.ephemeral("slave")
+        self.slave_id = self.identity.id
+        self.instance = uuid.uuid4().hex[:12]    # this process (zeroconf names it apart)
         self.limits = limits
-        self.secret = secret
+        self.secret = None if secret is None else trust.check_farm_secret(
+            secret.strip(), "the slave's secret")
+        self.allowed = allowed if allowed is not None else trust.AllowList()
+        self.pairing = pairing
         self.scenes = SceneCache(cache_size, cache_dir, cache_disk_bytes)
         self.activity = Activity()   # what it is doing: per-frame log lines, the status query
         self._device_lock = threading.Lock()
@@ -662,11 +797,13 @@ class SlaveServer:
         self.address = self._listener.getsockname()[:2]
         self._accept_thread = None
 
+    @property
+    def serves_nobody(self) -> bool:
+        """No master can be admitted: no allowed ID, no farm secret, no pairing code."""
+        return (self.secret is None and not len(self.allowed)
+                and (self.pairing is None or not self.pairing.active))
+
     def start(self) -> None:
-        if self.secret is None and not ipaddress.ip_address(self.bind).is_loopback:
-            log.warning("listening on %s:%d without a shared secret: anyone who can reach this "
-                        "port can use this slave (set --secret-file or %s)",
-                        self.address[0], self.address[1], protocol.SECRET_ENV)
         self._accept_thread = threading.Thread(target=self._accept_loop, name="accept", daemon=True)
         self._accept_thread.start()
 
@@ -688,7 +825,7 @@ class SlaveServer:
                     del self._handshakes[oldest]
                     log.warning("dropping master %s: %d connections in their handshake",
                                 oldest.peer, MAX_HANDSHAKES)
-                    oldest.channel.close()
+                    oldest.abort()
                 self._handshakes[connection] = None
             threading.Thread(target=connection.run, name=f"master {peer}", daemon=True).start()
 
@@ -741,4 +878,4 @@ class SlaveServer:
             connections = list(self._connections) + list(self._handshakes)
         for connection in connections:
             connection._end()
-            connection.channel.close()
+            connection.abort()

@@ -71,3 +71,4 @@ class SlaveProcess(ChildProcess):
         assert line.startswith(LINE_PREFIX + name + " listening on 127.0.0.1:"), line
         self.port = int(line.split("listening on 127.0.0.1:")[1].split()[0])
         self.endpoint = ("127.0.0.1", self.port)
+        self.id = line.split(" id ")[1].split()[0]     # the slave's identity (its TLS ID)

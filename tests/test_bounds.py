@@ -27,6 +27,8 @@ from core.scene.model import (MATERIAL_PARAMS, MAX_IMAGE_SIDE, MAX_MATERIALS, MA
 from core.scene.scene import Scene
 from tests.meshes import grid_plane
 from tests.test_protocol import raw, send_raw, small_scene
+from tests.conftest import FARM_SECRET
+from tests.tls_peers import handshaken
 
 
 def textured(sizes, texel_count=4) -> Geometry:
@@ -453,26 +455,20 @@ def test_a_slave_refuses_out_of_bounds_numbers_with_a_message(caplog):
     """Over a socket to a slave: a frame of 2^32 tiles, a frame whose camera holds an integer
     past float's range, a tile index of 2^32 and the finding's texture (4 texels, (2^32 - 1)^2)
     are each refused with an ERROR naming the problem, never an unexpected error."""
-    from core.scene.model import SCENE_FORMAT_VERSION
     from slave.server import SlaveServer
-    server = SlaveServer(_NoDevice(), "kdt-bounds", bind="127.0.0.1", port=0)
+    server = SlaveServer(_NoDevice(), "kdt-bounds", bind="127.0.0.1", port=0, secret=FARM_SECRET)
     server.start()
     geometry, tree = small_scene()
     scene = Scene.from_parts(geometry, tree)
-    hello = {"protocol_version": protocol.PROTOCOL_VERSION,
-             "scene_format_version": SCENE_FORMAT_VERSION, "name": "bounds"}
     try:
         with caplog.at_level(logging.INFO, logger="kdtrace.slave"):
-            channel = protocol.Channel(socket.create_connection(server.address, timeout=10), "master")
-            channel.send(MsgType.HELLO, dict(hello, heartbeat_s=HUGE))
-            refusal = _reply(channel)
+            channel, refusal = handshaken(server.address, heartbeat_s=HUGE, name="bounds")
             assert refusal.type == MsgType.ERROR
             assert "'heartbeat_s' must be a finite number" in refusal.header["message"]
             channel.close()
 
-            channel = protocol.Channel(socket.create_connection(server.address, timeout=10), "master")
-            channel.send(MsgType.HELLO, hello)
-            assert _reply(channel).type == MsgType.WELCOME
+            channel, welcome = handshaken(server.address, name="bounds")
+            assert welcome.type == MsgType.WELCOME
             channel.send(MsgType.SCENE_UPLOAD, {"scene_hash": scene.hash}, scene.wire_arrays())
             assert _reply(channel).header.get("present") is True
             big = View(Camera("ORTHO", np.eye(4)), MAX_IMAGE_SIDE, MAX_IMAGE_SIDE, Shading())
@@ -497,9 +493,8 @@ def test_a_slave_refuses_out_of_bounds_numbers_with_a_message(caplog):
                 in error.header["message"]
             channel.close()
 
-            channel = protocol.Channel(socket.create_connection(server.address, timeout=10), "master")
-            channel.send(MsgType.HELLO, hello)
-            assert _reply(channel).type == MsgType.WELCOME
+            channel, welcome = handshaken(server.address, name="bounds")
+            assert welcome.type == MsgType.WELCOME
             channel.send(MsgType.SCENE_UPLOAD, {"scene_hash": "0" * 32},
                          textured_upload([0, 2 ** 32 - 1, 2 ** 32 - 1]))
             error = _reply(channel)

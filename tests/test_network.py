@@ -24,6 +24,7 @@ from core.scene.scene import Scene
 from tests.conftest import ROOT
 from tests.meshes import grid_plane, merge, uv_sphere
 from tests.processes import SlaveProcess
+from tests.tls_peers import tls_exchange
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +43,6 @@ def slaves():
     for slave in started:
         log = slave.log
         assert "Traceback" not in log and "unexpected error" not in log, log
-        assert "without a shared secret" not in log, log
 
 
 def make_scene(sphere_center=(0.0, 0.0, 1.0)):
@@ -323,29 +323,32 @@ def raw_exchange(endpoint, data: bytes, read=True, half_close=False) -> bytes:
 
 def test_garbage_never_crashes_a_slave(slaves, reference):
     port = slaves[0].port
-    # Not our protocol at all: the slave answers with an ERROR and closes.
+    # Not our protocol at all: the slave answers with an ERROR (in plaintext: TLS has not
+    # begun) and closes.
     reply = raw_exchange(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n" + os.urandom(64))
     assert reply[:4] == MAGIC and b"not a KD Trace message" in reply
-    # A truncated header, a huge claimed length, a lying array list after a valid HELLO.
+    # A truncated header, a huge claimed length in the opening; TLS garbage after it.
     raw_exchange(port, HEADER.pack(MAGIC, 1, 1, 5, 0)[:7], read=False)
     assert b"exceeds" in raw_exchange(port, HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION,
-                                                        MsgType.HELLO, 1 << 31, 1 << 60))
-    hello = protocol.encode_message(MsgType.HELLO, {
-        "protocol_version": protocol.PROTOCOL_VERSION, "scene_format_version": 1, "name": "x"})[0]
+                                                        MsgType.OPEN, 1 << 31, 1 << 60))
+    opening = protocol.encode_message(MsgType.OPEN, {})[0]
+    assert raw_exchange(port, opening + os.urandom(512)).startswith(opening[:4])   # OPEN, then TLS refused
+    # Inside TLS, after a valid HELLO: a huge claimed length, a lying array list.
+    assert b"exceeds" in tls_exchange(port, HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION,
+                                                        MsgType.SCENE_QUERY, 1 << 31, 1 << 60))
     liar = protocol.encode_message(MsgType.SCENE_UPLOAD, {"scene_hash": "0" * 32},
                                    {"vertices": np.zeros((3, 3), np.float32)})[0]
     liar = liar.replace(b'"shape":[3,3]', b'"shape":[9,9]')
-    reply = raw_exchange(port, hello + liar + b"\0" * 36)
-    assert b"do not match" in reply
+    assert b"do not match" in tls_exchange(port, liar + b"\0" * 36)
     # A valid scene announced under another hash: the slave checks what it received.
     geometry, tree = make_scene()
     upload = b"".join(bytes(b) for b in protocol.encode_message(
         MsgType.SCENE_UPLOAD, {"scene_hash": "0" * 32}, Scene.from_parts(geometry, tree).wire_arrays()))
-    assert b"scene upload hash mismatch" in raw_exchange(port, hello + upload)
+    assert b"scene upload hash mismatch" in tls_exchange(port, upload)
     # A frame before any scene, a tile for no frame: an ERROR for the frame, no crash.
     frame = protocol.encode_message(MsgType.FRAME_START, {
         "frame_id": 1, "scene_hash": "f" * 32, "view": make_view().to_dict(), "tile_size": 16})[0]
-    reply = raw_exchange(port, hello + frame + protocol.encode_message(
+    reply = tls_exchange(port, frame + protocol.encode_message(
         MsgType.TILE_REQUEST, {"frame_id": 1, "tile": 0})[0] + protocol.encode_message(MsgType.BYE)[0])
     assert b"is not loaded on this slave" in reply
     assert slaves[0].alive()
@@ -359,14 +362,14 @@ def test_garbage_never_crashes_a_slave(slaves, reference):
 
 
 def test_version_mismatch_is_explained_to_both_sides(slaves):
-    newer = HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION + 1, MsgType.HELLO, 2, 0) + b"{}"
-    reply = raw_exchange(slaves[0].port, newer)
-    text = reply.decode("utf-8", "replace")
-    assert (f"master speaks version {protocol.PROTOCOL_VERSION + 1}, slave speaks version "
-            f"{protocol.PROTOCOL_VERSION}") in text
-    hello = protocol.encode_message(MsgType.HELLO, {
-        "protocol_version": protocol.PROTOCOL_VERSION, "scene_format_version": 99, "name": "x"})[0]
-    text = raw_exchange(slaves[0].port, hello).decode("utf-8", "replace")
+    # Any message of another version (protocol 6's HELLO, a newer OPEN) is answered in
+    # plaintext, before TLS, with both versions named.
+    for kind in (MsgType.HELLO, MsgType.OPEN):
+        newer = HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION + 1, kind, 2, 0) + b"{}"
+        text = raw_exchange(slaves[0].port, newer).decode("utf-8", "replace")
+        assert (f"master speaks version {protocol.PROTOCOL_VERSION + 1}, slave speaks version "
+                f"{protocol.PROTOCOL_VERSION}") in text
+    text = tls_exchange(slaves[0].port, scene_format_version=99).decode("utf-8", "replace")
     assert "scene format version mismatch: master uses version 99, slave uses version 1" in text
 
 

@@ -18,6 +18,7 @@ from core.scene.scene import Scene
 from slave.server import SlaveServer
 from tests.linkemu import LinkEmulator
 from tests.test_network import make_scene, make_view
+from tests.conftest import FARM_SECRET
 
 TILE = 16
 TILE_MS = 50.0       # what every stand-in tile takes
@@ -50,7 +51,7 @@ class StandIns:
         self.servers = []
         for i in range(count):
             server = SlaveServer(StandInTracer(calibration, speeds[i % len(speeds)]),
-                                 f"standin-{i}", bind="127.0.0.1", port=0)
+                                 f"standin-{i}", bind="127.0.0.1", port=0, secret=FARM_SECRET)
             server.start()
             self.servers.append(server)
         self.endpoints = [s.address for s in self.servers]
@@ -76,7 +77,7 @@ def render(master, view, timeout=60.0, **options):
 def test_32_stand_in_slaves_finish_a_frame_with_every_tile_once(scene, calibration):
     slaves = StandIns(calibration, 32)
     try:
-        with Master(slaves.endpoints, secret=None, retry_delays=()) as master:
+        with Master(slaves.endpoints, retry_delays=()) as master:
             master.connect()
             assert len(master.slaves) == 32
             master.load_scene(scene)
@@ -111,7 +112,7 @@ def test_next_results_takes_the_tiles_that_came_meanwhile_at_a_steady_pace(scene
     return at least RESULTS_EVERY_S apart."""
     slaves = StandIns(calibration, 32)
     try:
-        with Master(slaves.endpoints, secret=None, retry_delays=()) as master:
+        with Master(slaves.endpoints, retry_delays=()) as master:
             master.connect()
             master.load_scene(scene)
             job = master.render(make_view(128, 96), tile_size=TILE, tiles_in_flight=1)
@@ -155,7 +156,7 @@ def test_a_released_frame_is_written_again_from_empty(scene, calibration):
     once the released frame is quiet; a frame not released is never written again."""
     slaves = StandIns(calibration, 8)
     try:
-        with Master(slaves.endpoints, secret=None, retry_delays=()) as master:
+        with Master(slaves.endpoints, retry_delays=()) as master:
             master.connect()
             master.load_scene(scene)
             view = make_view(128, 96)
@@ -191,7 +192,7 @@ def _bytes_sent_by_slave(calibration, scene, **options) -> tuple:
     slaves = StandIns(calibration, 1)
     link = LinkEmulator(slaves.endpoints[0]).start()
     try:
-        with Master([link.endpoint], secret=None, retry_delays=()) as master:
+        with Master([link.endpoint], retry_delays=()) as master:
             master.connect()
             master.load_scene(scene)
             base = sum(d.bytes for d in link.directions[1::2])      # slave -> master so far
@@ -284,7 +285,7 @@ def test_faster_slaves_get_more_tiles_in_flight(scene, calibration):
     slaves = StandIns(calibration, 2, speeds=(0.5, 4.0))
     links = [LinkEmulator(endpoint, latency_s=0.02).start() for endpoint in slaves.endpoints]
     try:
-        with Master([link.endpoint for link in links], secret=None, retry_delays=()) as master:
+        with Master([link.endpoint for link in links], retry_delays=()) as master:
             master.connect()
             master.load_scene(scene)
             job, _ = render(master, make_view(128, 96), tile_size=TILE, tiles_in_flight="auto")

@@ -1,6 +1,10 @@
 """Slaves on this machine: `python -m slave` processes run from the extension's root folder,
 bound to loopback and not advertised (only this master uses them). A frame session starts them
-when no other slave is known and keeps them between frames; closing it stops them."""
+when no other slave is known and keeps them between frames; closing it stops them.
+
+They are trusted both ways without pairing: each is started with `--allow <this master's ID>`
+and prints its own ID on its listening line, which the master then trusts (they share one
+identity, in a private temporary folder of the session)."""
 from __future__ import annotations
 
 import os
@@ -8,16 +12,18 @@ import pathlib
 import platform
 import queue
 import re
+import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 
-from ..net.protocol import SECRET_ENV
+from ..net.trust import SECRET_ENV
 
 EXTENSION_ROOT = pathlib.Path(__file__).resolve().parent.parent.parent
-READY_LINE = re.compile(r"listening on (?P<host>[^\s:]+):(?P<port>\d+)")
+READY_LINE = re.compile(r"listening on (?P<host>[^\s:]+):(?P<port>\d+) id (?P<id>[A-Z2-7]{52})")
 
 
 class LocalSlaveError(RuntimeError):
@@ -51,15 +57,16 @@ def host_label() -> str:
 
 
 class LocalSlave:
-    def __init__(self, name: str, python: str, device: str, threads: int, secret: bytes | None):
+    def __init__(self, name: str, python: str, device: str, threads: int, master_id: str,
+                 identity_dir: str):
         env = slave_environment(POCL_MAX_PTHREAD_COUNT=str(threads))
-        # The master's secret reaches the slave through its environment, never its command line.
-        env.pop(SECRET_ENV, None)
-        if secret:
-            env[SECRET_ENV] = secret.decode("utf-8", "surrogateescape")
+        env.pop(SECRET_ENV, None)       # it serves this master by ID, nobody else
+        env.pop("KDTRACE_SLAVE_HOME", None)
         command = [python, "-m", "slave", "--port", "0", "--bind", "127.0.0.1",
-                   "--name", name, "--device", device, "--no-zeroconf"]
+                   "--name", name, "--device", device, "--no-zeroconf",
+                   "--identity-dir", identity_dir, "--allow", master_id, "--status-port", "off"]
         self.name = name
+        self.id = None
         self.process = subprocess.Popen(command, cwd=EXTENSION_ROOT, env=env, text=True,
                                         stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                         stderr=subprocess.STDOUT)
@@ -91,6 +98,7 @@ class LocalSlave:
             match = READY_LINE.search(line)
             if match:
                 self.endpoint = (match["host"], int(match["port"]))
+                self.id = match["id"]
                 return self.endpoint
         raise LocalSlaveError(f"local slave {self.name} did not start in time: " + " | ".join(output[-5:]))
 
@@ -113,16 +121,20 @@ class LocalSlaves:
 
     def __init__(self):
         self._slaves: list[LocalSlave] = []
-        self._secret: bytes | None = None
+        self._master_id: str | None = None
+        self._identity_dir: str | None = None    # their identity: private, this session's
         self._lock = threading.Lock()
 
-    def ensure(self, count: int, python: str = "", device: str = "auto", secret: bytes | None = None,
+    def ensure(self, count: int, python: str = "", device: str = "auto", master_id: str = "",
                timeout: float = 60.0, cancelled=lambda: False) -> list[tuple[str, int]]:
-        """Have `count` live local slaves; return their endpoints."""
+        """Have `count` live local slaves that serve the master `master_id`; return their
+        endpoints (ids() are theirs)."""
         with self._lock:
-            if secret != self._secret:  # slaves started with another secret would refuse us
+            if master_id != self._master_id:  # slaves started for another master refuse us
                 self._stop_locked()
-                self._secret = secret
+                self._master_id = master_id
+            if self._identity_dir is None:
+                self._identity_dir = tempfile.mkdtemp(prefix="kdtrace-local-slaves-")
             for slave in [s for s in self._slaves if not s.alive]:
                 slave.stop()
                 self._slaves.remove(slave)
@@ -131,7 +143,8 @@ class LocalSlaves:
             del self._slaves[count:]
             threads = max(1, (os.cpu_count() or 1) // max(1, count))
             started = [LocalSlave(f"{host_label()}-local-{len(self._slaves) + i + 1}",
-                                  python or sys.executable, device, threads, secret)
+                                  python or sys.executable, device, threads, master_id,
+                                  os.path.join(self._identity_dir, "identity"))
                        for i in range(count - len(self._slaves))]
             deadline = time.monotonic() + timeout
             try:
@@ -147,9 +160,16 @@ class LocalSlaves:
     def pids(self) -> list[int]:
         return [s.process.pid for s in self._slaves if s.alive]
 
+    def ids(self) -> list[str]:
+        """The IDs the local slaves printed: the master trusts these without approval."""
+        return [s.id for s in self._slaves if s.id]
+
     def stop_all(self):
         with self._lock:
             self._stop_locked()
+            if self._identity_dir is not None:
+                shutil.rmtree(self._identity_dir, ignore_errors=True)
+                self._identity_dir = None
 
     def _stop_locked(self):
         for slave in self._slaves:

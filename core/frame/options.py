@@ -36,7 +36,11 @@ class FrameOptions:
     local_slaves_always: bool = False
     slave_python: str = ""            # the Python of local slaves ("": this one)
     slave_device: str = "auto"        # their OpenCL device, and the kd-tree builder's
+    # trust (core/net/trust.py): the farm secret, the slaves the user approved (IDs), and the
+    # folder of this master's identity (None: one for the session only)
     secret: bytes | None = None
+    approved_slaves: tuple = ()
+    identity_folder: str | None = None
     # tiles (core.net.master.Master.render's arguments)
     tile_size: int = DEFAULT_TILE_SIZE
     tiles_in_flight: int = DEFAULT_TILES_IN_FLIGHT

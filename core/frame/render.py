@@ -7,8 +7,9 @@ from __future__ import annotations
 import time
 
 from ..net.master import Master, MasterError
-from ..net.protocol import AuthError, ProtocolError
+from ..net.protocol import ProtocolError
 from ..net.slave_colors import slave_color
+from ..net.trust import AllowList, AuthError
 from ..scene.model import SceneError
 from ..scene.scene import memory_report, memory_summary
 from .options import FrameOptions
@@ -85,9 +86,16 @@ def render_frame(session: FrameSession, exported, view, options: FrameOptions, h
         tree_done = steps.mark("view check")
         if host.cancelled():
             return None
-        endpoints = find_slaves(session, options, host)
+        # Who gets the scene: slaves the user approved, the local slaves started for this
+        # master, or (with the farm secret) those that prove it (core/net/trust.py).
+        identity = session.master_identity(options.identity_folder)
+        approved = AllowList(options.approved_slaves)
+        endpoints = find_slaves(session, options, host, identity, approved)
         steps.mark("find slaves")
-        with Master(endpoints, secret=options.secret) as master:
+        for local_id in session.local_slaves.ids():
+            approved.add(local_id)
+        with Master(endpoints, secret=options.secret, identity=identity,
+                    approved_slaves=approved) as master:
             legend = session.start_legend(master)   # the panel follows each slave from here on
             master.connect()
             steps.mark("connect")
@@ -108,6 +116,7 @@ def render_frame(session: FrameSession, exported, view, options: FrameOptions, h
                 steps.mark("image")
             for problem in job.errors:
                 host.report("WARNING", f"KD Trace: {problem}")
+            session.unapproved.update(master.unapproved)
             if job.error and not job.cancelled:
                 raise FrameError(job.error)
             uploaded_to, scene_bytes = list(master.uploaded_to), dict(master.scene_bytes)
@@ -179,34 +188,42 @@ def _trees(session, meshes, options, host) -> tuple[list, list]:
     return trees, sources
 
 
-def find_slaves(session, options, host) -> list[tuple[str, int]]:
-    """Listed hosts and every slave the LAN browser knows; local slaves only when no other slave
-    is known (or when asked to always use them). The browser runs in the background (the add-on
-    starts it while KD Trace is the engine), so slaves seen before the frame are used at once:
-    only a browser younger than the discovery time is waited for, until a slave answers."""
+def find_slaves(session, options, host, identity, approved) -> list[tuple[str, int]]:
+    """Listed hosts and every slave the LAN browser knows that this master may use (approved,
+    or any with the farm secret: session.trusted_lan_endpoints); local slaves only when no
+    other slave is known (or when asked to always use them). The browser runs in the
+    background (the add-on starts it while KD Trace is the engine), so slaves seen before the
+    frame are used at once: only a browser younger than the discovery time is waited for,
+    until a slave answers."""
     endpoints = list(options.hosts)
+    has_secret = options.secret is not None
+
+    def lan():
+        return session.trusted_lan_endpoints(approved, has_secret)
     if options.use_zeroconf:
         session.browser()
         settle_until = None
         while session.browsing_seconds() < options.discovery_seconds and not host.cancelled():
-            if endpoints or session.lan_endpoints():
+            if endpoints or lan():
                 # Give the others that answer a moment too, then go.
                 settle_until = settle_until or time.monotonic() + SETTLE_SECONDS
                 if time.monotonic() >= settle_until:
                     break
             host.status("Looking for slaves on the LAN")
             time.sleep(POLL_SECONDS)
-        endpoints += [e for e in session.lan_endpoints() if e not in endpoints]
+        endpoints += [e for e in lan() if e not in endpoints]
     session.local_reason = local_slaves_reason(options, endpoints, session.browsing_seconds())
     session.joined = []
     if session.local_reason:
         host.status(f"Starting {options.local_slaves} local slave(s): {session.local_reason}")
         endpoints += session.local_slaves.ensure(options.local_slaves, options.slave_python,
-                                                 options.slave_device, options.secret,
+                                                 options.slave_device, identity.id,
                                                  cancelled=host.cancelled)
     if not endpoints:
+        waiting = (f"; {len(session.unapproved)} slave(s) on the LAN wait for approval in the "
+                   f"Slaves panel" if session.unapproved else "")
         raise FrameError("no slave is reachable: none answered on the LAN, no host is listed "
-                         "and local slaves are off")
+                         "and local slaves are off" + waiting)
     return endpoints
 
 
@@ -224,9 +241,10 @@ def local_slaves_reason(options, known: list, browsed_seconds: float) -> str:
 
 
 def join_new_lan_slaves(session, master) -> None:
-    """A slave the LAN browser sees during a frame joins it (Master.join connects, uploads and
-    hands it tiles on the master's threads)."""
-    for endpoint in session.lan_endpoints():
+    """A slave the LAN browser sees during a frame joins it if this master may use it
+    (Master.join connects, checks its identity, uploads and hands it tiles on the master's
+    threads)."""
+    for endpoint in session.trusted_lan_endpoints(master.approved, master.secret is not None):
         if endpoint not in master.endpoints:
             session.joined.append(endpoint)
             master.join(*endpoint)
@@ -245,10 +263,12 @@ def local_takeover(session, options, host, master):
         try:
             endpoints = session.local_slaves.ensure(
                 options.local_slaves, options.slave_python, options.slave_device,
-                options.secret, cancelled=host.cancelled)
+                master.identity.id, cancelled=host.cancelled)
         except RuntimeError as error:
             host.report("WARNING", f"KD Trace: local slaves did not start: {error}")
             return False
+        for local_id in session.local_slaves.ids():
+            master.approved.add(local_id)       # started by this master: trusted
         for endpoint in endpoints:
             master.join(*endpoint)
         return True

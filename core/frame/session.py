@@ -78,6 +78,37 @@ class FrameSession:
         self.joined: list = []       # endpoints the LAN browser found during the last frame
         self.last_scene = None       # (key, Scene) of the last frame (frame_scene)
         self.mesh_orders: list = []  # each exported mesh's triangle order (order_meshes)
+        # Slaves refused as not approved (endpoint -> ID; the last frame's and the LAN's),
+        # for the panel's Approve buttons.
+        self.unapproved: dict = {}
+        self._identity = None        # this master's (master_identity)
+
+    def master_identity(self, folder=None):
+        """This master's identity: kept in `folder` (the add-on: its user folder), made there
+        on first use; without a folder, one for this session only."""
+        from ..net.identity import Identity
+        if self._identity is None or (folder is not None and
+                                      str(self._identity.folder) != str(folder)):
+            self._identity = (Identity.load_or_create(folder, "master") if folder is not None
+                              else Identity.ephemeral("master"))
+        return self._identity
+
+    def identity_if_loaded(self):
+        """This master's identity if it is loaded (the panel shows it; drawing makes none)."""
+        return self._identity
+
+    def trusted_lan_endpoints(self, approved, has_secret: bool) -> list:
+        """(host, port) of the LAN slaves this master may send scenes to: approved ones by the
+        ID they advertise (checked again in TLS), or any when the farm secret decides. The
+        others are remembered in `unapproved` for the panel; no connection is made to them."""
+        endpoints = []
+        for slave in self.discovered_slaves():
+            advertised = slave.properties.get("id", "")
+            if has_secret or approved.allows(advertised):
+                endpoints.append(slave.endpoint)
+            elif advertised:
+                self.unapproved[slave.endpoint] = advertised
+        return endpoints
 
     def order_meshes(self, meshes) -> tuple[list, int]:
         """The exported meshes with their triangles in spatial order (core/scene/spatial_order.py:

@@ -1,14 +1,19 @@
-"""A connection to one slave: its socket and protocol channel, the handshake (with the shared
-secret's challenge-response), and the errors a user reads when a slave cannot be used. The
-master's frame loop reads a connection while a frame runs, its other threads between frames
-(connecting, uploading a scene)."""
+"""A connection to one slave: its TLS socket and protocol channel, the handshake (OPEN, TLS
+with both identities, HELLO with the master's proofs, WELCOME with the slave's), the decision
+whether this master may send the slave anything (docs/protocol.md, "Identities and trust"),
+and the errors a user reads when a slave cannot be used. The master's frame loop reads a
+connection while a frame runs, its other threads between frames (connecting, uploading a
+scene)."""
 from __future__ import annotations
 
 import socket
+import ssl
 import time
 
-from . import protocol
+from . import protocol, secure, trust
+from .identity import Identity, short_id
 from .protocol import MsgType, ProtocolError
+from .trust import AllowList
 from ..scene.model import SCENE_FORMAT_VERSION
 
 
@@ -20,14 +25,31 @@ class SlaveBusy(MasterError):
     """The slave serves as many masters as it can; worth trying again later."""
 
 
+class SlaveNotApproved(MasterError):
+    """The slave is neither approved by the user nor proves the farm secret: it gets nothing
+    (not even a HELLO when this master has no secret). Not worth retrying."""
+
+    def __init__(self, host: str, port: int, slave_id: str, why: str):
+        self.host, self.port, self.slave_id = host, port, slave_id
+        super().__init__(f"slave {host}:{port} (ID {short_id(slave_id)}) is not approved: {why}; "
+                         f"approve it in the Slaves panel once you have checked that its log "
+                         f"shows this ID, or give both sides the farm secret")
+
+
 class SlaveConnection:
     """A connected, handshaken slave. Sends are serialised by the channel; one thread receives."""
 
-    def __init__(self, host: str, port: int, channel: protocol.Channel, welcome: dict):
+    def __init__(self, host: str, port: int, channel: protocol.Channel, welcome: dict,
+                 slave_id: str = "", trusted_by: str = ""):
         self.host, self.port, self.channel = host, port, channel
-        self.name = protocol.get_str(welcome, "name", 64)
-        self.id = protocol.get_str(welcome, "id", 64)
-        self.device = protocol.get_str(welcome, "device", 256)
+        self.name = trust.sanitize(protocol.get_str(welcome, "name", 64))
+        self.id = slave_id                   # pinned in the TLS handshake
+        self.trusted_by = trusted_by         # "approved", "paired" or "farm secret"
+        # Which slave process (slaves of one owner may share an identity, so their ID)
+        self.instance = protocol.get_str(welcome, "instance", 64) if "instance" in welcome \
+            else slave_id
+        self.slave_nonce = protocol.get_str(welcome, "nonce", trust.NONCE_HEX)
+        self.device = trust.sanitize(protocol.get_str(welcome, "device", 256), 256)
         self.compute_units = protocol.get_int(welcome, "compute_units")
         self.memory = protocol.get_int(welcome, "memory")
         self.scene_hash: str | None = None   # the scene this master made present there
@@ -66,36 +88,28 @@ def _reason(exc: OSError) -> str:
         return "connection refused"
     if isinstance(exc, socket.timeout):
         return "timed out"
+    if isinstance(exc, ssl.SSLError):
+        return f"TLS failed ({exc.reason or exc})"
     return exc.strerror or str(exc) or type(exc).__name__
 
 
 def _handshake(channel: protocol.Channel, host: str, port: int, master_name: str,
-               secret: bytes | None, heartbeat_s: float, deadline: float) -> dict:
-    """HELLO, the HMAC challenge-response when the slave asks for it, WELCOME; returns the
-    WELCOME header. MasterError names what went wrong (SlaveBusy for a slave at capacity)."""
-    nonce = protocol.new_nonce()
-    channel.send(MsgType.HELLO, {
-        "protocol_version": protocol.PROTOCOL_VERSION,
-        "scene_format_version": SCENE_FORMAT_VERSION, "name": master_name, "nonce": nonce,
-        "heartbeat_s": heartbeat_s})
-    expect = {MsgType.WELCOME, MsgType.ERROR, MsgType.CHALLENGE}
-    reply = channel.recv(protocol.DEFAULT_LIMITS, expect, deadline=deadline)
-    if reply.type == MsgType.CHALLENGE:
-        if secret is None:
-            raise MasterError(f"slave {host}:{port} requires a shared secret and this master has "
-                              f"none (set {protocol.SECRET_ENV} or a secret file)")
-        slave_nonce = protocol.check_hex(reply.header.get("nonce"), protocol.NONCE_HEX, "slave nonce")
-        if not protocol.proof_ok(secret, "slave", nonce, slave_nonce, reply.header.get("proof")):
-            raise MasterError(f"slave {host}:{port} failed authentication "
-                              f"(its shared secret differs from the master's)")
-        channel.send(MsgType.AUTH, {"proof": protocol.auth_proof(secret, "master", nonce, slave_nonce)})
-        # From here on every message carries a MAC; only a refusal may come without one.
-        channel.authenticate(protocol.session_key(secret, nonce, slave_nonce))
-        reply = channel.recv(protocol.DEFAULT_LIMITS, {MsgType.WELCOME, MsgType.ERROR},
-                             deadline=deadline, unauthenticated=frozenset({MsgType.ERROR}))
-    elif reply.type == MsgType.WELCOME and secret is not None:
-        raise MasterError(f"slave {host}:{port} does not authenticate (no shared secret "
-                          f"configured on the slave); refused")
+               identity: Identity, slave_id: str, secret: bytes | None, approved: bool,
+               pairing_code: str | None, heartbeat_s: float, deadline: float) -> tuple:
+    """HELLO (with the farm proof and the pairing proof where this master has them), WELCOME;
+    returns (WELCOME header, why the slave is trusted). MasterError names what went wrong
+    (SlaveBusy for a slave at capacity, SlaveNotApproved for one that is not trusted)."""
+    nonce = trust.new_nonce()
+    hello = {"protocol_version": protocol.PROTOCOL_VERSION,
+             "scene_format_version": SCENE_FORMAT_VERSION, "name": master_name, "nonce": nonce,
+             "heartbeat_s": heartbeat_s}
+    if secret is not None:
+        hello["proof"] = trust.master_farm_proof(secret, nonce, identity.id, slave_id)
+    if pairing_code is not None:
+        hello["pairing"] = trust.pairing_proof(pairing_code, nonce, identity.id, slave_id)
+    channel.send(MsgType.HELLO, hello)
+    reply = channel.recv(protocol.DEFAULT_LIMITS, {MsgType.WELCOME, MsgType.ERROR},
+                         deadline=deadline)
     if reply.type == MsgType.ERROR:
         message = protocol.get_str(reply.header, "message", 4096)
         if reply.header.get("busy") is True:
@@ -105,28 +119,60 @@ def _handshake(channel: protocol.Channel, host: str, port: int, master_name: str
     if theirs != SCENE_FORMAT_VERSION:
         raise MasterError(f"slave {host}:{port}: scene format version mismatch: slave uses "
                           f"version {theirs}, master uses version {SCENE_FORMAT_VERSION}")
-    return reply.header
+    slave_nonce = protocol.get_str(reply.header, "nonce", trust.NONCE_HEX)
+    if pairing_code is not None and reply.header.get("admitted_by") == "pairing":
+        return reply.header, "paired"
+    if approved:
+        return reply.header, "approved"
+    if secret is not None and trust.proof_ok(
+            trust.slave_farm_proof(secret, nonce, slave_nonce, identity.id, slave_id),
+            reply.header.get("proof")):
+        return reply.header, "farm secret"
+    raise SlaveNotApproved(host, port, slave_id, "it does not prove the farm secret")
 
 
 def connect_slave(host: str, port: int, timeout: float = 3.0, master_name: str = "master",
                   secret: bytes | None = None, heartbeat_s: float = protocol.HEARTBEAT_S,
-                  silence_s: float = protocol.SILENCE_S) -> SlaveConnection:
-    """Connect and handshake (the whole handshake within `timeout` + `silence_s`); MasterError
-    with a readable message on any failure."""
+                  silence_s: float = protocol.SILENCE_S, *, identity: Identity,
+                  approved: AllowList | None = None, pairing: dict | None = None) -> SlaveConnection:
+    """Connect, open TLS with `identity` and handshake (all within `timeout` + `silence_s`).
+    The slave must be `approved` (IDs the user approved), named in `pairing` (slave ID ->
+    the pairing code its owner gave: the user picked that slave) or prove `secret`; a slave
+    that is none of these gets nothing and SlaveNotApproved names its ID. MasterError with a
+    readable message on any failure."""
     try:
         sock = socket.create_connection((host, port), timeout=timeout)
     except OSError as exc:
         raise MasterError(f"cannot reach slave {host}:{port} ({_reason(exc)})") from None
     try:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # tile requests are tiny
-        channel = protocol.Channel(sock, "master", grace_s=silence_s)
-        welcome = _handshake(channel, host, port, master_name, secret, heartbeat_s,
-                             time.monotonic() + timeout + silence_s)
-        return SlaveConnection(host, port, channel, welcome)
+        deadline = time.monotonic() + timeout + silence_s
+        tls, slave_id = secure.open_client(sock, identity, deadline)
+        sock = tls
+        code = (pairing or {}).get(slave_id)
+        is_approved = approved is not None and approved.allows(slave_id)
+        if not is_approved and code is None and secret is None:
+            # Not even a HELLO: an unknown machine learns nothing from this master.
+            raise SlaveNotApproved(host, port, slave_id, "this master has no farm secret")
+        channel = protocol.Channel(tls, "master", grace_s=silence_s)
+        welcome, trusted_by = _handshake(channel, host, port, master_name, identity, slave_id,
+                                         secret, is_approved, code, heartbeat_s, deadline)
+        return SlaveConnection(host, port, channel, welcome, slave_id, trusted_by)
+    except SlaveNotApproved:
+        sock.close()
+        raise
+    except secure.Refused as exc:
+        sock.close()
+        if exc.busy:
+            raise SlaveBusy(f"slave {host}:{port} is busy: {exc}") from None
+        raise MasterError(f"slave {host}:{port} refused the connection: {exc}") from None
     except protocol.VersionMismatch as exc:
         sock.close()
         raise MasterError(f"slave {host}:{port}: protocol version mismatch: slave speaks version "
                           f"{exc.peer_version}, master speaks version {protocol.PROTOCOL_VERSION}") from None
+    except MasterError:
+        sock.close()
+        raise
     except (ProtocolError, OSError) as exc:
         sock.close()
         reason = _reason(exc) if isinstance(exc, OSError) else str(exc)

@@ -19,6 +19,11 @@ from dataclasses import dataclass, field
 from zeroconf import IPVersion, ServiceBrowser, ServiceInfo, ServiceStateChange, Zeroconf
 
 from .protocol import SERVICE_TYPE
+from .trust import sanitize
+
+# Slaves a browser keeps at once: anyone on a LAN can advertise, and each slave found may cost
+# the master a connection (a thread while it connects). Further ones are counted, not kept.
+MAX_DISCOVERED = 64
 
 
 @dataclass
@@ -63,31 +68,33 @@ def _slave_info(info: ServiceInfo) -> SlaveInfo | None:
     if not addresses or not info.port:
         return None
     properties = {}
-    for key, value in (info.properties or {}).items():
-        properties[key.decode("utf-8", "replace")] = (
-            value.decode("utf-8", "replace") if value is not None else "")
-    return SlaveInfo(_short_name(info.name), addresses[0], info.port, properties)
+    for key, value in list((info.properties or {}).items())[:32]:
+        properties[sanitize(key.decode("utf-8", "replace"), 32)] = (
+            sanitize(value.decode("utf-8", "replace"), 128) if value is not None else "")
+    return SlaveInfo(sanitize(_short_name(info.name)), addresses[0], info.port, properties)
 
 
-def _server_name(name: str, port: int, slave_id=None) -> str:
+def _server_name(name: str, port: int, instance=None) -> str:
     """The host name the address records are published under. It must differ between slaves:
     containers and network namespaces share one host name, and one server name announced with
-    two addresses makes every browser resolve both slaves to the same address."""
+    two addresses makes every browser resolve both slaves to the same address. (Not the
+    slave's ID: slaves of one user may share their identity.)"""
     host = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname().split(".")[0])[:20] or "host"
-    label = re.sub(r"[^A-Za-z0-9-]", "-", str(slave_id or name))[:24]
+    label = re.sub(r"[^A-Za-z0-9-]", "-", str(instance or name))[:24]
     return f"{host}-{label}-{port}.local."
 
 
 class Advertisement:
     """A slave's registered service; close() unregisters it (call it in `finally`)."""
 
-    def __init__(self, name: str, port: int, properties: dict, addresses, interfaces=None):
+    def __init__(self, name: str, port: int, properties: dict, addresses, interfaces=None,
+                 instance=None):
         self._zeroconf = _zeroconf(interfaces)
         self.info = ServiceInfo(
             SERVICE_TYPE, f"{name}.{SERVICE_TYPE}", port=port,
             addresses=[socket.inet_aton(a) for a in addresses],
             properties={str(k): str(v) for k, v in properties.items()},
-            server=_server_name(name, port, properties.get("id")))
+            server=_server_name(name, port, instance))
         try:
             # Two slaves with one name (two on a host) get "name (2)" rather than an error.
             self._zeroconf.register_service(self.info, allow_name_change=True)
@@ -106,9 +113,11 @@ class Advertisement:
             self._zeroconf.close()
 
 
-def advertise(name: str, port: int, properties: dict, addresses, interfaces=None) -> Advertisement:
-    """Register a slave under `name` at `addresses` (IPv4 strings) and `port`."""
-    return Advertisement(name, port, properties, addresses, interfaces)
+def advertise(name: str, port: int, properties: dict, addresses, interfaces=None,
+              instance=None) -> Advertisement:
+    """Register a slave under `name` at `addresses` (IPv4 strings) and `port`; `instance`
+    tells apart slaves that share a name and a host name (containers, namespaces)."""
+    return Advertisement(name, port, properties, addresses, interfaces, instance)
 
 
 class SlaveBrowser:
@@ -120,8 +129,9 @@ class SlaveBrowser:
 
     def __init__(self, interfaces=None, resolve_timeout: float = 3.0):
         self.events: queue.Queue = queue.Queue()
-        self._names: queue.Queue = queue.Queue()
+        self._names: queue.Queue = queue.Queue(maxsize=4 * MAX_DISCOVERED)
         self._slaves: dict = {}
+        self.ignored = 0        # slaves found beyond MAX_DISCOVERED
         self._lock = threading.Lock()
         self._resolve_timeout = resolve_timeout
         self._closed = threading.Event()
@@ -132,7 +142,10 @@ class SlaveBrowser:
         self._browser = ServiceBrowser(self._zeroconf, SERVICE_TYPE, handlers=[self._on_change])
 
     def _on_change(self, zeroconf, service_type, name, state_change) -> None:
-        self._names.put((name, state_change))
+        try:
+            self._names.put_nowait((name, state_change))
+        except queue.Full:      # a flood of names: the handler must not block zeroconf
+            self.ignored += 1
 
     def _resolve_loop(self) -> None:
         while not self._closed.is_set():
@@ -157,6 +170,9 @@ class SlaveBrowser:
                 continue
             with self._lock:
                 kind = "updated" if short in self._slaves else "added"
+                if kind == "added" and len(self._slaves) >= MAX_DISCOVERED:
+                    self.ignored += 1
+                    continue
                 self._slaves[short] = slave
             self.events.put(SlaveEvent(kind, short, slave))
 

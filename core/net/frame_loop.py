@@ -46,8 +46,11 @@ class FrameLoop:
             pass
 
     def register(self, worker: SlaveWorker) -> None:
-        self._selector.register(worker.connection.channel.sock, selectors.EVENT_READ, worker)
+        channel = worker.connection.channel
+        self._selector.register(channel.sock, selectors.EVENT_READ, worker)
         self._workers.add(worker)
+        if channel.has_pending():    # TLS holds bytes already: no selector would say so
+            self.call(worker.readable)
 
     def unregister(self, worker: SlaveWorker) -> None:
         if worker in self._workers:

@@ -33,9 +33,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import protocol
-from .connection import MasterError, SlaveBusy, SlaveConnection, connect_slave, describe
+from . import protocol, trust
+from .connection import (MasterError, SlaveBusy, SlaveConnection, SlaveNotApproved, connect_slave,
+                         describe)
 from .frame_loop import FrameLoop
+from .identity import Identity
 from .protocol import MsgType, ProtocolError
 from .render_job import RenderJob, SpareFrames, TileBudget
 from .slave_worker import DEFAULT_TILES_IN_FLIGHT
@@ -58,6 +60,9 @@ AUTO_TILES_PER_SLAVE = 8
 AUTO_MAX_TILES = 256
 AUTO_SLACK = 1.25
 RETRY_DELAYS_S = (0.5, 1.0, 2.0, 4.0, 8.0)   # reconnecting to a lost (or busy) slave
+# At most this many slaves (endpoints) a master; one thread at most per endpoint while it
+# connects. More (a LAN where anyone can advertise) are refused with a message, not served.
+MAX_SLAVES = 64
 
 
 def auto_tile_size(region, slaves: int) -> tuple:
@@ -109,27 +114,57 @@ def _in_parallel(function, items) -> list:
     return outcomes
 
 
+def _mesh_proofs(scene: Scene, held, nonce: str) -> np.ndarray:
+    """u1 (M, 16): for each mesh the slave takes from its cache (held), the proof that this
+    master holds it; zeros for the meshes that travel."""
+    proofs = np.zeros((len(held), trust.MESH_PROOF_BYTES), np.uint8)
+    for m, ((geometry, _), digest) in enumerate(zip(scene.mesh_parts, scene.mesh_hashes)):
+        if held[m]:
+            proofs[m] = np.frombuffer(trust.mesh_holder_proof(
+                geometry.content_hash(), bytes(digest), nonce), np.uint8)
+    return proofs
+
+
 class Master:
     """A set of slave connections that render frames of one scene."""
 
     def __init__(self, endpoints, connect_timeout: float = 3.0, name: str = "master",
                  secret=FROM_ENVIRONMENT, silence_timeout: float = protocol.SILENCE_S,
                  heartbeat_s: float = protocol.HEARTBEAT_S, tile_budget: TileBudget = TileBudget(),
-                 retry_delays=RETRY_DELAYS_S):
-        """`secret`: bytes/str shared with the slaves, None for none, default: $KDTRACE_SECRET
-        if set. A slave that owes an answer and says nothing for `silence_timeout` seconds is
-        dropped (busy slaves say so every `heartbeat_s`), as is one whose step takes longer
-        than `tile_budget` allows; either way its tiles go to the others, and the master tries
-        to reconnect after each of `retry_delays` (seconds)."""
+                 retry_delays=RETRY_DELAYS_S, *, identity: Identity | None = None,
+                 approved_slaves=(), pairing: dict | None = None):
+        """`secret`: the farm secret (generated: trust.new_farm_secret), None for none,
+        default: $KDTRACE_SECRET if set. `identity`: this master's (the add-on's, kept in its
+        user folder; None: a new one for this master only). A slave gets a scene only if its
+        ID is in `approved_slaves` (IDs or their first 16+ characters, or a trust.AllowList),
+        is a key of `pairing` (slave ID -> the pairing code its owner gave) or it proves the
+        farm secret; any other is refused and listed in `unapproved`. A slave that owes an
+        answer and says nothing for `silence_timeout` seconds is dropped (busy slaves say so
+        every `heartbeat_s`), as is one whose step takes longer than `tile_budget` allows;
+        either way its tiles go to the others, and the master tries to reconnect after each
+        of `retry_delays` (seconds)."""
         self.endpoints = [(str(host), int(port)) for host, port in endpoints]
         self.connect_timeout = connect_timeout
-        self.name = name
+        self.name = trust.sanitize(name)
         if secret is FROM_ENVIRONMENT:
             try:
-                secret = protocol.load_secret()
-            except protocol.AuthError as exc:
+                secret = trust.load_secret()
+            except trust.AuthError as exc:
                 raise MasterError(str(exc)) from None
-        self.secret = secret.encode("utf-8") if isinstance(secret, str) else secret
+        elif isinstance(secret, (str, bytes)):
+            raw = secret.encode("utf-8") if isinstance(secret, str) else secret
+            try:
+                secret = trust.check_farm_secret(raw.strip(), "the secret given to the master")
+            except trust.AuthError as exc:
+                raise MasterError(str(exc)) from None
+        self.secret = secret
+        self.identity = identity or Identity.ephemeral("master")
+        self.approved = (approved_slaves if isinstance(approved_slaves, trust.AllowList)
+                         else trust.AllowList(approved_slaves))
+        self.pairing = dict(pairing or {})
+        self.unapproved: dict = {}       # endpoint -> ID of a slave refused as not approved
+        if len(self.endpoints) > MAX_SLAVES:
+            raise MasterError(f"{len(self.endpoints)} slaves given, at most {MAX_SLAVES}")
         low, high = protocol.HEARTBEAT_RANGE_S
         if not low <= heartbeat_s <= high:
             raise MasterError(f"heartbeat interval must be {low} to {high} s, got {heartbeat_s}")
@@ -183,8 +218,18 @@ class Master:
     # -- connecting
 
     def _dial(self, endpoint) -> SlaveConnection:
-        return connect_slave(endpoint[0], endpoint[1], self.connect_timeout, self.name,
-                             self.secret, self.heartbeat_s, self.silence_timeout)
+        try:
+            connection = connect_slave(endpoint[0], endpoint[1], self.connect_timeout, self.name,
+                                       self.secret, self.heartbeat_s, self.silence_timeout,
+                                       identity=self.identity, approved=self.approved,
+                                       pairing=self.pairing)
+        except SlaveNotApproved as exc:
+            with self._lock:
+                self.unapproved[endpoint] = exc.slave_id
+            raise
+        with self._lock:
+            self.unapproved.pop(endpoint, None)
+        return connection
 
     def _connect(self, endpoint, busy_retries: bool = True) -> SlaveConnection:
         """Connect and handshake; a busy slave is asked again after each retry delay."""
@@ -226,6 +271,10 @@ class Master:
         endpoint = (str(host), int(port))
         with self._lock:
             if endpoint not in self.endpoints:
+                if len(self.endpoints) >= MAX_SLAVES:
+                    self.errors.append(f"slave {host}:{port} not used: this master has "
+                                       f"{MAX_SLAVES} slaves already")
+                    return
                 self.endpoints.append(endpoint)
             if any(c.endpoint == endpoint for c in self.slaves):
                 return
@@ -261,6 +310,9 @@ class Master:
                     return
                 try:
                     connection = self._dial(endpoint)
+                except SlaveNotApproved as exc:
+                    reason = str(exc)       # asking again changes nothing
+                    return
                 except MasterError as exc:
                     reason = str(exc)
                     self._set_state(endpoint, "reconnecting", reason)
@@ -325,7 +377,10 @@ class Master:
         if scene.meshes_hash is not None:
             query["meshes_hash"] = scene.meshes_hash
         hashes = {"mesh_hashes": scene.mesh_hashes} if scene.meshes_travel_alone else None
-        connection.send(MsgType.SCENE_QUERY, query, hashes)
+        # What proves that this master holds the scene (a slave renders a cached scene only
+        # for a connection that uploaded it or proves it holds it).
+        proofs = trust.scene_proofs(scene, connection.slave_nonce)
+        connection.send(MsgType.SCENE_QUERY, {**query, **proofs}, hashes)
         present, meshes_present, held = self._scene_ready(connection, scene.hash)
         uploaded = False
         # Not present after SCENE_INSTANCES or SCENE_MESHES: the slave let meshes go since it
@@ -338,7 +393,8 @@ class Master:
                 held.shape == (len(scene.mesh_hashes),) and held.any():
             self._set_state(connection.endpoint, "uploading", connection=connection)
             connection.send(MsgType.SCENE_MESHES, {"scene_hash": scene.hash},
-                            scene.mesh_wire_arrays(held == 0))
+                            {**scene.mesh_wire_arrays(held == 0),
+                             "mesh_proofs": _mesh_proofs(scene, held, connection.slave_nonce)})
             present = self._scene_ready(connection, scene.hash)[0]
         if not present:
             self._set_state(connection.endpoint, "uploading", connection=connection)

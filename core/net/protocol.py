@@ -9,22 +9,21 @@ built with numpy.frombuffer from an allow-listed set of dtypes, and every length
 against a per-type limit *before* anything is allocated. See docs/protocol.md.
 
 A `Channel` is one peer connection as both sides use it after connecting: every message, sent
-or received, has a deadline for the whole message (a grace, then a minimum average rate), and
-with a shared secret every message after the handshake carries a MAC under a per-connection
-session key and an implicit sequence number (no injection, replay or reordering).
+or received, has a deadline for the whole message (a grace, then a minimum average rate). After
+the plaintext OPEN exchange (versions) the channel runs over TLS 1.3 with both identities
+pinned (core/net/secure.py, core/net/identity.py): TLS encrypts and authenticates every byte,
+so the messages carry no MACs of their own.
 """
 from __future__ import annotations
 
 import contextlib
 import enum
 import functools
-import hashlib
-import hmac
 import json
 import math
-import os
-import secrets
+import select
 import socket
+import ssl
 import struct
 import sys
 import threading
@@ -40,8 +39,10 @@ from ..scene.instances import MAX_INSTANCES, MAX_MESHES
 # heartbeat_s in HELLO, "busy" refusals, session MACs after an authenticated handshake;
 # 5: FRAME_START "passes" (a tile carries only those) and the 8-bit preview payload "u8";
 # 6: SCENE_QUERY "meshes_hash" and mesh_hashes, SCENE_READY "meshes_present" and mesh_held,
-# SCENE_INSTANCES and SCENE_MESHES; at most 20 arrays a message.
-PROTOCOL_VERSION = 6
+# SCENE_INSTANCES and SCENE_MESHES; at most 20 arrays a message; 7: OPEN then TLS 1.3 with
+# pinned identities (no CHALLENGE/AUTH, no MACs), farm and pairing proofs in HELLO/WELCOME,
+# holder proofs for cached scenes.
+PROTOCOL_VERSION = 7
 MAGIC = b"KDTR"
 HEADER = struct.Struct("!4sHHIQ")
 DEFAULT_PORT = 47600
@@ -93,22 +94,22 @@ class MsgType(enum.IntEnum):
     CANCEL = 9         # master -> slave: frame id; the slave answers CANCEL once the frame is quiet
     ERROR = 10         # either way: message (+ frame id when it concerns a frame)
     BYE = 11           # master -> slave: closing
-    CHALLENGE = 12     # slave -> master: slave nonce + the slave's proof (only with a shared secret)
-    AUTH = 13          # master -> slave: the master's proof; WELCOME follows if it is right
+    # 12 and 13 (CHALLENGE, AUTH) were protocol 6's secret handshake: TLS replaced them.
     HEARTBEAT = 14     # slave -> master: what a busy slave is doing (state, frame id, tile);
                        # master -> slave: it is still in a frame that has nothing for the slave
     SCENE_INSTANCES = 15   # master -> slave: scene hash, meshes hash + the instance arrays
                            # alone (the slave holds the meshes); the slave answers SCENE_READY
     SCENE_MESHES = 16      # master -> slave: scene hash + the meshes the slave lacks, every
                            # mesh's hash, textures, instances; the slave answers SCENE_READY
+    OPEN = 17          # either way, in plaintext, first: the versions; TLS begins after it
 
 
 MASTER_TO_SLAVE = frozenset({MsgType.HELLO, MsgType.SCENE_QUERY, MsgType.SCENE_UPLOAD,
                              MsgType.SCENE_INSTANCES, MsgType.SCENE_MESHES, MsgType.FRAME_START,
                              MsgType.TILE_REQUEST, MsgType.CANCEL,
-                             MsgType.ERROR, MsgType.BYE, MsgType.AUTH, MsgType.HEARTBEAT})
+                             MsgType.ERROR, MsgType.BYE, MsgType.HEARTBEAT})
 SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_RESULT,
-                             MsgType.CANCEL, MsgType.ERROR, MsgType.CHALLENGE, MsgType.HEARTBEAT})
+                             MsgType.CANCEL, MsgType.ERROR, MsgType.HEARTBEAT})
 
 # Tile passes: name -> (channels, dtype); (h, w) or (h, w, channels).
 TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3}
@@ -328,14 +329,22 @@ def recv_message(sock: socket.socket, limits: Limits = DEFAULT_LIMITS,
 
 # ----------------------------------------------------------------------------- channels
 
-MAC_BYTES = 32
-_DIRECTION_LABELS = {"master": b"kdtrace-mac|M>S|", "slave": b"kdtrace-mac|S>M|"}
+def end_writing(sock: socket.socket) -> None:
+    """End our direction of the stream (the peer reads our last message, then the end). On a
+    TLS socket this is the TCP half-close without TLS's close_notify: SSLSocket.shutdown
+    would detach the TLS object under a thread still reading (it would then read the raw
+    bytes); the peer's TLS reads the end as an end (suppress_ragged_eofs)."""
+    socket.socket.shutdown(sock, socket.SHUT_WR)
 
 
-def session_key(secret: bytes, master_nonce: str, slave_nonce: str) -> bytes:
-    """The per-connection key of the messages after an authenticated handshake."""
-    message = b"|".join((b"kdtrace-session", master_nonce.encode(), slave_nonce.encode()))
-    return hmac.new(secret, message, hashlib.sha256).digest()
+def _wait(sock: socket.socket, for_write: bool, timeout: float) -> bool:
+    """Whether `sock` became readable (writable) within `timeout` seconds."""
+    if hasattr(select, "poll"):
+        poller = select.poll()
+        poller.register(sock, select.POLLOUT if for_write else select.POLLIN)
+        return bool(poller.poll(timeout * 1000))
+    wanted = ([], [sock], []) if for_write else ([sock], [], [])
+    return any(select.select(*wanted, timeout))
 
 
 def transfer_deadline(nbytes: int, grace_s: float = SILENCE_S) -> float:
@@ -347,12 +356,11 @@ class _Incoming:
     """The message being received, once its header is in: its type and length, and, for a
     message too large for the channel's buffer, the rest of it in a buffer of its own."""
 
-    def __init__(self, started: float, msg_type: MsgType, json_length: int, payload_length: int,
-                 mac_length: int):
+    def __init__(self, started: float, msg_type: MsgType, json_length: int, payload_length: int):
         self.started = started          # its first byte
         self.msg_type = msg_type
-        self.sizes = (json_length, payload_length, mac_length)
-        self.total = HEADER.size + json_length + payload_length + mac_length
+        self.sizes = (json_length, payload_length)
+        self.total = HEADER.size + json_length + payload_length
         self.own: bytearray | None = None   # the bytes after the header, if not in the buffer
         self.head = b""                 # the header's bytes then
         self.filled = 0                 # of them so far
@@ -377,7 +385,7 @@ class _Incoming:
     def where(self, received: int) -> str:
         """Which part `received` bytes of the message end in, for errors."""
         offset = received - HEADER.size
-        for what, size in zip(("JSON", "payload", "MAC"), self.sizes):
+        for what, size in zip(("JSON", "payload"), self.sizes):
             if offset < size:
                 return f"{what}: {offset} of {size} bytes"
             offset -= size
@@ -387,15 +395,19 @@ class _Incoming:
 class Channel:
     """One peer connection, for one sending thread at a time (sends are locked) and one
     receiving thread. `role` is this side ("master" or "slave"). `grace_s`: how long a message
-    may be silent before it must flow at MIN_RATE_BPS on average."""
+    may be silent before it must flow at MIN_RATE_BPS on average.
+
+    Over TLS (an ssl.SSLSocket) the socket is non-blocking and every TLS call holds one lock:
+    OpenSSL does not allow one connection's reads and writes on two threads at once, and the
+    slave reads on one thread while it sends on another. Nobody waits while holding it: a
+    thread waits for the socket (poll) first, then reads or writes what is there."""
 
     def __init__(self, sock: socket.socket, role: str, grace_s: float = SILENCE_S):
         self.sock, self.role, self.grace_s = sock, role, grace_s
-        sock.settimeout(POLL_S)     # blocked calls wake up to look at their deadline
-        self._send_label = _DIRECTION_LABELS[role]
-        self._recv_label = _DIRECTION_LABELS["slave" if role == "master" else "master"]
-        self._key = None
-        self._send_seq = self._recv_seq = 0
+        self.tls = isinstance(sock, ssl.SSLSocket)
+        self._tls_lock = threading.Lock()
+        # Blocked calls wake up to look at their deadline; a TLS socket never blocks.
+        sock.settimeout(0.0 if self.tls else POLL_S)
         # Received bytes not yet parsed: _buffer[_start:_end]. One buffer per channel, reused
         # message after message (messages up to RECV_KEEP_BYTES are received and parsed in
         # it; larger ones go to a buffer of their own, _Incoming.own).
@@ -410,21 +422,6 @@ class Channel:
         self.bytes_sent = 0     # every byte this side has written to the socket
         self.closed = False
 
-    @property
-    def authenticated(self) -> bool:
-        return self._key is not None
-
-    def authenticate(self, key: bytes) -> None:
-        """From now on every message either way carries a MAC under `key` over a per-direction
-        sequence number and its bytes."""
-        self._key = key
-
-    def _mac(self, label: bytes, seq: int, buffers) -> bytes:
-        mac = hmac.new(self._key, label + seq.to_bytes(8, "big"), hashlib.sha256)
-        for buffer in buffers:
-            mac.update(buffer)
-        return mac.digest()
-
     # -- sending
 
     def send(self, msg_type: MsgType, header: dict | None = None, arrays: dict | None = None) -> None:
@@ -435,6 +432,11 @@ class Channel:
         master's FRAME_START)."""
         with self._send_lock:
             self._send_locked(buffers)
+
+    def send_bytes(self, data: bytes) -> None:
+        """Raw bytes, as they are (tests of peers that misbehave)."""
+        with self._send_lock:
+            self._write([data])
 
     def try_send(self, msg_type: MsgType, header: dict | None = None) -> bool:
         """Send unless another send is under way (then bytes are flowing anyway): heartbeats."""
@@ -459,9 +461,6 @@ class Channel:
                 self._write(buffers)
 
     def _send_locked(self, buffers: list) -> None:
-        if self._key is not None:
-            buffers = buffers + [self._mac(self._send_label, self._send_seq, buffers)]
-            self._send_seq += 1
         if self._batch is not None:
             self._batch += buffers
         else:
@@ -473,15 +472,29 @@ class Channel:
         for buffer in _coalesce(buffers):
             view = memoryview(buffer).cast("B")
             while len(view):
-                try:
-                    count = self.sock.send(view[:1 << 20])
-                except socket.timeout:
-                    count = 0
+                count = self._send_some(view[:1 << 20])
                 view, sent = view[count:], sent + count
                 self.bytes_sent += count
                 if len(view):
                     self._check_rate(started, sent, total, "sent", "the peer stopped reading")
         self.last_sent = time.monotonic()
+
+    def _send_some(self, view) -> int:
+        """Bytes of `view` written now (0 after waiting POLL_S for room)."""
+        if not self.tls:
+            try:
+                return self.sock.send(view)
+            except socket.timeout:
+                return 0
+        with self._tls_lock:
+            try:
+                # OpenSSL (no partial writes) sends all of `view` or asks to be called again
+                # with the same bytes, which the caller does.
+                return self.sock.send(view)
+            except (ssl.SSLWantWriteError, ssl.SSLWantReadError):
+                pass
+        _wait(self.sock, True, POLL_S)
+        return 0
 
     def _check_rate(self, started, done, total, verb, what) -> None:
         elapsed = time.monotonic() - started
@@ -497,16 +510,14 @@ class Channel:
     # start of the next, in one system call), and messages are parsed where they lie.
 
     def recv(self, limits: Limits = DEFAULT_LIMITS, allowed: frozenset | None = None,
-             wait: float | None = None, deadline: float | None = None,
-             unauthenticated: frozenset = frozenset()) -> Message | None:
-        """The next message, validated (and its MAC checked on an authenticated channel);
-        None if none began within `wait` seconds (None: wait as long as it takes). Once a
-        message begins it must arrive within its transfer deadline, and before the absolute
-        `deadline` (time.monotonic()) if given. `unauthenticated`: types accepted without a MAC
-        (the handshake's refusals). ProtocolError on anything else. Its arrays are its own."""
+             wait: float | None = None, deadline: float | None = None) -> Message | None:
+        """The next message, validated; None if none began within `wait` seconds (None: wait
+        as long as it takes). Once a message begins it must arrive within its transfer
+        deadline, and before the absolute `deadline` (time.monotonic()) if given.
+        ProtocolError on anything else. Its arrays are its own."""
         waited_from = time.monotonic()
         while True:
-            msg = self._parse(limits, allowed, unauthenticated, borrow=False)
+            msg = self._parse(limits, allowed, borrow=False)
             if msg is not None:
                 self._low_water(self._wake_bytes())
                 return msg
@@ -530,14 +541,25 @@ class Channel:
         handle (or copy) them first. Afterwards the socket signals readable again only when
         the next read can make progress (see _low_water). Deadlines: see incoming_due."""
         try:
-            self._fill()
+            self._fill(wait=0.0)    # the socket is readable: never wait here
         except socket.timeout:      # woken for nothing
             pass
         messages = []
-        while (msg := self._parse(limits, allowed, frozenset(), borrow=True)) is not None:
+        while (msg := self._parse(limits, allowed, borrow=True)) is not None:
             messages.append(msg)
         self._low_water(self._wake_bytes())
         return messages
+
+    def has_pending(self) -> bool:
+        """Bytes wait inside TLS, decrypted: a selector does not see them (the socket is not
+        readable for them), so whoever reads by selector reads again at once."""
+        if not self.tls:
+            return False
+        with self._tls_lock:
+            try:
+                return self.sock.pending() > 0
+            except (ValueError, OSError):     # closed
+                return False
 
     def _received(self) -> int:
         """Bytes of the message under way so far."""
@@ -568,7 +590,7 @@ class Channel:
             raise PeerTooSlow(f"message not complete before the deadline ({where})")
         self._check_rate(started, received, total, "received", "message arrived too slowly")
 
-    def _parse(self, limits: Limits, allowed, unauthenticated, borrow: bool) -> Message | None:
+    def _parse(self, limits: Limits, allowed, borrow: bool) -> Message | None:
         """The next message if its bytes are all in, else None (what is there waits)."""
         incoming = self._incoming
         if incoming is None:
@@ -582,10 +604,8 @@ class Channel:
             # The header: checked before anything else is read.
             msg_type, json_length, payload_length = _check_header(
                 memoryview(self._buffer)[self._start:self._start + HEADER.size], limits, allowed)
-            keyed = self._key is not None and msg_type not in unauthenticated
             incoming = self._incoming = _Incoming(
-                self._began or time.monotonic(), msg_type, json_length, payload_length,
-                MAC_BYTES if keyed else 0)
+                self._began or time.monotonic(), msg_type, json_length, payload_length)
             self._began = None
             if incoming.total > RECV_KEEP_BYTES:
                 # (the buffer, at most RECV_KEEP_BYTES, holds nothing beyond this message)
@@ -628,15 +648,9 @@ class Channel:
         self._start, self._end = 0, have
 
     def _finish(self, incoming: _Incoming, head, body) -> Message:
-        json_length, payload_length, mac_length = incoming.sizes
+        json_length, payload_length = incoming.sizes
         text = body[:json_length]
         payload = body[json_length:json_length + payload_length]
-        if mac_length:
-            expected = self._mac(self._recv_label, self._recv_seq, (head, text, payload))
-            if not hmac.compare_digest(expected, bytes(body[json_length + payload_length:])):
-                raise ProtocolError(f"{incoming.msg_type.name}: message authentication failed "
-                                    f"(injected, replayed or reordered)")
-            self._recv_seq += 1
         self.last_received = time.monotonic()
         return _parse_body(incoming.msg_type, text, payload)
 
@@ -649,7 +663,7 @@ class Channel:
             return 1
         return max(1, min(incoming.total - self._received(), LOW_WATER_BYTES))
 
-    def _fill(self) -> None:
+    def _fill(self, wait: float = POLL_S) -> None:
         """One read from the socket: into the channel's buffer, as much as it has room for
         (made room for the rest of the message under way first), or into the message's
         own buffer (at most its rest: bytes after it go to the channel's buffer on the next
@@ -660,10 +674,11 @@ class Channel:
             rest = incoming.total - HEADER.size - incoming.filled
             if incoming.in_place:
                 with memoryview(incoming.own) as view:
-                    got = self.sock.recv_into(view[incoming.filled:], min(rest, 1 << 20))
+                    got = self._read(lambda: self.sock.recv_into(view[incoming.filled:],
+                                                                 min(rest, 1 << 20)), wait)
                 incoming.filled += got
             else:
-                chunk = self.sock.recv(min(rest, 1 << 20))
+                chunk = self._read(lambda: self.sock.recv(min(rest, 1 << 20)), wait)
                 got = len(chunk)
                 incoming.add(chunk)
         else:
@@ -672,7 +687,7 @@ class Channel:
             self._make_room(incoming.total if incoming is not None
                             else self._end - self._start + HEADER.size)
             with memoryview(self._buffer) as view:
-                got = self.sock.recv_into(view[self._end:])
+                got = self._read(lambda: self.sock.recv_into(view[self._end:]), wait)
             self._end += got
         if got == 0:
             if incoming is None and self._start == self._end:
@@ -681,9 +696,28 @@ class Channel:
                      else incoming.where(self._received()))
             raise ConnectionBroken(f"connection closed in the middle of a message ({where})")
 
+    def _read(self, read, wait: float = POLL_S):
+        """read() on the socket; socket.timeout when nothing came within `wait` s. Over TLS: wait
+        for the socket (unless TLS holds decrypted bytes), then read under the lock; a record
+        not complete yet is also 'nothing came'."""
+        if not self.tls:
+            return read()
+        with self._tls_lock:
+            ready = self.sock.pending() > 0
+        if not ready and not _wait(self.sock, False, wait):
+            raise socket.timeout("nothing to read")
+        with self._tls_lock:
+            try:
+                return read()
+            except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
+                raise socket.timeout("a TLS record is not complete yet") from None
+
     def _low_water(self, nbytes: int) -> None:
         """SO_RCVLOWAT: poll() (so a receive with a timeout, and a selector) wakes once this
-        much is there, or at the end of the stream or the timeout."""
+        much is there, or at the end of the stream or the timeout. Not over TLS: TLS may hold
+        part of a record already, and the kernel would wait for bytes that never come."""
+        if self.tls:
+            return
         if nbytes != self._rcvlowat and hasattr(socket, "SO_RCVLOWAT"):
             try:
                 self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT, nbytes)
@@ -691,11 +725,25 @@ class Channel:
             except OSError:
                 pass
 
+    def drain(self, seconds: float) -> None:
+        """Read and drop what the peer still sends, until it closes or `seconds` pass (so
+        that closing does not reset a connection whose peer has not read our last words)."""
+        deadline = time.monotonic() + seconds
+        try:
+            while time.monotonic() < deadline:
+                try:
+                    if not self._read(lambda: self.sock.recv(65536)):
+                        return
+                except socket.timeout:
+                    pass
+        except (OSError, ValueError):
+            pass
+
     def close(self) -> None:
         """Shut the connection down (wakes a thread blocked on it) and close it."""
         self.closed = True
         try:
-            self.sock.shutdown(socket.SHUT_RDWR)
+            socket.socket.shutdown(self.sock, socket.SHUT_RDWR)
         except OSError:
             pass
         self.sock.close()
@@ -896,62 +944,3 @@ def decode_tile(header: dict, arrays: dict, w: int, h: int, payload: str, passes
             codes += _RGBA_OFFSETS
             np.take(_PREVIEW_RGBA, codes, out=target, mode="clip")
     return out
-
-
-# ----------------------------------------------------------------------------- authentication
-#
-# With a shared secret the handshake is a mutual HMAC-SHA256 challenge-response:
-#   HELLO(nonce_m) -> CHALLENGE(nonce_s, proof_s) -> AUTH(proof_m) -> WELCOME
-# proof_s = HMAC(secret, "kdtrace-slave" | nonce_m | nonce_s), proof_m the same with
-# "kdtrace-master". Different labels keep one side's proof from being replayed as the other's;
-# fresh nonces on both sides keep old proofs useless. The secret never travels.
-
-SECRET_ENV = "KDTRACE_SECRET"
-NONCE_HEX = 64      # 32 random bytes
-PROOF_HEX = 64      # SHA-256
-
-
-class AuthError(Exception):
-    """A secret could not be read, or a proof was wrong."""
-
-
-def load_secret(secret_file: str | None = None, env: str = SECRET_ENV) -> bytes | None:
-    """The shared secret: the file's contents (stripped) if a file is given, else the environment
-    variable, else None (no authentication). An empty secret is an error, not 'no secret'."""
-    if secret_file:
-        try:
-            with open(secret_file, "rb") as handle:
-                data = handle.read(65536).strip()
-        except OSError as exc:
-            raise AuthError(f"cannot read secret file {secret_file}: {exc.strerror or exc}") from None
-        if not data:
-            raise AuthError(f"secret file {secret_file} is empty")
-        return data
-    value = os.environ.get(env)
-    if value is None:
-        return None
-    if not value.strip():
-        raise AuthError(f"environment variable {env} is set but empty")
-    return value.strip().encode("utf-8")
-
-
-def new_nonce() -> str:
-    return secrets.token_hex(NONCE_HEX // 2)
-
-
-def check_hex(value, length: int, what: str) -> str:
-    if not isinstance(value, str) or len(value) != length or any(c not in "0123456789abcdef" for c in value):
-        raise ProtocolError(f"bad {what}")
-    return value
-
-
-def auth_proof(secret: bytes, role: str, master_nonce: str, slave_nonce: str) -> str:
-    label = {"slave": b"kdtrace-slave", "master": b"kdtrace-master"}[role]
-    message = b"|".join((label, master_nonce.encode(), slave_nonce.encode()))
-    return hmac.new(secret, message, hashlib.sha256).hexdigest()
-
-
-def proof_ok(secret: bytes, role: str, master_nonce: str, slave_nonce: str, proof) -> bool:
-    if not isinstance(proof, str) or len(proof) != PROOF_HEX:
-        return False
-    return hmac.compare_digest(auth_proof(secret, role, master_nonce, slave_nonce), proof)

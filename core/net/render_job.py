@@ -286,7 +286,7 @@ class RenderJob:
         """Tile `index`, written into `windows` (its part of job.image) from `connection`, is
         the first of its copies to arrive: a result for the caller."""
         x, y, w, h = self.tiles[index]
-        result = TileResult(index, x, y, w, h, windows, connection.name, connection.id, render_ms)
+        result = TileResult(index, x, y, w, h, windows, connection.name, connection.instance, render_ms)
         with self._lock:
             self._rejoined.discard(connection.endpoint)
             self._delivered += 1

@@ -144,9 +144,14 @@ class SlaveWorker:
             self._fill()
 
     def _receive(self) -> None:
-        for msg in self.connection.channel.recv_available(self.job.limits, protocol.SLAVE_TO_MASTER):
-            self._handle(msg)
-            if not self.alive:
+        channel = self.connection.channel
+        while True:
+            for msg in channel.recv_available(self.job.limits, protocol.SLAVE_TO_MASTER):
+                self._handle(msg)
+                if not self.alive:
+                    return
+            # Decrypted bytes TLS holds back wake no selector: read them now.
+            if self.released or not channel.has_pending():
                 return
 
     def _check(self, now: float) -> None:
