@@ -15,6 +15,8 @@ import threading
 
 import numpy as np
 
+from .private import private_folder
+
 log = logging.getLogger("kdtrace.disk")
 
 
@@ -22,7 +24,9 @@ class NpzFolder:
     def __init__(self, folder: str | os.PathLike, limit_bytes: int):
         self.folder = pathlib.Path(folder)
         self.limit_bytes = int(limit_bytes)
-        self.folder.mkdir(parents=True, exist_ok=True)
+        # Scenes and trees are the users' work: this user's alone (0700), never a folder
+        # another user owns.
+        private_folder(self.folder)
 
     def path(self, name: str) -> pathlib.Path:
         """The file of `name` (a name the caller has checked: hex digits, no separators)."""

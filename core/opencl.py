@@ -13,6 +13,7 @@ import tempfile
 import time
 
 from .layout import c_header
+from .private import private_folder
 
 KERNEL_DIR = pathlib.Path(__file__).resolve().parent.parent / "kernels"
 
@@ -29,14 +30,19 @@ def kernel_source(files) -> str:
 
 
 def ensure_pocl_cache_dir() -> None:
-    """PoCL needs a writable cache dir even with caching off; give it one of ours. Call before
-    the ICD loader initialises PoCL (before the first pyopencl call)."""
+    """PoCL needs a writable cache dir even with caching off; give it one of ours: this user's
+    alone (0700, owned by this user), since PoCL runs the kernels it finds there. The fallback
+    in the temporary folder is per user (kdtrace-pocl-<uid>) and refused if another user made
+    it first (a kernel planted there would run as this user). Call before the ICD loader
+    initialises PoCL (before the first pyopencl call)."""
     if os.environ.get("POCL_CACHE_DIR"):
         return
     base = pathlib.Path(os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache")
-    for candidate in (base / "kdtrace" / "pocl", pathlib.Path(tempfile.gettempdir()) / "kdtrace-pocl"):
+    user = f"-{os.getuid()}" if hasattr(os, "getuid") else ""
+    for candidate in (base / "kdtrace" / "pocl",
+                      pathlib.Path(tempfile.gettempdir()) / f"kdtrace-pocl{user}"):
         try:
-            candidate.mkdir(parents=True, exist_ok=True)
+            private_folder(candidate)
             if os.access(candidate, os.W_OK):
                 os.environ["POCL_CACHE_DIR"] = str(candidate)
                 return

@@ -14,6 +14,8 @@ log = logging.getLogger("kdtrace.slave")
 RECENT_FRAMES = 5   # frame lines kept for the status query
 
 
+SHOWN_HASH = 8   # hex digits of a scene's hash in the log and the status
+
 @dataclass
 class FrameActivity:
     frame_id: int
@@ -28,7 +30,7 @@ class FrameActivity:
 
     def line(self) -> str:
         per_tile = self.render_ms / self.tiles if self.tiles else 0.0
-        return (f"frame {self.frame_id:x} for {self.master}: scene {self.scene_hash[:12]}, "
+        return (f"frame {self.frame_id:x} for {self.master}: scene {self.scene_hash[:SHOWN_HASH]}, "
                 f"{self.tiles} of {self.tiles_in_frame} tiles, {per_tile:.1f} ms/tile, "
                 f"kernel build {self.build_seconds:.2f} s, {self.bytes_sent / 2 ** 20:.2f} MiB "
                 f"sent, {time.monotonic() - self.started:.1f} s")
@@ -101,7 +103,8 @@ class Activity:
                 "masters": [{"master": m, "connected_seconds": round(now - t, 1)}
                             for m, t in sorted(self._masters.items())],
                 "frames": [{"frame_id": f"{f.frame_id:x}", "master": f.master,
-                            "scene": f.scene_hash, "tiles": f.tiles,
+                            # a prefix: a scene's hash is not shown whole
+                            "scene": f.scene_hash[:SHOWN_HASH], "tiles": f.tiles,
                             "tiles_in_frame": f.tiles_in_frame,
                             "ms_per_tile": round(f.render_ms / f.tiles, 1) if f.tiles else None,
                             "bytes_sent": f.bytes_sent}
