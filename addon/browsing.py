@@ -27,8 +27,19 @@ def update_browsing(scene=None) -> None:
     state = session.current()
     if wanted(scene):
         state.browser()
+        _load_identity(state)
     else:
         state.stop_browser()
+
+
+def _load_identity(state) -> None:
+    """This computer's identity, for the Slaves panel (made on first use; a timer's work, not
+    draw()'s)."""
+    from .properties import identity_folder
+    try:
+        state.master_identity(identity_folder())
+    except OSError as error:     # shown again at F12, as the frame's error
+        print(f"KD Trace: no identity: {error}")
 
 
 def browse_soon(scene) -> None:

@@ -27,6 +27,13 @@ class KDTraceHost(bpy.types.PropertyGroup):
     enabled: BoolProperty(name="Use", description="Use this slave", default=True)
 
 
+class KDTraceApprovedSlave(bpy.types.PropertyGroup):
+    """A slave the user approved by its ID (Slaves panel: Approve or Pair): the master sends
+    scenes to it (docs/protocol.md, "Identities and trust")."""
+    slave_id: StringProperty(name="ID", description="The slave's ID, as its log shows it")
+    name: StringProperty(name="Name", description="The slave's name when it was approved")
+
+
 class KDTraceRenderSettings(bpy.types.PropertyGroup):
     tile_size: IntProperty(
         name="Tile Size", description="Width and height of the image tiles handed to slaves, in pixels",
@@ -181,9 +188,13 @@ class KDTracePreferences(bpy.types.AddonPreferences):
         name="Local Slave Device", description="OpenCL device of local slaves: auto, cpu, gpu or "
         "platform:device indices", default="auto")
     secret_file: StringProperty(
-        name="Shared Secret File", description="File holding the secret shared with the slaves "
-        "(empty: the KDTRACE_SECRET environment variable, else no authentication)",
-        default="", subtype="FILE_PATH")
+        name="Farm Secret File", description="File holding the farm secret (made with New Farm "
+        "Secret or `kdtrace-slave --new-secret FILE`): slaves that prove it need no approval, "
+        "and slaves that hold it serve this computer (empty: the KDTRACE_SECRET environment "
+        "variable, else none)", default="", subtype="FILE_PATH")
+    approved_slaves: CollectionProperty(
+        type=KDTraceApprovedSlave, name="Approved Slaves",
+        description="Slaves this computer sends scenes to (approved once, by ID)")
     tree_cache_folder: StringProperty(
         name="kd-Tree Cache Folder", description="Folder where built kd-trees are kept, so "
         "that an unchanged mesh is not built again after Blender restarts (empty: the "
@@ -194,8 +205,20 @@ class KDTracePreferences(bpy.types.AddonPreferences):
         min=LIMIT_MIB_RANGE[0], max=LIMIT_MIB_RANGE[1])
 
     def draw(self, context):
-        for name in ("slave_python", "slave_device", "secret_file", "tree_cache_folder",
-                     "tree_cache_mib"):
+        for name in ("slave_python", "slave_device"):
+            self.layout.prop(self, name)
+        row = self.layout.row()
+        row.prop(self, "secret_file")
+        row.operator("kdtrace.new_farm_secret", text="", icon="ADD")
+        box = self.layout.box()
+        box.label(text="Approved slaves (they get this computer's scenes):")
+        for index, slave in enumerate(self.approved_slaves):
+            row = box.row()
+            row.label(text=f"{slave.name}  ID {short_id_text(slave.slave_id)}", icon="CHECKMARK")
+            row.operator("kdtrace.slave_forget", text="", icon="X").index = index
+        if not self.approved_slaves:
+            box.label(text="None yet: approve or pair slaves in the Slaves panel")
+        for name in ("tree_cache_folder", "tree_cache_mib"):
             self.layout.prop(self, name)
         files, size = tree_folder_usage(self)
         row = self.layout.row()
@@ -205,6 +228,21 @@ class KDTracePreferences(bpy.types.AddonPreferences):
 
 def preferences(context):
     return context.preferences.addons[KDTracePreferences.bl_idname].preferences
+
+
+def short_id_text(slave_id: str) -> str:
+    from ..core.net.identity import grouped
+    return grouped(slave_id[:16])
+
+
+def identity_folder() -> str:
+    """Where this computer's master identity is kept: the extension's user folder (which
+    upgrades keep); private to the user."""
+    return bpy.utils.extension_path_user(KDTracePreferences.bl_idname, path="identity")
+
+
+def approved_ids(prefs) -> tuple:
+    return tuple(slave.slave_id for slave in prefs.approved_slaves if slave.slave_id)
 
 
 def tree_folder(prefs) -> str:
@@ -222,4 +260,4 @@ def tree_folder_usage(prefs) -> tuple[int, int]:
     return NpzFolder(folder, 0).usage() if folder.is_dir() else (0, 0)
 
 
-classes = (KDTraceHost, KDTraceRenderSettings, KDTracePreferences)
+classes = (KDTraceHost, KDTraceApprovedSlave, KDTraceRenderSettings, KDTracePreferences)

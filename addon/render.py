@@ -12,11 +12,11 @@ import numpy as np
 from ..core.accel.compact import user_settings
 from ..core.frame.options import FrameOptions
 from ..core.frame.render import FRAME_ERRORS, FrameError, FrameHost, render_frame, summary
-from ..core.net.protocol import AuthError, load_secret
 from ..core.net.slave_colors import slave_color
+from ..core.net.trust import AuthError, load_secret
 from . import session
 from .export import export_instanced_view
-from .properties import preferences, tree_folder
+from .properties import approved_ids, identity_folder, preferences, tree_folder
 
 FRAME_PIXELS = 2     # width of the slave-coloured frame drawn around tiles while rendering
 
@@ -68,7 +68,8 @@ def frame_options(settings, prefs, view_layer) -> FrameOptions:
         discovery_seconds=settings.discovery_seconds, local_slaves=settings.local_slaves,
         local_slaves_always=settings.use_local_slaves_always,
         slave_python=prefs.slave_python, slave_device=prefs.slave_device,
-        secret=shared_secret(prefs),
+        secret=shared_secret(prefs), approved_slaves=approved_ids(prefs),
+        identity_folder=identity_folder(),
         tile_size=settings.tile_size, tiles_in_flight=settings.tiles_in_flight,
         partition=None if settings.tile_partition == "SIZE" else int(settings.tile_partition),
         model=settings.interaction, payload=settings.payload.split("_")[0].lower(),
@@ -89,7 +90,7 @@ def listed_hosts(settings) -> list[tuple[str, int]]:
 
 
 def shared_secret(prefs) -> bytes | None:
-    """The secret from the preferences' file, else $KDTRACE_SECRET, else None."""
+    """The farm secret from the preferences' file, else $KDTRACE_SECRET, else None."""
     try:
         return load_secret(bpy_path(prefs.secret_file) if prefs.secret_file else None)
     except AuthError as error:

@@ -164,6 +164,7 @@ class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
     def draw(self, context):
         from ..core.frame.local_slaves import has_bundled_cpu_device
         from . import browsing, session
+        from .properties import approved_ids, preferences
         layout = self.layout
         settings = context.scene.kdtrace
         state = session.current()
@@ -181,15 +182,29 @@ class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
             layout.label(text="No CPU OpenCL device is bundled here: local slaves need an "
                               "OpenCL driver (README)", icon="ERROR")
 
+        prefs = preferences(context)
+        approved = set(approved_ids(prefs))
+        identity = state.identity_if_loaded()
+        row = layout.row()
+        row.label(text=f"This computer: ID {identity.short_id}" if identity is not None
+                  else "This computer: ID made at the first render", icon="LOCKED")
+        row.operator("kdtrace.copy_master_id", text="", icon="COPYDOWN")
+
         layout.label(text="Found on the LAN:")
         row = layout.row()
         box = row.box()
         found = state.discovered_slaves()
         if not found:
             box.label(text="None yet" if settings.use_zeroconf else "Discovery is off", icon="INFO")
+        shown = set()
         for slave in found:
-            box.label(text=f"{slave.name}  {slave.host}:{slave.port}  {slave.properties.get('device', '')}",
-                      icon="NETWORK_DRIVE")
+            slave_id = slave.properties.get("id", "")
+            shown.add(slave.endpoint)
+            self.draw_slave(box, slave.name, slave.host, slave.port, slave_id,
+                            slave.properties.get("device", ""), slave_id in approved)
+        for (host, port), slave_id in sorted(state.unapproved.items()):
+            if (host, port) not in shown and slave_id not in approved:
+                self.draw_slave(box, f"{host}:{port}", host, port, slave_id, "listed", False)
         local = state.local_slaves.pids()
         if local:
             box.label(text=f"{len(local)} local slave(s) running", icon="CONSOLE")
@@ -201,6 +216,21 @@ class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
         buttons = row.column(align=True)
         buttons.operator("kdtrace.host_add", text="", icon="ADD")
         buttons.operator("kdtrace.host_remove", text="", icon="REMOVE")
+
+
+    @staticmethod
+    def draw_slave(layout, name, host, port, slave_id, device, approved) -> None:
+        """One slave: name, address, short ID; Approve and Pair where it is not approved."""
+        row = layout.row(align=True)
+        short = "-".join(slave_id[i:i + 4] for i in range(0, 16, 4)) if slave_id else "no ID"
+        row.label(text=f"{name}  {host}:{port}  ID {short}  {device}",
+                  icon="CHECKMARK" if approved else "NETWORK_DRIVE")
+        if approved or len(slave_id) != 52:
+            return
+        approve = row.operator("kdtrace.slave_approve", text="Approve")
+        approve.slave_id, approve.name = slave_id, name
+        pair = row.operator("kdtrace.slave_pair", text="Pair")
+        pair.host, pair.port, pair.slave_id, pair.name = host, port, slave_id, name
 
 
 class RENDER_PT_kdtrace_legend(KDTracePanel, bpy.types.Panel):
