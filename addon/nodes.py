@@ -304,10 +304,13 @@ class NodeProgram:
                        params=(0.0, float(node.clamp)))
             return self._lane(register, 0)
         if kind == "VECT_MATH" and node.operation in NODE_VECTOR_MATH_CODES:
-            a, b = self._enabled_input(node, "Vector"), self._second_vector(node)
-            scale = self._enabled_input(node, "Scale") if node.operation == "SCALE" else 0
+            a, b = self._vector_input(node, 0), self._vector_input(node, 1)
+            if node.operation in ("SCALE", "REFRACT"):
+                third = self._enabled_input(node, "Scale")
+            else:
+                third = self._vector_input(node, 2)
             register = self._register()
-            self._emit("VECTOR_MATH", register, a, b, scale,
+            self._emit("VECTOR_MATH", register, a, b, third,
                        params=(NODE_VECTOR_MATH_CODES[node.operation],))
             return self._lane(register, 3) if out.type == "VALUE" else self._whole(register)
         if kind == "HUE_SAT":
@@ -462,12 +465,13 @@ class NodeProgram:
             self._kinds[self._whole(register)] = "VECTOR"
         return self._values[key]
 
-    def _second_vector(self, node):
-        """Vector Math's second vector input (the node has three called Vector)."""
-        vectors = [s for s in node.inputs if s.name == "Vector" and s.enabled]
-        if len(vectors) < 2:
+    def _vector_input(self, node, index):
+        """Vector Math's vector input `index` (the node has three called Vector; those its
+        operation does not use are disabled: register 0, never read)."""
+        vectors = [s for s in node.inputs if s.name == "Vector"]
+        socket = vectors[index]
+        if not socket.enabled:
             return 0
-        socket = vectors[1]
         return self._linked(socket) if socket.is_linked else self._constant(socket_value(socket))
 
 

@@ -234,12 +234,23 @@ NODE_OP_CODES = {"END": 0, "CONST": 1, "UV": 2, "IMAGE": 3, "COMBINE": 4, "MIX":
                  "NORMAL_MAP": 18, "BUMP": 19}
 NODE_MIX_CODES = {"MIX": 0, "ADD": 1, "MULTIPLY": 2, "SUBTRACT": 3, "SCREEN": 4,
                   "DIFFERENCE": 5, "DARKEN": 6, "LIGHTEN": 7}
+# Blender's Math and Vector Math operations, every one (Cycles' svm_math, svm_vector_math).
 NODE_MATH_CODES = {"ADD": 0, "SUBTRACT": 1, "MULTIPLY": 2, "DIVIDE": 3, "MULTIPLY_ADD": 4,
                    "POWER": 5, "MINIMUM": 6, "MAXIMUM": 7, "LESS_THAN": 8, "GREATER_THAN": 9,
-                   "ABSOLUTE": 10, "SQRT": 11}
+                   "ABSOLUTE": 10, "SQRT": 11, "INVERSE_SQRT": 12, "LOGARITHM": 13,
+                   "EXPONENT": 14, "RADIANS": 15, "DEGREES": 16, "SIGN": 17, "COMPARE": 18,
+                   "SMOOTH_MIN": 19, "SMOOTH_MAX": 20, "ROUND": 21, "FLOOR": 22, "CEIL": 23,
+                   "TRUNC": 24, "FRACT": 25, "MODULO": 26, "FLOORED_MODULO": 27, "WRAP": 28,
+                   "SNAP": 29, "PINGPONG": 30, "SINE": 31, "COSINE": 32, "TANGENT": 33,
+                   "SINH": 34, "COSH": 35, "TANH": 36, "ARCSINE": 37, "ARCCOSINE": 38,
+                   "ARCTANGENT": 39, "ARCTAN2": 40}
 NODE_VECTOR_MATH_CODES = {"ADD": 0, "SUBTRACT": 1, "MULTIPLY": 2, "DIVIDE": 3, "SCALE": 4,
                           "DOT_PRODUCT": 5, "CROSS_PRODUCT": 6, "LENGTH": 7, "NORMALIZE": 8,
-                          "ABSOLUTE": 9, "MINIMUM": 10, "MAXIMUM": 11}
+                          "ABSOLUTE": 9, "MINIMUM": 10, "MAXIMUM": 11, "MULTIPLY_ADD": 12,
+                          "DISTANCE": 13, "PROJECT": 14, "REFLECT": 15, "REFRACT": 16,
+                          "FACEFORWARD": 17, "SNAP": 18, "FLOOR": 19, "CEIL": 20, "MODULO": 21,
+                          "FRACTION": 22, "WRAP": 23, "SINE": 24, "COSINE": 25, "TANGENT": 26,
+                          "POWER": 27, "SIGN": 28}
 NODE_GRADIENT_CODES = {"LINEAR": 0, "QUADRATIC": 1, "EASING": 2, "DIAGONAL": 3, "RADIAL": 4,
                        "QUADRATIC_SPHERE": 5, "SPHERICAL": 6}
 NODE_EXTENSION_CODES = {"REPEAT": 0, "EXTEND": 1, "CLIP": 2, "MIRROR": 3}   # Image Texture

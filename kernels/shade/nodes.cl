@@ -4,10 +4,13 @@
 // noise.cl, Image Texture lookups in textures.cl).
 
 #ifdef HAS_NODES
+// An operand: register ref / NODE_REF_REGISTER, one lane or (lane 4) the whole register. A
+// CONST's operand words hold its value, not a reference: clamped, no value reads outside regs.
 inline float4 node_operand(const float4 *regs, float ref)
 {
-    int r = (int)ref, lane = r % NODE_REF_REGISTER;
-    float4 v = regs[min(r / NODE_REF_REGISTER, NODE_REGISTERS - 1)];
+    int r = (int)clamp(ref, 0.0f, (float)(NODE_REGISTERS * NODE_REF_REGISTER - 1));
+    int lane = r % NODE_REF_REGISTER;
+    float4 v = regs[r / NODE_REF_REGISTER];
     return lane == 0 ? v.xxxx : lane == 1 ? v.yyyy : lane == 2 ? v.zzzz : lane == 3 ? v.wwww : v;
 }
 
@@ -31,7 +34,31 @@ inline float4 node_mix(int mode, float t, float4 a, float4 b)
     return (1.0f - t) * a + t * c;
 }
 
-// Cycles' math node, with its safe division, power and square root.
+// Cycles' wrapf and pingpongf (util/math_float.h).
+inline float node_wrap(float value, float max_value, float min_value)
+{
+    float range = max_value - min_value;
+    return range != 0.0f ? value - range * floor((value - min_value) / range) : min_value;
+}
+
+inline float node_pingpong(float a, float b)
+{
+    if (b == 0.0f)
+        return 0.0f;
+    float x = (a - b) / (b * 2.0f);
+    return fabs((x - floor(x)) * b * 2.0f - b);
+}
+
+inline float node_smooth_min(float a, float b, float k)
+{
+    if (k == 0.0f)
+        return fmin(a, b);
+    float h = fmax(k - fabs(a - b), 0.0f) / k;
+    return fmin(a, b) - h * h * h * k * (1.0f / 6.0f);
+}
+
+// Cycles' math node (svm_math), with its safe division, power, logarithm, square roots,
+// modulo and inverse trigonometry.
 inline float node_math(int op, float a, float b, float c)
 {
     switch (op) {
@@ -50,6 +77,38 @@ inline float node_math(int op, float a, float b, float c)
     case NODE_MATH_GREATER_THAN: return a > b ? 1.0f : 0.0f;
     case NODE_MATH_ABSOLUTE: return fabs(a);
     case NODE_MATH_SQRT: return sqrt(fmax(a, 0.0f));
+    case NODE_MATH_INVERSE_SQRT: return a > 0.0f ? 1.0f / sqrt(a) : 0.0f;
+    case NODE_MATH_LOGARITHM:
+        if (a <= 0.0f || b <= 0.0f)
+            return 0.0f;
+        return log(b) != 0.0f ? log(a) / log(b) : 0.0f;
+    case NODE_MATH_EXPONENT: return exp(a);
+    case NODE_MATH_RADIANS: return a * (M_PI_F / 180.0f);
+    case NODE_MATH_DEGREES: return a * (180.0f / M_PI_F);
+    case NODE_MATH_SIGN: return a > 0.0f ? 1.0f : a < 0.0f ? -1.0f : 0.0f;
+    case NODE_MATH_COMPARE: return a == b || fabs(a - b) <= fmax(c, FLT_EPSILON) ? 1.0f : 0.0f;
+    case NODE_MATH_SMOOTH_MIN: return node_smooth_min(a, b, c);
+    case NODE_MATH_SMOOTH_MAX: return -node_smooth_min(-a, -b, c);
+    case NODE_MATH_ROUND: return floor(a + 0.5f);
+    case NODE_MATH_FLOOR: return floor(a);
+    case NODE_MATH_CEIL: return ceil(a);
+    case NODE_MATH_TRUNC: return a >= 0.0f ? floor(a) : ceil(a);
+    case NODE_MATH_FRACT: return a - floor(a);
+    case NODE_MATH_MODULO: return b != 0.0f ? fmod(a, b) : 0.0f;
+    case NODE_MATH_FLOORED_MODULO: return b != 0.0f ? a - floor(a / b) * b : 0.0f;
+    case NODE_MATH_WRAP: return node_wrap(a, b, c);
+    case NODE_MATH_SNAP: return b != 0.0f ? floor(a / b) * b : 0.0f;
+    case NODE_MATH_PINGPONG: return node_pingpong(a, b);
+    case NODE_MATH_SINE: return sin(a);
+    case NODE_MATH_COSINE: return cos(a);
+    case NODE_MATH_TANGENT: return tan(a);
+    case NODE_MATH_SINH: return sinh(a);
+    case NODE_MATH_COSH: return cosh(a);
+    case NODE_MATH_TANH: return tanh(a);
+    case NODE_MATH_ARCSINE: return a <= -1.0f ? -M_PI_2_F : a >= 1.0f ? M_PI_2_F : asin(a);
+    case NODE_MATH_ARCCOSINE: return a >= 1.0f ? 0.0f : a <= -1.0f ? M_PI_F : acos(a);
+    case NODE_MATH_ARCTANGENT: return atan(a);
+    case NODE_MATH_ARCTAN2: return atan2(a, b);
     }
     return 0.0f;
 }
@@ -62,11 +121,19 @@ inline float node_checker(float4 p)
     return ((x % 2 == y % 2) == (z % 2)) ? 1.0f : 0.0f;
 }
 
-// Cycles' Vector Math: the vector in xyz, the value output (Dot Product, Length) in w.
-inline float4 node_vector_math(int op, float4 a, float4 b, float s)
+inline float3 node_safe_normalize(float3 v)
 {
-    float3 x = a.xyz, y = b.xyz, r = (float3)(0.0f, 0.0f, 0.0f);
-    float value = 0.0f;
+    float l = kd_length(v);
+    return l != 0.0f ? v / l : (float3)(0.0f, 0.0f, 0.0f);
+}
+
+// Cycles' Vector Math (svm_vector_math): the vector in xyz, the value output (Dot Product,
+// Length, Distance) in w. c: the third vector (Multiply Add, Face Forward, Wrap) or in c.x
+// the Scale (Scale, Refract's IOR).
+inline float4 node_vector_math(int op, float4 a, float4 b, float4 c)
+{
+    float3 x = a.xyz, y = b.xyz, z = c.xyz, r = (float3)(0.0f, 0.0f, 0.0f);
+    float s = c.x, value = 0.0f;
     if (op == NODE_VECTOR_MATH_ADD) r = x + y;
     else if (op == NODE_VECTOR_MATH_SUBTRACT) r = x - y;
     else if (op == NODE_VECTOR_MATH_MULTIPLY) r = x * y;
@@ -77,13 +144,49 @@ inline float4 node_vector_math(int op, float4 a, float4 b, float s)
     else if (op == NODE_VECTOR_MATH_DOT_PRODUCT) value = kd_dot(x, y);
     else if (op == NODE_VECTOR_MATH_CROSS_PRODUCT) r = kd_cross(x, y);
     else if (op == NODE_VECTOR_MATH_LENGTH) value = kd_length(x);
-    else if (op == NODE_VECTOR_MATH_NORMALIZE) {
-        float l = kd_length(x);
-        r = l != 0.0f ? x / l : (float3)(0.0f, 0.0f, 0.0f);
-    }
+    else if (op == NODE_VECTOR_MATH_NORMALIZE) r = node_safe_normalize(x);
     else if (op == NODE_VECTOR_MATH_ABSOLUTE) r = fabs(x);
     else if (op == NODE_VECTOR_MATH_MINIMUM) r = fmin(x, y);
     else if (op == NODE_VECTOR_MATH_MAXIMUM) r = fmax(x, y);
+    else if (op == NODE_VECTOR_MATH_MULTIPLY_ADD) r = x * y + z;
+    else if (op == NODE_VECTOR_MATH_DISTANCE) value = kd_length(x - y);
+    else if (op == NODE_VECTOR_MATH_PROJECT) {
+        float length_squared = kd_dot(y, y);
+        r = length_squared != 0.0f ? (kd_dot(x, y) / length_squared) * y : r;
+    }
+    else if (op == NODE_VECTOR_MATH_REFLECT) {
+        float3 n = node_safe_normalize(y);
+        r = x - 2.0f * kd_dot(n, x) * n;
+    }
+    else if (op == NODE_VECTOR_MATH_REFRACT) {
+        float3 n = node_safe_normalize(y);
+        float cosine = kd_dot(n, x), k = 1.0f - s * s * (1.0f - cosine * cosine);
+        r = k < 0.0f ? r : s * x - (s * cosine + sqrt(k)) * n;
+    }
+    else if (op == NODE_VECTOR_MATH_FACEFORWARD) r = kd_dot(z, y) < 0.0f ? x : -x;
+    else if (op == NODE_VECTOR_MATH_SNAP)
+        r = (float3)(y.x != 0.0f ? floor(x.x / y.x) * y.x : 0.0f,
+                     y.y != 0.0f ? floor(x.y / y.y) * y.y : 0.0f,
+                     y.z != 0.0f ? floor(x.z / y.z) * y.z : 0.0f);
+    else if (op == NODE_VECTOR_MATH_FLOOR) r = floor(x);
+    else if (op == NODE_VECTOR_MATH_CEIL) r = ceil(x);
+    else if (op == NODE_VECTOR_MATH_MODULO)
+        r = (float3)(y.x != 0.0f ? fmod(x.x, y.x) : 0.0f, y.y != 0.0f ? fmod(x.y, y.y) : 0.0f,
+                     y.z != 0.0f ? fmod(x.z, y.z) : 0.0f);
+    else if (op == NODE_VECTOR_MATH_FRACTION) r = x - floor(x);
+    else if (op == NODE_VECTOR_MATH_WRAP)
+        r = (float3)(node_wrap(x.x, y.x, z.x), node_wrap(x.y, y.y, z.y), node_wrap(x.z, y.z, z.z));
+    else if (op == NODE_VECTOR_MATH_SINE) r = sin(x);
+    else if (op == NODE_VECTOR_MATH_COSINE) r = cos(x);
+    else if (op == NODE_VECTOR_MATH_TANGENT) r = tan(x);
+    else if (op == NODE_VECTOR_MATH_POWER)
+        r = (float3)(node_math(NODE_MATH_POWER, x.x, y.x, 0.0f),
+                     node_math(NODE_MATH_POWER, x.y, y.y, 0.0f),
+                     node_math(NODE_MATH_POWER, x.z, y.z, 0.0f));
+    else if (op == NODE_VECTOR_MATH_SIGN)
+        r = (float3)(node_math(NODE_MATH_SIGN, x.x, 0.0f, 0.0f),
+                     node_math(NODE_MATH_SIGN, x.y, 0.0f, 0.0f),
+                     node_math(NODE_MATH_SIGN, x.z, 0.0f, 0.0f));
     return (float4)(r, value);
 }
 
@@ -271,7 +374,7 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Su
 #endif
     for (int pc = 0; pc < 2 * 1024; pc += 2) {
         float4 w0 = code[pc], w1 = code[pc + 1];
-        int op = (int)w0.x, dst = min((int)w0.y, NODE_REGISTERS - 1);
+        int op = (int)w0.x, dst = clamp((int)w0.y, 0, NODE_REGISTERS - 1);
         if (op == NODE_OP_END)
             break;
         float4 a = node_operand(regs, w0.z), b = node_operand(regs, w0.w);
@@ -320,8 +423,8 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Su
             if (w1.z > 0.0f)
                 r = clamp(r, fmin(b.z, c.x), fmax(b.z, c.x));
             out = (float4)(r);
-        } else if (op == NODE_OP_VECTOR_MATH) {   // c: the Scale input
-            out = node_vector_math((int)w1.y, a, b, c.x);
+        } else if (op == NODE_OP_VECTOR_MATH) {   // c: the third vector, or the Scale
+            out = node_vector_math((int)w1.y, a, b, c);
         } else if (op == NODE_OP_HSV) {        // a: fac; b: colour; c: hue, saturation, value
             float3 hsv = rgb_to_hsv(b.xyz);
             hsv.x = hsv.x + c.x + 0.5f;
