@@ -386,8 +386,8 @@ def bunny_trees():
     from tests.meshes import load_bunny
     vertices, triangles = load_bunny()
     tree = build_kdtree(vertices, triangles)
-    return [compact_tree(tree, len(triangles), "ours"),
-            compact_tree(tree, len(triangles), "ours", leaf16=False)]
+    return [compact_tree(tree, len(triangles), "compressed"),
+            compact_tree(tree, len(triangles), "compressed", leaf16=False)]
 
 
 @pytest.mark.parametrize("which", [0, 1], ids=["16-bit leaves", "32-bit leaves"])
