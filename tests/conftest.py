@@ -17,8 +17,9 @@ if str(ROOT) not in sys.path:
 
 from core.net.trust import SECRET_ENV, new_farm_secret  # noqa: E402
 
-os.environ[SECRET_ENV] = new_farm_secret()
+if not os.environ.get(SECRET_ENV, "").startswith("kdtrace-farm-"):   # a test's child keeps it
+    os.environ[SECRET_ENV] = new_farm_secret()
 FARM_SECRET = os.environ[SECRET_ENV].encode()
-SLAVE_HOME = tempfile.mkdtemp(prefix="kdtrace-test-slaves-")
-os.environ["KDTRACE_SLAVE_HOME"] = SLAVE_HOME
-atexit.register(shutil.rmtree, SLAVE_HOME, True)
+if not os.environ.get("KDTRACE_SLAVE_HOME"):
+    os.environ["KDTRACE_SLAVE_HOME"] = tempfile.mkdtemp(prefix="kdtrace-test-slaves-")
+    atexit.register(shutil.rmtree, os.environ["KDTRACE_SLAVE_HOME"], True)

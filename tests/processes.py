@@ -20,7 +20,9 @@ class ChildProcess:
 
     def __init__(self, argv: list, wrapper: tuple = (), env: dict | None = None):
         # One PoCL thread per slave so that several slaves share this machine's two cores.
+        # A variable given as None is left out (a slave without the tests' farm secret).
         env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1", PYTHONUNBUFFERED="1", **(env or {}))
+        env = {name: value for name, value in env.items() if value is not None}
         self.proc = subprocess.Popen([*wrapper, sys.executable, *argv], cwd=ROOT, env=env,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines, self.stderr_lines = [], []
@@ -64,8 +66,9 @@ class ChildProcess:
 class SlaveProcess(ChildProcess):
     """A `python -m slave` subprocess on loopback; its start line gives the port."""
 
-    def __init__(self, name: str, *extra: str):
-        super().__init__(["-m", "slave", "--port", "0", "--bind", "127.0.0.1", "--name", name, *extra])
+    def __init__(self, name: str, *extra: str, env: dict | None = None):
+        super().__init__(["-m", "slave", "--port", "0", "--bind", "127.0.0.1", "--name", name,
+                          *extra], env=env)
         self.name = name
         line = self.wait_line(LINE_PREFIX)
         assert line.startswith(LINE_PREFIX + name + " listening on 127.0.0.1:"), line

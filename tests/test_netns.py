@@ -21,11 +21,13 @@ from core.net import protocol
 from core.net.discovery import SlaveBrowser
 from core.net.master import Master, MasterError
 from core.net.protocol import HEADER, MAGIC, MsgType
-from core.scene.model import SCENE_FORMAT_VERSION
+from core.net.trust import new_farm_secret
 from core.scene.scene import Scene
+from tests.conftest import FARM_SECRET
 from tests.processes import ChildProcess
 from tests.test_network import (assert_images_equal, make_scene, make_view, raw_exchange,
                                 render_all)
+from tests.tls_peers import tls_exchange
 
 pytestmark = pytest.mark.skipif(
     os.geteuid() != 0 or shutil.which("ip") is None,
@@ -78,70 +80,77 @@ def HostProcess(ns: str, argv: list, env: dict | None = None) -> ChildProcess:
     return ChildProcess(argv, wrapper=("ip", "netns", "exec", ns), env=env)
 
 
-def start_slave(lan: Lan, host: int, name: str, *extra, port=PORT) -> HostProcess:
+def start_slave(lan: Lan, host: int, name: str, *extra, port=PORT, env=None) -> HostProcess:
     address = lan.addresses[host]
     slave = HostProcess(lan.namespaces[host], ["-m", "slave", "--bind", address, "--port", str(port),
-                                               "--name", name, *extra])
-    slave.wait_line(f"KD Trace slave {name} listening on {address}:{port}")
+                                               "--name", name, *extra], env=env)
+    line = slave.wait_line(f"KD Trace slave {name} listening on {address}:{port}")
     slave.name, slave.endpoint = name, (address, port)
+    slave.id = line.split(" id ")[1].split()[0]
     return slave
 
 
-# A stand-in slave that handshakes correctly and then misbehaves. Run with `python -c`.
+# A stand-in slave that handshakes correctly (TLS, the tests' farm secret, which it inherits)
+# and then misbehaves. Run with `python -c`.
 FAKE_SLAVE = r"""
 import os, socket, sys, threading, time
+import numpy
 from core.net import protocol
 from core.net.protocol import MsgType, HEADER, MAGIC
-from core.scene.model import SCENE_FORMAT_VERSION
+from tests.tls_peers import serve_as_slave
 mode, host, port = sys.argv[1], sys.argv[2], int(sys.argv[3])
 
 def serve(sock):
-    hello = protocol.recv_message(sock)
-    if mode == "newer":
+    if mode == "newer":           # answers the opening as a slave of the next version would
+        sock.recv(65536)
         text = b'{"message":"hello from the future"}'
         sock.sendall(HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION + 1, MsgType.ERROR, len(text), 0) + text)
         time.sleep(5); return
-    protocol.send_message(sock, MsgType.WELCOME, {"protocol_version": protocol.PROTOCOL_VERSION,
-        "scene_format_version": SCENE_FORMAT_VERSION, "name": "fake-" + mode, "id": "fake",
-        "device": "none", "compute_units": 1, "memory": 1, "platform": ""})
+    channel, _ = serve_as_slave(sock, "fake-" + mode)
     frame = None
     while True:
-        msg = protocol.recv_message(sock, protocol.Limits())
+        msg = channel.recv(protocol.Limits())
         if msg.type == MsgType.SCENE_QUERY:
-            protocol.send_message(sock, MsgType.SCENE_READY, {"scene_hash": msg.header["scene_hash"], "present": True})
+            channel.send(MsgType.SCENE_READY, {"scene_hash": msg.header["scene_hash"], "present": True})
         elif msg.type == MsgType.FRAME_START:
             frame = msg.header
         elif msg.type == MsgType.TILE_REQUEST:
             if mode == "hang":
                 continue              # reads on, answers nothing, never closes
             if mode == "garbage":
-                sock.sendall(os.urandom(4096)); continue
+                channel.send_bytes(os.urandom(4096)); continue
+            w, h = frame["tile_size"], frame.get("tile_height", frame["tile_size"])
             if mode == "half":        # half a valid TILE_RESULT, then silence (connection open)
-                w, h = frame["tile_size"], frame.get("tile_height", frame["tile_size"])
-                zeros = {"combined": __import__("numpy").zeros((h, w, 4), "f4"),
-                         "depth": __import__("numpy").zeros((h, w), "f4"),
-                         "normal": __import__("numpy").zeros((h, w, 3), "f4")}
+                zeros = {"combined": numpy.zeros((h, w, 4), "f4"), "depth": numpy.zeros((h, w), "f4"),
+                         "normal": numpy.zeros((h, w, 3), "f4")}
                 data = b"".join(bytes(b) for b in protocol.encode_message(MsgType.TILE_RESULT,
                     {"frame_id": frame["frame_id"], "tile": msg.header["tile"]}, zeros))
-                sock.sendall(data[:len(data) // 2])
-                while sock.recv(65536):   # reads on, sends nothing more, never closes
-                    pass
-                return
-            w, h = frame["tile_size"], frame.get("tile_height", frame["tile_size"])
-            bad = {"combined": __import__("numpy").full((h, w, 4), float("nan"), "f4"),
-                   "depth": __import__("numpy").zeros((h, w), "f4"),
-                   "normal": __import__("numpy").zeros((h, w, 3), "f4")}
+                channel.send_bytes(data[:len(data) // 2])
+                while True:           # reads on, sends nothing more, never closes
+                    try:
+                        if not channel._read(lambda: channel.sock.recv(65536)):
+                            return
+                    except socket.timeout:
+                        pass
+            bad = {"combined": numpy.full((h, w, 4), float("nan"), "f4"),
+                   "depth": numpy.zeros((h, w), "f4"), "normal": numpy.zeros((h, w, 3), "f4")}
             tile = msg.header["tile"] if mode == "nan" else msg.header["tile"] + 1
-            protocol.send_message(sock, MsgType.TILE_RESULT, {"frame_id": frame["frame_id"],
+            channel.send(MsgType.TILE_RESULT, {"frame_id": frame["frame_id"],
                 "tile": tile, "x": 0, "y": 0, "w": w, "h": h, "render_ms": 1.0}, bad)
         elif msg.type == MsgType.BYE:
             return
+
+def guarded(sock):
+    try:
+        serve(sock)
+    except Exception:
+        pass
 
 listener = socket.create_server((host, port))
 print("fake slave ready", flush=True)
 while True:
     conn, _ = listener.accept()
-    threading.Thread(target=lambda c=conn: (lambda: (serve(c)))() , daemon=True).start()
+    threading.Thread(target=guarded, args=(conn,), daemon=True).start()
 """
 
 
@@ -183,7 +192,7 @@ def scene():
 @pytest.fixture(scope="module")
 def one_slave_image(slaves, scene):
     """The reference: the whole frame rendered by one slave over the LAN."""
-    with Master([slaves[0].endpoint], secret=None) as master:
+    with Master([slaves[0].endpoint]) as master:
         master.connect()
         master.load_scene(Scene.from_parts(*scene))
         images, _ = render_all(master.render(make_view(), tile_size=16))
@@ -210,7 +219,7 @@ def test_discovery_of_several_slaves_across_hosts(lan, slaves):
 
 
 def test_render_across_hosts_equals_one_slave(slaves, scene, one_slave_image):
-    with Master([s.endpoint for s in slaves], secret=None) as master:
+    with Master([s.endpoint for s in slaves]) as master:
         master.connect()
         master.load_scene(Scene.from_parts(*scene))
         for model in ("3b", "3a"):
@@ -231,7 +240,7 @@ def test_slave_killed_at_random_moments(lan, slaves, scene, one_slave_image):
     for attempt, port in enumerate((47611, 47612, 47613)):
         victim = start_slave(lan, 3, f"kdt-victim-{attempt}", port=port)
         try:
-            with Master([slaves[0].endpoint, slaves[1].endpoint, victim.endpoint], secret=None) as master:
+            with Master([slaves[0].endpoint, slaves[1].endpoint, victim.endpoint]) as master:
                 master.connect()
                 master.load_scene(Scene.from_parts(*scene))
                 job = master.render(make_view(), tile_size=4)   # 192 tiles
@@ -258,7 +267,7 @@ def test_slave_killed_at_random_moments(lan, slaves, scene, one_slave_image):
 def test_slave_that_hangs_without_closing(lan, slaves, scene, one_slave_image, duplicates):
     fake = start_fake(lan, 3, "hang", 47620 + duplicates)
     try:
-        with Master([slaves[0].endpoint, fake.endpoint], secret=None, silence_timeout=2.0,
+        with Master([slaves[0].endpoint, fake.endpoint], silence_timeout=2.0,
                     heartbeat_s=0.5) as master:
             master.connect()
             master.load_scene(Scene.from_parts(*scene))
@@ -282,7 +291,7 @@ def test_slave_that_hangs_without_closing(lan, slaves, scene, one_slave_image, d
 def test_slave_that_returns_garbage(lan, slaves, scene, one_slave_image, mode, reason):
     fake = start_fake(lan, 3, mode, 47630 + len(mode))
     try:
-        with Master([fake.endpoint, slaves[1].endpoint], secret=None) as master:
+        with Master([fake.endpoint, slaves[1].endpoint]) as master:
             master.connect()
             master.load_scene(Scene.from_parts(*scene))
             job = master.render(make_view(), tile_size=16)
@@ -303,49 +312,60 @@ def test_bad_frames_to_a_slave_then_a_real_master(slaves, scene, one_slave_image
     assert b"not a KD Trace message" in exchange(os.urandom(512))
     # Truncated header, then a truncated JSON body: the slave says why and closes.
     assert b"in the middle of a message" in exchange(
-        HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION, MsgType.HELLO, 40, 0)[:9])
+        HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION, MsgType.OPEN, 40, 0)[:9])
     assert b"in the middle of a message" in exchange(
-        HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION, MsgType.HELLO, 40, 0) + b'{"proto')
-    assert b"exceeds" in exchange(HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION, MsgType.HELLO,
+        HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION, MsgType.OPEN, 40, 0) + b'{"proto')
+    assert b"exceeds" in exchange(HEADER.pack(MAGIC, protocol.PROTOCOL_VERSION, MsgType.OPEN,
                                               1 << 30, 1 << 40))
-    with Master([slaves[2].endpoint], secret=None) as master:
+    # Inside TLS: a header past the limits is refused at once; a message that stops half
+    # way (the connection left open) at its deadline, with why.
+    assert b"exceeds" in tls_exchange((host, port), HEADER.pack(
+        MAGIC, protocol.PROTOCOL_VERSION, MsgType.SCENE_QUERY, 1 << 30, 1 << 40))
+    started = time.monotonic()
+    reply = tls_exchange((host, port), HEADER.pack(
+        MAGIC, protocol.PROTOCOL_VERSION, MsgType.SCENE_QUERY, 40, 0) + b'{"proto', timeout=20)
+    assert b"message arrived too slowly" in reply, reply[-300:]
+    assert time.monotonic() - started < 20
+    with Master([slaves[2].endpoint]) as master:
         master.connect()
         master.load_scene(Scene.from_parts(*scene))
         images, _ = render_all(master.render(make_view(), tile_size=16))
     assert_images_equal(images, one_slave_image)
 
 
-def test_shared_secret(lan, scene, one_slave_image, tmp_path):
+def test_farm_secret(lan, scene, one_slave_image, tmp_path):
+    """Across hosts: the farm secret admits a master; another secret, none, or a HELLO that
+    skips its proof and sends scene data anyway gets nothing but a refusal, and never a proof
+    from the slave (the master proves first)."""
     secret_file = tmp_path / "secret"
-    secret_file.write_text("correct horse battery staple\n")
-    slave = start_slave(lan, 3, "kdt-secret", "--secret-file", str(secret_file), port=47640)
-    open_slave = start_slave(lan, 3, "kdt-open", port=47641)
+    secret_file.write_bytes(FARM_SECRET)
+    slave = start_slave(lan, 3, "kdt-secret", "--secret-file", str(secret_file), port=47640,
+                        env={"KDTRACE_SECRET": None})
+    open_slave = start_slave(lan, 3, "kdt-open", port=47641, env={"KDTRACE_SECRET": None})
     try:
-        with Master([slave.endpoint], secret="correct horse battery staple") as master:
+        with Master([slave.endpoint], secret=FARM_SECRET) as master:
             master.connect()
+            assert master.slaves[0].trusted_by == "farm secret"
             master.load_scene(Scene.from_parts(*scene))
             images, _ = render_all(master.render(make_view(), tile_size=16))
         assert_images_equal(images, one_slave_image)
-        with pytest.raises(MasterError, match="failed authentication"):
-            Master([slave.endpoint], secret="wrong").connect()
-        with pytest.raises(MasterError, match="requires a shared secret"):
+        with pytest.raises(MasterError, match="authentication failed: wrong farm secret"):
+            Master([slave.endpoint], secret=new_farm_secret()).connect()
+        with pytest.raises(MasterError, match=r"ID [A-Z2-7-]{19}\) is not approved: this master has no farm secret"):
             Master([slave.endpoint], secret=None).connect()
-        with pytest.raises(MasterError, match="does not authenticate"):
-            Master([open_slave.endpoint], secret="correct horse battery staple").connect()
-        # A master that skips AUTH and sends scene data anyway is refused before it is read.
-        hello = protocol.encode_message(MsgType.HELLO, {
-            "protocol_version": protocol.PROTOCOL_VERSION, "scene_format_version": SCENE_FORMAT_VERSION,
-            "name": "sneaky", "nonce": "0" * 64})[0]
+        with pytest.raises(MasterError, match="does not serve master ID"):
+            Master([open_slave.endpoint], secret=FARM_SECRET).connect()
+        # A master that skips the proof and sends scene data anyway is refused before it is read.
         query = protocol.encode_message(MsgType.SCENE_QUERY, {"scene_hash": "0" * 32})[0]
-        reply = raw_exchange(slave.endpoint, hello + query)
-        assert b"unexpected message type SCENE_QUERY" in reply and b"SCENE_READY" not in reply
-        # A master that answers the challenge with a wrong proof.
-        auth = protocol.encode_message(MsgType.AUTH, {"proof": "0" * 64})[0]
-        reply = raw_exchange(slave.endpoint, hello + auth + query)
-        assert b"authentication failed: wrong shared secret" in reply and b"SCENE_READY" not in reply
+        reply = tls_exchange(slave.endpoint, query, secret=None)
+        assert b"does not serve master ID" in reply and b"SCENE_READY" not in reply
+        # A master that proves a wrong secret: refused, and no WELCOME (no slave proof) at all.
+        reply = tls_exchange(slave.endpoint, query, proof="0" * 64)
+        assert b"authentication failed: wrong farm secret" in reply
+        assert b"SCENE_READY" not in reply and b"WELCOME" not in reply and b'"proof"' not in reply
         assert slave.alive()
         time.sleep(0.3)
-        assert "wrong shared secret" in slave.log and "left during authentication" in slave.log
+        assert "wrong farm secret" in slave.log and "does not serve master ID" in slave.log
         assert "Traceback" not in slave.log
     finally:
         slave.stop()
@@ -361,26 +381,36 @@ def test_version_mismatch_reported_by_name_on_both_sides(lan, slaves):
     try:
         with pytest.raises(MasterError, match=f"protocol version mismatch: slave speaks version "
                                               f"{newer}, master speaks version {protocol.PROTOCOL_VERSION}"):
-            Master([fake.endpoint], secret=None).connect()
+            Master([fake.endpoint]).connect()
     finally:
         fake.stop()
 
 
-def test_slave_beyond_loopback_without_a_secret_says_so_once(lan, slaves, tmp_path):
-    """Listening on a LAN address with no shared secret: one warning at start (the slaves of
-    this module do); with a secret, none."""
+def test_a_slave_that_trusts_nobody_yet_tells_its_owner_how_to_pair(lan, slaves):
+    """The slaves of this module (farm secret) say whom they serve and show no pairing code;
+    a first start with no secret and no allowed master shows one code and how to pair, and
+    serves nobody else (its port is open, its scenes and device are not)."""
     for slave in slaves:
-        assert slave.log.count("without a shared secret") == 1, slave.log
-        assert f"listening on {slave.endpoint[0]}:{slave.endpoint[1]} without a shared secret" \
-            in slave.log
-    secret_file = tmp_path / "secret"
-    secret_file.write_text("s3cret")
-    guarded = start_slave(lan, 3, "kdt-guarded", "--secret-file", str(secret_file), port=47660)
+        assert "serves masters that prove the farm secret" in slave.log, slave.log
+        assert "pairing code" not in slave.log
+    fresh = start_slave(lan, 3, "kdt-fresh", port=47660,
+                        env={"KDTRACE_SECRET": None, "KDTRACE_SLAVE_HOME": None,
+                             "XDG_CONFIG_HOME": str(lan_home(lan))})
     try:
         time.sleep(0.5)
-        assert "without a shared secret" not in guarded.log
+        assert fresh.log.count("enter the pairing code") == 1, fresh.log
+        assert f"click Pair beside kdt-fresh (ID {fresh.id[:4]}-" in fresh.log
+        assert "--allow MASTER-ID" in fresh.log and "--new-secret FILE" in fresh.log
+        with pytest.raises(MasterError, match="does not serve master ID"):
+            Master([fresh.endpoint], secret=FARM_SECRET).connect()
     finally:
-        guarded.stop()
+        fresh.stop()
+
+
+def lan_home(lan) -> str:
+    """A configuration folder of its own for a slave of this LAN (its identity goes there)."""
+    import tempfile
+    return tempfile.mkdtemp(prefix=f"kdtrace-{lan.bridge}-")
 
 
 def test_half_a_tile_then_silence_across_hosts(lan, slaves, scene, one_slave_image):
@@ -388,7 +418,7 @@ def test_half_a_tile_then_silence_across_hosts(lan, slaves, scene, one_slave_ima
     within the message deadline, names it, and the others finish the frame."""
     fake = start_fake(lan, 3, "half", 47670)
     try:
-        with Master([fake.endpoint, slaves[1].endpoint], secret=None, silence_timeout=1.0,
+        with Master([fake.endpoint, slaves[1].endpoint], silence_timeout=1.0,
                     heartbeat_s=0.25, retry_delays=(0.2,)) as master:
             master.connect()
             master.load_scene(Scene.from_parts(*scene))

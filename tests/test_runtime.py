@@ -1,5 +1,5 @@
 """Units of the distributed runtime: tile pool with end-of-frame copies, partitions, tile
-payloads (float16, zlib), HMAC proofs and secrets, the disk scene cache, the link emulator."""
+payloads (float16, zlib), farm proofs and secrets, the disk scene cache, the link emulator."""
 from __future__ import annotations
 
 import socket
@@ -10,7 +10,7 @@ import zlib
 import numpy as np
 import pytest
 
-from core.net import protocol
+from core.net import protocol, trust
 from tests.linkemu import LinkEmulator
 from core.net.protocol import ProtocolError
 from core.net.tiles import TilePool, partition_tile_size, tile_grid
@@ -86,26 +86,39 @@ def test_tile_payload_rejects_bombs_and_lies():
         protocol.decode_tile({"payload": "f16"}, f16, w, h, "f16")
 
 
-def test_hmac_proofs_and_secrets(tmp_path, monkeypatch):
-    m, s = protocol.new_nonce(), protocol.new_nonce()
-    proof = protocol.auth_proof(b"k", "slave", m, s)
-    assert protocol.proof_ok(b"k", "slave", m, s, proof)
-    assert not protocol.proof_ok(b"k", "master", m, s, proof)   # roles are not interchangeable
-    assert not protocol.proof_ok(b"other", "slave", m, s, proof)
-    assert not protocol.proof_ok(b"k", "slave", s, m, proof)
-    assert not protocol.proof_ok(b"k", "slave", m, s, None)
-    monkeypatch.delenv(protocol.SECRET_ENV, raising=False)
-    assert protocol.load_secret() is None
-    monkeypatch.setenv(protocol.SECRET_ENV, " hunter2 ")
-    assert protocol.load_secret() == b"hunter2"
+def test_farm_proofs_and_secrets(tmp_path, monkeypatch):
+    secret, other = trust.new_farm_secret().encode(), trust.new_farm_secret().encode()
+    m, s = trust.new_nonce(), trust.new_nonce()
+    master, slave = "A" * 52, "B" * 52
+    proof = trust.master_farm_proof(secret, m, master, slave)
+    assert trust.proof_ok(trust.master_farm_proof(secret, m, master, slave), proof)
+    # Bound to the secret, the nonce, both IDs and the role: worth nothing anywhere else.
+    for wrong in (trust.master_farm_proof(other, m, master, slave),
+                  trust.master_farm_proof(secret, s, master, slave),
+                  trust.master_farm_proof(secret, m, slave, master),
+                  trust.slave_farm_proof(secret, m, s, master, slave)):
+        assert not trust.proof_ok(wrong, proof)
+    assert not trust.proof_ok(proof, None) and not trust.proof_ok(proof, proof[:-1])
+    monkeypatch.delenv(trust.SECRET_ENV, raising=False)
+    assert trust.load_secret() is None
+    monkeypatch.setenv(trust.SECRET_ENV, f" {secret.decode()} ")
+    assert trust.load_secret() == secret
     path = tmp_path / "s"
-    path.write_text("from-file\n")
-    assert protocol.load_secret(str(path)) == b"from-file"
+    trust.write_new_secret(path)
+    assert trust.load_secret(str(path)).startswith(b"kdtrace-farm-")
+    assert path.stat().st_mode & 0o777 == 0o600
+    with pytest.raises(trust.AuthError, match="never overwritten"):
+        trust.write_new_secret(path)
+    # A password chosen by hand is refused, with how to make a real one.
+    for typed in ("hunter2\n", "correct horse battery staple", "kdtrace-farm-short"):
+        path.write_text(typed)
+        with pytest.raises(trust.AuthError, match="does not hold a generated farm secret.*--new-secret"):
+            trust.load_secret(str(path))
     path.write_text("  \n")
-    with pytest.raises(protocol.AuthError, match="empty"):
-        protocol.load_secret(str(path))
-    with pytest.raises(protocol.AuthError, match="cannot read"):
-        protocol.load_secret(str(tmp_path / "missing"))
+    with pytest.raises(trust.AuthError, match="empty"):
+        trust.load_secret(str(path))
+    with pytest.raises(trust.AuthError, match="cannot read"):
+        trust.load_secret(str(tmp_path / "missing"))
 
 
 def test_disk_scene_cache_survives_a_restart_and_drops_damaged_files(tmp_path):

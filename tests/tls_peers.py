@@ -69,7 +69,7 @@ def read_all(channel: protocol.Channel, timeout: float = 10.0) -> bytes:
     return b"".join(chunks)
 
 
-def tls_exchange(endpoint, data: bytes = b"", hello: bool = True, half_close: bool = False,
+def tls_exchange(endpoint, data: bytes = b"", hello: bool = True, timeout: float = 10.0,
                  **changes) -> bytes:
     """Inside TLS: a valid HELLO (unless hello=False; `changes` alter it), then raw `data`;
     returns every byte the slave sent back until it closed (WELCOME included)."""
@@ -80,9 +80,7 @@ def tls_exchange(endpoint, data: bytes = b"", hello: bool = True, half_close: bo
             channel.send(MsgType.HELLO, hello_fields(who, slave_id, **changes))
         if data:
             channel.send_bytes(data)
-        if half_close:
-            protocol.end_writing(channel.sock)
-        return read_all(channel)
+        return read_all(channel, timeout)
     finally:
         channel.close()
 

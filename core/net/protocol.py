@@ -330,11 +330,13 @@ def recv_message(sock: socket.socket, limits: Limits = DEFAULT_LIMITS,
 # ----------------------------------------------------------------------------- channels
 
 def end_writing(sock: socket.socket) -> None:
-    """End our direction of the stream (the peer reads our last message, then the end). On a
-    TLS socket this is the TCP half-close without TLS's close_notify: SSLSocket.shutdown
-    would detach the TLS object under a thread still reading (it would then read the raw
-    bytes); the peer's TLS reads the end as an end (suppress_ragged_eofs)."""
-    socket.socket.shutdown(sock, socket.SHUT_WR)
+    """End our direction of the stream, so that the peer reads our last message and then the
+    end. Only on a plain socket: over TLS, a TCP half-close without TLS's close_notify is an
+    unexpected end that OpenSSL treats as fatal (the peer could not answer any more), and
+    Python's ssl sends close_notify only by waiting for the peer's. A TLS connection is
+    closed whole instead, after its peer has closed (Channel.drain) or a moment has passed."""
+    if not isinstance(sock, ssl.SSLSocket):
+        socket.socket.shutdown(sock, socket.SHUT_WR)
 
 
 def _wait(sock: socket.socket, for_write: bool, timeout: float) -> bool:
