@@ -2,29 +2,33 @@
 a host of its own, so that it sees only this LAN: a slave advertised before F12 renders the
 first frame of a fresh Blender with KD Trace's default settings, and no local slave is started;
 the browser that finds it runs while KD Trace is the render engine; a slave that appears during
-a frame joins it."""
+a frame joins it. (These slaves and Blenders hold the tests' farm secret.) And the first run
+as a new user has it, with no farm secret: a slave started on another machine is paired from
+the Slaves panel in three steps and renders."""
 import json
+import re
 import subprocess
+import tempfile
 import time
 import uuid
 
 import pytest
 
 from tests.blender import ROOT, SCRIPTS, build_extension
-from tests.test_netns import HostProcess, Lan, pytestmark, start_fake, start_slave  # noqa: F401
+from tests.test_netns import PORT, HostProcess, Lan, pytestmark, start_fake, start_slave  # noqa: F401
 
 ATTEMPTS = 3   # fresh Blenders, one F12 each
 BLENDER_HOST = 0
 
 
-def start_blender(lan: Lan, script: str, work, **arguments) -> HostProcess:
+def start_blender(lan: Lan, script: str, work, env=None, **arguments) -> HostProcess:
     """tests/bpy_scripts/<script>.py in a fresh process on the LAN's host 0."""
     work.mkdir(parents=True, exist_ok=True)
     blender = HostProcess(lan.namespaces[BLENDER_HOST],
                           [str(SCRIPTS / f"{script}.py"), json.dumps(arguments),
                            str(work / "result.json")],
                           env={"BLENDER_USER_RESOURCES": str(work / "blender-user"),
-                               "PYTHONPATH": str(ROOT)})
+                               "PYTHONPATH": str(ROOT), **(env or {})})
     blender.result_path = work / "result.json"
     return blender
 
@@ -69,6 +73,38 @@ def test_browser_runs_while_kdtrace_is_the_engine(tmp_path, lan, lan_slave, zip_
                                   slave=lan_slave.name, wait_seconds=10.0))
     assert report["steps"] == {"cycles": False, "kdtrace": True, "discovery off": False}
     assert report["seen"] == [lan_slave.name]
+
+
+def test_a_new_user_pairs_a_slave_from_the_addon_and_renders(tmp_path, lan, zip_path):
+    """The first run (README, "First run"), with nothing configured: the slave, on its own
+    machine, prints its ID and a pairing code; in Blender (1) KD Trace is selected and the
+    Slaves panel lists the slave with that ID, (2) Pair with the code (a wrong code first:
+    refused, nothing approved), (3) F12 renders on the slave, no local slave started. The
+    slave then serves that Blender by ID; another master still gets nothing."""
+    own = {"KDTRACE_SECRET": None, "KDTRACE_SLAVE_HOME": tempfile.mkdtemp(dir=tmp_path)}
+    name = f"new-{uuid.uuid4().hex[:6]}"
+    slave = start_slave(lan, 1, name, port=PORT + 1, env=own)
+    try:
+        deadline = time.monotonic() + 10
+        while not (code := re.search(r"pairing code ([A-Z2-7]{4}-[A-Z2-7]{4})", slave.log)):
+            assert time.monotonic() < deadline, slave.log
+            time.sleep(0.1)
+        blender = start_blender(lan, "pair_and_render", tmp_path, zip=str(zip_path), width=64,
+                                height=48, slave=name, code=code[1], try_wrong_code=True,
+                                env={"KDTRACE_SECRET": None})
+        report = result(blender)
+        assert report["panel"].endswith(f"ID {slave.id[:4]}-{slave.id[4:8]}-{slave.id[8:12]}-"
+                                         f"{slave.id[12:16]}"), report
+        assert report["wrong_code"] == ["CANCELLED"] and report["approved_after_wrong"] == []
+        assert report["paired"] == ["FINISHED"] and report["approved"] == [slave.id]
+        assert list(report["tiles_per_slave"]) == [name], report
+        assert report["local_slave_pids"] == [] and report["local_reason"] == "", report
+        time.sleep(0.3)
+        short = report["master_id"][:4]
+        assert f"(ID {short}-" in slave.log and "paired with the pairing code" in slave.log
+        assert "wrong pairing code (4 tries left)" in slave.log
+    finally:
+        slave.stop()
 
 
 def test_slave_found_during_a_frame_joins_it(tmp_path, zip_path):

@@ -54,6 +54,9 @@ def test_zip_holds_the_wheels_and_licences_and_no_outputs(linux_zip, bench_outpu
     wheels = [n for n in names if n.startswith("wheels/")]
     assert any("zeroconf" in w for w in wheels) and any("pyopencl" in w for w in wheels)
     assert any("pocl_binary_distribution" in w for w in wheels)
+    # Identities (key pairs, certificates): cryptography and what it needs, for Blender's Python.
+    assert all(any(os.path.basename(w).startswith(f"{name}-") for w in wheels)
+               for name in ("cryptography", "cffi", "pycparser")), wheels
     assert not any("numpy" in w for w in wheels), "numpy must never be bundled"
     assert not any(n.startswith(("tests/", "bench/", "docs/", ".ci/")) for n in names)
     assert bench_output.name not in " ".join(names)
@@ -106,7 +109,7 @@ def test_zip_wheels_are_for_blenders_python(linux_zip):
 def test_runtime_requirements_leave_out_the_development_tools():
     runtime = requirement_names(ROOT / "requirements.txt")
     development = requirement_names(ROOT / "requirements-dev.txt")
-    assert {"numpy", "pyopencl", "zeroconf", "pocl-binary-distribution"} <= runtime
+    assert {"numpy", "pyopencl", "zeroconf", "pocl-binary-distribution", "cryptography"} <= runtime
     assert not runtime & {"bpy", "pytest", "embreex"}
     assert {"bpy", "pytest", "embreex"} <= development
     assert "-r requirements.txt" in (ROOT / "requirements-dev.txt").read_text()
@@ -117,7 +120,8 @@ def test_runtime_requirements_leave_out_the_development_tools():
 def test_zip_with_wheels_installs_and_renders(linux_zip, tmp_path):
     result = run_bpy_script("install_with_wheels", tmp_path, zip=str(linux_zip))
     assert result["wheel_dirs"], "Blender did not add the extension's wheels to sys.path"
-    assert {"zeroconf", "ifaddr", "pyopencl", "pytools", "pocl_binary_distribution"} <= set(result["installed"])
+    assert {"zeroconf", "ifaddr", "pyopencl", "pytools", "pocl_binary_distribution",
+            "cryptography", "cffi", "pycparser"} <= set(result["installed"])
     assert result["rendered"]
 
 
@@ -140,7 +144,7 @@ def test_blender_command_runs_the_slave_on_the_bundled_wheels(linux_zip, tmp_pat
         loaded = {line.split()[-1] for line in open(f"/proc/{slave_pid}/maps") if "/" in line}
         geometry, tree = make_scene()
         scene = Scene.from_parts(geometry, tree)
-        with Master([("127.0.0.1", port)], secret=None) as master:
+        with Master([("127.0.0.1", port)]) as master:
             master.connect()
             master.load_scene(scene)
             images, results = render_all(master.render(make_view(), tile_size=16))
@@ -165,9 +169,12 @@ def test_blender_command_runs_the_slave_on_the_bundled_wheels(linux_zip, tmp_pat
     assert slave_cwd == outcome["extension_root"]   # `python -m slave` from the extension
     pyopencl = [path for path in loaded if "/pyopencl/_cl." in path]
     assert pyopencl and all(any(p.startswith(d) for d in outcome["wheel_dirs"]) for p in pyopencl)
+    # Its identity was made with the bundled cryptography (its compiled part from the wheel).
+    rust = [path for path in loaded if "/cryptography/hazmat/bindings/_rust" in path]
+    assert rust and all(any(p.startswith(d) for d in outcome["wheel_dirs"]) for p in rust), loaded
     log = (tmp_path / "slave.log").read_text()
     assert re.search(rf"^\d{{4}}-\d\d-\d\d \d\d:\d\d:\d\d kdtrace-slave INFO: frame [0-9a-f]+ "
-                     rf"for .*: scene {scene.hash[:12]}, {len(results)} of {len(results)} tiles, "
+                     rf"for .*: scene {scene.hash[:8]}, {len(results)} of {len(results)} tiles, "
                      rf"[\d.]+ ms/tile, kernel build [\d.]+ s, [\d.]+ MiB sent", log, re.M), log
 
 
