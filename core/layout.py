@@ -506,10 +506,32 @@ LAYOUT_COUNTS = Columns("LAYOUT_COUNTS", "A block of nodes' counts for the compa
                         "(layout_stats, uint32 rows)",
                         ("leaves", "empty_leaves_stored", "empty_leaves_elided", "leaves_16bit",
                          "leaves_32bit", "inner", "largest_leaf", "collapsed_kept"))
+# The binned builder (core/accel/binned.py; kernels/build/binned.cl), one level at a time.
+BIN_NODE = Columns("BIN_NODE", "A node of the level being split (nodes buffer; lo, hi float32 "
+                   "bits): its cell, its references' places in the level, bad refines on its path",
+                   ("lo_x", "lo_y", "lo_z", "hi_x", "hi_y", "hi_z", "first", "count",
+                    "bad_refines", "unused"))
+BIN_CHUNK = Columns("BIN_CHUNK", "A chunk of a big node's references (chunks buffer): the node, "
+                    "its places, and (choose_big) its first places among the node's below and "
+                    "above child's references and leaf entries",
+                    ("node", "first", "count", "below", "above", "leaf"))
+BIN_BIG = Columns("BIN_BIG", "A big node (big buffer): the node, its first chunk, its chunks",
+                  ("node", "first_chunk", "chunks"))
+BIN_SUMS = Columns("BIN_SUMS", "A block of a level's nodes (level_sums): inner nodes, places of "
+                   "their children's references, leaf entries, leaves, empty leaves, the largest "
+                   "child, SAH cost (int64 in 2^-32, low and high word)",
+                   ("inner", "places", "leaf_refs", "leaves", "empty_leaves", "widest", "sah_low",
+                    "sah_high"))
+BIN_PLACES = Columns("BIN_PLACES", "A block's first inner node, reference place and leaf entry "
+                     "(emit)", ("inner", "places", "leaf_refs"))
+BIN_BOUNDS = Columns("BIN_BOUNDS", "A block of first references' bounds (ref_bounds, float32 "
+                     "rows; kept: uint bits)", ("lo_x", "lo_y", "lo_z", "hi_x", "hi_y", "hi_z",
+                                                "kept"))
 COLUMNS = (TEXTURE_SIZE, MESH, SUBTREE_ROOT, SUBTREE_RESULT, SUBTREE_PLACE, STORE_MOVE,
            LEVEL_COUNT, LEVEL_BASE, CORNERS, CELL, BIG_CHUNK, NODE_CHUNKS, BIG_CHOICE, PLANE_COUNTS,
            BIG_DECISION, CHILD_COUNTS, BIG_DEST, CLIMB, LIFT_GROUPED, LIFT_CANDIDATE,
-           LAYOUT_COUNTS)
+           LAYOUT_COUNTS, BIN_NODE, BIN_CHUNK, BIN_BIG, BIN_SUMS,
+           BIN_PLACES, BIN_BOUNDS)
 
 BUILD_REF = Element("BUILD_REF", "A triangle reference of the build (split.cl): its box, the "
                     "triangle's uint bits in lo.w", "Ref", 32)

@@ -133,7 +133,10 @@ def check_points_covered(tree, corners, solid, referenced, triangle_count):
     weights /= weights.sum(1, keepdims=True)
     points = np.einsum("sk,tkd->tsd", weights, corners[solid]).reshape(-1, 3)
     point_tri = np.repeat(solid, len(weights))
-    # Descend all points at once; a point on a split plane goes to both children.
+    # Descend all points at once; a point on a split plane goes to both children (within the
+    # points' own rounding: a triangle lying in a split plane may be in either child, and its
+    # sample points, formed in float64, may round to just off the plane).
+    tolerance = 1e-12 * max(float(np.abs(tree.bounds).max()), 1e-30)
     point, node = np.arange(len(points)), np.zeros(len(points), np.int64)
     found = np.zeros(len(points), bool)
     while len(point):
@@ -146,7 +149,7 @@ def check_points_covered(tree, corners, solid, referenced, triangle_count):
         axis, child = word0 & 3, word0 >> 2
         split = tree.nodes[node, 1].view(np.float32).astype(np.float64)
         coord = points[point, axis]
-        below, above = coord <= split, coord >= split
+        below, above = coord <= split + tolerance, coord >= split - tolerance
         point = np.concatenate([point[below], point[above]])
         node = np.concatenate([child[below], child[above] + 1])
     assert found.all(), f"{(~found).sum()} sample points not covered by their triangle's leaves"
