@@ -1,8 +1,8 @@
 """Every layout that the host and the kernels share, as tables: the kd-tree node words (the
 builder's plain nodes and the tracer's compact nodes), the records of the tracer's buffers
 (lights, materials, camera, world, emissive triangles, tree bounds, triangle corners, texture
-sizes, accumulators), the builder's and compactor's rows and element sizes, and the codes
-stored in them.
+sizes, accumulators), the builder's and compactor's rows and element sizes, the codes
+stored in them, and the tracer's kernels' parameter lists.
 
 The builder and the compactor (core/accel/), the validator and the packers (slave/buffers.py)
 take their numbers from here, and `c_header()` writes the same tables as the C header that
@@ -542,6 +542,108 @@ ELEMENTS = (BUILD_REF, WALK)
 
 
 # ---------------------------------------------------------------------------------------------
+# Kernel parameters: the argument list of each tracer kernel, written once. A kernel is
+# declared `__kernel void render_samples(RENDER_SAMPLES_PARAMS)` (c_header writes the list)
+# and slave/tracer.py passes its arguments by name through the same table
+# (`KernelParams.present`), so that neither side can reorder, add or retype an argument alone
+# (tests/test_kernel_sources.py checks both against the table).
+
+# OpenCL scalar types and the numpy types the host passes them as.
+SCALAR_DTYPES = {"int": "int32", "uint": "uint32", "float": "float32"}
+
+
+@dataclass(frozen=True)
+class Param:
+    """A kernel parameter. `ctype` ending in "*": a buffer of that element type in global
+    memory, read (`access` "in": `__global const T *`), written ("out": `__global T *`) or
+    counted on atomically ("atomic": `volatile __global T *`); else a scalar passed by value.
+    `when`: the features (HAS_<FLAG>) it exists under, all of them; none: always."""
+
+    name: str
+    ctype: str
+    access: str = "in"
+    when: tuple = ()
+
+    @property
+    def buffer(self) -> bool:
+        return self.ctype.endswith("*")
+
+    @property
+    def dtype(self):
+        """The numpy type name of a scalar parameter; None for a buffer."""
+        return None if self.buffer else SCALAR_DTYPES[self.ctype]
+
+    def c_declaration(self) -> str:
+        if not self.buffer:
+            return f"{self.ctype} {self.name}"
+        space = {"in": "__global const", "out": "__global", "atomic": "volatile __global"}
+        return f"{space[self.access]} {self.ctype[:-1]} *{self.name}"
+
+
+@dataclass(frozen=True)
+class KernelParams:
+    """The parameters of kernel `kernel`, in order (C: KERNEL_PARAMS, the list)."""
+
+    kernel: str
+    title: str
+    params: tuple
+
+    @property
+    def macro(self) -> str:
+        return f"{self.kernel.upper()}_PARAMS"
+
+    def present(self, flags) -> tuple:
+        """The parameters of a program built with these features (HAS_<FLAG> names), in order."""
+        flags = set(flags)
+        return tuple(p for p in self.params if flags.issuperset(p.when))
+
+
+# The kd-tree a ray query traverses (KdTree, kernels/trace/trace.cl make_kdtree).
+TREE_PARAMS = (Param("nodes", "uint2*"), Param("leaf_index32", "uint*"),
+               Param("leaf_index16", "ushort*"), Param("leaf_shift", "uint"),
+               Param("tri_verts", "float4*"), Param("bounds", "float4*"))
+# An instanced scene's top level (TopLevel, trace.cl TOPLEVEL_MAKE; slave/buffers.py
+# pack_instances), and with object motion the rays' moment in the shutter.
+TOPLEVEL_PARAMS = (Param("toplevel", "float4*", when=("INSTANCES",)),
+                   Param("instances", "float4*", when=("INSTANCES",)),
+                   Param("meshes", "uint*", when=("INSTANCES",)),
+                   Param("mesh_bounds", "float4*", when=("INSTANCES",)),
+                   Param("shutter_time", "float", when=("INSTANCES", "OBJECT_MOTION")))
+RAY_PARAMS = (Param("origins", "float*"), Param("directions", "float*"), Param("tmin", "float"),
+              Param("tmax", "float"), Param("ray_count", "uint"))
+
+INTERSECT_RAYS = KernelParams("intersect_rays", "Nearest hits (kernels/trace/intersect.cl)",
+                              RAY_PARAMS + TREE_PARAMS + TOPLEVEL_PARAMS + (
+    Param("out_t", "float*", "out"), Param("out_tri", "int*", "out"),
+    Param("out_u", "float*", "out"), Param("out_v", "float*", "out")))
+OCCLUDED_RAYS = KernelParams("occluded_rays", "Any hits (kernels/trace/intersect.cl)",
+                             RAY_PARAMS + TREE_PARAMS + TOPLEVEL_PARAMS + (
+    Param("out_hit", "uchar*", "out"),))
+RENDER_SAMPLES = KernelParams("render_samples", "Camera samples of a tile's pixels "
+                              "(kernels/shade/render.cl)", (
+    Param("cam", "float4*"),                    # one CAMERA record
+    Param("x0", "int"), Param("y0", "int"), Param("tile_w", "int"),
+    Param("pixels", "int*"), Param("pixel_count", "int"),
+    Param("next_pixel", "int*", "atomic"),      # RENDER_PIXEL_QUEUE's counter
+    Param("sample_start", "int"), Param("sample_count", "int"), Param("strata", "int"),
+    # RenderSettings' Light Paths and clamping (PathLimits)
+    Param("max_bounces", "int"), Param("diffuse_bounces", "int"), Param("glossy_bounces", "int"),
+    Param("transmission_bounces", "int"), Param("transparent_bounces", "int"),
+    Param("clamp_direct", "float"), Param("clamp_indirect", "float"),
+    Param("filter_glossy", "float"),
+    Param("light_n", "int"), Param("seed", "uint"), Param("write_aux", "int"),
+    *TREE_PARAMS, *TOPLEVEL_PARAMS,
+    Param("material_ids", "ushort*"), Param("materials", "float4*"), Param("lights", "float4*"),
+    Param("light_count", "uint"), Param("normals", "float*"), Param("uvs", "float*"),
+    Param("texels", "half*"), Param("texture_sizes", "uint*"),
+    Param("world", "float4*"), Param("env_cdf", "float*"), Param("emitters", "float4*"),
+    Param("emitter_count", "uint"), Param("emitter_power", "float"),
+    Param("accum", "float4*", "out"), Param("stats", "float2*", "out"),
+    Param("out_depth", "float*", "out"), Param("out_normal", "float*", "out")))
+KERNEL_PARAMS = (INTERSECT_RAYS, OCCLUDED_RAYS, RENDER_SAMPLES)
+
+
+# ---------------------------------------------------------------------------------------------
 # The C header
 
 def _c_int(value: int) -> str:
@@ -581,6 +683,40 @@ def _record_lines(r: Record) -> list:
     return lines
 
 
+def _when_macro(when: tuple) -> str:
+    return "KD_PARAMS_IF_" + "_".join(when)
+
+
+def _kernel_params_lines() -> list:
+    """KERNEL_PARAMS as C: a list macro per kernel; parameters that exist only under some
+    features are wrapped in KD_PARAMS_IF_<FLAGS>(...), which keeps or drops them."""
+    lines = ["", _comment("Kernel parameters (KERNEL_PARAMS): declare a kernel as "
+                          "`__kernel void name(NAME_PARAMS)`")]
+    for when in sorted({p.when for k in KERNEL_PARAMS for p in k.params if p.when}):
+        test = " && ".join(f"defined(HAS_{flag})" for flag in when)
+        lines += [f"#if {test}", f"#define {_when_macro(when)}(...) __VA_ARGS__", "#else",
+                  f"#define {_when_macro(when)}(...)", "#endif"]
+    for k in KERNEL_PARAMS:
+        assert not k.params[0].when, f"{k.kernel}: the first parameter must always be there"
+        groups = []             # runs of parameters under the same features
+        for p in k.params:
+            if groups and groups[-1][0] == p.when:
+                groups[-1][1].append(p)
+            else:
+                groups.append((p.when, [p]))
+        parts = []              # a line a parameter, a line a run under features
+        for when, params in groups:
+            if when:
+                declarations = ", ".join(p.c_declaration() for p in params)
+                parts.append(f"{_when_macro(when)}(, {declarations})")
+            else:
+                for p in params:
+                    parts.append(f", {p.c_declaration()}" if parts else p.c_declaration())
+        lines += ["", _comment(f"{k.kernel}: {k.title}"), f"#define {k.macro} \\"]
+        lines += [f"    {part} \\" for part in parts[:-1]] + [f"    {parts[-1]}"]
+    return lines
+
+
 @functools.lru_cache(maxsize=None)
 def c_header() -> str:
     """The tables as C: #defines only, valid OpenCL C 1.2 (core/opencl.py kernel_source puts
@@ -611,5 +747,6 @@ def c_header() -> str:
     for element in ELEMENTS:
         lines += ["", _comment(f"{element.title}: {element.ctype}"),
                   f"#define {element.prefix}_BYTES {element.nbytes}"]
+    lines += _kernel_params_lines()
     lines += ["", "#endif", ""]
     return "\n".join(lines)

@@ -19,7 +19,8 @@ import numpy as np
 
 from core.accel.morton import morton_order
 from core.accel.reorder import treelet_order
-from core.layout import ACCUM, MESH, STATS, c_header
+from core.layout import (ACCUM, INTERSECT_RAYS, MESH, OCCLUDED_RAYS, RENDER_SAMPLES, STATS,
+                         TREE_PARAMS, KernelParams, c_header)
 from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
 from core.scene.features import ALL_FEATURES, needed_arrays
 from core.scene.model import SceneError, View
@@ -49,6 +50,21 @@ KERNEL_FILES = ("trace/trace.cl",           # rays, triangles, the kd-tree, trac
                 "shade/render.cl")          # the camera, render_samples
 MIN_STACK_SIZE = 32
 PACKET_RAYS = 8             # rays per work-item of intersect_rays on CPU devices
+
+
+def kernel_arguments(params: KernelParams, flags, values: dict) -> list:
+    """`values` (by parameter name) as the arguments of the kernel that `params` describes
+    (core/layout.py KERNEL_PARAMS) in a program built with the features `flags`: in the
+    table's order, each scalar as its C type. Values of parameters that only other feature sets
+    have are left out. The one way the tracer orders kernel arguments."""
+    unknown = set(values) - {p.name for p in params.params}
+    present = params.present(flags)
+    missing = [p.name for p in present if p.name not in values]
+    if unknown or missing:
+        raise TypeError(f"{params.kernel}: no values for {missing}; no such parameters: "
+                        f"{sorted(unknown)}")
+    return [values[p.name] if p.buffer else np.dtype(p.dtype).type(values[p.name])
+            for p in present]
 
 
 def kernel_files_through(last: str) -> tuple:
@@ -125,7 +141,7 @@ class Tracer:
         self.mesh_loads_skipped = 0  # loads that kept the meshes' buffers (only instances moved)
         self.trees_reordered = 0    # trees laid out in treelets (a mesh's tree once while loaded)
         self._mesh_treelets = {}    # sizes -> [(mesh tree, the same in treelets)], loaded scene
-        self._toplevel = ()         # an instanced scene's top-level buffers (kernel arguments)
+        self._toplevel = {}         # an instanced scene's top-level buffers, by parameter name
         self._checked_view = None   # the last view checked against it
         self._light_tables = None   # (key, buffers) of the world importance map and emitters
         self.specialise = True      # False: compile every feature (for measuring specialisation)
@@ -195,7 +211,8 @@ class Tracer:
                 and loaded.meshes_hash == scene.meshes_hash:
             # The same meshes placed anew (a transform-only frame): their buffers stay, only
             # the top level and the world box are uploaded.
-            self._toplevel = tuple(upload(a) for a in pack_instances(scene.instances).values())
+            self._toplevel = {name: upload(array)
+                              for name, array in pack_instances(scene.instances).items()}
             self._scene["bounds"] = upload(pack_bounds(scene.tree.bounds))
             self.mesh_loads_skipped += 1
             self._loaded_as(scene)
@@ -222,8 +239,8 @@ class Tracer:
                                 for name in ("nodes", "leaf_index32", "leaf_index16")),
                               tree.bounds, 0)
             assert len(tree.nodes) == len(scene.tree.nodes)
-        self._toplevel = () if scene.instances is None else tuple(
-            upload(array) for array in pack_instances(scene.instances).values())
+        self._toplevel = {} if scene.instances is None else {
+            name: upload(array) for name, array in pack_instances(scene.instances).items()}
         self._scene = {"nodes": upload(tree.nodes), "leaf_index32": upload(tree.leaf_index32),
                        "leaf_index16": upload(tree.leaf_index16),
                        "leaf_shift": np.uint32(tree.leaf_shift),
@@ -251,11 +268,11 @@ class Tracer:
         self._checked_view = None
         self._light_tables = None
 
-    def _toplevel_args(self, moment: float, flags) -> tuple:
-        """The top-level kernel arguments (TOPLEVEL_PARAMS): the buffers and, with
-        OBJECT_MOTION, the rays' moment in the shutter (the render kernel draws its own per
-        sample)."""
-        return (*self._toplevel, np.float32(moment)) if "OBJECT_MOTION" in flags else self._toplevel
+    def _toplevel_values(self, moment: float) -> dict:
+        """The top-level kernel arguments (core/layout.py TOPLEVEL_PARAMS) by name: the
+        buffers of an instanced scene and the rays' moment in the shutter (used with
+        OBJECT_MOTION; the render kernel draws its own per sample)."""
+        return {**self._toplevel, "shutter_time": moment}
 
     def _scene_buffers(self):
         if self._scene is None:
@@ -268,8 +285,9 @@ class Tracer:
         """Nearest hit of each ray with t in [tmin, tmax], t in units of the direction's length.
         `time`: the rays' moment in the shutter interval [0, 1], where objects move (the
         instances' transforms blended from shutter open to close)."""
-        t, tri, u, v = self._query("intersect_rays", origins, directions, tmin, tmax,
-                                   (np.float32, np.int32, np.float32, np.float32), time)
+        t, tri, u, v = self._query(INTERSECT_RAYS, origins, directions, tmin, tmax,
+                                   {"out_t": np.float32, "out_tri": np.int32,
+                                    "out_u": np.float32, "out_v": np.float32}, time)
         instances = self._loaded.instances
         if instances is None:
             return RayHits(t, tri, u, v)
@@ -283,11 +301,13 @@ class Tracer:
         """Whether each ray has a hit with t in [tmin, tmax] (a bool array): shadow rays. The
         traversal stops at the first hit it finds (trace_ray's any_hit), so this is faster
         than intersect() and says exactly whether intersect() would find a hit."""
-        (hit,) = self._query("occluded_rays", origins, directions, tmin, tmax, (np.uint8,), time)
+        (hit,) = self._query(OCCLUDED_RAYS, origins, directions, tmin, tmax,
+                             {"out_hit": np.uint8}, time)
         return hit.view(np.bool_)
 
-    def _query(self, kernel_name, origins, directions, tmin, tmax, out_dtypes, time) -> list:
-        """Run a ray-query kernel of intersect.cl: checked rays in, one array per output."""
+    def _query(self, params, origins, directions, tmin, tmax, out_dtypes, time) -> list:
+        """Run a ray-query kernel of intersect.cl (`params`: its core/layout.py parameters):
+        checked rays in, one array per output (`out_dtypes`: by parameter name)."""
         cl = self._cl
         origins = np.ascontiguousarray(origins, dtype=np.float32)
         directions = np.ascontiguousarray(directions, dtype=np.float32)
@@ -305,7 +325,7 @@ class Tracer:
             raise ValueError(f"a ray's time is in the shutter interval [0, 1], got {time}")
         scene = self._scene_buffers()
         n = len(origins)
-        outs = [np.empty(n, dtype) for dtype in out_dtypes]
+        outs = [np.empty(n, dtype) for dtype in out_dtypes.values()]
         if n == 0:
             return outs
         # Rays in scattered order (bounces gathered from a whole image, random samples) are
@@ -329,12 +349,13 @@ class Tracer:
         flags = ("INSTANCES",) if instanced else ()
         if instanced and self._loaded.instances.moving:
             flags += ("OBJECT_MOTION",)
-        kernel = self._program(self._features(flags, packet=packet))[kernel_name]
+        kernel = self._program(self._features(flags, packet=packet))[params.kernel]
         work_items = -(-n // packet) if packet else n
-        kernel(self.queue, *self._launch_sizes(work_items, self.local_size), o_buf, d_buf,
-               np.float32(tmin), np.float32(tmax), np.uint32(n), scene["nodes"],
-               scene["leaf_index32"], scene["leaf_index16"], scene["leaf_shift"],
-               scene["tri_verts"], scene["bounds"], *self._toplevel_args(time, flags), *out_bufs)
+        values = {"origins": o_buf, "directions": d_buf, "tmin": tmin, "tmax": tmax,
+                  "ray_count": n, **{p.name: scene[p.name] for p in TREE_PARAMS},
+                  **self._toplevel_values(time), **dict(zip(out_dtypes, out_bufs))}
+        kernel(self.queue, *self._launch_sizes(work_items, self.local_size),
+               *kernel_arguments(params, flags, values))
         for host, buf in zip(outs, out_bufs):
             if zero_copy:       # mapping makes the results in `host` current (no copy on PoCL)
                 mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0,
@@ -381,18 +402,16 @@ class Tracer:
         stats_buf = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=stats)
         depth_buf = cl.Buffer(ctx, mf.WRITE_ONLY, depth.nbytes)
         normal_buf = cl.Buffer(ctx, mf.WRITE_ONLY, normal.nbytes)
-        fixed = (upload(pack_camera(view)), np.int32(x), np.int32(y), np.int32(w))
         world, env_cdf, emitters, emitter_count, emitter_power = self._lights_for(shading, flags)
-        scene_args = (scene["nodes"], scene["leaf_index32"], scene["leaf_index16"],
-                      scene["leaf_shift"], scene["tri_verts"], scene["bounds"],
-                      *self._toplevel_args(0.5, flags),
-                      scene["material_ids"], upload(pack_materials(shading)),
-                      upload(pack_lights(shading.lights)), np.uint32(len(shading.lights)),
-                      scene["normals"], scene["uvs"], scene["texels"], scene["texture_sizes"],
-                      world, env_cdf, emitters, np.uint32(emitter_count),
-                      np.float32(emitter_power), accum_buf, stats_buf, depth_buf, normal_buf)
+        values = {**scene, **self._toplevel_values(0.5), "cam": upload(pack_camera(view)),
+                  "x0": x, "y0": y, "tile_w": w, "materials": upload(pack_materials(shading)),
+                  "lights": upload(pack_lights(shading.lights)),
+                  "light_count": len(shading.lights), "world": world, "env_cdf": env_cdf,
+                  "emitters": emitters, "emitter_count": emitter_count,
+                  "emitter_power": emitter_power, "accum": accum_buf, "stats": stats_buf,
+                  "out_depth": depth_buf, "out_normal": normal_buf}
         started = time.perf_counter()
-        tile = _TileOnDevice(self, kernel, fixed, scene_args, settings, accum, accum_buf, stats,
+        tile = _TileOnDevice(self, kernel, flags, values, settings, accum, accum_buf, stats,
                              stats_buf)
         sample_tile(tile, settings, x, y, w, h, tile_pixel_order(w, h))
         cl.enqueue_copy(self.queue, accum, accum_buf)
@@ -495,19 +514,22 @@ def tile_pixel_order(w: int, h: int) -> np.ndarray:
 class _TileOnDevice:
     """One tile's render kernel and accumulators: the device side of slave/adaptive.py."""
 
-    def __init__(self, tracer, kernel, fixed, scene_args, settings, accum, accum_buf, stats,
+    def __init__(self, tracer, kernel, flags, values, settings, accum, accum_buf, stats,
                  stats_buf):
-        self.tracer, self.kernel, self.fixed, self.scene_args = tracer, kernel, fixed, scene_args
+        """`values`: the kernel's arguments by parameter name (core/layout.py RENDER_SAMPLES)
+        but the settings' and each launch's own."""
+        self.tracer, self.kernel, self.flags = tracer, kernel, flags
         strata = settings.samples_per_axis
-        from pyopencl import cltypes
-        limits = np.array((settings.max_bounces, settings.diffuse_bounces,
-                           settings.glossy_bounces, settings.transmission_bounces), np.int32)
-        clamps = np.array((settings.clamp_direct, settings.clamp_indirect, settings.filter_glossy,
-                           0.0), np.float32)
-        self.constants = (np.int32(0 if strata == 1 else strata),
-                          limits.view(cltypes.int4)[0], np.int32(settings.transparent_bounces),
-                          clamps.view(cltypes.float4)[0],
-                          np.int32(settings.light_samples_per_axis), np.uint32(settings.seed))
+        self.values = {**values, "strata": 0 if strata == 1 else strata,
+                       "max_bounces": settings.max_bounces,
+                       "diffuse_bounces": settings.diffuse_bounces,
+                       "glossy_bounces": settings.glossy_bounces,
+                       "transmission_bounces": settings.transmission_bounces,
+                       "transparent_bounces": settings.transparent_bounces,
+                       "clamp_direct": settings.clamp_direct,
+                       "clamp_indirect": settings.clamp_indirect,
+                       "filter_glossy": settings.filter_glossy,
+                       "light_n": settings.light_samples_per_axis, "seed": settings.seed}
         self.accum, self.accum_buf, self.stats, self.stats_buf = accum, accum_buf, stats, stats_buf
         self.next_pixel = tracer._cl.Buffer(tracer.context, tracer._cl.mem_flags.READ_WRITE, 4)
         self.traced = 0             # samples traced
@@ -525,9 +547,10 @@ class _TileOnDevice:
             sizes = (workers,), (1,)
         else:
             sizes = tracer._launch_sizes(len(pixels), None)
-        self.kernel(tracer.queue, *sizes, *self.fixed, pixel_buf, np.int32(len(pixels)),
-                    self.next_pixel, np.int32(start), np.int32(count), *self.constants,
-                    np.int32(aux), *self.scene_args)
+        values = {**self.values, "pixels": pixel_buf, "pixel_count": len(pixels),
+                  "next_pixel": self.next_pixel, "sample_start": start, "sample_count": count,
+                  "write_aux": aux}
+        self.kernel(tracer.queue, *sizes, *kernel_arguments(RENDER_SAMPLES, self.flags, values))
         self.traced += len(pixels) * count
 
     def read(self):

@@ -163,26 +163,9 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
 // counter next_pixel (0 at launch), one at a time as each finishes one: a tile's pixels differ
 // in cost many times over, and PoCL shares work-groups out between its threads in halves, so
 // one thread would wait for the other. Otherwise one work-item per pixel. The pixels do not
-// depend on which work-item renders them.
-__kernel void render_samples(__global const float4 *cam, int x0, int y0, int tile_w,
-                             __global const int *pixels, int pixel_count,
-                             volatile __global int *next_pixel, int sample_start,
-                             int sample_count, int strata, int4 bounce_limits,
-                             int transparent_bounces, float4 clamps, int light_n, uint seed,
-                             int write_aux,
-                             __global const uint2 *nodes, __global const uint *leaf_index32,
-                             __global const ushort *leaf_index16, uint leaf_shift,
-                             __global const float4 *tri_verts, __global const float4 *bounds
-                             TOPLEVEL_PARAMS,
-                             __global const ushort *material_ids,
-                             __global const float4 *materials, __global const float4 *lights,
-                             uint light_count, __global const float *normals,
-                             __global const float *uvs, __global const half *texels,
-                             __global const uint *tex_sizes, __global const float4 *world,
-                             __global const float *env_cdf, __global const float4 *emitters,
-                             uint emitter_count, float emitter_power,
-                             __global float4 *accum, __global float2 *stats,
-                             __global float *out_depth, __global float *out_normal)
+// depend on which work-item renders them. The parameters are core/layout.py's RENDER_SAMPLES
+// table (the header's RENDER_SAMPLES_PARAMS), which slave/tracer.py passes its arguments by.
+__kernel void render_samples(RENDER_SAMPLES_PARAMS)
 {
     Scene sc;
     sc.kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
@@ -197,7 +180,7 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     sc.normals = normals;
     sc.uvs = uvs;
     sc.texels = texels;
-    sc.tex_sizes = tex_sizes;
+    sc.tex_sizes = texture_sizes;
     sc.light_count = light_count;
     sc.light_n = light_n;
     sc.world = world;
@@ -206,8 +189,8 @@ __kernel void render_samples(__global const float4 *cam, int x0, int y0, int til
     sc.emitter_count = emitter_count;
     sc.emitter_power = emitter_power;
     sc.world_color = CAMERA_WORLD_COLOR(cam);
-    PathLimits limits = {bounce_limits.x, bounce_limits.y, bounce_limits.z, bounce_limits.w,
-                         transparent_bounces, clamps.x, clamps.y, clamps.z};
+    PathLimits limits = {max_bounces, diffuse_bounces, glossy_bounces, transmission_bounces,
+                         transparent_bounces, clamp_direct, clamp_indirect, filter_glossy};
 #ifdef RENDER_PIXEL_QUEUE
     for (int i = atomic_inc(next_pixel); i < pixel_count; i = atomic_inc(next_pixel))
 #else

@@ -92,14 +92,10 @@ KD_INLINE uint trace_rays_of_item(uint item, __global const float *origins,
 }
 #endif
 
-__kernel void intersect_rays(__global const float *origins, __global const float *directions,
-                             float tmin, float tmax, uint ray_count,
-                             __global const uint2 *nodes, __global const uint *leaf_index32,
-                             __global const ushort *leaf_index16, uint leaf_shift,
-                             __global const float4 *tri_verts, __global const float4 *bounds
-                             TOPLEVEL_PARAMS,
-                             __global float *out_t, __global int *out_tri,
-                             __global float *out_u, __global float *out_v)
+// The nearest hit of each ray in [tmin, tmax] (out_t, out_tri, out_u, out_v). The kernels'
+// parameters are the tables INTERSECT_RAYS and OCCLUDED_RAYS of core/layout.py (the header's
+// *_PARAMS lists), which slave/tracer.py passes its arguments by.
+__kernel void intersect_rays(INTERSECT_RAYS_PARAMS)
 {
     KdTree kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
     TOPLEVEL_MAKE(top);
@@ -124,13 +120,7 @@ __kernel void intersect_rays(__global const float *origins, __global const float
 }
 
 // out_hit[i] = 1 where ray i has a hit in [tmin, tmax], else 0.
-__kernel void occluded_rays(__global const float *origins, __global const float *directions,
-                            float tmin, float tmax, uint ray_count,
-                            __global const uint2 *nodes, __global const uint *leaf_index32,
-                            __global const ushort *leaf_index16, uint leaf_shift,
-                            __global const float4 *tri_verts, __global const float4 *bounds
-                            TOPLEVEL_PARAMS,
-                            __global uchar *out_hit)
+__kernel void occluded_rays(OCCLUDED_RAYS_PARAMS)
 {
     KdTree kd = make_kdtree(nodes, leaf_index32, leaf_index16, leaf_shift, bounds);
     TOPLEVEL_MAKE(top);

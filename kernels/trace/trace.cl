@@ -746,23 +746,19 @@ inline bool trace_instances(const Ray *r, float tmin, float tmax, bool any_hit, 
 }
 #endif
 
-// The kernels' top-level arguments and the one traversal call of a scene, flat or instanced.
+// A kernel's top level, from its parameters of core/layout.py TOPLEVEL_PARAMS (shutter_time:
+// the moment of the rays; the render kernel draws one per sample instead), and the one
+// traversal call of a scene, flat or instanced.
 #ifdef HAS_INSTANCES
 #ifdef HAS_OBJECT_MOTION
-// shutter_time: the moment of the rays (the render kernel draws one per sample instead).
-#define TOPLEVEL_PARAMS , __global const float4 *toplevel, __global const float4 *instances, \
-    __global const uint *meshes, __global const float4 *mesh_bounds, float shutter_time
 #define TOPLEVEL_MAKE(name) TopLevel name = {toplevel, instances, meshes, mesh_bounds, shutter_time}
 #else
-#define TOPLEVEL_PARAMS , __global const float4 *toplevel, __global const float4 *instances, \
-    __global const uint *meshes, __global const float4 *mesh_bounds
 #define TOPLEVEL_MAKE(name) TopLevel name = {toplevel, instances, meshes, mesh_bounds}
 #endif
 #define TOPLEVEL_ARG (&top)
 #define trace_scene(r, tmin, tmax, any_hit, ignore, kd, top, tri_verts, hit) \
     trace_instances(r, tmin, tmax, any_hit, ignore, kd, top, tri_verts, hit)
 #else
-#define TOPLEVEL_PARAMS
 #define TOPLEVEL_MAKE(name)
 #define TOPLEVEL_ARG 0
 #define trace_scene(r, tmin, tmax, any_hit, ignore, kd, top, tri_verts, hit) \
