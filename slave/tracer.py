@@ -48,6 +48,10 @@ KERNEL_FILES = ("trace/trace.cl",           # rays, triangles, the kd-tree, trac
                 "trace/packet.cl",          # 8-ray packets (CPU ray queries)
                 "trace/intersect.cl",       # intersect_rays, occluded_rays
                 "shade/render.cl")          # the camera, render_samples
+# Features that say what the loaded scene is, not what to shade: they give the kernels their
+# top-level parameters (core/layout.py TOPLEVEL_PARAMS), so an unspecialised program
+# (Tracer.specialise = False) takes them from the scene.
+SCENE_STRUCTURE = frozenset({"INSTANCES", "OBJECT_MOTION"})
 MIN_STACK_SIZE = 32
 PACKET_RAYS = 8             # rays per work-item of intersect_rays on CPU devices
 
@@ -463,7 +467,9 @@ class Tracer:
                 raise TracerError(str(error)) from None
             self._checked_view = view
         geometry = self._loaded.geometry
-        flags = self._loaded.features(view) if self.specialise else ALL_FEATURES
+        flags = self._loaded.features(view)
+        if not self.specialise:     # every feature but the scene's own structure
+            flags = ALL_FEATURES - SCENE_STRUCTURE | (flags & SCENE_STRUCTURE)
         missing = [name for name in needed_arrays(flags) if getattr(geometry, name) is None]
         if missing:
             raise TracerError(f"features {sorted(flags)} need the geometry arrays {missing}; "

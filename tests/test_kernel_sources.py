@@ -18,9 +18,11 @@ from core.accel.compact import compact_tree
 from core.accel.kdtree import build_kdtree
 from core.layout import KERNEL_PARAMS
 from core.opencl import KERNEL_DIR, kernel_source
+from core.scene.features import ALL_FEATURES, full_geometry
 from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
 from core.scene.scene import Scene
-from slave.tracer import KERNEL_FILES, Tracer, kernel_files_through, kernel_options
+from slave.tracer import (KERNEL_FILES, SCENE_STRUCTURE, Tracer, kernel_files_through,
+                          kernel_options)
 from tests.meshes import grid_plane, look_at, uv_sphere
 
 # Generated tables, not code (.ci/ggx_albedo.py writes it).
@@ -205,3 +207,19 @@ def test_the_tracer_passes_arguments_in_the_order_of_the_table(instanced, monkey
     assert {name for name, _ in seen} == {k.kernel for k in KERNEL_PARAMS}
     if instanced:       # the top level's parameters were there
         assert all({"INSTANCES", "OBJECT_MOTION"} <= set(flags) for _, flags in seen)
+
+
+def test_an_unspecialised_render_takes_the_scene_structure_from_the_scene():
+    """Tracer.specialise = False compiles every shading feature, but INSTANCES and
+    OBJECT_MOTION only as the scene has them: they add kernel parameters a flat scene has no
+    values for (it failed for want of the top level's buffers)."""
+    tracer = Tracer("cpu")
+    flat = small_scene(False)
+    tracer.load(Scene.from_parts(full_geometry(flat.geometry), flat.tree))
+    tracer.specialise = False
+    view = View(Camera("PERSP", look_at((0.0, -9.0, 6.0), (0.0, 0.0, 0.5))), 8, 6,
+                Shading(np.array([[0.8, 0.6, 0.4, 1.0]], np.float32), [], (0.5, 0.5, 0.5)),
+                settings=RenderSettings(samples_per_axis=1, adaptive=False))
+    passes = tracer.render_tile(view, 0, 0, 8, 6)
+    assert set(tracer.last_render["features"]) == ALL_FEATURES - SCENE_STRUCTURE
+    assert np.isfinite(passes["combined"]).all() and passes["combined"][..., :3].max() > 0
