@@ -6,7 +6,8 @@ The files of the zip are what Blender's own `build` takes from the repository: e
 blender_manifest.toml's [build] paths_exclude_pattern, the one list of what stays out. The
 wheels are the runtime packages of requirements.txt whose markers hold on the platform, except
 numpy (Blender ships it, and a bundled numpy breaks other add-ons): zeroconf for discovery;
-pyopencl, and PoCL on Linux x64, for local slaves. They come unmodified from the package index,
+cryptography (with cffi and pycparser) for the identities; pyopencl, and PoCL on Linux x64, for
+local slaves. They come unmodified from the package index,
 for Blender's Python (3.11), one zip per platform; each zip is checked with Blender's own
 `validate`. Needs the bpy module (Blender's tool is inside it) and `packaging`.
 """

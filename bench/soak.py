@@ -12,8 +12,8 @@ compared bit for bit with the same frame rendered by the tracer in this process.
   its own to a random slave: valid messages with flipped bits, truncated or inflated lengths,
   fields replaced by values of other types, huge numbers and nested junk, random message
   types; the slave's answer is read (ERROR, a close, or a reply);
-- sockets: --idle sockets (500) in waves, held 5-60 s each: silent, HELLO then silent, or a
-  HELLO dribbled a byte a second;
+- sockets: --idle sockets (500) in waves, held 5-60 s each: silent, the opening (OPEN) then
+  silent, or the opening dribbled a byte a second;
 - RSS: every 10 s each slave's resident memory (/proc/<pid>/status).
 
 Reported: frames completed, frames lost (the job failed; target 0), wrong frames (pixels that
@@ -48,7 +48,7 @@ from bench.network_scaling import bench_scene  # noqa: E402
 from core.net import protocol  # noqa: E402
 from core.net.master import Master  # noqa: E402
 from core.net.protocol import HEADER, MsgType  # noqa: E402
-from core.scene.model import SCENE_FORMAT_VERSION, Light  # noqa: E402
+from core.scene.model import Light  # noqa: E402
 from core.scene.scene import Scene  # noqa: E402
 from tests.test_network import make_view, network_settings  # noqa: E402
 from bench.farm import bench_farm  # noqa: E402
@@ -138,12 +138,6 @@ class SlaveSlot:
 
 # -- mutated messages -------------------------------------------------------------------------
 
-def hello_bytes(rng) -> bytes:
-    return message(MsgType.HELLO, {"protocol_version": protocol.PROTOCOL_VERSION,
-                                   "scene_format_version": SCENE_FORMAT_VERSION,
-                                   "name": f"fuzz{rng.randrange(1000)}"})
-
-
 def message(msg_type, header=None, arrays=None) -> bytes:
     return b"".join(bytes(b) for b in protocol.encode_message(msg_type, header, arrays))
 
@@ -230,27 +224,14 @@ class Fuzzer:
             self.one(self.rng.choice(self.slots))
 
     def one(self, slot) -> None:
-        data = hello_bytes(self.rng) + mutated_message(self.rng, self.scene_hash, self.view,
-                                                        self.arrays)
+        from tests.tls_peers import tls_exchange
+        data = mutated_message(self.rng, self.scene_hash, self.view, self.arrays)
         self.sent += 1
         try:
-            with socket.create_connection(slot.endpoint, timeout=3) as sock:
-                sock.settimeout(3)
-                try:
-                    sock.sendall(data)
-                except OSError:
-                    pass
-                try:
-                    sock.shutdown(socket.SHUT_WR)
-                except OSError:
-                    pass
-                reply = b""
-                try:
-                    while chunk := sock.recv(65536):
-                        reply += chunk
-                except OSError:
-                    pass
-        except OSError:
+            # Inside TLS after a valid HELLO (the run's farm secret); a TLS connection is not
+            # half-closed, so what the slave says comes within a second or not at all.
+            reply = tls_exchange(slot.endpoint, data, timeout=1.0)
+        except (OSError, protocol.ProtocolError):
             self.answers["unreachable"] += 1   # that slave was down (chaos)
             return
         # The first reply is WELCOME; what follows says what became of the mutated message.
@@ -297,7 +278,7 @@ class IdleSockets:
         with self.count_lock:
             self.opened += 1
             self.kinds[kind] += 1
-        data = hello_bytes(random.Random())
+        data = message(MsgType.OPEN, {})   # the opening; TLS would follow
         end = time.monotonic() + seconds
         try:
             if kind == "hello":

@@ -18,7 +18,7 @@ from tests.processes import LINE_PREFIX, START_TIMEOUT
 NOT_COPIED = shutil.ignore_patterns(".git", ".venv", "assets", "tests", "bench", "docs", "build",
                                     "dist", "*.egg-info", "__pycache__", ".pytest_cache")
 RUNTIME = {"numpy", "pyopencl", "pytools", "platformdirs", "typing-extensions", "siphash24",
-           "pocl-binary-distribution", "zeroconf", "ifaddr"}
+           "pocl-binary-distribution", "zeroconf", "ifaddr", "cryptography", "cffi", "pycparser"}
 
 
 @pytest.fixture(scope="module")

@@ -75,6 +75,7 @@ RECV_KEEP_BYTES = 2 << 20       # messages up to this size are received in that 
 PREALLOCATE_BYTES = 8 << 20     # such a message's own buffer is allocated at once up to this size
 LOW_WATER_BYTES = 256 * 1024    # a long read wakes when this much (or the rest) has arrived
 POLL_S = 0.25                   # how often a blocked send or receive looks at its deadline
+TLS_RECORD_BYTES = 16384 + 256  # a TLS record's plaintext at most, with its overhead
 SLAVE_STATES = ("idle", "loading", "compiling", "waiting", "rendering")
 # How master and slave exchange a frame's tiles (FRAME_START "model"): the paper's Fig. 3a (one
 # thread per slave asks for a tile and waits for it) and Fig. 3b (requests and results overlap).
@@ -669,8 +670,33 @@ class Channel:
         """One read from the socket: into the channel's buffer, as much as it has room for
         (made room for the rest of the message under way first), or into the message's
         own buffer (at most its rest: bytes after it go to the channel's buffer on the next
-        read). socket.timeout when nothing came."""
+        read). socket.timeout when nothing came. Over TLS a read returns one record (16 KiB
+        at most): then it reads on what has arrived, as long as there is room, so that a tile
+        wakes its reader once or twice and not once a record."""
         self._low_water(self._wake_bytes())
+        if self._read_once(wait, make_room=True) == 0:
+            incoming = self._incoming
+            if incoming is None and self._start == self._end:
+                raise ConnectionClosed("connection closed by peer")
+            where = (f"header: {self._received()} of {HEADER.size} bytes" if incoming is None
+                     else incoming.where(self._received()))
+            raise ConnectionBroken(f"connection closed in the middle of a message ({where})")
+        while self.tls and self._room() >= TLS_RECORD_BYTES:
+            try:
+                if self._read_once(0.0, make_room=False) == 0:
+                    return          # the end: the next read says so
+            except socket.timeout:
+                return
+
+    def _room(self) -> int:
+        """What the next read may take without making room."""
+        incoming = self._incoming
+        if incoming is not None and incoming.own is not None:
+            return incoming.total - HEADER.size - incoming.filled
+        return len(self._buffer) - self._end
+
+    def _read_once(self, wait: float, make_room: bool) -> int:
+        """One read where _fill says; the bytes it took."""
         incoming = self._incoming
         if incoming is not None and incoming.own is not None:
             rest = incoming.total - HEADER.size - incoming.filled
@@ -683,31 +709,29 @@ class Channel:
                 chunk = self._read(lambda: self.sock.recv(min(rest, 1 << 20)), wait)
                 got = len(chunk)
                 incoming.add(chunk)
-        else:
+            return got
+        if make_room:
             # Room for the rest of the message under way, or for a header after the bytes
             # still to parse.
             self._make_room(incoming.total if incoming is not None
                             else self._end - self._start + HEADER.size)
-            with memoryview(self._buffer) as view:
-                got = self._read(lambda: self.sock.recv_into(view[self._end:]), wait)
-            self._end += got
-        if got == 0:
-            if incoming is None and self._start == self._end:
-                raise ConnectionClosed("connection closed by peer")
-            where = (f"header: {self._received()} of {HEADER.size} bytes" if incoming is None
-                     else incoming.where(self._received()))
-            raise ConnectionBroken(f"connection closed in the middle of a message ({where})")
+        with memoryview(self._buffer) as view:
+            got = self._read(lambda: self.sock.recv_into(view[self._end:]), wait)
+        self._end += got
+        return got
 
     def _read(self, read, wait: float = POLL_S):
         """read() on the socket; socket.timeout when nothing came within `wait` s. Over TLS: wait
-        for the socket (unless TLS holds decrypted bytes), then read under the lock; a record
-        not complete yet is also 'nothing came'."""
+        for the socket (unless TLS holds decrypted bytes, or wait is 0: the caller knows it is
+        readable), then read under the lock; a record not complete yet is also 'nothing
+        came'."""
         if not self.tls:
             return read()
-        with self._tls_lock:
-            ready = self.sock.pending() > 0
-        if not ready and not _wait(self.sock, False, wait):
-            raise socket.timeout("nothing to read")
+        if wait > 0:
+            with self._tls_lock:
+                ready = self.sock.pending() > 0
+            if not ready and not _wait(self.sock, False, wait):
+                raise socket.timeout("nothing to read")
         with self._tls_lock:
             try:
                 return read()
@@ -716,10 +740,12 @@ class Channel:
 
     def _low_water(self, nbytes: int) -> None:
         """SO_RCVLOWAT: poll() (so a receive with a timeout, and a selector) wakes once this
-        much is there, or at the end of the stream or the timeout. Not over TLS: TLS may hold
-        part of a record already, and the kernel would wait for bytes that never come."""
+        much is there, or at the end of the stream or the timeout. Over TLS, a record's worth
+        less: TLS may hold the start of a record already (taken from the socket, not yet
+        complete), and the kernel must not wait for bytes that never come; what is still to
+        arrive is at least the rest of the message less that record."""
         if self.tls:
-            return
+            nbytes = max(1, nbytes - TLS_RECORD_BYTES)
         if nbytes != self._rcvlowat and hasattr(socket, "SO_RCVLOWAT"):
             try:
                 self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT, nbytes)
