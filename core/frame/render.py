@@ -97,7 +97,10 @@ def render_frame(session: FrameSession, exported, view, options: FrameOptions, h
         with Master(endpoints, secret=options.secret, identity=identity,
                     approved_slaves=approved) as master:
             legend = session.start_legend(master)   # the panel follows each slave from here on
-            master.connect()
+            try:
+                master.connect()
+            finally:   # slaves refused as not approved: the panel offers Approve and Pair
+                session.unapproved.update(master.unapproved)
             steps.mark("connect")
             host.status(f"Sending scene to {len(master.slaves)} slave(s)")
             master.load_scene(scene)
