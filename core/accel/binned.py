@@ -31,7 +31,7 @@ from .device import DeviceContext
 from .kdtree import KDTree, KDTreeParams, checked_mesh, root_bounds
 
 KERNEL_FILES = ("build/binned.cl",)
-EXACT_MAX = 64           # nodes of up to this many references: every reference bound a candidate
+EXACT_MAX = 256          # nodes of up to this many references: every reference bound a candidate
 SUM_BLOCK = 128          # nodes per work-item of level_sums and emit
 SPLIT_BYTES = 32         # binned.cl's Split
 REF_BYTES = 32           # binned.cl's Ref
@@ -258,3 +258,45 @@ class BinnedBuilder(DeviceContext):
         self.launch("choose_big", len(big), nodes, rows, chunks, hist, splits, u4(len(big)),
                     level, depth_cap, pow2)
         return chunks, C
+
+
+_BUILDERS: dict = {}
+
+
+def builder_for(device) -> BinnedBuilder:
+    """A builder for `device` (a BinnedBuilder itself, or a core.opencl.select_device spec:
+    None or "auto" means a GPU if any, else the CPU), kept per spec: contexts and programs are
+    made once."""
+    if isinstance(device, BinnedBuilder):
+        return device
+    key = str(device)
+    builder = _BUILDERS.get(key)
+    if builder is None:
+        builder = _BUILDERS[key] = BinnedBuilder(device)
+    return builder
+
+
+def opencl_builder(device="auto"):
+    """(builder_for(device), None), or (None, why not): pyopencl missing, no such OpenCL
+    device, or one without double precision."""
+    try:
+        return builder_for(device), None
+    except ImportError as error:
+        return None, f"pyopencl is not installed ({error})"
+    except OpenCLError as error:
+        return None, str(error).splitlines()[0]
+
+
+def build_standard(vertices, triangles, device="auto", params: KDTreeParams | None = None,
+                   progress=None):
+    """The standard kd-tree, on the OpenCL device `device` (see builder_for) when there is one,
+    else with the numpy builder (core.accel.kdtree.build_kdtree: slower, another tree of the
+    same definition). Returns (tree, the builder or None); tree.stats["builder"] and
+    ["device"] say which ran where."""
+    builder, reason = opencl_builder(device)
+    if builder is not None:
+        return builder.build(vertices, triangles, params, progress), builder
+    from .kdtree import build_kdtree
+    tree = build_kdtree(vertices, triangles, params, progress)
+    tree.stats.update(builder="numpy", device=f"host CPU ({reason})")
+    return tree, None

@@ -35,6 +35,8 @@
 #pragma OPENCL FP_CONTRACT OFF
 
 #define HOLE 0xFFFFFFFFu
+/* Helpers of the hot loops: PoCL otherwise calls some of them out of line. */
+#define HOT inline __attribute__((always_inline))
 #define NO_CHILD 0xFFFFFFFFu
 
 /* A reference: its box's lo in lo.xyz and triangle in lo.w (uint bits), hi in hi.xyz. */
@@ -66,32 +68,32 @@ typedef struct {
 #define SPLIT_AXIS(f) (((f) >> 1) & 3u)
 #define SPLIT_PLANAR_ABOVE 8u
 
-inline uint ref_tri(Ref r)
+HOT uint ref_tri(Ref r)
 {
     return as_uint(r.lo.w);
 }
 
-inline float lane(float4 v, int a)
+HOT float lane(float4 v, int a)
 {
     return a == 0 ? v.x : (a == 1 ? v.y : v.z);
 }
 
-inline float f_min(float a, float b)
+HOT float f_min(float a, float b)
 {
     return b < a ? b : a;
 }
 
-inline float f_max(float a, float b)
+HOT float f_max(float a, float b)
 {
     return a < b ? b : a;
 }
 
-inline double d_min(double a, double b)
+HOT double d_min(double a, double b)
 {
     return b < a ? b : a;
 }
 
-inline double d_max(double a, double b)
+HOT double d_max(double a, double b)
 {
     return a < b ? b : a;
 }
@@ -133,7 +135,7 @@ inline void search_init(Search* s, const float* lo, const float* hi, uint n, flo
 
 /* Consider the plane p on axis a (strictly inside the cell) with nb references below it, na
    above it and the flat ones at p to the side `up` says (1: above). */
-inline void consider_side(Search* s, int a, float p, uint nb, uint na, uint up, float pow2)
+HOT void consider_side(Search* s, int a, float p, uint nb, uint na, uint up, float pow2)
 {
     float side = s->d[(a + 1) % 3] + s->d[(a + 2) % 3];
     float face = s->d[(a + 1) % 3] * s->d[(a + 2) % 3];
@@ -154,24 +156,24 @@ inline void consider_side(Search* s, int a, float p, uint nb, uint na, uint up, 
 }
 
 /* The same with np references flat at p: on the cheaper side (below when equal). */
-inline void consider(Search* s, int a, float p, uint nb, uint na, uint np, float pow2)
+HOT void consider(Search* s, int a, float p, uint nb, uint na, uint np, float pow2)
 {
     consider_side(s, a, p, nb + np, na, 0u, pow2);
     if (np)
         consider_side(s, a, p, nb, na + np, 1u, pow2);
 }
 
-/* The bin planes of one axis: p[1 .. bins-1] = lo + k (hi - lo) / bins, in double, rounded to
-   nearest float32 (correctly rounded: the same on every device). */
+/* The bin planes of one axis: p[1 .. bins-1] = lo + k ((hi - lo) / bins), in double, rounded
+   to nearest float32 (correctly rounded operations: the same on every device). */
 inline void bin_planes(float lo, float hi, uint bins, float* p)
 {
-    double w = (double)hi - (double)lo;
+    double step = ((double)hi - (double)lo) / (double)bins;
     for (uint k = 1u; k < bins; k++)
-        p[k] = (float)((double)lo + w * (double)k / (double)bins) + 0.0f;
+        p[k] = (float)((double)lo + step * (double)k) + 0.0f;
 }
 
 /* Planes at or below x (at_or_below) or strictly below it, from an estimate: exact. */
-inline uint bin_of(float x, float lo, float scale, uint bins, const float* p, int at_or_below)
+HOT uint bin_of(float x, float lo, float scale, uint bins, const float* p, int at_or_below)
 {
     float e = (x - lo) * scale;
     int g = e > 0.0f ? (int)e : 0;
@@ -305,6 +307,85 @@ inline void decide(__global Split* out, const Search* s, uint n, uint bad, uint 
 }
 
 /* ----------------------------------------------------------------------------------------
+   Exact candidates of a node of at most KD_EXACT_MAX references on one axis: every reference
+   bound, and the bin planes (only they can cut the empty space off references that lie in a
+   face of the cell, a floor in its cell's floor), in this order; counted 8 candidates at a
+   time against every reference. */
+
+#define EXACT_CANDIDATES (2u * KD_EXACT_MAX + KD_MAX_BINS + 7u)
+
+inline void exact_axis(Search* s, int a, const float* lo, const float* hi, uint n, uint bins,
+                       float pow2)
+{
+    float cand[EXACT_CANDIDATES];
+    uint c = 0u;
+    for (uint j = 0u; j < n; j++)
+        cand[c++] = lo[j];
+    for (uint j = 0u; j < n; j++)
+        cand[c++] = hi[j];
+    float planes[KD_MAX_BINS + 1];
+    bin_planes(s->lo[a], s->hi[a], bins, planes);
+    for (uint k = 1u; k < bins; k++)
+        cand[c++] = planes[k];
+    while (c & 7u)
+        cand[c++] = NAN;            /* never strictly inside the cell */
+    float side = s->d[(a + 1) % 3] + s->d[(a + 2) % 3];
+    float face = s->d[(a + 1) % 3] * s->d[(a + 2) % 3];
+    float base = KD_KT * s->area;
+    for (uint g = 0u; g < c; g += 8u) {
+        float8 p = vload8(0, cand + g);
+        int8 nb = 0, na = 0, np = 0;
+        for (uint j = 0u; j < n; j++) {
+            nb -= lo[j] < p;          /* a true comparison is -1 */
+            na -= hi[j] > p;
+            if (lo[j] == hi[j])
+                np -= lo[j] == p;
+        }
+        float8 ab = (p - s->lo[a]) * pow2 * side + face;
+        float8 aa = (s->hi[a] - p) * pow2 * side + face;
+        float8 fb = convert_float8(nb), fa = convert_float8(na), fp = convert_float8(np);
+        float8 cost0 = base + KD_KI * (ab * (fb + fp) + aa * fa);
+        float8 cost1 = base + KD_KI * (ab * fb + aa * (fa + fp));
+        cost0 = select(cost0, cost0 * KD_LAMBDA, (nb + np == 0) | (na == 0));
+        cost1 = select(cost1, cost1 * KD_LAMBDA, (nb == 0) | (na + np == 0));
+        int8 inside = (s->lo[a] < p) & (p < s->hi[a]);
+        if (!any(inside & ((cost0 < s->best) | ((np != 0) & (cost1 < s->best)))))
+            continue;           /* nothing better in this group */
+        float cp[8], c0[8], c1[8];
+        int bn[8], an[8], pn[8], ok[8];
+        vstore8(p, 0, cp);
+        vstore8(cost0, 0, c0);
+        vstore8(cost1, 0, c1);
+        vstore8(nb, 0, bn);
+        vstore8(na, 0, an);
+        vstore8(np, 0, pn);
+        vstore8(inside, 0, ok);
+        for (int k = 0; k < 8; k++) {
+            if (!ok[k])
+                continue;
+            if (c0[k] < s->best) {
+                s->best = c0[k];
+                s->found = 1;
+                s->axis = a;
+                s->plane = cp[k];
+                s->planar_above = 0u;
+                s->below = (uint)(bn[k] + pn[k]);
+                s->above = (uint)an[k];
+            }
+            if (pn[k] && c1[k] < s->best) {
+                s->best = c1[k];
+                s->found = 1;
+                s->axis = a;
+                s->plane = cp[k];
+                s->planar_above = 1u;
+                s->below = (uint)bn[k];
+                s->above = (uint)(an[k] + pn[k]);
+            }
+        }
+    }
+}
+
+/* ----------------------------------------------------------------------------------------
    choose_nodes: one work-item per node of at most KD_BIG_REFS references. */
 
 __kernel void choose_nodes(__global const LevelNode* restrict nodes,
@@ -334,26 +415,9 @@ __kernel void choose_nodes(__global const LevelNode* restrict nodes,
             n++;
         }
         search_init(&s, node.lo, node.hi, n, pow2);
-        /* Every reference bound, and the bin planes: only they can cut the empty space off
-           references that lie in a face of the cell (a floor in its cell's floor). */
-        uint bins = bin_count(node.count);
         if (level < depth_cap)
-            for (int a = 0; a < 3; a++) {
-                float planes[KD_MAX_BINS + 1];
-                bin_planes(node.lo[a], node.hi[a], bins, planes);
-                for (uint c = 0u; c < 2u * n + bins - 1u; c++) {
-                    float p = c < n ? lo[a][c] : (c < 2u * n ? hi[a][c - n] : planes[c - 2u * n + 1u]);
-                    if (!(node.lo[a] < p && p < node.hi[a]))
-                        continue;
-                    uint nb = 0u, na = 0u, np = 0u;
-                    for (uint j = 0u; j < n; j++) {
-                        nb += lo[a][j] < p;
-                        na += hi[a][j] > p;
-                        np += lo[a][j] == p && hi[a][j] == p;
-                    }
-                    consider(&s, a, p, nb, na, np, pow2);
-                }
-            }
+            for (int a = 0; a < 3; a++)
+                exact_axis(&s, a, lo[a], hi[a], n, bin_count(node.count), pow2);
     } else {
         Planes pl;
         planes_of(&pl, node.lo, node.hi, node.count);
