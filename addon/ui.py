@@ -200,11 +200,11 @@ class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
         for slave in found:
             slave_id = slave.properties.get("id", "")
             shown.add(slave.endpoint)
-            self.draw_slave(box, slave.name, slave.host, slave.port, slave_id,
+            draw_slave(box, slave.name, slave.host, slave.port, slave_id,
                             slave.properties.get("device", ""), slave_id in approved)
         for (host, port), slave_id in sorted(state.unapproved.items()):
             if (host, port) not in shown and slave_id not in approved:
-                self.draw_slave(box, f"{host}:{port}", host, port, slave_id, "listed", False)
+                draw_slave(box, f"{host}:{port}", host, port, slave_id, "listed", False)
         local = state.local_slaves.pids()
         if local:
             box.label(text=f"{len(local)} local slave(s) running", icon="CONSOLE")
@@ -218,19 +218,18 @@ class RENDER_PT_kdtrace_slaves(KDTracePanel, bpy.types.Panel):
         buttons.operator("kdtrace.host_remove", text="", icon="REMOVE")
 
 
-    @staticmethod
-    def draw_slave(layout, name, host, port, slave_id, device, approved) -> None:
-        """One slave: name, address, short ID; Approve and Pair where it is not approved."""
-        row = layout.row(align=True)
-        short = "-".join(slave_id[i:i + 4] for i in range(0, 16, 4)) if slave_id else "no ID"
-        row.label(text=f"{name}  {host}:{port}  ID {short}  {device}",
-                  icon="CHECKMARK" if approved else "NETWORK_DRIVE")
-        if approved or len(slave_id) != 52:
-            return
-        approve = row.operator("kdtrace.slave_approve", text="Approve")
-        approve.slave_id, approve.name = slave_id, name
-        pair = row.operator("kdtrace.slave_pair", text="Pair")
-        pair.host, pair.port, pair.slave_id, pair.name = host, port, slave_id, name
+def draw_slave(layout, name, host, port, slave_id, device, approved) -> None:
+    """One slave: name, address, short ID; Approve and Pair where it is not approved."""
+    row = layout.row(align=True)
+    short = "-".join(slave_id[i:i + 4] for i in range(0, 16, 4)) if slave_id else "no ID"
+    row.label(text=f"{name}  {host}:{port}  ID {short}  {device}",
+              icon="CHECKMARK" if approved else "NETWORK_DRIVE")
+    if approved or len(slave_id) != 52:
+        return
+    approve = row.operator("kdtrace.slave_approve", text="Approve")
+    approve.slave_id, approve.name = slave_id, name
+    pair = row.operator("kdtrace.slave_pair", text="Pair")
+    pair.host, pair.port, pair.slave_id, pair.name = host, port, slave_id, name
 
 
 class RENDER_PT_kdtrace_legend(KDTracePanel, bpy.types.Panel):

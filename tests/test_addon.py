@@ -1,6 +1,7 @@
 """The whole path, headless: the extension zip is built and validated with Blender's own tool,
 installed into an isolated user folder, and renders through slaves that zeroconf found."""
 import json
+import re
 import socket
 import struct
 import threading
@@ -185,6 +186,14 @@ def test_every_panel_draws_the_settings_it_offers(tmp_path):
     assert {"kdtree_mode", "tau_occu", "tau_freq"} <= set(drawn["RENDER_PT_kdtrace_kdtree"])
     assert {"payload", "interaction", "secret_file"} <= set(drawn["RENDER_PT_kdtrace_network"])
     assert {"use_zeroconf", "local_slaves"} <= set(drawn["RENDER_PT_kdtrace_slaves"])
+    # Trust (issue 39): this computer's ID, a refused slave offered for approval by its ID, and
+    # the approved slaves in the preferences.
+    slaves_panel = drawn["RENDER_PT_kdtrace_slaves"]
+    assert any(re.fullmatch(r"label:This computer: ID ([A-Z2-7]{4}-){3}[A-Z2-7]{4}", line)
+               for line in slaves_panel), slaves_panel
+    assert "label:10.0.0.9:47600  10.0.0.9:47600  ID AAAA-AAAA-AAAA-AAAA  listed" in slaves_panel
+    assert "label:approved-box  ID BBBB-BBBB-BBBB-BBBB" in drawn["preferences"]
+    assert "secret_file" in drawn["preferences"]
     # The panel offers exactly core's defaults and ranges: every render setting is there (the
     # exporter copies them all by name), and so are the kd-tree settings.
     panel = result["settings"]

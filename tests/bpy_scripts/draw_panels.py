@@ -36,6 +36,9 @@ scene.render.engine = "KDTRACE"
 scene.kdtrace.use_zeroconf = False
 scene.kdtrace.local_slaves = 1
 bpy.ops.render.render()  # so the Last Render legend has something to show
+# A slave refused as not approved (a listed host), and one approved with the Approve button.
+addon.addon.session.current().unapproved[("10.0.0.9", 47600)] = "A" * 52
+bpy.ops.kdtrace.slave_approve("EXEC_DEFAULT", slave_id="B" * 52, name="approved-box")
 context = SimpleNamespace(scene=scene, engine="KDTRACE", preferences=bpy.context.preferences,
                           object=scene.objects[0])
 drawn = {}
