@@ -341,7 +341,10 @@ def end_writing(sock: socket.socket) -> None:
 
 
 def _wait(sock: socket.socket, for_write: bool, timeout: float) -> bool:
-    """Whether `sock` became readable (writable) within `timeout` seconds."""
+    """Whether `sock` became readable (writable) within `timeout` seconds; OSError once another
+    thread has closed it (eviction, the server closing)."""
+    if sock.fileno() < 0:
+        raise OSError(9, "the connection was closed")
     if hasattr(select, "poll"):
         poller = select.poll()
         poller.register(sock, select.POLLOUT if for_write else select.POLLIN)
