@@ -208,7 +208,8 @@ class NodeProgram:
         return self._values[key]
 
     def _node(self, node, out):
-        kind, name = node.type, out.name
+        # By identifier: Blender 5.0 shows the Fac outputs as "Factor" (their identifier is "Fac").
+        kind, name = node.type, out.identifier
         if kind in ("TEX_COORD", "UVMAP") and name == "UV":
             if kind == "UVMAP" and node.uv_map:
                 self.uv_maps.add(node.uv_map)
