@@ -22,7 +22,7 @@ from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera
                                 MAX_MATERIALS, RenderSettings, SceneError, Shading, View,
                                 WorldTexture)
 from .nodes import (PRINCIPLED_DEFAULTS, NodeProgram, cycles_output, input_value, mapping_affine,
-                    material_parameters, socket_value)
+                    material_closures, socket_value)
 
 DEFAULT_COLOR = (0.8, 0.8, 0.8, 1.0)
 HALF_MAX = 65504.0          # the largest float16: texels travel as half floats
@@ -132,70 +132,86 @@ class _MaterialTable:
 
     def index(self, material, obj_name: str | None = None,
               visibility: int = VISIBLE_TO_ALL, placement=None) -> int:
-        """The material's index; `obj_name`: the object that uses it (named in warnings).
-        `visibility`: the object's ray visibility and holdout (core/layout.py VISIBILITY_CODES);
-        other than the default, the material gets a record of its own with it. `placement`
-        (a Placement): where the object is, for a node program that reads Generated or Object
-        coordinates (then each placement gets a record and a program of its own)."""
+        """The material's index (the first record of its closures); `obj_name`: the object
+        that uses it (named in warnings). `visibility`: the object's ray visibility and holdout
+        (core/layout.py VISIBILITY_CODES); other than the default, the material gets records
+        of its own with it. `placement` (a Placement): where the object is, for a node program
+        that reads Generated or Object coordinates (then each placement gets records and
+        programs of its own)."""
         key = material.name_full if material is not None else None
         if visibility != VISIBLE_TO_ALL or placement is not None:
             base = self.index(material, obj_name)
-            program = self._spatial.get(key)
-            where = placement.key if program is not None and placement is not None else None
+            programs = self._spatial.get(key)
+            where = placement.key if programs is not None and placement is not None else None
             variant = (key, visibility, where)
             if variant == (key, VISIBLE_TO_ALL, None):
                 return base
             if variant not in self._index:
-                if len(self._colors) >= MAX_MATERIALS:
-                    raise SceneError(f"the scene uses more than {MAX_MATERIALS} materials")
-                self._index[variant] = len(self._colors)
-                self._colors.append(self._colors[base])
-                params = list(self._params[base])
-                params[MATERIAL_PARAMS.index("visibility")] = float(visibility)
-                if where is not None:
-                    params[MATERIAL_PARAMS.index("program")] = float(len(self.node_rows))
-                    self.node_rows += program.rows(placement.matrices)
-                self._params.append(tuple(params))
+                count = int(self._params[base][MATERIAL_PARAMS.index("closures")])
+                self._index[variant] = self._reserve(count)
+                for k in range(count):      # every closure of the material, in order
+                    self._colors.append(self._colors[base + k])
+                    params = list(self._params[base + k])
+                    params[MATERIAL_PARAMS.index("visibility")] = float(visibility)
+                    if where is not None and programs[k] is not None:
+                        params[MATERIAL_PARAMS.index("program")] = float(len(self.node_rows))
+                        self.node_rows += programs[k].rows(placement.matrices)
+                    self._params.append(tuple(params))
             return self._index[variant]
         if key not in self._index:
-            if len(self._colors) >= MAX_MATERIALS:
-                raise SceneError(f"the scene uses more than {MAX_MATERIALS} materials")
-            self._index[key] = len(self._colors)
             owner = f"material '{material.name}'" if material is not None else "material"
-            program = NodeProgram(lambda image: self.texture(image, owner))
-            color, params, image, problems = material_parameters(material, program)
-            if image is not None:
-                params["texture"] = float(self.texture(image, owner))
-            if program.outputs:
-                params["program"] = float(len(self.node_rows))
-                self.node_rows += program.rows()
-                if program.transforms:
-                    self._spatial[key] = program
-                if program.reads_uv:
-                    self._uv_programs.add(key)
-                if program.uv_maps:
-                    self.named_uv_maps[key] = program.uv_maps
+            closures, problems = material_closures(
+                material, lambda: NodeProgram(lambda image: self.texture(image, owner)))
+            self._index[key] = self._reserve(len(closures))
+            spatial = []
+            for k, closure in enumerate(closures):
+                params, program = closure.params, closure.program
+                if k == 0:
+                    params["closures"] = float(len(closures))
+                if closure.image is not None:
+                    params["texture"] = float(self.texture(closure.image, owner))
+                if program.outputs:
+                    params["program"] = float(len(self.node_rows))
+                    self.node_rows += program.rows()
+                    if program.reads_uv:
+                        self._uv_programs.add(key)
+                    if program.uv_maps:
+                        self.named_uv_maps.setdefault(key, set()).update(program.uv_maps)
+                spatial.append(program if program.outputs and program.transforms else None)
+                self._colors.append(closure.color)
+                self._params.append(tuple(params[name] for name in MATERIAL_PARAMS))
+            if any(p is not None for p in spatial):
+                self._spatial[key] = spatial
             if problems:        # one warning per material, naming everything it lacks
                 on = f" (on object '{obj_name}')" if obj_name else ""
                 self._warnings.append(f"material '{material.name}'{on}: " + "; ".join(problems))
-            self._colors.append(color)
-            self._params.append(tuple(params[name] for name in MATERIAL_PARAMS))
         return self._index[key]
 
+    def _reserve(self, count: int) -> int:
+        """The index the next `count` records will have (a SceneError past MAX_MATERIALS)."""
+        if len(self._colors) + count > MAX_MATERIALS:
+            raise SceneError(f"the scene uses more than {MAX_MATERIALS} materials")
+        return len(self._colors)
+
     def world_space(self, index: int) -> bool:
-        """Whether material record `index` needs its triangles in world space: it emits
-        (emitters are sampled as lights there) or runs a node program (which reads the hit's
-        position and the triangle's frame)."""
-        params = self._params[index]
-        return params[MATERIAL_PARAMS.index("program")] >= 0 or \
-            any(params[MATERIAL_PARAMS.index(f"emission_{c}")] > 0 for c in "rgb")
+        """Whether the material at record `index` needs its triangles in world space: a
+        closure emits (emitters are sampled as lights there) or runs a node program (which
+        reads the hit's position and the triangle's frame)."""
+        count = int(self._params[index][MATERIAL_PARAMS.index("closures")])
+        return any(params[MATERIAL_PARAMS.index("program")] >= 0 or
+                   any(params[MATERIAL_PARAMS.index(f"emission_{c}")] > 0 for c in "rgb")
+                   for params in self._params[index:index + count])
 
     def uses_texture(self, material) -> bool:
         """Whether the material reads UVs (an image texture, or a node program that does)."""
         key = material.name_full if material is not None else None
-        return key in self._index and (
-            self._params[self._index[key]][MATERIAL_PARAMS.index("texture")] >= 0
-            or key in self._uv_programs)
+        if key not in self._index:
+            return False
+        index = self._index[key]
+        count = int(self._params[index][MATERIAL_PARAMS.index("closures")])
+        return key in self._uv_programs or any(
+            params[MATERIAL_PARAMS.index("texture")] >= 0
+            for params in self._params[index:index + count])
 
     def texture(self, image, owner: str) -> int:
         """The index of `image` in the texture table (added on first use); `owner` names the

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.layout import (NODE_EXTENSION_CODES, NODE_GRADIENT_CODES, NODE_MATH_CODES, NODE_MIX_CODES,
+from ..core.layout import (CLOSURE_CODES, MAX_CLOSURES, NODE_EXTENSION_CODES, NODE_GRADIENT_CODES,
+                           NODE_LAYER_WEIGHT_CODES, NODE_MATH_CODES, NODE_MIX_CODES,
                            NODE_NOISE_TYPE_CODES, NODE_NORMAL_SPACE_CODES,
                            NODE_OBJECT_NORMAL_SPACES, NODE_OP_CODES,
                            NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS,
@@ -99,6 +100,39 @@ class NodeProgram:
             ref = self._as_float(ref)
         self._emit("OUT", 0, ref, params=(NODE_OUT_CODES[field],))
         self.outputs.append(field)
+        return True
+
+    def weight(self, factors, constant, problems) -> bool:
+        """The closure's weight as its program's WEIGHT output: `constant` times each linked
+        Mix Shader factor (Fac, or 1 - Fac for the Mix Shader's first input), each clamped to
+        [0, 1] as Cycles clamps it. False (with a problem naming the node) when a factor's
+        graph cannot be evaluated: the weight is then a stand-in."""
+        saved = (list(self._code), list(self._ramps), dict(self._values), dict(self._kinds),
+                 self._next, list(self.transforms))
+        try:
+            ref = self._constant(float(constant))
+            one = self._constant(1.0)
+            clamp = (NODE_MATH_CODES["MAXIMUM"], NODE_MATH_CODES["MINIMUM"])
+            for socket, inverted in factors:
+                fac = self._as_float(self._operand(socket))
+                low = self._register()
+                self._emit("MATH", low, fac, self._constant(0.0), 0, params=(clamp[0], 1.0))
+                fac = self._lane(low, 0)
+                if inverted:
+                    register = self._register()
+                    self._emit("MATH", register, one, fac, 0,
+                               params=(NODE_MATH_CODES["SUBTRACT"], 0.0))
+                    fac = self._lane(register, 0)
+                register = self._register()
+                self._emit("MATH", register, ref, fac, 0,
+                           params=(NODE_MATH_CODES["MULTIPLY"], 0.0))
+                ref = self._lane(register, 0)
+        except _Unsupported as error:
+            self._code, self._ramps, self._values, self._kinds, self._next, self.transforms = saved
+            problems.append(f"a Mix Shader's Fac: {error}; using 0.5")
+            return False
+        self._emit("OUT", 0, ref, params=(NODE_OUT_CODES["WEIGHT"],))
+        self.outputs.append("WEIGHT")
         return True
 
     def rows(self, matrices=None) -> list:
@@ -343,6 +377,15 @@ class NodeProgram:
             return self._bump(node)
         if kind == "MAPPING":
             return self._mapping(node)
+        if kind in ("FRESNEL", "LAYER_WEIGHT"):
+            value = self._input(node, "IOR" if kind == "FRESNEL" else "Blend")
+            normal = node.inputs["Normal"]
+            normal_ref = self._input(node, "Normal") if normal.is_linked else 0
+            register = self._register()
+            code = NODE_LAYER_WEIGHT_CODES.get(name.upper(), 0)
+            self._emit(kind, register, value, normal_ref,
+                       params=(float(code), float(normal.is_linked)))
+            return self._lane(register, 0)
         raise _Unsupported(f"node '{node.name}' ({node.bl_idname}) is not evaluated")
 
     def _noise(self, node, name):
@@ -607,19 +650,121 @@ def _color_input(node, name, problems, program=None):
 
 
 def material_parameters(material, program=None):
-    """(base colour RGBA, params dict, image or None, problems) of a Blender material.
+    """(base colour RGBA, params dict, image or None, problems) of a Blender material of one
+    closure (its first, for a material of several: material_closures).
     `program`: a NodeProgram that takes the node graphs linked to the BSDF's inputs (without
     one, linked inputs other than a plain Image Texture keep their values, with a problem)."""
-    params = dict(zip(MATERIAL_PARAMS, DEFAULT_MATERIAL_PARAMS), **PRINCIPLED_DEFAULTS)
+    closures, problems = material_closures(material, lambda: program)
+    first = closures[0]
+    return first.color, first.params, first.image, problems
+
+
+class Closure:
+    """One closure of a material (core/layout.py CLOSURE_CODES): its base colour RGBA, its
+    parameters (MATERIAL_PARAMS names), its image texture or None and its NodeProgram (which
+    may have no outputs)."""
+
+    def __init__(self, color, params, image, program):
+        self.color, self.params, self.image, self.program = color, params, image, program
+
+
+def material_closures(material, new_program) -> tuple:
+    """([Closure], problems) of a Blender material: the closures its surface mixes (Mix Shader,
+    Add Shader), at most MAX_CLOSURES, each with its weight: the product of the Mix Shader
+    factors on its path (Add: 1), a constant or set by its program when a factor is linked
+    (compiled into it). `new_program()`: a NodeProgram for the next closure (or None).
+    One closure, as before there were several, for a material of one BSDF."""
     problems = []
-    fallback = tuple(material.diffuse_color)
-    if not (material.use_nodes and material.node_tree):
-        # Cycles renders a material without nodes as a Principled BSDF of its viewport values.
-        params.update(metallic=float(material.metallic), roughness=float(material.roughness),
-                      specular=float(material.specular_intensity))
-        return fallback, params, None, problems
+    fallback = tuple(material.diffuse_color) if material is not None else (0.8, 0.8, 0.8, 1.0)
+    if material is None or not (material.use_nodes and material.node_tree):
+        params = dict(zip(MATERIAL_PARAMS, DEFAULT_MATERIAL_PARAMS), **PRINCIPLED_DEFAULTS)
+        if material is not None:
+            # Cycles renders a material without nodes as a Principled BSDF of its viewport values.
+            params.update(metallic=float(material.metallic), roughness=float(material.roughness),
+                          specular=float(material.specular_intensity))
+        return [Closure(fallback, params, None, new_program())], problems
+    leaves = []
     node = _surface_node(material)
-    kind = node.type if node is not None else None
+    if node is not None:
+        _collect_closures(node, 1.0, [], leaves, problems)
+    params = dict(zip(MATERIAL_PARAMS, DEFAULT_MATERIAL_PARAMS), **PRINCIPLED_DEFAULTS)
+    if node is None:
+        return [Closure(fallback, params, None, new_program())], [
+            "its surface is nothing, which KD Trace cannot map; rendering its base colour"]
+    if not leaves:
+        # Mix / Add Shaders with no shader linked: no closure, black in Cycles.
+        return [Closure((0.0, 0.0, 0.0, 1.0), dict(params, specular=0.0), None,
+                        new_program())], problems
+    if len(leaves) > MAX_CLOSURES:
+        leaves.sort(key=lambda leaf: -leaf[1] * 0.5 ** len(leaf[2]))
+        problems.append(f"it mixes {len(leaves)} shaders, KD Trace at most {MAX_CLOSURES}: "
+                        + ", ".join(f"'{leaf[0].name}'" for leaf in leaves[MAX_CLOSURES:])
+                        + " left out")
+        leaves = leaves[:MAX_CLOSURES]
+    mixed = len(leaves) > 1 or leaves[0][1] != 1.0 or leaves[0][2]
+    closures = []
+    for leaf, weight, factors in leaves:
+        program = new_program()
+        closure = _closure(leaf, program, problems, fallback, mixed)
+        stand_in = weight * 0.5 ** len(factors)
+        if factors and program is not None:
+            program.weight(factors, weight, problems)
+        elif factors:
+            problems.append("a Mix Shader's Fac is linked; using 0.5")
+            weight = stand_in
+        closure.params["weight"] = stand_in if factors else weight
+        closures.append(closure)
+    return closures, problems
+
+
+def _shader_link(socket):
+    """The node linked to a shader socket (through reroutes), or None."""
+    while socket.is_linked:
+        link = socket.links[0]
+        if not link.is_valid or link.is_muted:
+            return None
+        node = link.from_node
+        if node.type != "REROUTE":
+            return node
+        socket = node.inputs[0]
+    return None
+
+
+def _collect_closures(node, weight, factors, leaves, problems, depth=0):
+    """The closures under shader node `node`: (node, constant weight, linked factors) for each
+    BSDF, emission, transparent or holdout node; a factor is (Fac socket, whether it is taken
+    as 1 - Fac: the Mix Shader's first input)."""
+    if depth > 64:
+        return
+    if node.type == "MIX_SHADER":
+        fac = node.inputs[0]
+        for first, socket in ((True, node.inputs[1]), (False, node.inputs[2])):
+            source = _shader_link(socket)
+            if source is None:
+                continue
+            if fac.is_linked:
+                _collect_closures(source, weight, factors + [(fac, first)], leaves, problems,
+                                  depth + 1)
+                continue
+            f = min(max(float(fac.default_value), 0.0), 1.0)
+            w = weight * ((1.0 - f) if first else f)
+            if w > 0.0:
+                _collect_closures(source, w, factors, leaves, problems, depth + 1)
+        return
+    if node.type == "ADD_SHADER":
+        for socket in node.inputs[:2]:
+            source = _shader_link(socket)
+            if source is not None:
+                _collect_closures(source, weight, factors, leaves, problems, depth + 1)
+        return
+    leaves.append((node, weight, factors))
+
+
+def _closure(node, program, problems, fallback, mixed) -> Closure:
+    """The closure of one shader node (`mixed`: inside a Mix or Add Shader, where an Emission
+    is a closure of its own kind)."""
+    params = dict(zip(MATERIAL_PARAMS, DEFAULT_MATERIAL_PARAMS), **PRINCIPLED_DEFAULTS)
+    kind = node.type
     image = None
     if kind == "BSDF_PRINCIPLED":
         color, image = _color_input(node, "Base Color", problems, program)
@@ -671,13 +816,22 @@ def material_parameters(material, program=None):
         _emission(node, "Color", "Strength", params, problems, program)
         color = (0.0, 0.0, 0.0, 1.0)
         params["specular"] = 0.0
+        if mixed:
+            params["kind"] = float(CLOSURE_CODES["EMISSION"])
+    elif kind == "BSDF_TRANSPARENT":
+        color, image = _color_input(node, "Color", problems, program)
+        params["kind"] = float(CLOSURE_CODES["TRANSPARENT"])
+        _unhandled_links(node, ("Color",), problems)
+    elif kind == "HOLDOUT":
+        color = (0.0, 0.0, 0.0, 1.0)
+        params["kind"] = float(CLOSURE_CODES["HOLDOUT"])
     else:
-        what = f"'{node.name}' ({node.bl_idname})" if node is not None else "nothing"
-        return fallback, params, None, [
-            f"its surface is {what}, which KD Trace cannot map; rendering its base colour"]
+        problems.append(f"'{node.name}' ({node.bl_idname}) is not supported; rendering the "
+                        "material's base colour there")
+        return Closure(fallback, params, None, program)
     params["ior"] = min(max(params["ior"], 0.01), 100.0)
     for name in ("metallic", "roughness", "transmission"):
         params[name] = min(max(params[name], 0.0), 1.0)
     params["specular"] = min(max(params["specular"], 0.0), 1000.0)
     color = tuple(min(max(c, 0.0), 1e6) for c in color[:3]) + (min(max(color[3], 0.0), 1.0),)
-    return color, params, image, list(dict.fromkeys(problems))
+    return Closure(color, params, image, program)

@@ -222,6 +222,13 @@ INTERPOLATION_CODES = {"LINEAR": 0, "CLOSEST": 1}
 VISIBILITY_CODES = {"CAMERA": 1, "DIFFUSE": 2, "GLOSSY": 4, "TRANSMISSION": 8, "SHADOW": 16,
                     "HOLDOUT": 32}
 VISIBLE_TO_ALL = 31             # every ray sees it; no holdout
+# A material is a set of closures (Mix Shader, Add Shader): 1 to MAX_CLOSURES consecutive
+# MATERIAL records, the first saying how many (MATERIAL_CLOSURES), each a closure of one kind
+# with its weight (docs/shading.md, Closures). PRINCIPLED scatters (every BSDF node maps onto
+# its parameters); EMISSION only emits; TRANSPARENT lets the ray through, tinted by its base
+# colour; HOLDOUT cuts the camera's view (alpha) and is black.
+CLOSURE_CODES = {"PRINCIPLED": 0, "EMISSION": 1, "TRANSPARENT": 2, "HOLDOUT": 3}
+MAX_CLOSURES = 4
 # Shader node programs (addon/nodes.py NodeProgram; evaluated by shading.cl run_nodes):
 # instructions of two float4 rows, (op, dst, a, b) and (c, p0, p1, p2); a, b, c are operand
 # references register * NODE_REF_REGISTER + lane (0-3: that lane in all four, 4: the whole
@@ -231,7 +238,7 @@ VISIBLE_TO_ALL = 31             # every ray sees it; no holdout
 NODE_OP_CODES = {"END": 0, "CONST": 1, "UV": 2, "IMAGE": 3, "COMBINE": 4, "MIX": 5, "MATH": 6,
                  "INVERT": 7, "CHECKER": 8, "RAMP": 9, "OUT": 10, "DOT": 11, "MAP_RANGE": 12,
                  "VECTOR_MATH": 13, "HSV": 14, "GRADIENT": 15, "TRANSFORM": 16, "NOISE": 17,
-                 "NORMAL_MAP": 18, "BUMP": 19}
+                 "NORMAL_MAP": 18, "BUMP": 19, "FRESNEL": 20, "LAYER_WEIGHT": 21}
 NODE_MIX_CODES = {"MIX": 0, "ADD": 1, "MULTIPLY": 2, "SUBTRACT": 3, "SCREEN": 4,
                   "DIFFERENCE": 5, "DARKEN": 6, "LIGHTEN": 7}
 # Blender's Math and Vector Math operations, every one (Cycles' svm_math, svm_vector_math).
@@ -258,7 +265,10 @@ NODE_EXTENSION_CODES = {"REPEAT": 0, "EXTEND": 1, "CLIP": 2, "MIRROR": 3}   # Im
 NODE_NOISE_TYPE_CODES = {"FBM": 0, "MULTIFRACTAL": 1, "HYBRID_MULTIFRACTAL": 2,
                          "RIDGED_MULTIFRACTAL": 3, "HETERO_TERRAIN": 4}
 NODE_OUT_CODES = {"BASE_COLOR": 0, "ALPHA": 1, "METALLIC": 2, "ROUGHNESS": 3,
-                  "TRANSMISSION": 4, "IOR": 5, "SPECULAR": 6, "NORMAL": 7, "EMISSION": 8}
+                  "TRANSMISSION": 4, "IOR": 5, "SPECULAR": 6, "NORMAL": 7, "EMISSION": 8,
+                  "WEIGHT": 9}
+# Layer Weight outputs (LAYER_WEIGHT p0): Cycles' NODE_LAYER_WEIGHT_FRESNEL and _FACING.
+NODE_LAYER_WEIGHT_CODES = {"FRESNEL": 0, "FACING": 1}
 NODE_NORMAL_SPACE_CODES = {"TANGENT": 0, "OBJECT": 1, "WORLD": 2, "BLENDER_OBJECT": 3,
                            "BLENDER_WORLD": 4}      # Normal Map (NORMAL_MAP p1)
 NODE_OBJECT_NORMAL_SPACES = ("OBJECT", "BLENDER_OBJECT")    # these read the object's rows (p0)
@@ -287,6 +297,8 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("INTERPOLATION", "World texture interpolation (WORLD_INTERPOLATION)",
                INTERPOLATION_CODES),
          Codes("VISIBILITY", "Ray visibility bits (MATERIAL_VISIBILITY)", VISIBILITY_CODES),
+         Codes("CLOSURE", "Closure kinds (MATERIAL_KIND)", CLOSURE_CODES),
+         Codes("CLOSURES", "Closures of a material", {"MAX": MAX_CLOSURES}),
          Codes("NODE_OP", "Shader node program operations", NODE_OP_CODES),
          Codes("NODE_MIX", "Mix node blend types (MIX p0)", NODE_MIX_CODES),
          Codes("NODE_MATH", "Math node operations (MATH p0)", NODE_MATH_CODES),
@@ -297,6 +309,8 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("NODE_EXTENSION", "Image Texture extensions (IMAGE p2)", NODE_EXTENSION_CODES),
          Codes("NODE_NORMAL_SPACE", "Normal Map spaces (NORMAL_MAP p1)", NODE_NORMAL_SPACE_CODES),
          Codes("NODE_NOISE_TYPE", "Noise Texture types (NOISE p0 / 32)", NODE_NOISE_TYPE_CODES),
+         Codes("NODE_LAYER_WEIGHT", "Layer Weight outputs (LAYER_WEIGHT p0)",
+               NODE_LAYER_WEIGHT_CODES),
          Codes("TOPLEVEL", "Top-level BVH sizes",
                {"LEAF_MAX": TOPLEVEL_LEAF_MAX, "MAX_DEPTH": TOPLEVEL_MAX_DEPTH}),
          Codes("NODE", "Shader node program sizes",
@@ -324,7 +338,8 @@ LIGHT = Record("LIGHT", "A light (lights buffer, light_count records)", 6, (
     Slot("sun_cos_half_angle", 5, "x", "sun: cos of half the angular diameter (1 = sharp)"),
 ))
 
-MATERIAL = Record("MATERIAL", "A material (materials buffer, by triangle material id)", 4, (
+MATERIAL = Record("MATERIAL", "A closure of a material (materials buffer; a triangle's material "
+                  "id names the first of its closures)", 5, (
     Slot("base_color", 0, "xyz", "base colour"),
     Slot("alpha", 0, "w", "alpha (< 1: cut-out)"),
     Slot("metallic", 1, "x", "metallic"),
@@ -338,6 +353,11 @@ MATERIAL = Record("MATERIAL", "A material (materials buffer, by triangle materia
     Slot("visibility", 3, "z", "VISIBILITY_<RAY> bits of the rays that see it, and HOLDOUT (as a "
          "float)"),
     Slot("program", 3, "w", "row of its shader node program in the materials buffer, -1 = none"),
+    Slot("closures", 4, "x", "the first closure of a material: its closures, this one and the "
+         "records after it (1 to CLOSURES_MAX)"),
+    Slot("weight", 4, "y", "the closure's weight (the product of the Mix Shader factors on its "
+         "path; its program may set it: then a stand-in)"),
+    Slot("kind", 4, "z", "a CLOSURE_<KIND> code"),
 ))
 
 CAMERA = Record("CAMERA", "The camera (one record)", 11, (

@@ -34,8 +34,13 @@ def pack_materials(shading) -> np.ndarray:
     records = out[:n]
     MATERIAL.put(records, "base_color", shading.materials[:, :3])
     MATERIAL.put(records, "alpha", shading.materials[:, 3])
-    for name in ("metallic", "roughness", "transmission", "ior", "specular", "texture", "visibility"):
+    for name in ("metallic", "roughness", "transmission", "ior", "specular", "texture", "visibility",
+                 "weight", "kind"):
         MATERIAL.put(records, name, params[:, MATERIAL_PARAMS.index(name)])
+    # A material's closures never reach past the records (validated on the wire; clamped here
+    # as well, since the kernel reads them without a bound).
+    closures = params[:, MATERIAL_PARAMS.index("closures")]
+    MATERIAL.put(records, "closures", np.clip(closures, 1, n - np.arange(n)))
     emission = [MATERIAL_PARAMS.index(f"emission_{c}") for c in "rgb"]
     MATERIAL.put(records, "emission", params[:, emission])
     MATERIAL.put(records, "texture_alpha", 1.0)
@@ -244,10 +249,18 @@ def pack_world(shading, cdf_size=(0, 0)) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def emitter_powers(geometry, shading, triangles=None):
-    """(emissive triangle indices, their power: mean emission colour x area, float64)."""
+def material_emission(shading) -> np.ndarray:
+    """Per material (as the first of its closures): the mean emission colour of its closures,
+    each times its weight (a stand-in where a program sets either), float64: the emitter's
+    power per unit area that kernels/shade/lights.cl emitter_pdf computes the same way."""
     emission = np.stack([shading.param(f"emission_{c}") for c in "rgb"], axis=1).astype(np.float64)
     strength = (emission[:, 0] + emission[:, 1] + emission[:, 2]) / 3.0
+    return shading.per_material(strength * shading.param("weight").astype(np.float64))
+
+
+def emitter_powers(geometry, shading, triangles=None):
+    """(emissive triangle indices, their power: mean emission colour x area, float64)."""
+    strength = material_emission(shading)
     ids = geometry.material_ids.astype(np.int64)
     valid = ids < len(strength)
     emissive = np.flatnonzero(valid & (strength[np.minimum(ids, len(strength) - 1)] > 0))

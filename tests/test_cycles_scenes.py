@@ -5,7 +5,7 @@ a room lit only by an emissive mesh, the BSDF nodes and Principled inputs, glass
 light, Film > Transparent with a holdout, ray visibility, depth of field, camera and
 object motion blur, shader node programs and procedural textures, texture coordinates through
 Mapping nodes (as Blender's glTF importer makes them), the Material and World Output Cycles
-uses where there are several, and odd input (an object
+uses where there are several, Mix and Add Shaders (closures), and odd input (an object
 scaled to 0 on an axis and on all, text, curve and metaball objects, an image that cannot be
 loaded, an area light flattened to a line). Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
 uses; what is not supported is named in warnings. docs/cycles_features.md lists the rows."""
@@ -45,6 +45,8 @@ SCENES = {
     "degenerate": (12, {"AREA", "BOUNCES", "NODES", "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "procedural": (12, {"AREA", "BOUNCES", "BUMP", "EMISSION", "NODES", "NOISE", "NORMAL_MAP",
                         "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
+    "closures": (12, {"ALPHA", "AREA", "BOUNCES", "CLOSURES", "EMISSION", "HOLDOUT", "NODES",
+                      "SMOOTH", "SPECULAR", "TRANSPARENT_FILM", "VISIBILITY", "WORLD"}),
 }
 # What a scene's export may warn of (each warning names the object or material, and each
 # expected fragment is found): the rest must export without a warning.
@@ -104,6 +106,17 @@ def test_transparent_film_and_holdout_alpha_match_cycles(renders):
     assert (cycles[..., 3] < 0.01).mean() > 0.1 and ((cycles[..., 3] > 0.2) & (cycles[..., 3] < 0.8)).any()
     value = psnr(ours, cycles, 3)
     print(f"film_holdout alpha: PSNR {value:.2f} dB")
+    assert value >= 30.0
+
+
+def test_closures_alpha_matches_cycles(renders):
+    """Mixed closures on a transparent film: a Holdout mixed in by half, Transparent closures
+    by a checker and added to a diffuse pane; alpha as Cycles' (its holdout and transparency)."""
+    work, _ = renders
+    cycles, ours = (np.load(work / f"closures-{who}.npy") for who in ("cycles", "kdtrace"))
+    assert ((cycles[..., 3] > 0.2) & (cycles[..., 3] < 0.8)).any()
+    value = psnr(ours, cycles, 3)
+    print(f"closures alpha: PSNR {value:.2f} dB")
     assert value >= 30.0
 
 

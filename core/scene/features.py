@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..layout import NODE_OP_CODES, VISIBILITY_CODES, VISIBLE_TO_ALL
+from ..layout import CLOSURE_CODES, NODE_OP_CODES, VISIBILITY_CODES, VISIBLE_TO_ALL
 from .model import MATERIAL_PARAMS, Geometry, View
 
 # Every feature, and the geometry arrays each one needs (beyond vertices/triangles/material_ids).
@@ -34,6 +34,8 @@ FEATURES = {
     "NOISE": (),              # a node program evaluates a Noise Texture
     "NORMAL_MAP": (),         # a node program evaluates a Normal Map (sets the shading normal)
     "BUMP": (),               # a node program evaluates a Bump (heights at three points)
+    "CLOSURES": (),           # materials of several closures (Mix / Add Shader) or of closures
+                              # other than a BSDF (Transparent, Holdout, Emission in a mix)
     "INSTANCES": (),          # instanced meshes under a top-level BVH (docs/instances.md)
     "OBJECT_MOTION": (),      # object motion blur: instances move while the shutter is open
 }
@@ -54,12 +56,18 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
     if used_materials is None:
         used_materials = geometry.used_material_ids()
     ids = np.asarray(used_materials)
-    used[ids[ids < len(used)]] = True
+    heads = ids[ids < len(used)]
+    used[shading.closure_rows(heads)] = True     # every closure of the used materials
     params = shading.material_params[used]
     colours = shading.materials[used]
 
     def column(name):
         return params[:, MATERIAL_PARAMS.index(name)]
+
+    kind = column("kind")
+    bsdf = kind == CLOSURE_CODES["PRINCIPLED"]
+    if (shading.param("closures")[heads] > 1).any() or (~bsdf).any():
+        features.add("CLOSURES")
 
     if geometry.normals is not None:
         features.add("SMOOTH")
@@ -73,14 +81,16 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
     if geometry.texture_count and ((column("texture") >= 0).any() or
                                    program_textures(shading.node_program, programs[programs >= 0])):
         features.add("TEXTURES")
-    specular = (column("metallic") > 0) | (column("specular") > 0)
+    specular = bsdf & ((column("metallic") > 0) | (column("specular") > 0))
     if specular.any():
         features.add("SPECULAR")
-    transmissive = (column("transmission") > 0) & (column("metallic") < 1)
+    transmissive = bsdf & (column("transmission") > 0) & (column("metallic") < 1)
     if transmissive.any():
         features.add("TRANSMISSION")
-    if (colours[:, 3] < 1).any():
+    if (colours[:, 3] < 1).any() or (kind == CLOSURE_CODES["TRANSPARENT"]).any():
         features.add("ALPHA")
+    if (kind == CLOSURE_CODES["HOLDOUT"]).any():
+        features.add("HOLDOUT")
     emission = np.stack([column(f"emission_{c}") for c in "rgb"], axis=1) if len(params) else \
         np.zeros((0, 3))
     if (emission > 0).any():
@@ -113,7 +123,7 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
     settings = view.settings
     # Diffuse: every material but pure metal and pure glass has a diffuse part.
     diffuse = settings.diffuse_bounces > 0 and bool(
-        ((1 - column("metallic")) * (1 - column("transmission")) > 0).any())
+        (bsdf & ((1 - column("metallic")) * (1 - column("transmission")) > 0)).any())
     glossy = settings.glossy_bounces > 0 and bool(specular.any())
     refractive = settings.transmission_bounces > 0 and bool(transmissive.any())
     bounces = settings.max_bounces > 0 and (diffuse or glossy or refractive)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..layout import VISIBLE_TO_ALL
+from ..layout import CLOSURE_CODES, MAX_CLOSURES, VISIBLE_TO_ALL
 
 SCENE_FORMAT_VERSION = 1
 
@@ -336,17 +336,23 @@ class Light:
 # visibility: the VISIBILITY_<RAY> bits (core/layout.py) of the rays that see the surface, and
 # VISIBILITY_HOLDOUT; the exporter gives an object with other than the default its own records.
 # program: the row of the material's shader node program in Shading.node_program, -1 = none.
+# A row is one closure (Mix Shader, Add Shader: docs/shading.md, Closures): closures, on a
+# material's first row, how many rows (this and the next) its closures take (1 to
+# MAX_CLOSURES); weight, the closure's (its program may set it); kind, a CLOSURE_CODES code.
 MATERIAL_PARAMS = ("metallic", "roughness", "transmission", "ior", "emission_r", "emission_g",
-                   "emission_b", "specular", "texture", "visibility", "program")
+                   "emission_b", "specular", "texture", "visibility", "program", "closures",
+                   "weight", "kind")
 DEFAULT_MATERIAL_PARAMS = (0.0, 0.5, 0.0, 1.5, 0.0, 0.0, 0.0, 0.0, -1.0, float(VISIBLE_TO_ALL),
-                           -1.0)
+                           -1.0, 1.0, 1.0, float(CLOSURE_CODES["PRINCIPLED"]))
 MAX_NODE_ROWS = 1 << 20
 # name -> (low, high) accepted from the network; texture is an index, -1 = none.
 _PARAM_RANGES = {"metallic": (0.0, 1.0), "roughness": (0.0, 1.0), "transmission": (0.0, 1.0),
                  "ior": (0.01, 100.0), "emission_r": (0.0, 1e30), "emission_g": (0.0, 1e30),
                  "emission_b": (0.0, 1e30), "specular": (0.0, 1000.0),
                  "texture": (-1.0, MAX_TEXTURES - 1.0), "visibility": (0.0, 63.0),
-                 "program": (-1.0, MAX_NODE_ROWS - 1.0)}
+                 "program": (-1.0, MAX_NODE_ROWS - 1.0), "closures": (1.0, float(MAX_CLOSURES)),
+                 "weight": (0.0, 1.0), "kind": (0.0, float(max(CLOSURE_CODES.values())))}
+_WHOLE_PARAMS = ("visibility", "program", "closures", "kind")
 
 
 def default_material_params(count: int) -> np.ndarray:
@@ -433,6 +439,32 @@ class Shading:
     def param(self, name: str) -> np.ndarray:
         return self.material_params[:, MATERIAL_PARAMS.index(name)]
 
+    def closure_rows(self, ids) -> np.ndarray:
+        """The rows of the closures of materials `ids` (first rows): each id and the rows after
+        it that its closures take, sorted, once each."""
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        ids = ids[(ids >= 0) & (ids < len(self.materials))]
+        counts = np.clip(self.param("closures")[ids].astype(np.int64), 1, MAX_CLOSURES)
+        rows = [ids + k for k in range(MAX_CLOSURES)]
+        keep = [k < counts for k in range(MAX_CLOSURES)]
+        out = np.concatenate([r[m] for r, m in zip(rows, keep)])
+        return np.unique(out[out < len(self.materials)])
+
+    def per_material(self, values) -> np.ndarray:
+        """For each row as a material's first: `values` (one per row, bool or float) summed
+        over its closures' rows (a bool: whether any has it)."""
+        values = np.asarray(values)
+        counts = np.clip(self.param("closures").astype(np.int64), 1, MAX_CLOSURES)
+        n = len(values)
+        total = np.zeros(n, np.float64 if values.dtype != bool else bool)
+        for k in range(min(MAX_CLOSURES, n)):
+            shifted = np.zeros_like(total)
+            shifted[:n - k] = values[k:]
+            mask = k < counts
+            total = (total | (shifted & mask)) if values.dtype == bool else \
+                total + np.where(mask, shifted, 0.0)
+        return total
+
     @property
     def world_lights(self) -> bool:
         """Whether the world gives light (a colour that is not black)."""
@@ -466,9 +498,16 @@ class Shading:
                     low, high = _PARAM_RANGES[name]
                     if not low <= value <= high:
                         raise SceneError(f"material {name} must be in [{low}, {high}], got {value}")
-                    if name in ("visibility", "program") and value != round(value):
+                    if name in _WHOLE_PARAMS and value != round(value):
                         raise SceneError(f"material {name} must be a whole number, got {value}")
                 rows.append(row)
+            # A material's closures are the rows from its own: none past the table (Python
+            # integers; the kernel reads the records id .. id + closures - 1).
+            count = MATERIAL_PARAMS.index("closures")
+            for k, row in enumerate(rows):
+                if k + int(row[count]) > len(rows):
+                    raise SceneError(f"material {k} has {int(row[count])} closures, past the "
+                                     f"{len(rows)} rows")
             params = np.array(rows, np.float32)
         world = _finite_floats(d.get("world_color"), 3, "world colour")
         if min(world) < 0 or max(world) > MAX_RADIANCE:

@@ -461,7 +461,8 @@ class Scene:
         (the exporter realises them)."""
         params = view.shading.material_params
         emission = params[:, [MATERIAL_PARAMS.index(f"emission_{c}") for c in "rgb"]]
-        world_space = (emission > 0).any(axis=1) | (params[:, MATERIAL_PARAMS.index("program")] >= 0)
+        world_space = view.shading.per_material(
+            (emission > 0).any(axis=1) | (params[:, MATERIAL_PARAMS.index("program")] >= 0))
         if not world_space[self.used_materials].any():
             return
         inst = self.instances

@@ -25,7 +25,24 @@ inline float3 shadow(const Scene *sc, float3 o, float3 w, float dist, float3 tar
 #ifdef HAS_VISIBILITY
         if (hit_visibility(sc, &h) & VISIBILITY_SHADOW) {
 #endif
-#ifdef HAS_ALPHA
+#if defined(HAS_ALPHA) && defined(HAS_CLOSURES)
+            // A material of closures lets through its transparency (Transparent closures'
+            // colour, Principled's 1 - alpha), as Cycles' transparent shadows.
+            Surface at = surface_at(sc, &h, w);
+            ShadeInfo info = shade_info(&at, w);
+            ClosureSum cs;
+            closures_eval(sc, h.tri, h.u, h.v, 0, &info, 0.5f, &cs);
+            T *= clamp(cs.transparency, 0.0f, 1.0f);
+            if (all(T == 0.0f))
+                return T;
+#elif defined(HAS_ALPHA) && defined(HAS_NODES)
+            Surface at = surface_at(sc, &h, w);
+            ShadeInfo info = shade_info(&at, w);
+            Material m = material_eval(sc, h.tri, h.u, h.v, 0, &info);
+            T *= 1.0f - clamp(m.alpha, 0.0f, 1.0f);
+            if (all(T == 0.0f))
+                return T;
+#elif defined(HAS_ALPHA)
             Material m = material_at(sc, h.tri, h.u, h.v);
             T *= 1.0f - clamp(m.alpha, 0.0f, 1.0f);
             if (all(T == 0.0f))
@@ -160,6 +177,23 @@ inline float3 direct_light(const Scene *sc, const Surface *s, const Material *m,
 // ---------------------------------------------------------------------------------------------
 // Paths
 
+#ifdef HAS_EMISSION
+// The weight of emission that a BSDF ray of density pdf_prev (0: a camera ray or a mirror)
+// found at hit h against the emissive triangles' light samples.
+inline float emission_mis(const Scene *sc, const Hit *h, float3 d, float pdf_prev, float n_light)
+{
+    float w = 1.0f;
+    if (pdf_prev > 0.0f) {
+        float3 n_l;
+        triangle_area(sc, h->tri, &n_l);
+        float len = kd_length(d), dist = h->t * len;
+        w = mis_weight(pdf_prev, n_light * emitter_pdf(sc, h->tri, dist,
+                                                       fabs(kd_dot(n_l, d)) / len));
+    }
+    return w;
+}
+#endif
+
 // The ray goes on behind the surface it hit (a cut-out, an object it does not see), not a
 // bounce; the camera ray keeps its clipping range and the distance it has travelled.
 inline void go_behind(const Surface *s, const Hit *h, float3 d, bool primary, float3 *o,
@@ -231,7 +265,11 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         if (!hit) {
 #ifdef HAS_TRANSPARENT_FILM
             if (primary) {          // Film > Transparent: the camera sees no world
+#ifdef HAS_CLOSURES
+                *alpha = fmax(*alpha - mean3(beta), 0.0f);  // what transparency let through
+#else
                 *alpha = 0.0f;
+#endif
                 break;
             }
 #endif
@@ -268,38 +306,70 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
             *depth = (t_before + h.t) * along;
             *normal = s.ns;
 #ifdef HAS_TRANSPARENT_FILM
+#ifdef HAS_CLOSURES
+            *alpha = fmax(*alpha - mean3(beta), 0.0f);
+#else
             *alpha = 0.0f;
+#endif
 #endif
             break;
         }
 #endif
-        Material m = surface_material(sc, &s, d);
+        ShadeInfo info = shade_info(&s, d);
+        bool pass = false;      // the path goes on through the surface (not a bounce)
+#ifdef HAS_CLOSURES
+        // A material of closures (docs/shading.md, Closures): their emission, holdout and
+        // transparency summed, one scattering closure chosen by its weight.
+        ClosureSum cs;
+        Material m = surface_closures(sc, &s, d, &info, rng_next(rng), &cs);
+#if defined(HAS_HOLDOUT) && defined(HAS_TRANSPARENT_FILM)
+        if (primary && cs.holdout > 0.0f)
+            *alpha = fmax(*alpha - cs.holdout * mean3(beta), 0.0f);
+#endif
+#ifdef HAS_EMISSION
+        if (any(cs.emission > 0.0f))
+            radiance += clamp_sample(beta * cs.emission * emission_mis(sc, &h, d, pdf_prev,
+                                                                       n_light), limit_found);
+#endif
+        float p_pass = 0.0f;
 #ifdef HAS_ALPHA
-        // Cut-out: the path goes on through with probability 1 - alpha (Cycles' stochastic
-        // transparency); not a bounce.
-        if (m.alpha < 1.0f && rng_next(rng) >= m.alpha) {
+        // Through the transparency with probability mean(transparency) / (that + the
+        // scattering weight), weighted by the transparency over it.
+        float see_through = mean3(cs.transparency);
+        if (see_through > 0.0f) {
+            p_pass = see_through / (see_through + cs.scatter);
+            pass = rng_next(rng) < p_pass;
+            if (pass)
+                beta *= cs.transparency / p_pass;
+        }
+#endif
+#else
+        Material m = surface_material(sc, &s, d, &info);
+#ifdef HAS_ALPHA
+        // Cut-out: through with probability 1 - alpha (Cycles' stochastic transparency).
+        pass = m.alpha < 1.0f && rng_next(rng) >= m.alpha;
+#endif
+#endif
+        if (pass) {
             if (++transparent > limits->transparent)
                 break;
             go_behind(&s, &h, d, primary, &o, &ignore, &t_before, &tmin, &tmax);
             continue;
         }
-#endif
         if (primary) {
             *depth = (t_before + h.t) * along;
             *normal = s.ns;
         }
-#ifdef HAS_EMISSION
-        if (any(m.emission > 0.0f)) {
-            float w = 1.0f;
-            if (pdf_prev > 0.0f) {
-                float3 n_l;
-                triangle_area(sc, h.tri, &n_l);
-                float len = kd_length(d), dist = h.t * len;
-                w = mis_weight(pdf_prev, n_light * emitter_pdf(sc, h.tri, dist,
-                                                               fabs(kd_dot(n_l, d)) / len));
-            }
-            radiance += clamp_sample(beta * m.emission * w, limit_found);
-        }
+#ifdef HAS_CLOSURES
+        // The chosen closure stands for all scattering ones: the path's weight times their
+        // weight over the probability of scattering here (1 for a Mix Shader).
+        if (!(cs.scatter > 0.0f))
+            break;
+        beta *= cs.scatter / (1.0f - p_pass);
+#elif defined(HAS_EMISSION)
+        if (any(m.emission > 0.0f))
+            radiance += clamp_sample(beta * m.emission * emission_mis(sc, &h, d, pdf_prev,
+                                                                      n_light), limit_found);
 #endif
         if (last)
             break;

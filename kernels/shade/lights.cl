@@ -189,7 +189,17 @@ inline float emitter_pdf(const Scene *sc, uint tri, float dist, float cos_l)
 {
     float3 n;
     float area = triangle_area(sc, tri, &n);
-    float power = mean3(MATERIAL_EMISSION(sc->materials + MATERIAL_SIZE * sc->material_ids[tri])) * area;
+    __global const float4 *M = sc->materials + MATERIAL_SIZE * sc->material_ids[tri];
+#ifdef HAS_CLOSURES
+    // As slave/buffers.py material_emission: each closure's mean emission times its weight.
+    float strength = 0.0f;
+    int closures = clamp((int)MATERIAL_CLOSURES(M), 1, CLOSURES_MAX);
+    for (int k = 0; k < closures; ++k, M += MATERIAL_SIZE)
+        strength += mean3(MATERIAL_EMISSION(M)) * MATERIAL_WEIGHT(M);
+    float power = strength * area;
+#else
+    float power = mean3(MATERIAL_EMISSION(M)) * area;
+#endif
     if (!(area > 0.0f) || !(cos_l > 0.0f) || !(sc->emitter_power > 0.0f))
         return 0.0f;
     return power / sc->emitter_power / area * (dist * dist / cos_l);
@@ -225,8 +235,19 @@ inline float3 emitter_sample(const Scene *sc, float3 p, float u0, float u1, floa
     if (!(cos_l > 0.0f))
         return (float3)(0.0f, 0.0f, 0.0f);
     *pdf = pmf / area * (d2 / cos_l);
-    Material m = material_at(sc, *tri, b1, 1.0f - b0 - b1);
+    // The emission as a BSDF ray along wi would find it (the nodes' N: the face's normal).
+    ShadeInfo info;
+    info.incoming = -*wi;
+    info.backfacing = kd_dot(n, *wi) > 0.0f;
+    info.normal = info.backfacing ? -n : n;
+#ifdef HAS_CLOSURES
+    ClosureSum cs;
+    closures_eval(sc, *tri, b1, 1.0f - b0 - b1, 0, &info, 0.5f, &cs);
+    return cs.emission;
+#else
+    Material m = material_eval(sc, *tri, b1, 1.0f - b0 - b1, 0, &info);
     return m.emission * clamp(m.alpha, 0.0f, 1.0f);
+#endif
 }
 #endif
 

@@ -11,12 +11,12 @@ inline float2 hit_uv(const Scene *sc, uint tri, float u, float v)
 }
 #endif
 
-// The material of triangle `tri` at barycentrics (u, v); `s`: the surface point where the
-// shading normal matters (a node program's Normal output sets s->ns), else 0.
-inline Material material_eval(const Scene *sc, uint tri, float u, float v, Surface *s)
+// The closure in MATERIAL record M of triangle `tri` at barycentrics (u, v); `s`: the surface
+// point where the shading normal matters (a node program's Normal output sets s->ns), else 0;
+// `info`: the ray's view of the hit for the nodes that read it (Fresnel, Layer Weight), or 0.
+inline Material material_record(const Scene *sc, __global const float4 *M, uint tri, float u,
+                                float v, Surface *s, const ShadeInfo *info)
 {
-    uint id = sc->material_ids[tri];
-    __global const float4 *M = sc->materials + MATERIAL_SIZE * id;
     Material m;
     m.base = MATERIAL_BASE_COLOR(M);
     m.alpha = MATERIAL_ALPHA(M);
@@ -28,6 +28,9 @@ inline Material material_eval(const Scene *sc, uint tri, float u, float v, Surfa
     m.specular = MATERIAL_SPECULAR(M);
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
     m.unbumped = s ? s->ns : (float3)(0.0f, 0.0f, 1.0f);
+#endif
+#ifdef HAS_CLOSURES
+    m.weight = MATERIAL_WEIGHT(M);
 #endif
 #ifdef HAS_TEXTURES
     int tex = (int)MATERIAL_TEXTURE(M);
@@ -45,17 +48,89 @@ inline Material material_eval(const Scene *sc, uint tri, float u, float v, Surfa
         float2 uv = hit_uv(sc, tri, u, v);
         __global const float4 *T = sc->tri_verts + TRIANGLE_SIZE * tri;
         float3 p = (1.0f - u - v) * TRIANGLE_V0(T) + u * TRIANGLE_V1(T) + v * TRIANGLE_V2(T);
-        run_nodes(sc, program, tri, uv, p, s, &m);
+        run_nodes(sc, program, tri, uv, p, s, info, &m);
     }
 #endif
     return m;
 }
 
+// The material of triangle `tri` (its first closure) at barycentrics (u, v); `s` as above.
+inline Material material_eval(const Scene *sc, uint tri, float u, float v, Surface *s,
+                              const ShadeInfo *info)
+{
+    uint id = sc->material_ids[tri];
+    return material_record(sc, sc->materials + MATERIAL_SIZE * id, tri, u, v, s, info);
+}
+
 // The material where the shading normal does not matter (emitters, shadow rays' alpha).
 inline Material material_at(const Scene *sc, uint tri, float u, float v)
 {
-    return material_eval(sc, tri, u, v, 0);
+    return material_eval(sc, tri, u, v, 0, 0);
 }
+
+#ifdef HAS_CLOSURES
+// What a material's closures add up to at a hit (docs/shading.md, Closures).
+typedef struct {
+    float3 emission;        // the closures' emission x weight (x alpha)
+    float3 transparency;    // Transparent closures' colour x weight, and 1 - alpha x weight
+    float holdout;          // the Holdout closures' weight
+    float scatter;          // the scattering closures' weight (x alpha)
+} ClosureSum;
+
+// Every closure of triangle `tri`'s material at (u, v) summed into *sum, and the one scattering
+// closure chosen with probability weight / sum->scatter by u_pick in [0, 1) (one number for
+// the whole choice: it is rescaled at each closure, as a weighted reservoir). The chosen
+// closure's shading normal is left in s->ns. Without a scattering closure: the first closure.
+inline Material closures_eval(const Scene *sc, uint tri, float u, float v, Surface *s,
+                              const ShadeInfo *info, float u_pick, ClosureSum *sum)
+{
+    __global const float4 *M = sc->materials + MATERIAL_SIZE * sc->material_ids[tri];
+    int n = clamp((int)MATERIAL_CLOSURES(M), 1, CLOSURES_MAX);
+    float3 zero = (float3)(0.0f, 0.0f, 0.0f);
+    sum->emission = zero;
+    sum->transparency = zero;
+    sum->holdout = 0.0f;
+    sum->scatter = 0.0f;
+    float3 ns = s ? s->ns : zero, chosen_ns = ns;
+    Material chosen;
+    for (int k = 0; k < n; ++k, M += MATERIAL_SIZE) {
+        if (s)
+            s->ns = ns;
+        Material m = material_record(sc, M, tri, u, v, s, info);
+        if (k == 0)
+            chosen = m;
+        int kind = (int)MATERIAL_KIND(M);
+        float w = fmax(m.weight, 0.0f), a = clamp(m.alpha, 0.0f, 1.0f);
+        if (kind == CLOSURE_TRANSPARENT) {
+            sum->transparency += w * m.base;
+            continue;
+        }
+        if (kind == CLOSURE_HOLDOUT) {
+            sum->holdout += w;
+            continue;
+        }
+        sum->emission += (w * a) * m.emission;
+        if (kind != CLOSURE_PRINCIPLED)
+            continue;
+        sum->transparency += w * (1.0f - a);
+        float ws = w * a;
+        if (!(ws > 0.0f))
+            continue;
+        sum->scatter += ws;
+        float p = ws / sum->scatter;
+        if (u_pick < p) {
+            chosen = m;
+            chosen_ns = s ? s->ns : zero;
+            u_pick = u_pick / p;
+        } else {
+            u_pick = (u_pick - p) / (1.0f - p);
+        }
+    }
+    if (s)
+        s->ns = chosen_ns;
+    return chosen;
+}
+#endif
 
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
 // Cycles' ensure_valid_specular_reflection: a shading normal n whose mirror reflection of wi
@@ -80,21 +155,57 @@ inline float3 valid_reflection_normal(float3 ng, float3 wi, float3 n)
 }
 #endif
 
-// The material where a ray of direction d hit s. Normal Map and Bump nodes set s->ns, tilted
-// as Cycles tilts it where it would reflect the ray below the surface.
-inline Material surface_material(const Scene *sc, Surface *s, float3 d)
-{
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
-    float3 ns = s->ns;
-    Material m = material_eval(sc, s->tri, s->u, s->v, s);
+// After a node program set s->ns (it was ns): tilted as Cycles tilts a normal that would
+// reflect the ray of direction d below the surface, and ns again where it faces away.
+inline void settle_normal(Surface *s, float3 d, float3 ns)
+{
     if (any(s->ns != ns))
         s->ns = valid_reflection_normal(s->ng, -kd_normalize(d), s->ns);
     if (!(kd_dot(s->ns, d) < 0.0f))
         s->ns = ns;
+}
+#endif
+
+// The material where a ray of direction d hit s (`info`: the ray's view of it). Normal Map
+// and Bump nodes set s->ns (settle_normal).
+inline Material surface_material(const Scene *sc, Surface *s, float3 d, const ShadeInfo *info)
+{
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+    float3 ns = s->ns;
+    Material m = material_eval(sc, s->tri, s->u, s->v, s, info);
+    settle_normal(s, d, ns);
     return m;
 #else
-    return material_eval(sc, s->tri, s->u, s->v, 0);
+    return material_eval(sc, s->tri, s->u, s->v, 0, info);
 #endif
+}
+
+#ifdef HAS_CLOSURES
+// surface_material for a material of closures: their sum in *sum, the scattering closure
+// u_pick chooses returned (closures_eval), its shading normal in s->ns.
+inline Material surface_closures(const Scene *sc, Surface *s, float3 d, const ShadeInfo *info,
+                                 float u_pick, ClosureSum *sum)
+{
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+    float3 ns = s->ns;
+    Material m = closures_eval(sc, s->tri, s->u, s->v, s, info, u_pick, sum);
+    settle_normal(s, d, ns);
+    return m;
+#else
+    return closures_eval(sc, s->tri, s->u, s->v, 0, info, u_pick, sum);
+#endif
+}
+#endif
+
+// What a node program sees of a ray of direction d that hit s.
+inline ShadeInfo shade_info(const Surface *s, float3 d)
+{
+    ShadeInfo info;
+    info.incoming = -kd_normalize(d);
+    info.normal = s->ns;
+    info.backfacing = !s->front;
+    return info;
 }
 
 // The VISIBILITY_<RAY> bits of the rays that see the triangle, and VISIBILITY_HOLDOUT.

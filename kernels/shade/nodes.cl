@@ -357,11 +357,50 @@ inline float3 node_bump(float3 dpx, float3 dpy, float3 normal_in, float4 heights
 }
 #endif
 
+// Cycles' fresnel_dielectric_cos (the Fresnel and Layer Weight nodes' reflectance).
+inline float fresnel_dielectric_cos(float cosi, float eta)
+{
+    float c = fabs(cosi);
+    float g = eta * eta - 1.0f + c * c;
+    if (g > 0.0f) {
+        g = sqrt(g);
+        float A = (g - c) / (g + c);
+        float B = (c * (g + c) - 1.0f) / (c * (g - c) + 1.0f);
+        return 0.5f * A * A * (1.0f + B * B);
+    }
+    return 1.0f;
+}
+
+// Cycles' Fresnel node (svm_node_fresnel) and Layer Weight node (svm_node_layer_weight):
+// `kind` -1 Fresnel of IOR `value`, else a NODE_LAYER_WEIGHT_<OUTPUT> of Blend `value`.
+inline float node_fresnel(int kind, float value, float3 normal, const ShadeInfo *info)
+{
+    float3 wi = info ? info->incoming : (float3)(0.0f, 0.0f, 1.0f);
+    bool back = info ? info->backfacing : false;
+    float cos_i = kd_dot(wi, normal);
+    if (kind < 0) {
+        float eta = fmax(value, 1e-5f);
+        return fresnel_dielectric_cos(cos_i, back ? 1.0f / eta : eta);
+    }
+    if (kind == NODE_LAYER_WEIGHT_FRESNEL) {
+        float eta = fmax(1.0f - value, 1e-5f);
+        return fresnel_dielectric_cos(cos_i, back ? eta : 1.0f / eta);
+    }
+    float f = fabs(cos_i);
+    if (value != 0.5f) {
+        float blend = clamp(value, 0.0f, 1.0f - 1e-5f);
+        blend = blend < 0.5f ? 2.0f * blend : 0.5f / (1.0f - blend);
+        f = pow(f, blend);
+    }
+    return 1.0f - f;
+}
+
 // Runs the program at row `at` of the materials buffer for the hit on triangle `tri` (uv: its
 // texture coordinates, p: its position; s: the surface point, or 0 where the shading normal
-// does not matter) and sets the BSDF inputs it computes; a Normal output sets s->ns.
+// does not matter; info: the ray's view of the hit, or 0) and sets the BSDF inputs it
+// computes; a Normal output sets s->ns.
 inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Surface *s,
-                      Material *m)
+                      const ShadeInfo *info, Material *m)
 {
     float4 regs[NODE_REGISTERS];
     __global const float4 *code = sc->materials + at;
@@ -464,6 +503,12 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Su
             float3 normal_in = s ? (w1.z > 0.0f ? b.xyz : s->ns) : (float3)(0.0f, 0.0f, 1.0f);
             out = (float4)(node_bump(dp[1], dp[2], normal_in, a, c.x, w1.y > 0.0f ? -c.y : c.y), 0.0f);
 #endif
+        } else if (op == NODE_OP_FRESNEL || op == NODE_OP_LAYER_WEIGHT) {
+            // a: IOR or Blend; b: the normal where p1 says it is linked (else Cycles' N)
+            float3 normal = w1.z > 0.0f ? b.xyz
+                            : info ? info->normal : (float3)(0.0f, 0.0f, 1.0f);
+            float f = node_fresnel(op == NODE_OP_FRESNEL ? -1 : (int)w1.y, a.x, normal, info);
+            out = (float4)(f, f, f, f);
         } else if (op == NODE_OP_DOT) {        // colour or vector to a value
             out = (float4)(kd_dot(a.xyz, w1.yzw));
         } else if (op == NODE_OP_OUT) {
@@ -484,6 +529,10 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Su
                 m->specular = fmax(a.x, 0.0f);
             else if (field == NODE_OUT_EMISSION)
                 m->emission = fmax(a.xyz, 0.0f);
+#ifdef HAS_CLOSURES
+            else if (field == NODE_OUT_WEIGHT)
+                m->weight = clamp(a.x, 0.0f, 1.0f);
+#endif
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
             else if (field == NODE_OUT_NORMAL && s) {
                 float3 n = safe_normalize(a.xyz);

@@ -40,7 +40,18 @@ typedef struct {
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
     float3 unbumped;                    // the shading normal before Normal Map / Bump (world)
 #endif
+#ifdef HAS_CLOSURES
+    float weight;                       // the closure's weight (MATERIAL_WEIGHT, or its program's)
+#endif
 } Material;
+
+// What a node program knows of the ray beyond the hit's position and UVs (Cycles' ShaderData
+// and path state): the unit direction back along the ray (Cycles' I), the shading normal its
+// nodes read (Cycles' N: the smooth normal facing the ray), whether the ray hit the back.
+typedef struct {
+    float3 incoming, normal;
+    bool backfacing;
+} ShadeInfo;
 
 // A surface point: position, its error bound, the geometric normal facing the incoming ray,
 // the shading normal on the same side, and whether the ray hit the front (winding) side.

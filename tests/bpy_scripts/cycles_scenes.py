@@ -804,6 +804,80 @@ def build(name):
         add(bpy.ops.mesh.primitive_cube_add, m, size=0.35, location=(-1.45, -0.5, 0.18))
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
+    elif name == "closures":
+        # Mix Shader and Add Shader (issue 38): closures mixed by a constant, by Fresnel, by
+        # Layer Weight and by a checker; Transparent, Holdout and Emission inside mixes; on a
+        # transparent film (alpha: the holdout's share, what transparency lets through).
+        scene.render.film_transparent = True
+        world((0.3, 0.32, 0.36))
+        floor(material("floor", "DIFFUSE", (0.6, 0.6, 0.6)), size=8.0)
+
+        def shader_mix(name, first, second, fac=None, add=False):
+            """A material mixing (or adding) two shader nodes made by first(nodes) and
+            second(nodes); fac: a constant or a function making the Fac socket's source."""
+            m = bpy.data.materials.new(name)
+            m.use_nodes = True
+            nodes, links = m.node_tree.nodes, m.node_tree.links
+            nodes.remove(nodes["Principled BSDF"])
+            mix = nodes.new("ShaderNodeAddShader" if add else "ShaderNodeMixShader")
+            offset = 0 if add else 1
+            links.new(first(nodes).outputs[0], mix.inputs[offset])
+            links.new(second(nodes).outputs[0], mix.inputs[offset + 1])
+            if callable(fac):
+                links.new(fac(nodes, links), mix.inputs[0])
+            elif fac is not None:
+                mix.inputs[0].default_value = fac
+            links.new(mix.outputs[0], nodes["Material Output"].inputs["Surface"])
+            return m
+
+        def bsdf(kind, color=None, **inputs):
+            def make(nodes):
+                node = nodes.new(kind)
+                if color is not None:
+                    node.inputs["Color"].default_value = (*color, 1)
+                for key, value in inputs.items():
+                    node.inputs[key].default_value = value
+                return node
+            return make
+
+        def fresnel(nodes, links):
+            node = nodes.new("ShaderNodeFresnel")
+            node.inputs["IOR"].default_value = 1.6
+            return node.outputs["Fac"]
+
+        def facing(nodes, links):
+            node = nodes.new("ShaderNodeLayerWeight")
+            node.inputs["Blend"].default_value = 0.3
+            return node.outputs["Facing"]
+
+        def checker(nodes, links):
+            node = nodes.new("ShaderNodeTexChecker")
+            node.inputs["Scale"].default_value = 4.0
+            return node.outputs["Fac"]
+
+        sphere(shader_mix("constant mix", bsdf("ShaderNodeBsdfDiffuse", (0.8, 0.2, 0.1)),
+                          bsdf("ShaderNodeBsdfGlossy", (0.9, 0.9, 0.9), Roughness=0.2), 0.3),
+               (-1.5, 0.3, 0.45), radius=0.45)
+        sphere(shader_mix("fresnel mix", bsdf("ShaderNodeBsdfDiffuse", (0.1, 0.3, 0.8)),
+                          bsdf("ShaderNodeBsdfGlossy", (1.0, 1.0, 1.0), Roughness=0.1), fresnel),
+               (-0.5, 0.6, 0.45), radius=0.45)
+        sphere(shader_mix("glowing rim", bsdf("ShaderNodeBsdfPrincipled"),
+                          bsdf("ShaderNodeEmission", (1.0, 0.6, 0.2), Strength=3.0), facing),
+               (0.5, 0.6, 0.45), radius=0.45)
+        sphere(shader_mix("holey", bsdf("ShaderNodeBsdfDiffuse", (0.9, 0.8, 0.3)),
+                          bsdf("ShaderNodeBsdfTransparent", (1.0, 1.0, 1.0)), checker),
+               (1.5, 0.3, 0.45), radius=0.45)
+        add(bpy.ops.mesh.primitive_plane_add,
+            shader_mix("tinted glass pane", bsdf("ShaderNodeBsdfDiffuse", (0.2, 0.2, 0.2)),
+                       bsdf("ShaderNodeBsdfTransparent", (0.3, 0.8, 0.4)), add=True),
+            size=0.8, location=(-0.9, -0.7, 0.4), rotation=(math.radians(90), 0, 0))
+        half = add(bpy.ops.mesh.primitive_cube_add,
+                   shader_mix("half holdout", bsdf("ShaderNodeHoldout"),
+                              bsdf("ShaderNodeBsdfDiffuse", (0.8, 0.8, 0.8)), 0.5),
+                   size=0.5, location=(0.6, -0.6, 0.25))
+        half.visible_shadow = False     # its records copied whole for its ray visibility
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "warned":
         # Things KD Trace does not render, each to be named in a warning (export only).
         w = bpy.data.worlds.new("sky world")
