@@ -818,6 +818,11 @@ def _closure(node, program, problems, fallback, mixed) -> Closure:
         params["specular"] = 0.0
         if mixed:
             params["kind"] = float(CLOSURE_CODES["EMISSION"])
+    elif kind == "BSDF_TRANSLUCENT":
+        color, image = _color_input(node, "Color", problems, program)
+        params["translucent"], params["specular"] = 1.0, 0.0
+        _normal_input(node, problems, program)
+        _unhandled_links(node, ("Color", "Normal"), problems)
     elif kind == "BSDF_TRANSPARENT":
         color, image = _color_input(node, "Color", problems, program)
         params["kind"] = float(CLOSURE_CODES["TRANSPARENT"])

@@ -358,6 +358,7 @@ MATERIAL = Record("MATERIAL", "A closure of a material (materials buffer; a tria
     Slot("weight", 4, "y", "the closure's weight (the product of the Mix Shader factors on its "
          "path; its program may set it: then a stand-in)"),
     Slot("kind", 4, "z", "a CLOSURE_<KIND> code"),
+    Slot("translucent", 4, "w", "the share of a diffuse transmission lobe (Translucent BSDF: 1)"),
 ))
 
 CAMERA = Record("CAMERA", "The camera (one record)", 11, (

@@ -35,7 +35,7 @@ def pack_materials(shading) -> np.ndarray:
     MATERIAL.put(records, "base_color", shading.materials[:, :3])
     MATERIAL.put(records, "alpha", shading.materials[:, 3])
     for name in ("metallic", "roughness", "transmission", "ior", "specular", "texture", "visibility",
-                 "weight", "kind"):
+                 "weight", "kind", "translucent"):
         MATERIAL.put(records, name, params[:, MATERIAL_PARAMS.index(name)])
     # A material's closures never reach past the records (validated on the wire; clamped here
     # as well, since the kernel reads them without a bound).

@@ -5,7 +5,8 @@ a room lit only by an emissive mesh, the BSDF nodes and Principled inputs, glass
 light, Film > Transparent with a holdout, ray visibility, depth of field, camera and
 object motion blur, shader node programs and procedural textures, texture coordinates through
 Mapping nodes (as Blender's glTF importer makes them), the Material and World Output Cycles
-uses where there are several, Mix and Add Shaders (closures), and odd input (an object
+uses where there are several, Mix and Add Shaders (closures), Translucent and Transparent
+BSDFs, and odd input (an object
 scaled to 0 on an axis and on all, text, curve and metaball objects, an image that cannot be
 loaded, an area light flattened to a line). Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
 uses; what is not supported is named in warnings. docs/cycles_features.md lists the rows."""
@@ -47,6 +48,7 @@ SCENES = {
                         "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
     "closures": (12, {"ALPHA", "AREA", "BOUNCES", "CLOSURES", "EMISSION", "HOLDOUT", "NODES",
                       "SMOOTH", "SPECULAR", "TRANSPARENT_FILM", "VISIBILITY", "WORLD"}),
+    "translucent": (12, {"ALPHA", "AREA", "BOUNCES", "CLOSURES", "SMOOTH", "TRANSLUCENT", "WORLD"}),
 }
 # What a scene's export may warn of (each warning names the object or material, and each
 # expected fragment is found): the rest must export without a warning.

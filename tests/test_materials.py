@@ -46,6 +46,9 @@ Material grey_material(float grey, float metallic, float roughness, float transm
     m.ior = ior;
     m.emission = (float3)(0.0f, 0.0f, 0.0f);
     m.specular = specular;
+#ifdef HAS_TRANSLUCENT
+    m.translucent = 0.0f;
+#endif
     return m;
 }
 
@@ -53,10 +56,14 @@ Material grey_material(float grey, float metallic, float roughness, float transm
 // the reflected and transmitted weights (transmission as energy: times eta^2) and the largest
 // relative difference between a sample's density and bsdf_eval_local's.
 __kernel void probe(float metallic, float roughness, float transmission, float ior,
-                    float specular, float cos_o, int front, int n, __global float4 *out)
+                    float specular, float cos_o, int front, int n, float translucent,
+                    __global float4 *out)
 {
     int i = get_global_id(0);
     Material m = grey_material(1.0f, metallic, roughness, transmission, ior, specular);
+#ifdef HAS_TRANSLUCENT
+    m.translucent = translucent;
+#endif
     float3 wo = (float3)(sqrt(1.0f - cos_o * cos_o), 0.0f, cos_o);
     Lobes l = lobes_at(&m, cos_o, front != 0, 0.0f);
     Rng r = rng_seed((uint)i, 3u, 11u);
@@ -70,6 +77,8 @@ __kernel void probe(float metallic, float roughness, float transmission, float i
             continue;
         if (wi.z > 0.0f)
             reflected += w.x;
+        else if (kind == LOBE_TRANSLUCENT)
+            transmitted += w.x;
         else
             transmitted += w.x * l.eta_glass * l.eta_glass;
         if (pdf > 0.0f) {
@@ -118,7 +127,7 @@ def probe():
 
     def sample(material, cos_o, front=True, n=1000):
         kernels["probe"](tracer.queue, (items,), None, *map(np.float32, material),
-                         np.float32(cos_o), np.int32(front), np.int32(n), buf4)
+                         np.float32(cos_o), np.int32(front), np.int32(n), np.float32(0), buf4)
         cl.enqueue_copy(tracer.queue, out4, buf4)
         return out4[:, 0].mean(), out4[:, 1].mean(), out4[:, 2].max()
 
@@ -146,6 +155,46 @@ def test_bsdf_samples_have_the_density_it_evaluates_and_keep_energy(probe, name)
             # A density integrates to at most 1 (what is missing: reflections below the
             # horizon); uniform sampling estimates it well for wide lobes only.
             assert 0.3 < pdf_integral(material, cos_o) < 1.02
+
+
+def test_translucent_transmits_lambertian_light():
+    """The Translucent share of a white material (lobes_at, bsdf_sample_local,
+    bsdf_eval_local): its samples transmit t of the light and reflect 1 - t, their densities
+    are those evaluated; and a translucent plane lit from behind by a sun straight up shows
+    colour x t x E / pi from above (one sample per pixel centre, as numpy says)."""
+    import pyopencl as cl
+    tracer = Tracer()
+    program = cl.Program(tracer.context, kernel_source(kernel_files_through("shade/bsdf.cl"))
+                         + PROBE).build(options=["-DKD_STACK_SIZE=32", "-DHAS_TRANSLUCENT"])
+    kernel = cl.Kernel(program, "probe")
+    out = np.zeros((64, 4), np.float32)
+    buf = cl.Buffer(tracer.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+    for t in (1.0, 0.4):
+        for cos_o in (0.9, 0.3):
+            # a white diffuse material (specular 0) with its translucent share t
+            kernel(tracer.queue, (64,), None, *map(np.float32, (0, 0.5, 0, 1.5, 0, cos_o)),
+                   np.int32(1), np.int32(1000), np.float32(t), buf)
+            cl.enqueue_copy(tracer.queue, out, buf)
+            assert out[:, 2].max() < 1e-3
+            assert abs(out[:, 1].mean() - t) < 0.01 and abs(out[:, 0].mean() - (1 - t)) < 0.01
+    from core.scene.model import MATERIAL_PARAMS
+    vertices, triangles = grid_plane(2.0, 1, 0.0)
+    tracer.load(Scene.from_parts(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)),
+                                 build_kdtree(vertices, triangles)))
+    params = default_material_params(1)
+    params[0, MATERIAL_PARAMS.index("specular")] = 0.0
+    params[0, MATERIAL_PARAMS.index("translucent")] = 0.75
+    colour = np.array([0.9, 0.6, 0.3])
+    shading = Shading(np.array([[*colour, 1]], np.float32),
+                      [Light("SUN", (1, 1, 1), 2.0, direction=(0, 0, 1))], (0, 0, 0), params)
+    m = np.eye(4)
+    m[2, 3] = 1.0
+    view = View(Camera("ORTHO", m, (1.0, 1.0), (0, 0), 0.01, 10.0), 8, 8, shading,
+                settings=RenderSettings(samples_per_axis=1, adaptive=False, max_bounces=0))
+    image = tracer.render_tile(view, 0, 0, 8, 8)["combined"][..., :3]
+    assert "TRANSLUCENT" in tracer.last_render["features"]
+    np.testing.assert_allclose(image, np.broadcast_to(colour * 0.75 * 2.0 / np.pi, image.shape),
+                               rtol=1e-5)
 
 
 def render_sphere(tracer, params, world=(1.0, 1.0, 1.0), base=(1, 1, 1), size=16, n=12):

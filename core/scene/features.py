@@ -20,6 +20,7 @@ FEATURES = {
     "TEXTURES": ("uvs", "texels", "texture_sizes"),  # image-textured base colours
     "SPECULAR": (),           # metallic or specular > 0: GGX reflection (any roughness)
     "TRANSMISSION": (),       # GGX refraction and reflection of glass, total internal reflection
+    "TRANSLUCENT": (),        # diffuse transmission (Translucent BSDF)
     "ALPHA": (),              # alpha cut-out (< 1): rays and shadow rays pass through
     "EMISSION": (),           # emissive materials: seen, and their triangles sampled as lights
     "WORLD": (),              # the world lights the scene (a colour that is not black)
@@ -87,6 +88,9 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
     transmissive = bsdf & (column("transmission") > 0) & (column("metallic") < 1)
     if transmissive.any():
         features.add("TRANSMISSION")
+    translucent = bsdf & (column("translucent") > 0)
+    if translucent.any():
+        features.add("TRANSLUCENT")
     if (colours[:, 3] < 1).any() or (kind == CLOSURE_CODES["TRANSPARENT"]).any():
         features.add("ALPHA")
     if (kind == CLOSURE_CODES["HOLDOUT"]).any():
@@ -125,7 +129,8 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
     diffuse = settings.diffuse_bounces > 0 and bool(
         (bsdf & ((1 - column("metallic")) * (1 - column("transmission")) > 0)).any())
     glossy = settings.glossy_bounces > 0 and bool(specular.any())
-    refractive = settings.transmission_bounces > 0 and bool(transmissive.any())
+    refractive = settings.transmission_bounces > 0 and bool(transmissive.any() or
+                                                            translucent.any())
     bounces = settings.max_bounces > 0 and (diffuse or glossy or refractive)
     # A BSDF ray can also find the area lights, suns with an angle, the world and emissive
     # triangles that direct light samples: the two are weighted against each other.

@@ -339,11 +339,12 @@ class Light:
 # A row is one closure (Mix Shader, Add Shader: docs/shading.md, Closures): closures, on a
 # material's first row, how many rows (this and the next) its closures take (1 to
 # MAX_CLOSURES); weight, the closure's (its program may set it); kind, a CLOSURE_CODES code.
+# translucent: the share of a diffuse transmission lobe (the Translucent BSDF: 1).
 MATERIAL_PARAMS = ("metallic", "roughness", "transmission", "ior", "emission_r", "emission_g",
                    "emission_b", "specular", "texture", "visibility", "program", "closures",
-                   "weight", "kind")
+                   "weight", "kind", "translucent")
 DEFAULT_MATERIAL_PARAMS = (0.0, 0.5, 0.0, 1.5, 0.0, 0.0, 0.0, 0.0, -1.0, float(VISIBLE_TO_ALL),
-                           -1.0, 1.0, 1.0, float(CLOSURE_CODES["PRINCIPLED"]))
+                           -1.0, 1.0, 1.0, float(CLOSURE_CODES["PRINCIPLED"]), 0.0)
 MAX_NODE_ROWS = 1 << 20
 # name -> (low, high) accepted from the network; texture is an index, -1 = none.
 _PARAM_RANGES = {"metallic": (0.0, 1.0), "roughness": (0.0, 1.0), "transmission": (0.0, 1.0),
@@ -351,7 +352,8 @@ _PARAM_RANGES = {"metallic": (0.0, 1.0), "roughness": (0.0, 1.0), "transmission"
                  "emission_b": (0.0, 1e30), "specular": (0.0, 1000.0),
                  "texture": (-1.0, MAX_TEXTURES - 1.0), "visibility": (0.0, 63.0),
                  "program": (-1.0, MAX_NODE_ROWS - 1.0), "closures": (1.0, float(MAX_CLOSURES)),
-                 "weight": (0.0, 1.0), "kind": (0.0, float(max(CLOSURE_CODES.values())))}
+                 "weight": (0.0, 1.0), "kind": (0.0, float(max(CLOSURE_CODES.values()))),
+                 "translucent": (0.0, 1.0)}
 _WHOLE_PARAMS = ("visibility", "program", "closures", "kind")
 
 

@@ -155,6 +155,7 @@ inline float3 to_world(const Frame *f, float3 w)
 #define LOBE_DIFFUSE 0
 #define LOBE_GLOSSY 1
 #define LOBE_TRANSMISSION 2
+#define LOBE_TRANSLUCENT 3              // diffuse transmission: a transmission for the limits
 
 typedef struct {
     float w_metal, w_glass, w_dielectric;       // layer weights
@@ -168,6 +169,9 @@ typedef struct {
     float glass_scale;                          // ... and of glass
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
     float3 unbumped;                            // Material.unbumped in the local frame
+#endif
+#ifdef HAS_TRANSLUCENT
+    float w_translucent, p_translucent;         // diffuse transmission (Translucent BSDF)
 #endif
 } Lobes;
 
@@ -185,6 +189,13 @@ inline Lobes lobes_at(const Material *m, float cos_o, bool front, float alpha_mi
     l.w_metal = metallic;
     l.w_glass = (1.0f - metallic) * transmission;
     l.w_dielectric = (1.0f - metallic) * (1.0f - transmission);
+#ifdef HAS_TRANSLUCENT
+    // The Translucent BSDF's diffuse transmission takes its share from the other layers.
+    l.w_translucent = clamp(m->translucent, 0.0f, 1.0f);
+    l.w_metal *= 1.0f - l.w_translucent;
+    l.w_glass *= 1.0f - l.w_translucent;
+    l.w_dielectric *= 1.0f - l.w_translucent;
+#endif
     // The energy compensation is that of the material's own roughness; Filter Glossy then
     // widens the lobes without it (as Cycles blurs closures after their setup).
     float roughness = clamp(m->roughness, 0.0f, 1.0f);
@@ -234,7 +245,14 @@ inline Lobes lobes_at(const Material *m, float cos_o, bool front, float alpha_mi
 #endif
     float a_diff = l.w_dielectric * l.diffuse_weight * mean3(m->base);
     float total = a_metal + a_spec + a_glass + a_diff;
+#ifdef HAS_TRANSLUCENT
+    float a_translucent = l.w_translucent * mean3(m->base);
+    total += a_translucent;
+#endif
     float inv = total > 0.0f ? 1.0f / total : 0.0f;
+#ifdef HAS_TRANSLUCENT
+    l.p_translucent = a_translucent * inv;
+#endif
     l.p_diffuse = a_diff * inv;
     l.p_specular = a_spec * inv;
     l.p_metal = a_metal * inv;
@@ -280,6 +298,12 @@ inline float3 bsdf_eval_local(const Material *m, const Lobes *l, float3 wo, floa
         f += m->base * diffuse;
         *pdf += l->p_diffuse * cos_i * M_1_PI_F;
     }
+#ifdef HAS_TRANSLUCENT
+    if (cos_i < 0.0f && l->w_translucent > 0.0f) {      // Lambertian through the surface
+        f += m->base * (l->w_translucent * M_1_PI_F);
+        *pdf += l->p_translucent * -cos_i * M_1_PI_F;
+    }
+#endif
     if (l->delta)
         return f;
     float lambda_o = ggx_lambda(l->alpha2, cos_o);
@@ -340,13 +364,18 @@ inline float3 bsdf_eval_local(const Material *m, const Lobes *l, float3 wo, floa
 
 // A direction from the BSDF. Returns false when the sample is lost (below the surface,
 // nothing to scatter). *weight = f cos / pdf; *pdf = 0 for a mirror (delta) direction;
-// *kind: LOBE_DIFFUSE, LOBE_GLOSSY or LOBE_TRANSMISSION (for the bounce limits).
+// *kind: LOBE_DIFFUSE, LOBE_GLOSSY, LOBE_TRANSMISSION or LOBE_TRANSLUCENT (for the bounce
+// limits).
 inline bool bsdf_sample_local(const Material *m, const Lobes *l, float3 wo, float u_lobe,
                               float u1, float u2, float u3, float3 *wi, float3 *weight,
                               float *pdf, int *kind)
 {
     float p_glass = l->p_glass;
-    if (l->p_diffuse + l->p_specular + l->p_metal + p_glass <= 0.0f)
+    float p_any = l->p_diffuse + l->p_specular + l->p_metal + p_glass;
+#ifdef HAS_TRANSLUCENT
+    p_any += l->p_translucent;
+#endif
+    if (p_any <= 0.0f)
         return false;
     if (u_lobe < l->p_diffuse) {
         *kind = LOBE_DIFFUSE;
@@ -370,7 +399,15 @@ inline bool bsdf_sample_local(const Material *m, const Lobes *l, float3 wo, floa
         *wi = 2.0f * kd_dot(wo, h) * h - wo;
         if (!(wi->z > 0.0f))
             return false;
-    } else {
+    }
+#ifdef HAS_TRANSLUCENT
+    else if (u_lobe < l->p_diffuse + l->p_specular + l->p_metal + l->p_translucent) {
+        *kind = LOBE_TRANSLUCENT;           // a cosine-distributed direction through
+        float2 d = concentric_disk(u1, u2);
+        *wi = (float3)(d.x, d.y, -sqrt(fmax(0.0f, 1.0f - d.x * d.x - d.y * d.y)));
+    }
+#endif
+    else {
         float etap = l->eta_glass;
         float3 h = l->delta ? (float3)(0.0f, 0.0f, 1.0f) : sample_vndf(wo, l->alpha, u1, u2);
         float cos_oh = kd_dot(wo, h);

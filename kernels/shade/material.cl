@@ -32,6 +32,9 @@ inline Material material_record(const Scene *sc, __global const float4 *M, uint 
 #ifdef HAS_CLOSURES
     m.weight = MATERIAL_WEIGHT(M);
 #endif
+#ifdef HAS_TRANSLUCENT
+    m.translucent = MATERIAL_TRANSLUCENT(M);
+#endif
 #ifdef HAS_TEXTURES
     int tex = (int)MATERIAL_TEXTURE(M);
     if (tex >= 0) {

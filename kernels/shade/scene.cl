@@ -43,6 +43,9 @@ typedef struct {
 #ifdef HAS_CLOSURES
     float weight;                       // the closure's weight (MATERIAL_WEIGHT, or its program's)
 #endif
+#ifdef HAS_TRANSLUCENT
+    float translucent;                  // the share of diffuse transmission
+#endif
 } Material;
 
 // What a node program knows of the ray beyond the hit's position and UVs (Cycles' ShaderData

@@ -155,7 +155,9 @@ def material(name, kind="PRINCIPLED", color=(0.8, 0.8, 0.8), **inputs):
     else:
         nodes.remove(nodes["Principled BSDF"])
         node = nodes.new({"DIFFUSE": "ShaderNodeBsdfDiffuse", "GLOSSY": "ShaderNodeBsdfGlossy",
-                          "GLASS": "ShaderNodeBsdfGlass", "EMISSION": "ShaderNodeEmission"}[kind])
+                          "GLASS": "ShaderNodeBsdfGlass", "EMISSION": "ShaderNodeEmission",
+                          "TRANSLUCENT": "ShaderNodeBsdfTranslucent",
+                          "TRANSPARENT": "ShaderNodeBsdfTransparent"}[kind])
         node.inputs["Color"].default_value = (*color, 1)
         m.node_tree.links.new(node.outputs[0], out.inputs["Surface"])
     for key, value in inputs.items():
@@ -878,6 +880,35 @@ def build(name):
         half.visible_shadow = False     # its records copied whole for its ray visibility
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
+    elif name == "translucent":
+        # Translucent BSDF (issue 38): a lampshade lit from behind by an area light, a ball
+        # mixing Translucent and Diffuse in front of a lamp, a green Transparent pane alone.
+        world((0.05, 0.05, 0.06))
+        floor(material("floor", "DIFFUSE", (0.5, 0.5, 0.5)), size=8.0)
+        shade = material("shade", "TRANSLUCENT", (0.9, 0.7, 0.4))
+        add(bpy.ops.mesh.primitive_plane_add, shade, size=1.4, location=(-0.7, 0.3, 0.8),
+            rotation=(math.radians(90), 0, 0))
+        leaf = bpy.data.materials.new("leaf")
+        leaf.use_nodes = True
+        nodes, links = leaf.node_tree.nodes, leaf.node_tree.links
+        nodes.remove(nodes["Principled BSDF"])
+        through = nodes.new("ShaderNodeBsdfTranslucent")
+        through.inputs["Color"].default_value = (0.3, 0.8, 0.2, 1)
+        back = nodes.new("ShaderNodeBsdfDiffuse")
+        back.inputs["Color"].default_value = (0.2, 0.5, 0.1, 1)
+        mix = nodes.new("ShaderNodeMixShader")
+        mix.inputs[0].default_value = 0.6
+        links.new(back.outputs[0], mix.inputs[1])
+        links.new(through.outputs[0], mix.inputs[2])
+        links.new(mix.outputs[0], nodes["Material Output"].inputs["Surface"])
+        sphere(leaf, (0.7, 0.4, 0.6), radius=0.45)
+        pane = material("green pane", "TRANSPARENT", (0.4, 0.9, 0.5))
+        add(bpy.ops.mesh.primitive_plane_add, pane, size=0.7, location=(0.3, -0.8, 0.35),
+            rotation=(math.radians(90), 0, 0))
+        light("AREA", (-0.7, 2.0, 1.2), (-0.7, 0.3, 0.8), energy=25.0, size=0.8)
+        light("AREA", (1.2, 2.0, 1.0), (0.7, 0.4, 0.6), energy=60.0, size=0.6)
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=40.0, size=1.0)
+        camera((0.0, -4.0, 1.6), (0, 0.3, 0.5), lens=35)
     elif name == "warned":
         # Things KD Trace does not render, each to be named in a warning (export only).
         w = bpy.data.worlds.new("sky world")
