@@ -89,7 +89,8 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         default=RENDER.adaptive_threshold, min=LIMITS["adaptive_threshold"][0],
         max=LIMITS["adaptive_threshold"][1], precision=4)
     adaptive_min_samples: IntProperty(
-        name="Min Samples", description="Samples every pixel gets before adaptive sampling decides",
+        name="Min Samples", description="Samples every pixel gets before adaptive sampling "
+        "decides (0: automatic, as Cycles: 64 at a Noise Threshold of 0.01)",
         default=RENDER.adaptive_min_samples, min=LIMITS["adaptive_min_samples"][0],
         max=LIMITS["adaptive_min_samples"][1])
     max_bounces: IntProperty(
@@ -129,6 +130,17 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         "and the emissive meshes, per camera sample",
         default=RENDER.light_samples_per_axis, min=LIMITS["light_samples_per_axis"][0],
         max=LIMITS["light_samples_per_axis"][1])
+    # Film > Pixel Filter, as Cycles' (defaults and range: core RenderSettings).
+    pixel_filter: EnumProperty(
+        name="Pixel Filter", description="How camera samples spread in and around their pixel",
+        items=[("BOX", "Box", "Samples uniform over the filter width", 0),
+               ("GAUSSIAN", "Gaussian", "A Gaussian of the filter width", 1),
+               ("BLACKMAN_HARRIS", "Blackman-Harris", "A Blackman-Harris window of twice the "
+                "filter width (Cycles' default)", 2)],
+        default=RENDER.pixel_filter)
+    filter_width: FloatProperty(
+        name="Width", description="Pixel filter width in pixels", default=RENDER.filter_width,
+        min=LIMITS["filter_width"][0], max=LIMITS["filter_width"][1], subtype="PIXEL")
     seed: IntProperty(name="Seed", description="Seed of the sampling pattern",
                       default=RENDER.seed, min=LIMITS["seed"][0], max=LIMITS["seed"][1])
 

@@ -74,12 +74,15 @@ class RENDER_PT_kdtrace_light_paths(KDTracePanel, bpy.types.Panel):
 
 
 class RENDER_PT_kdtrace_film(KDTracePanel, bpy.types.Panel):
-    """As Cycles' Film panel: Transparent (the world lights the scene but is not seen)."""
+    """As Cycles' Film panel: Pixel Filter and its width; Transparent (the world lights the
+    scene but is not seen)."""
     bl_label = "Film"
     bl_parent_id = "RENDER_PT_kdtrace"
 
     def draw(self, context):
-        layout, _ = property_layout(self, context)
+        layout, settings = property_layout(self, context)
+        layout.prop(settings, "pixel_filter")
+        layout.prop(settings, "filter_width")
         layout.prop(context.scene.render, "film_transparent", text="Transparent")
 
 

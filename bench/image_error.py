@@ -288,7 +288,7 @@ SWEEP_AXES = (1, 2, 4, 8, 16)       # KD Trace's samples per axis: 1 .. 256 spp 
 # KD Trace's render settings by their Cycles names (the others are named alike).
 CYCLES_NAMES = {"transparent_bounces": "transparent_max_bounces",
                 "clamp_direct": "sample_clamp_direct", "clamp_indirect": "sample_clamp_indirect",
-                "filter_glossy": "blur_glossy"}
+                "filter_glossy": "blur_glossy", "pixel_filter": "pixel_filter_type"}
 
 
 @dataclass
@@ -393,14 +393,13 @@ def build_scene(builders, name, width, height):
 
 def use_renderer(scene, engine, axis, settings, seed=1):
     """Make `engine` ("CYCLES" or "KDTRACE") render `scene` at axis x axis uniform samples and
-    the light paths `settings` as the comparison does (Cycles on the CPU with every core, a
-    one-pixel box filter, no denoising; KD Trace with one local slave, 32-pixel tiles)."""
+    the light paths and pixel filter of `settings` as the comparison does (Cycles on the CPU
+    with every core, no denoising; KD Trace with one local slave, 32-pixel tiles)."""
     scene.render.engine = engine
     if engine == "CYCLES":
         c = scene.cycles
         c.device, c.samples, c.seed = "CPU", axis * axis, seed
         c.use_adaptive_sampling = c.use_denoising = False
-        c.pixel_filter_type, c.filter_width = "BOX", 1.0     # ours: a box of one pixel
         scene.render.threads_mode = "AUTO"                   # every core
         for key, value in settings.items():
             setattr(c, CYCLES_NAMES.get(key, key), value)

@@ -44,35 +44,10 @@ def main():
     zip_path = build_extension(work / "dist")
 
     import bpy
-    from blender_setup import install_extension, mesh_object
-    from tests.meshes import load_dragon
+    from blender_setup import build_demo_scene, install_extension
     addon = install_extension(str(zip_path))
 
-    scene = bpy.context.scene
-    vertices, triangles = load_dragon()
-    # The dragon is y-up and 0.2 units long: make it z-up and about 4 units long.
-    vertices = vertices[:, [0, 2, 1]] * [20.0, -20.0, 20.0]
-    vertices[:, 2] -= vertices[:, 2].min()
-    mesh_object("dragon", vertices, triangles, color=(0.85, 0.55, 0.25, 1.0))
-    bpy.ops.mesh.primitive_plane_add(size=20.0)
-    bpy.ops.mesh.primitive_uv_sphere_add(radius=0.8, location=(-2.8, 1.5, 0.8))
-    bpy.ops.object.shade_smooth()
-    bpy.ops.mesh.primitive_cube_add(size=1.2, location=(2.8, 1.2, 0.6))
-    camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
-    camera.location, camera.rotation_euler = (0.0, -11.5, 3.2), (1.407, 0.0, 0.0)
-    scene.collection.objects.link(camera)
-    scene.camera = camera
-    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
-    sun.data.energy, sun.rotation_euler = 3.0, (0.5, 0.3, 0.6)
-    scene.collection.objects.link(sun)
-    lamp = bpy.data.objects.new("lamp", bpy.data.lights.new("lamp", "POINT"))
-    lamp.data.energy, lamp.location = 400.0, (-3.0, -3.0, 5.0)
-    scene.collection.objects.link(lamp)
-
-    scene.world = bpy.data.worlds.new("sky")
-    scene.world.color = (0.35, 0.45, 0.6)
-    if scene.world.node_tree:  # new worlds have a Background node in Blender 5
-        scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.35, 0.45, 0.6, 1)
+    scene = build_demo_scene()
     scene.render.engine = "KDTRACE"
     scene.render.resolution_x, scene.render.resolution_y = args.width, args.height
     scene.render.resolution_percentage = 100

@@ -215,6 +215,10 @@ NODE_FORMATS = (PLAIN_NODE, COMPACT_NODE)
 LIGHT_CODES = {"POINT": 0, "SUN": 1, "SPOT": 2, "AREA": 3}
 AREA_SHAPE_CODES = {"RECTANGLE": 0, "ELLIPSE": 1}     # Blender's SQUARE / DISK are the same shapes
 CAMERA_CODES = {"PERSP": 0, "ORTHO": 1}
+# Film > Pixel Filter (core/scene/model.py RenderSettings.pixel_filter): box samples uniformly
+# over the filter width; the others through the inverse CDF tabulated after the CAMERA record.
+PIXEL_FILTER_CODES = {"BOX": 0, "GAUSSIAN": 1, "BLACKMAN_HARRIS": 2}
+FILTER_TABLE_SIZE = 257         # odd: its middle entry is the pixel centre exactly
 PROJECTION_CODES = {"EQUIRECTANGULAR": 0, "MIRROR_BALL": 1}
 INTERPOLATION_CODES = {"LINEAR": 0, "CLOSEST": 1}
 # Ray visibility of an object (Blender's Object > Visibility > Ray Visibility) and its holdout,
@@ -293,6 +297,9 @@ LIFT_SCRATCH_WORDS = 3
 CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("LIGHT_SHAPE", "Area light shapes (LIGHT_AREA_SHAPE)", AREA_SHAPE_CODES),
          Codes("CAMERA", "Camera kinds (CAMERA_KIND)", CAMERA_CODES),
+         Codes("PIXEL_FILTER", "Pixel filters (CAMERA_FILTER)", PIXEL_FILTER_CODES),
+         Codes("FILTER_TABLE", "The pixel filter's inverse CDF after the CAMERA record",
+               {"SIZE": FILTER_TABLE_SIZE}),
          Codes("PROJECTION", "World texture projections (WORLD_PROJECTION)", PROJECTION_CODES),
          Codes("INTERPOLATION", "World texture interpolation (WORLD_INTERPOLATION)",
                INTERPOLATION_CODES),
@@ -361,7 +368,7 @@ MATERIAL = Record("MATERIAL", "A closure of a material (materials buffer; a tria
     Slot("translucent", 4, "w", "the share of a diffuse transmission lobe (Translucent BSDF: 1)"),
 ))
 
-CAMERA = Record("CAMERA", "The camera (one record)", 11, (
+CAMERA = Record("CAMERA", "The camera (one record; the pixel filter's table follows it)", 12, (
     Slot("to_world", 0, "xyzw", "rows of camera.to_world (3x4: rotation/scale, translation)",
          rows=3),
     Slot("ndc_scale", 3, "xy", "camera-space point = ndc * ndc_scale + ndc_offset"),
@@ -379,6 +386,8 @@ CAMERA = Record("CAMERA", "The camera (one record)", 11, (
     Slot("blade_rotation", 7, "w", "rotation of the blades in radians"),
     Slot("to_world_end", 8, "xyzw", "rows of camera.to_world at the shutter's close (motion "
          "blur; the same as to_world without it)", rows=3),
+    Slot("filter", 11, "x", "the pixel filter, a PIXEL_FILTER_<KIND> code"),
+    Slot("filter_width", 11, "y", "its width in pixels"),
 ))
 
 BOUNDS = Record("BOUNDS", "The kd-tree's root box (bounds buffer, one record)", 2, (
@@ -397,12 +406,8 @@ ACCUM = Record("ACCUM", "A pixel's colour accumulator (accum buffer, by tile pix
     Slot("color", 0, "xyz", "sum of the samples' RGB"),
     Slot("samples", 0, "w", "number of samples"),
     Slot("alpha", 1, "x", "sum of the samples' alpha"),
+    Slot("half", 1, "yzw", "sum of the odd-numbered samples' RGB (Cycles' adaptive half buffer)"),
 ))
-
-STATS = Record("STATS", "A pixel's error statistics (stats buffer, float2, by tile pixel)", 1, (
-    Slot("sum", 0, "x", "sum of min(luminance, 1) over the samples"),
-    Slot("sum_squares", 0, "y", "sum of its squares"),
-), width=2)
 
 # The world as a light (core/scene/model.py Shading.world_color and world_texture; packed by
 # slave/buffers.py pack_world). The constant colour itself is CAMERA_WORLD_COLOR; with a texture
@@ -453,7 +458,7 @@ TOPLEVEL_NODE = Record("TOPLEVEL", "A top-level BVH node (toplevel buffer; node 
     Slot("count", 1, "w", "leaf: its instances (1 to TOPLEVEL_LEAF_MAX); inner: 0 (uint bits)"),
 ))
 
-RECORDS = (LIGHT, MATERIAL, CAMERA, BOUNDS, TRIANGLE, ACCUM, STATS, WORLD, EMITTER, INSTANCE,
+RECORDS = (LIGHT, MATERIAL, CAMERA, BOUNDS, TRIANGLE, ACCUM, WORLD, EMITTER, INSTANCE,
            TOPLEVEL_NODE)
 
 # Geometry.texture_sizes (core/scene/model.py): one row per texture.
@@ -659,7 +664,7 @@ RENDER_SAMPLES = KernelParams("render_samples", "Camera samples of a tile's pixe
     Param("texels", "half*"), Param("texture_sizes", "uint*"),
     Param("world", "float4*"), Param("env_cdf", "float*"), Param("emitters", "float4*"),
     Param("emitter_count", "uint"), Param("emitter_power", "float"),
-    Param("accum", "float4*", "out"), Param("stats", "float2*", "out"),
+    Param("accum", "float4*", "out"),
     Param("out_depth", "float*", "out"), Param("out_normal", "float*", "out")))
 KERNEL_PARAMS = (INTERSECT_RAYS, OCCLUDED_RAYS, RENDER_SAMPLES)
 

@@ -1,11 +1,11 @@
-"""How the samples of a tile are spent (docs/shading.md): N x N everywhere, or adaptively,
-with undersampling of smooth regions and doubling where pixels are still noisy.
+"""How the samples of a tile are spent (docs/shading.md): N x N everywhere, or adaptively as
+Cycles does (its minimum, then 16 more at a time where pixels are still noisy), with
+undersampling of smooth regions.
 
 The policy runs against a `tile` that traces and holds the tile's accumulators on the device:
     tile.run(pixels, first_sample, sample_count, aux)   trace (aux: also depth and normal)
-    tile.read() -> (accum (n, 8), stats (n, 2))          the accumulators, copied to the host
-                                                         (accum: RGB sum, samples, alpha sum, 0 0 0)
-    tile.write_accum(accum)                              write the accumulated colours back
+    tile.read() -> accum (n, 4 * ACCUM.size)             the accumulators, copied to the host
+    tile.write_accum(accum)                              write the accumulators back
 Seeds depend only on the global pixel and the sample number, so the pixels are the same
 whichever slave renders the tile.
 """
@@ -13,46 +13,52 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.layout import ACCUM, STATS
+from core.layout import ACCUM
+
+# Cycles' adaptive sampling (integrator.cpp get_adaptive_sampling): its noise estimate is
+# compared with 5 x the Noise Threshold ("an arbitrary factor that makes the threshold more
+# similar to what it was before"), and pixels are checked every ADAPTIVE_STEP samples once they
+# have the minimum (the first check after min + ADAPTIVE_STEP samples).
+THRESHOLD_SCALE = 5.0
+ADAPTIVE_STEP = 16
 
 
 def sample_tile(tile, settings, x: int, y: int, w: int, h: int, every: np.ndarray) -> None:
     """Trace the tile's samples as `settings` (core.scene.model.RenderSettings) say; `every`:
     all tile-local pixel indices in the order the kernel should take them."""
     total = settings.samples_per_axis ** 2
-    if not settings.adaptive or total <= settings.adaptive_min_samples:
+    count = settings.min_samples
+    if not settings.adaptive or total <= count:
         tile.run(every, 0, total, 1)
         return
-    count = max(1, settings.adaptive_min_samples)
+    threshold = THRESHOLD_SCALE * settings.noise_threshold
     tile.run(every, 0, 0, 1)                     # depth and normal of every pixel
-    active = _undersample(tile, x, y, w, h, count, settings.adaptive_threshold)
-    while count < total:
-        _, stats = tile.read()
-        error = pixel_error(stats, count, w, h)
-        active = active[error[active] > settings.adaptive_threshold]
-        if len(active) == 0:
-            break
-        batch = min(count, total - count)        # doubling
+    active = _undersample(tile, x, y, w, h, count, settings.noise_threshold, threshold)
+    while count < total and len(active):
+        batch = min(ADAPTIVE_STEP, total - count)
         tile.run(active, count, batch, 0)
         count += batch
+        noisy = pixel_error(tile.read(), w, h) > threshold
+        active = active[noisy[active]]
 
 
-def _undersample(tile, x, y, w, h, count, threshold):
+def _undersample(tile, x, y, w, h, count, agreement, threshold):
     """Adaptive undersampling (after Kim et al. 2016): trace the pixels with even global
     coordinates (and the tile's last row and column, so every other pixel has traced
     neighbours inside the tile); a pixel between them whose traced neighbours agree (their
-    luminance within 4 x threshold) and are converged is their average and traces nothing;
-    the others are traced. Global parity, so the same pixels are traced in every tiling of
-    the rows and columns. Returns the traced pixels (tile-local indices)."""
+    luminance within 4 x the Noise Threshold, `agreement`) and are converged (their noise below
+    `threshold`) is their average and traces nothing; the others are traced. Global parity,
+    so the same pixels are traced in every tiling of the rows and columns. Returns the traced
+    pixels (tile-local indices)."""
     gy, gx = np.meshgrid(np.arange(y, y + h), np.arange(x, x + w), indexing="ij")
     coarse = ((gx % 2 == 0) & (gy % 2 == 0)) | (gx == x + w - 1) & (gy % 2 == 0) \
         | (gy == y + h - 1) & (gx % 2 == 0) | ((gx == x + w - 1) & (gy == y + h - 1))
     traced = np.flatnonzero(coarse.ravel()).astype(np.int32)
     tile.run(traced, 0, count, 0)
-    accum, stats = tile.read()
+    accum = tile.read()
     colour = pixel_rgba(accum).reshape(h, w, 4)
-    lum = (stat(stats, "sum") / count).reshape(h, w)
-    error = pixel_error(stats, count, w, h).reshape(h, w)
+    lum = colour[..., :3] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    error = pixel_error(accum, w, h, neighbours=False).reshape(h, w)
     sum_c = np.zeros((h, w, 4), np.float32)
     n_c = np.zeros((h, w), np.int32)
     lo = np.full((h, w), np.inf, np.float32)
@@ -73,7 +79,7 @@ def _undersample(tile, x, y, w, h, count, threshold):
             lo[dst] = np.where(ok, np.minimum(lo[dst], lum[src]), lo[dst])
             hi[dst] = np.where(ok, np.maximum(hi[dst], lum[src]), hi[dst])
             worst[dst] = np.where(ok, np.maximum(worst[dst], error[src]), worst[dst])
-    smooth = ~coarse & (n_c >= 2) & (hi - lo <= 4 * threshold) & (worst <= threshold)
+    smooth = ~coarse & (n_c >= 2) & (hi - lo <= 4 * agreement) & (worst <= threshold)
     fill = np.flatnonzero(smooth.ravel())
     if len(fill):
         interpolated = (sum_c / np.maximum(n_c, 1)[..., None]).reshape(-1, 4)[fill]
@@ -82,8 +88,8 @@ def _undersample(tile, x, y, w, h, count, threshold):
         ACCUM.put(filled, "color", interpolated[:, :3])
         ACCUM.put(filled, "samples", 1.0)
         ACCUM.put(filled, "alpha", interpolated[:, 3])
+        ACCUM.put(filled, "half", interpolated[:, :3] / 2)    # no noise: converged
         records[fill] = filled
-        stats[fill] = 0.0                   # converged: never refined
         tile.write_accum(accum)
     rest = np.flatnonzero((~coarse & ~smooth).ravel()).astype(np.int32)
     if len(rest):
@@ -100,28 +106,24 @@ def pixel_rgba(accum: np.ndarray) -> np.ndarray:
     return sums / np.maximum(ACCUM.get(records, "samples"), 1.0)[:, None]
 
 
-def stat(stats: np.ndarray, name: str) -> np.ndarray:
-    """Slot `name` of each pixel's error statistics (n, STATS.width; core/layout.py STATS)."""
-    return STATS.get(stats.reshape(len(stats), STATS.size, STATS.width), name)
-
-
-def pixel_error(stats: np.ndarray, count: int, w: int, h: int) -> np.ndarray:
-    """Per pixel, Cycles' noise estimate: the expected difference between the mean of all
-    samples and of half of them, summed over RGB, over the square root of the pixel's RGB sum
-    (Cycles' film convergence test), here from the samples' luminance (clamped to 1): with
-    standard error sigma / sqrt(n) per channel that is 3 sqrt(2 / pi) sigma / sqrt(n) over
-    1e-4 + sqrt(3 mean). A pixel is done when it is below the Noise Threshold, as in Cycles.
-    Widened to half its 4-neighbours' value (in the spirit of Kim et al. 2016: what a coarse
-    pass finds noisy or at an edge, and its neighbourhood, is refined; smooth regions keep the
-    minimum)."""
-    mean = stat(stats, "sum") / count
-    variance = np.maximum(stat(stats, "sum_squares") / count - mean * mean, 0.0) \
-        * (count / max(count - 1, 1))
-    difference = 3.0 * np.sqrt(2.0 / np.pi) * np.sqrt(variance / count)
-    error = (difference / (1e-4 + np.sqrt(3.0 * np.maximum(mean, 0.0)))).reshape(h, w)
-    widened = error.copy()
-    widened[1:] = np.maximum(widened[1:], 0.5 * error[:-1])
-    widened[:-1] = np.maximum(widened[:-1], 0.5 * error[1:])
-    widened[:, 1:] = np.maximum(widened[:, 1:], 0.5 * error[:, :-1])
-    widened[:, :-1] = np.maximum(widened[:, :-1], 0.5 * error[:, 1:])
-    return widened.reshape(-1)
+def pixel_error(accum: np.ndarray, w: int, h: int, neighbours: bool = True) -> np.ndarray:
+    """Per pixel, Cycles' noise estimate (film_adaptive_sampling_convergence_check): the
+    difference between the mean of all its samples and twice the mean of the odd-numbered
+    half, summed over RGB, over 1e-4 + the square root of the mean's RGB sum. With
+    `neighbours`, as Cycles' filter after each check, a pixel counts as noisy where one of its
+    8 neighbours in the tile is (what a check finds noisy at an edge is refined on both
+    sides)."""
+    records = accum.reshape(len(accum), ACCUM.size, 4)
+    count = np.maximum(ACCUM.get(records, "samples"), 1.0)[:, None]
+    total = ACCUM.get(records, "color")
+    difference = np.abs(total - 2.0 * ACCUM.get(records, "half")).sum(1) / count[:, 0]
+    intensity = np.maximum((total / count).sum(1), 0.0)
+    error = (difference / (1e-4 + np.sqrt(intensity))).reshape(h, w)
+    if neighbours:
+        rows = error.copy()
+        rows[1:] = np.maximum(rows[1:], error[:-1])
+        rows[:-1] = np.maximum(rows[:-1], error[1:])
+        error = rows.copy()
+        error[:, 1:] = np.maximum(error[:, 1:], rows[:, :-1])
+        error[:, :-1] = np.maximum(error[:, :-1], rows[:, 1:])
+    return error.reshape(-1)

@@ -12,9 +12,9 @@ import math
 
 import numpy as np
 
-from core.layout import (AREA_SHAPE_CODES, BOUNDS, CAMERA, CAMERA_CODES, EMITTER, INSTANCE,
-                         INTERPOLATION_CODES, LIGHT, LIGHT_CODES, MATERIAL, PROJECTION_CODES,
-                         TRIANGLE, WORLD)
+from core.layout import (AREA_SHAPE_CODES, BOUNDS, CAMERA, CAMERA_CODES, EMITTER,
+                         FILTER_TABLE_SIZE, INSTANCE, INTERPOLATION_CODES, LIGHT, LIGHT_CODES,
+                         MATERIAL, PIXEL_FILTER_CODES, PROJECTION_CODES, TRIANGLE, WORLD)
 from core.scene.model import MATERIAL_PARAMS, View
 
 # The world texture's importance map has at most this many columns (rows: half); larger
@@ -50,8 +50,26 @@ def pack_materials(shading) -> np.ndarray:
     return np.concatenate([out.reshape(-1, 4), shading.node_program.astype(np.float32)])
 
 
+def filter_table(kind: str, width: float, size: int = FILTER_TABLE_SIZE) -> np.ndarray:
+    """The pixel filter's inverse CDF at `size` evenly spaced u in [0, 1]: a camera sample's
+    offset from the pixel centre in pixels, as Cycles importance-samples its filter (film.cpp
+    filter_table: Gaussian exp(-2 (6 v / 3w)^2) over 3 w, Blackman-Harris over 2 w, i.e. to
+    +-w). Symmetric, and exactly 0 at u = 1/2 (the middle entry)."""
+    span = {"GAUSSIAN": 3.0, "BLACKMAN_HARRIS": 2.0}[kind] * width
+    v = np.linspace(-span / 2, span / 2, 4097)
+    if kind == "GAUSSIAN":
+        density = np.exp(-2.0 * (v * 6.0 / span) ** 2)
+    else:
+        a = 2.0 * np.pi * (v / span + 0.5)
+        density = 0.35875 - 0.48829 * np.cos(a) + 0.14128 * np.cos(2 * a) - 0.01168 * np.cos(3 * a)
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (density[1:] + density[:-1]) * np.diff(v))])
+    inverse = np.interp(np.linspace(0.0, 1.0, size), cdf / cdf[-1], v)
+    return 0.5 * (inverse - inverse[::-1])          # exactly antisymmetric: 0 in the middle
+
+
 def pack_camera(view: View) -> np.ndarray:
-    """The camera buffer: one CAMERA record."""
+    """The camera buffer: one CAMERA record, then the pixel filter's table (filter_table, in
+    float4 rows) unless it is a box."""
     cam = view.camera
     m = cam.to_world
     forward = m[:3, :3] @ np.array([0.0, 0.0, -1.0])
@@ -74,7 +92,14 @@ def pack_camera(view: View) -> np.ndarray:
     CAMERA.put(out, "blades", cam.blades)
     CAMERA.put(out, "blade_rotation", cam.blade_rotation)
     CAMERA.put(out, "to_world_end", (m if cam.to_world_end is None else cam.to_world_end)[:3])
-    return out.astype(np.float32)
+    settings = view.settings
+    CAMERA.put(out, "filter", PIXEL_FILTER_CODES[settings.pixel_filter])
+    CAMERA.put(out, "filter_width", settings.filter_width)
+    if settings.pixel_filter == "BOX":
+        return out.astype(np.float32)
+    table = np.zeros(-(-FILTER_TABLE_SIZE // 4) * 4)
+    table[:FILTER_TABLE_SIZE] = filter_table(settings.pixel_filter, settings.filter_width)
+    return np.concatenate([out, table.reshape(-1, 4)]).astype(np.float32)
 
 
 def pack_bounds(bounds) -> np.ndarray:

@@ -19,7 +19,7 @@ import numpy as np
 
 from core.accel.morton import morton_order
 from core.accel.reorder import treelet_order
-from core.layout import (ACCUM, INTERSECT_RAYS, MESH, OCCLUDED_RAYS, RENDER_SAMPLES, STATS,
+from core.layout import (ACCUM, INTERSECT_RAYS, MESH, OCCLUDED_RAYS, RENDER_SAMPLES,
                          TREE_PARAMS, KernelParams, c_header)
 from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
 from core.scene.features import ALL_FEATURES, needed_arrays
@@ -399,11 +399,9 @@ class Tracer:
         settings = view.settings
         n = w * h
         accum = np.zeros((n, 4 * ACCUM.size), np.float32)
-        stats = np.zeros((n, STATS.width * STATS.size), np.float32)
         depth = np.empty((h, w), np.float32)
         normal = np.empty((h, w, 3), np.float32)
         accum_buf = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=accum)
-        stats_buf = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=stats)
         depth_buf = cl.Buffer(ctx, mf.WRITE_ONLY, depth.nbytes)
         normal_buf = cl.Buffer(ctx, mf.WRITE_ONLY, normal.nbytes)
         world, env_cdf, emitters, emitter_count, emitter_power = self._lights_for(shading, flags)
@@ -412,11 +410,10 @@ class Tracer:
                   "lights": upload(pack_lights(shading.lights)),
                   "light_count": len(shading.lights), "world": world, "env_cdf": env_cdf,
                   "emitters": emitters, "emitter_count": emitter_count,
-                  "emitter_power": emitter_power, "accum": accum_buf, "stats": stats_buf,
+                  "emitter_power": emitter_power, "accum": accum_buf,
                   "out_depth": depth_buf, "out_normal": normal_buf}
         started = time.perf_counter()
-        tile = _TileOnDevice(self, kernel, flags, values, settings, accum, accum_buf, stats,
-                             stats_buf)
+        tile = _TileOnDevice(self, kernel, flags, values, settings, accum, accum_buf)
         sample_tile(tile, settings, x, y, w, h, tile_pixel_order(w, h))
         cl.enqueue_copy(self.queue, accum, accum_buf)
         cl.enqueue_copy(self.queue, depth, depth_buf)
@@ -520,8 +517,7 @@ def tile_pixel_order(w: int, h: int) -> np.ndarray:
 class _TileOnDevice:
     """One tile's render kernel and accumulators: the device side of slave/adaptive.py."""
 
-    def __init__(self, tracer, kernel, flags, values, settings, accum, accum_buf, stats,
-                 stats_buf):
+    def __init__(self, tracer, kernel, flags, values, settings, accum, accum_buf):
         """`values`: the kernel's arguments by parameter name (core/layout.py RENDER_SAMPLES)
         but the settings' and each launch's own."""
         self.tracer, self.kernel, self.flags = tracer, kernel, flags
@@ -536,7 +532,7 @@ class _TileOnDevice:
                        "clamp_indirect": settings.clamp_indirect,
                        "filter_glossy": settings.filter_glossy,
                        "light_n": settings.light_samples_per_axis, "seed": settings.seed}
-        self.accum, self.accum_buf, self.stats, self.stats_buf = accum, accum_buf, stats, stats_buf
+        self.accum, self.accum_buf = accum, accum_buf
         self.next_pixel = tracer._cl.Buffer(tracer.context, tracer._cl.mem_flags.READ_WRITE, 4)
         self.traced = 0             # samples traced
 
@@ -560,10 +556,8 @@ class _TileOnDevice:
         self.traced += len(pixels) * count
 
     def read(self):
-        cl, queue = self.tracer._cl, self.tracer.queue
-        cl.enqueue_copy(queue, self.accum, self.accum_buf)
-        cl.enqueue_copy(queue, self.stats, self.stats_buf)
-        return self.accum, self.stats
+        self.tracer._cl.enqueue_copy(self.tracer.queue, self.accum, self.accum_buf)
+        return self.accum
 
     def write_accum(self, values):
         self.tracer._cl.enqueue_copy(self.tracer.queue, self.accum_buf, values)

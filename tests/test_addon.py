@@ -176,9 +176,11 @@ def test_every_panel_draws_the_settings_it_offers(tmp_path):
     result = run_bpy_script("draw_panels", tmp_path, zip=str(build_extension(tmp_path / "dist")))
     drawn = result["drawn"]
     assert {"tile_partition", "tile_size"} <= set(drawn["RENDER_PT_kdtrace"])
-    # Sampling and Light Paths, as Cycles' panels, show every render setting between them.
+    # Sampling, Light Paths and Film, as Cycles' panels, show every render setting between them.
     assert set(RenderSettings().to_dict()) <= (set(drawn["RENDER_PT_kdtrace_sampling"])
-                                               | set(drawn["RENDER_PT_kdtrace_light_paths"]))
+                                               | set(drawn["RENDER_PT_kdtrace_light_paths"])
+                                               | set(drawn["RENDER_PT_kdtrace_film"]))
+    assert {"pixel_filter", "filter_width"} <= set(drawn["RENDER_PT_kdtrace_film"])
     assert {"samples_per_axis", "adaptive", "adaptive_threshold"} <= set(
         drawn["RENDER_PT_kdtrace_sampling"])
     assert {"max_bounces", "diffuse_bounces", "glossy_bounces", "transmission_bounces",

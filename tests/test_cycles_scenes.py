@@ -32,7 +32,7 @@ SCENES = {
     "glass": (20, {"AREA", "BOUNCES", "SMOOTH", "SPECULAR", "TRANSMISSION", "WORLD"}),
     "film_holdout": (12, {"ALPHA", "AREA", "BOUNCES", "HOLDOUT", "SMOOTH", "SPECULAR",
                           "TRANSPARENT_FILM", "WORLD"}),
-    "ray_visibility": (12, {"BOUNCES", "SMOOTH", "SOFT_LIGHTS", "SPECULAR", "SUN", "VISIBILITY",
+    "ray_visibility": (16, {"BOUNCES", "SMOOTH", "SOFT_LIGHTS", "SPECULAR", "SUN", "VISIBILITY",
                             "WORLD"}),
     "depth_of_field": (12, {"AREA", "BOUNCES", "DOF", "SMOOTH", "WORLD"}),
     "camera_motion": (12, {"BOUNCES", "CAMERA_MOTION", "SMOOTH", "SOFT_LIGHTS", "SUN", "WORLD"}),

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..layout import CLOSURE_CODES, MAX_CLOSURES, VISIBLE_TO_ALL
+from ..layout import CLOSURE_CODES, MAX_CLOSURES, PIXEL_FILTER_CODES, VISIBLE_TO_ALL
 
 SCENE_FORMAT_VERSION = 1
 
@@ -593,9 +593,10 @@ class RenderSettings:
 
     samples_per_axis N: at most N x N stratified samples per pixel (1: one ray through the pixel
     centre); 64 = Cycles' 4096 Max Samples.
-    adaptive: start every pixel with adaptive_min_samples and add samples (doubling, up to N x N)
-    only where the pixel's estimated noise, measured as Cycles measures it, exceeds
-    adaptive_threshold (Cycles' Noise Threshold), or it differs from its neighbours.
+    adaptive: as Cycles' adaptive sampling: every pixel gets adaptive_min_samples (0: Cycles'
+    automatic count, `min_samples`), then ADAPTIVE_STEP more at a time (up to N x N) while its
+    noise, measured as Cycles measures it, exceeds adaptive_threshold (Cycles' Noise
+    Threshold) or a neighbour's does (slave/adaptive.py).
     max_bounces: scattering events after the camera hit (0: direct light only); of them at most
     diffuse_bounces diffuse, glossy_bounces glossy reflections, transmission_bounces
     refractions; transparent_bounces: alpha cut-outs a path passes through (not bounces).
@@ -605,12 +606,14 @@ class RenderSettings:
     blurred (fewer caustic fireflies; 0: off).
     light_samples_per_axis L: L x L stratified shadow samples per soft light, a textured world
     and the emissive meshes, per camera sample.
+    pixel_filter, filter_width: Cycles' Film > Pixel Filter (PIXEL_FILTERS; Blackman-Harris of
+    1.5 pixels by default, as Cycles): where in and around its pixel each camera sample goes.
     """
 
     samples_per_axis: int = 64
     adaptive: bool = True
     adaptive_threshold: float = 0.01
-    adaptive_min_samples: int = 16
+    adaptive_min_samples: int = 0
     max_bounces: int = 12
     diffuse_bounces: int = 4
     glossy_bounces: int = 4
@@ -621,10 +624,25 @@ class RenderSettings:
     filter_glossy: float = 1.0
     light_samples_per_axis: int = 1
     seed: int = 0
+    pixel_filter: str = "BLACKMAN_HARRIS"
+    filter_width: float = 1.5
 
     @property
     def max_samples(self) -> int:
         return self.samples_per_axis ** 2
+
+    @property
+    def noise_threshold(self) -> float:
+        """adaptive_threshold, or for 0 Cycles' automatic one: max(0.001, 1 / max samples)."""
+        return self.adaptive_threshold or max(0.001, 1.0 / self.max_samples)
+
+    @property
+    def min_samples(self) -> int:
+        """The samples every pixel gets before adaptive sampling decides: adaptive_min_samples,
+        or for 0 Cycles' automatic count, max(4, ceil(16 / threshold^0.3)) (64 at 0.01)."""
+        if self.adaptive_min_samples > 0:
+            return self.adaptive_min_samples
+        return max(4, math.ceil(16.0 / self.noise_threshold ** 0.3))
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -635,7 +653,7 @@ class RenderSettings:
             return cls()
         if not isinstance(d, dict):
             raise SceneError("render settings must be an object")
-        unknown = set(d) - set(RENDER_SETTING_LIMITS) - {"adaptive"}
+        unknown = set(d) - set(RENDER_SETTING_LIMITS) - {"adaptive", "pixel_filter"}
         if unknown:
             raise SceneError(f"unknown render settings {sorted(unknown)}")
         out = cls()
@@ -650,6 +668,11 @@ class RenderSettings:
             if not isinstance(d["adaptive"], bool):
                 raise SceneError("render setting adaptive must be true or false")
             out.adaptive = d["adaptive"]
+        if "pixel_filter" in d:
+            if d["pixel_filter"] not in PIXEL_FILTERS:
+                raise SceneError(f"pixel filter must be one of {PIXEL_FILTERS}, "
+                                 f"got {d['pixel_filter']!r}")
+            out.pixel_filter = d["pixel_filter"]
         return out
 
 
@@ -657,12 +680,13 @@ class RenderSettings:
 # the add-on's panel offers (addon/properties.py reads it).
 RENDER_SETTING_LIMITS = {
     "samples_per_axis": (1, 64), "adaptive_threshold": (0.0, 1.0),
-    "adaptive_min_samples": (1, 4096), "max_bounces": (0, 1024), "diffuse_bounces": (0, 1024),
+    "adaptive_min_samples": (0, 4096), "max_bounces": (0, 1024), "diffuse_bounces": (0, 1024),
     "glossy_bounces": (0, 1024), "transmission_bounces": (0, 1024),
     "transparent_bounces": (0, 1024), "clamp_direct": (0.0, 1e6), "clamp_indirect": (0.0, 1e6),
     "filter_glossy": (0.0, 10.0),
-    "light_samples_per_axis": (1, 16), "seed": (0, 2 ** 31 - 1),
+    "light_samples_per_axis": (1, 16), "seed": (0, 2 ** 31 - 1), "filter_width": (0.01, 10.0),
 }
+PIXEL_FILTERS = tuple(PIXEL_FILTER_CODES)
 
 
 MAX_IMAGE_SIDE = 65536

@@ -3,7 +3,7 @@
 // bounce limits), and the results are summed into the tile's accumulators.
 // slave/tracer.py decides which pixels get how many samples (uniform or adaptive).
 // The camera buffer is one CAMERA record of the layout header (core/layout.py; packed by
-// slave/buffers.py); the accumulators are ACCUM and STATS records, one per tile pixel.
+// slave/buffers.py); the accumulators are ACCUM records, one per tile pixel.
 
 #ifdef HAS_DOF
 // A point of the aperture (radius 1) for u in [0, 1)^2, as Cycles samples it: a disc, or the
@@ -64,21 +64,35 @@ inline void camera_ray(__global const float4 *cam, float fx, float fy, float2 le
 #endif
 }
 
+// A camera sample's offset from its pixel's centre, in pixels, for u in [0, 1) (Film > Pixel
+// Filter): uniform over the width for a box; else the filter importance-sampled through the
+// inverse CDF that slave/buffers.py filter_table put after the CAMERA record (Cycles'
+// filter_table_sample). u = 1/2 is the centre exactly.
+inline float filter_offset(__global const float4 *cam, float u)
+{
+    if ((int)CAMERA_FILTER(cam) == PIXEL_FILTER_BOX)
+        return (u - 0.5f) * CAMERA_FILTER_WIDTH(cam);
+    __global const float *table = (__global const float *)(cam + CAMERA_SIZE);
+    float f = u * (float)(FILTER_TABLE_SIZE - 1);
+    int i = clamp((int)f, 0, FILTER_TABLE_SIZE - 2);
+    float t = f - (float)i;
+    return (1.0f - t) * table[i] + t * table[i + 1];
+}
+
 // Samples sample_start .. + sample_count of pixel `here` (tile-local index) into its accum
-// and stats records (render_samples).
+// record (render_samples).
 inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits *limits,
                          int here, int x0, int y0, int tile_w, int sample_start,
                          int sample_count, int strata, uint seed, int write_aux,
-                         __global float4 *accum, __global float2 *stats,
+                         __global float4 *accum,
                          __global float *out_depth, __global float *out_normal)
 {
     int px = x0 + here % tile_w, py = y0 + here / tile_w;
     uint pixel_index = (uint)py * (uint)CAMERA_WIDTH(cam) + (uint)px;   // global: same on every slave
 
-    float4 sum[ACCUM_SIZE];         // this pixel's ACCUM and STATS records, kept in registers
+    float4 sum[ACCUM_SIZE];         // this pixel's ACCUM record, kept in registers
     for (int k = 0; k < ACCUM_SIZE; ++k)
         sum[k] = accum[ACCUM_SIZE * here + k];
-    float2 st = stats[here];
     float depth;
     float3 normal;
     for (int k = 0; k < sample_count; ++k) {
@@ -102,7 +116,8 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
         sc->top.time = time;         // the objects are where they are at the camera ray's moment
 #endif
         float3 o, d;
-        camera_ray(cam, (float)px + jx, (float)py + jy, lens, time, &o, &d);
+        camera_ray(cam, (float)px + 0.5f + filter_offset(cam, jx),
+                   (float)py + 0.5f + filter_offset(cam, jy), lens, time, &o, &d);
         float alpha;
         float3 c = trace_path(sc, cam, o, d, &rng, limits, &depth, &normal, &alpha);
         if (!all(isfinite(c)))
@@ -111,16 +126,14 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
             out_depth[here] = depth;
             vstore3(normal, here, out_normal);
         }
-        float lum = fmin(0.2126f * c.x + 0.7152f * c.y + 0.0722f * c.z, 1.0f);
         ACCUM_COLOR(sum) += c;
         ACCUM_SAMPLES(sum) += 1.0f;
         ACCUM_ALPHA(sum) += alpha;
-        STATS_SUM(&st) += lum;
-        STATS_SUM_SQUARES(&st) += lum * lum;
+        if (s & 1u)                 // half of the samples, for the adaptive noise estimate
+            ACCUM_HALF(sum) += c;
     }
     for (int k = 0; k < ACCUM_SIZE; ++k)
         accum[ACCUM_SIZE * here + k] = sum[k];
-    stats[here] = st;
     if (write_aux && strata > 0) {
         // Depth and normal from the pixel centre, as with one sample.
 #ifdef HAS_OBJECT_MOTION
@@ -157,7 +170,7 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
 // Sample `sample_start + k` (k < sample_count) of each listed pixel. strata n > 0: sample s
 // lies in stratum progressive_stratum(s, n) of an n x n grid, jittered; n == 0: the pixel
 // centre (one sample). pixels[i]: tile-local index (row * tile_w + column).
-// accum: (sum of RGB, sample count); stats: (sum, sum of squares) of min(luminance, 1).
+// accum: ACCUM records (sums of RGB and alpha, the sample count, the odd samples' RGB).
 // write_aux: also write the depth and normal passes (from the pixel-centre ray).
 // With RENDER_PIXEL_QUEUE (CPU devices) a few work-items take the pixels in turn from the
 // counter next_pixel (0 at launch), one at a time as each finishes one: a tile's pixels differ
@@ -198,5 +211,5 @@ __kernel void render_samples(RENDER_SAMPLES_PARAMS)
     if (i < pixel_count)
 #endif
         render_pixel(&sc, cam, &limits, pixels[i], x0, y0, tile_w, sample_start, sample_count,
-                     strata, seed, write_aux, accum, stats, out_depth, out_normal);
+                     strata, seed, write_aux, accum, out_depth, out_normal);
 }

@@ -1017,8 +1017,8 @@ for name in args["scenes"]:
     cycles.samples = settings["samples_per_axis"] ** 2      # the same samples as ours
     cycles.use_adaptive_sampling = False
     cycles.use_denoising = False
-    cycles.pixel_filter_type = "BOX"        # ours: a box of one pixel
-    cycles.filter_width = 1.0
+    cycles.pixel_filter_type = settings["pixel_filter"]     # Cycles' default, as ours
+    cycles.filter_width = settings["filter_width"]
     cycles.seed = 1
     cycles.max_bounces = settings["max_bounces"]
     cycles.diffuse_bounces = settings["diffuse_bounces"]

@@ -106,8 +106,8 @@ for name, path in args["files"].items():
     cycles.samples = samples ** 2
     cycles.use_adaptive_sampling = False
     cycles.use_denoising = False
-    cycles.pixel_filter_type = "BOX"
-    cycles.filter_width = 1.0
+    cycles.pixel_filter_type = args["kdtrace"]["pixel_filter"]     # Cycles' default, as ours
+    cycles.filter_width = args["kdtrace"]["filter_width"]
     cycles.seed = 1
     for key, value in args["cycles"].items():
         setattr(cycles, key, value)
