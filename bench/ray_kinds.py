@@ -21,8 +21,8 @@ process CPU time, best of --repeat, the tracers and Embree alternating within ea
 the process pinned to one CPU (PoCL then runs one thread, and Embree's threads share that
 core). Ratios are ours/Embree in rays per second; agreement counts rays with the same answer
 (same triangle or t within 1e-5 relative; same occlusion). `--variant` times other tracers
-beside the current one on the same rays (make_tracer: other kernel files, the breadth-first
-node order, rays in the given order, one ray per work-item), e.g. the tracer before a change.
+beside the current one on the same rays (make_tracer: other kernel files, rays in the given
+order, one ray per work-item), e.g. the tracer before a change.
 """
 from __future__ import annotations
 
@@ -132,18 +132,15 @@ def ours_query(tracer, origins, directions, tmax, shadow):
 
 def make_tracer(spec):
     """A Tracer on the CPU device as `spec` says: "current", or "+"-joined settings:
-    kernels:DIR (the kernel files of another copy of kernels/), breadth-first (the tree as the
-    compactor lays it out, no treelets), given-order (scattered rays not reordered), one-ray
-    (one ray per work-item, no packets), local:N (work-groups of N work-items, not the
-    driver's choice)."""
+    kernels:DIR (the kernel files of another copy of kernels/), given-order (scattered rays
+    not reordered), one-ray (one ray per work-item, no packets), local:N (work-groups of N
+    work-items, not the driver's choice)."""
     from slave.tracer import Tracer
     settings = [] if spec == "current" else spec.split("+")
     kernels = [x.split(":", 1)[1] for x in settings if x.startswith("kernels:")]
     tracer = Tracer("cpu", kernel_dir=kernels[0] if kernels else None)
     for setting in settings:
-        if setting == "breadth-first":
-            tracer.treelets = False
-        elif setting == "given-order":
+        if setting == "given-order":
             tracer.reorder_rays = False
         elif setting == "one-ray":
             tracer.packet = 0
@@ -166,21 +163,23 @@ def agreement(ours, embree, shadow):
 
 
 def tree_for(name, vertices, triangles, mode, cache):
-    """The compact tree of the scene (the numpy build cached as .npz under `cache`)."""
+    """The compact tree of the scene in treelets, as a master sends it (the standard tree
+    cached as .npz under `cache`)."""
+    from core.accel.binned import build_standard
     from core.accel.compact import compact_tree
     from core.accel.kdtree import KDTree
-    from core.accel.kdtree_cl import build_standard
+    from core.accel.reorder import treelet_order
     path = cache / f"{name}.npz"
     if path.exists():
         with np.load(path) as data:
             tree = KDTree(data["nodes"], data["leaf_indices"], data["bounds"])
     else:
         started = time.perf_counter()
-        tree, _ = build_standard(vertices, triangles)      # the numpy builder's tree
+        tree, _ = build_standard(vertices, triangles, "cpu")
         print(f"  kd-tree build {time.perf_counter() - started:.1f} s "
               f"({tree.stats['builder']})", flush=True)
         np.savez(path, nodes=tree.nodes, leaf_indices=tree.leaf_indices, bounds=tree.bounds)
-    return compact_tree(tree, len(triangles), mode)
+    return treelet_order(compact_tree(tree, len(triangles), mode))
 
 
 def scene_rays(name, vertices, triangles, size, embree):
@@ -250,8 +249,8 @@ def run_scene(name, args, cache, tracers):
         tracer.load(scene)
         load_s[label] = time.process_time() - started
     print("  load (process s): " + ", ".join(f"{k} {v:.2f}" for k, v in load_s.items()))
-    # What the tracer's reorderings cost: the treelet node order once per load, the ray order
-    # once per query of scattered rays (here the diffuse bounces in random order).
+    # What the reorderings cost: the treelet node order (the master's, once per tree), the
+    # ray order once per query of scattered rays (here the diffuse bounces in random order).
     from core.accel.reorder import treelet_order
     from slave.tracer import ray_order
     started = time.process_time()
@@ -262,7 +261,7 @@ def run_scene(name, args, cache, tracers):
     started = time.process_time()
     ray_order(rays["diffuse"][0], tree.bounds)
     sort_s = time.process_time() - started
-    print(f"  treelet_order {treelet_s:.3f} s per load; ray_order {sort_s:.3f} s for "
+    print(f"  treelet_order {treelet_s:.3f} s per tree (master); ray_order {sort_s:.3f} s for "
           f"{len(rays['diffuse'][0]):,} diffuse rays", flush=True)
     results = {}
     for kind in KINDS:

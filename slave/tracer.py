@@ -18,7 +18,6 @@ from typing import NamedTuple
 import numpy as np
 
 from core.accel.morton import morton_order
-from core.accel.reorder import treelet_order
 from core.layout import (ACCUM, INTERSECT_RAYS, MESH, OCCLUDED_RAYS, RENDER_SAMPLES,
                          TREE_PARAMS, KernelParams, c_header)
 from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
@@ -143,8 +142,6 @@ class Tracer:
         self._stack_size = MIN_STACK_SIZE
         self._loaded = None         # the Scene whose buffers self._scene holds
         self.mesh_loads_skipped = 0  # loads that kept the meshes' buffers (only instances moved)
-        self.trees_reordered = 0    # trees laid out in treelets (a mesh's tree once while loaded)
-        self._mesh_treelets = {}    # sizes -> [(mesh tree, the same in treelets)], loaded scene
         self._toplevel = {}         # an instanced scene's top-level buffers, by parameter name
         self._checked_view = None   # the last view checked against it
         self._light_tables = None   # (key, buffers) of the world importance map and emitters
@@ -163,7 +160,6 @@ class Tracer:
         # CPU devices: the ray queries' kernels read the caller's rays and write the results
         # in place (USE_HOST_PTR, results mapped), no copies or fresh pages per query.
         self.zero_copy = bool(self.device.type & cl.device_type.CPU)
-        self.treelets = True        # load() lays the tree's nodes out in treelets
 
     @property
     def device_info(self) -> dict:
@@ -225,24 +221,8 @@ class Tracer:
         def optional(array, dtype):
             return upload(np.zeros(4, dtype) if array is None else np.ascontiguousarray(array, dtype))
 
-        # The same tree with its nodes in treelets, a cache-friendlier order (core/accel/reorder.py);
-        # an instanced scene's mesh trees each on its own (same lengths: the bases stay), and a
-        # mesh the loaded scene has too (an animation frame where another mesh changed) keeps
-        # its reordered tree (12 dragons' took 6-11 s).
-        if self.treelets and scene.instances is None:
-            tree = treelet_order(tree)
-            self.trees_reordered += 1
-            self._mesh_treelets = {}
-        elif self.treelets:
-            meshes = scene.mesh_trees()
-            trees = [self._in_treelets(t) for t in meshes]
-            self._mesh_treelets = {}
-            for mesh, ordered in zip(meshes, trees):
-                self._mesh_treelets.setdefault(_sizes(mesh), []).append((mesh, ordered))
-            tree = type(tree)(*(np.concatenate([getattr(t, name) for t in trees])
-                                for name in ("nodes", "leaf_index32", "leaf_index16")),
-                              tree.bounds, 0)
-            assert len(tree.nodes) == len(scene.tree.nodes)
+        # The tree comes in its final node order from the master (treelets, TreeCache.get):
+        # validated with the scene, uploaded as it is.
         self._toplevel = {} if scene.instances is None else {
             name: upload(array) for name, array in pack_instances(scene.instances).items()}
         self._scene = {"nodes": upload(tree.nodes), "leaf_index32": upload(tree.leaf_index32),
@@ -256,16 +236,6 @@ class Tracer:
                        "texels": optional(geometry.texels, np.float16),
                        "texture_sizes": optional(geometry.texture_sizes, np.uint32)}
         self._loaded_as(scene)
-
-    def _in_treelets(self, tree):
-        """`tree` in treelets: the loaded scene's, where one of its meshes has this tree (the
-        order depends on the tree's arrays alone; comparing them costs a memcmp)."""
-        for held, ordered in self._mesh_treelets.get(_sizes(tree), ()):
-            if all(np.array_equal(getattr(held, name), getattr(tree, name))
-                   for name in ("nodes", "leaf_index32", "leaf_index16")):
-                return ordered
-        self.trees_reordered += 1
-        return treelet_order(tree)
 
     def _loaded_as(self, scene: Scene) -> None:
         self._loaded = scene
@@ -561,8 +531,3 @@ class _TileOnDevice:
 
     def write_accum(self, values):
         self.tracer._cl.enqueue_copy(self.tracer.queue, self.accum_buf, values)
-
-
-def _sizes(tree) -> tuple:
-    """What two equal compact trees share, to find candidates before comparing arrays."""
-    return len(tree.nodes), len(tree.leaf_index32), len(tree.leaf_index16), tree.leaf_shift

@@ -294,3 +294,41 @@ def test_images_identical_in_every_mode():
     for mode, image in images.items():
         for name in first:
             assert np.array_equal(image[name], first[name]), (mode, name)
+
+
+# ---------------------------------------------------------------------------------------------
+# What the add-on calls (core/frame/tree_cache.py TreeCache.get)
+
+def test_tree_cache_builds_here_and_sends_treelets(builder):
+    from core.accel.binned import build_standard, opencl_builder
+    from core.accel.compact import user_settings
+    from core.accel.reorder import treelet_order
+    from core.frame.tree_cache import TreeCache
+    from core.scene.model import Geometry
+    vertices, triangles = load_bunny()
+    geometry = Geometry(vertices, triangles.astype(np.uint32), np.zeros(len(triangles), np.uint16))
+    settings = user_settings("compressed", 0.5, 0.4, 8)
+    messages = []
+    ct, where = TreeCache().get(geometry, "compressed", settings, device="cpu",
+                                progress=lambda f, m: messages.append(m))
+    assert where == "built" and ct.stats["builder"] == "opencl"
+    assert ct.stats["node_order"].startswith("treelets")
+    assert "laying the kd-tree out in treelets" in messages
+    expected = treelet_order(compact_tree(builder.build(vertices, triangles), len(triangles),
+                                          "compressed", **settings))
+    for part in ("nodes", "leaf_index32", "leaf_index16"):
+        assert np.array_equal(getattr(ct, part), getattr(expected, part)), part
+    # Without an OpenCL device: the numpy builder, and the stats say so.
+    tree, used = build_standard(vertices, triangles, "7:7")
+    assert used is None and tree.stats["builder"] == "numpy" and "7:7" in tree.stats["device"]
+    check_tree(vertices, triangles, tree)
+    assert opencl_builder("cpu")[0] is opencl_builder("cpu")[0], "one builder per device"
+
+    class Stop(Exception):
+        pass
+
+    def stop_in_treelets(fraction, message):
+        if "treelets" in message:
+            raise Stop
+    with pytest.raises(Stop):
+        TreeCache().get(geometry, "compressed", settings, device="cpu", progress=stop_in_treelets)

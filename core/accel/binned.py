@@ -39,6 +39,7 @@ REF_BYTES = 32           # binned.cl's Ref
 # progress callback between them, so that Esc is seen within a piece.
 PIECE_NODES = 1 << 18
 PIECE_REFS = 1 << 20
+PIECE_PAIRS = 1 << 24    # choose_nodes: about this many (reference, candidate) pairs a piece
 FLT_MIN = np.float32(np.finfo(np.float32).tiny)
 
 
@@ -150,13 +151,17 @@ class BinnedBuilder(DeviceContext):
         nodes = self.buffer(node_rows)
         host_nodes = node_rows             # the level's rows while it may have big nodes
         n, level, level_base, leaf_total, sah, leaves, empty = 1, 0, 0, 0, 0, 0, 0
+        slots = T                          # the level's references, holes included
         word_parts, leaf_parts = [], []
         while n:
             report(min(0.95, 0.95 * level / (depth_cap + 1)),
                    f"kd-tree level {level}: {n:,} nodes")
             splits = self.buffer(nbytes=SPLIT_BYTES * n)
             args = (u4(n), u4(level), u4(depth_cap), pow2)
-            self.launch("choose_nodes", n, nodes, refs, splits, *args, piece=PIECE_NODES)
+            # A node's exact candidates cost (its references)^2: pieces of about PIECE_PAIRS.
+            mean = max(1.0, slots / n)
+            piece = int(min(PIECE_NODES, max(64, PIECE_PAIRS / (mean * mean))))
+            self.launch("choose_nodes", n, nodes, refs, splits, *args, piece=piece)
             chunks = None
             if host_nodes is not None:
                 chunks, n_chunks = self._big_nodes(host_nodes, nodes, refs, splits, *args)
@@ -192,7 +197,7 @@ class BinnedBuilder(DeviceContext):
                 leaf_parts.append((leaf_tris, leaf_refs))
             level_base += n
             leaf_total += leaf_refs
-            n, nodes, refs = 2 * inner, next_nodes, next_refs
+            n, nodes, refs, slots = 2 * inner, next_nodes, next_refs, places
             host_nodes = None
             if n and int(col["widest"].max()) > self.big_refs:
                 host_nodes = self.read(nodes, u4, (n, len(BIN_NODE.columns)))

@@ -28,8 +28,11 @@ from .compact import CompactTree
 TREELET_HEIGHT = 3
 
 
-def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTree:
-    """`tree` with its node groups in treelets of `height` levels (module docstring)."""
+def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT, heartbeat=None) -> CompactTree:
+    """`tree` with its node groups in treelets of `height` levels (module docstring).
+    heartbeat(), where given, is called after each level of each pass and between the steps,
+    so that its exception (Esc) stops the work there."""
+    beat = heartbeat or (lambda: None)
     if height < 1:
         raise ValueError("treelet height must be at least 1")
     nodes = np.ascontiguousarray(tree.nodes, np.uint32)     # (n, 2) words: viewed as uint64 below
@@ -56,6 +59,7 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
         stored = np.stack([has_below, has_above], 1)
         level = np.stack([below, above], 1)[stored]
         parents = np.stack([inner, inner], 1)[stored]      # a mask: faster than np.repeat
+        beat()
     inner = np.concatenate(inner_levels)                    # breadth-first order
     level_start = exclusive_cumsum([len(x) for x in inner_levels])
     depth = np.repeat(np.arange(len(inner_levels)), np.diff(level_start))
@@ -76,6 +80,7 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
     for d in range(len(inner_levels) - 1, 0, -1):
         at, above = at_depth(d), at_depth(d - 1)         # the parents are in the level above
         size[above] += np.bincount(parent[at] - above[0], size[at], len(above)).astype(np.int64)
+        beat()
     preorder = np.zeros(len(inner), np.int64)
     for d in range(1, len(inner_levels)):
         at = at_depth(d)                     # per parent (in order): below, then above
@@ -84,6 +89,7 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
         first = np.r_[True, p[1:] != p[:-1]]
         before = np.where(first, 0, np.r_[0, size[at][:-1]])
         preorder[at] = preorder[p] + 1 + before
+        beat()
 
     # Each inner node's treelet root: its ancestor at the last depth that is a multiple of
     # `height` (top-down, so a parent's root is known first).
@@ -95,7 +101,9 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
     # Groups in treelet order: treelets depth first, within a treelet level by level.
     # One int64 key (preorder numbers are below 2^27 = INNER_GROUP's range, depths below 2^8).
     key = (preorder[root] << 35) | ((depth - depth[root]) << 27) | preorder
+    beat()
     order = np.argsort(key, kind="stable")
+    beat()
     new_group = 1 + exclusive_cumsum(group_size[order])[:-1]     # node 0 is the root
     # Each group's nodes keep their places in it (a group has at most 3: one pass per place).
     new_index = np.zeros(len(nodes), np.int64)
@@ -111,6 +119,7 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
     field = INNER_GROUP.put(INNER_GROUP.max)
     out[new_index[inner], 0] = ((w & ~field) | INNER_GROUP.put(new_of_group)).astype(np.uint32)
 
+    beat()
     # Leaf lists in the leaves' new order.
     leaves = np.concatenate(leaves)
     leaves = leaves[np.argsort(new_index[leaves], kind="stable")]
@@ -122,6 +131,7 @@ def treelet_order(tree: CompactTree, height: int = TREELET_HEIGHT) -> CompactTre
         count = (LEAF16_COUNT if is16 else LEAF32_COUNT).get(w0[pick])
         offset = nodes[pick, 1].astype(np.int64)
         lists[is16] = np.asarray(index)[concat_ranges(offset, count)]
+        beat()
         new_offset = np.where(count > 0, exclusive_cumsum(count)[:-1], 0)
         out[new_index[pick], 1] = new_offset.astype(np.uint32)
     return CompactTree(out, np.ascontiguousarray(lists[False], np.uint32),

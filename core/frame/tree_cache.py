@@ -5,8 +5,9 @@ import pathlib
 import threading
 from collections import OrderedDict
 
+from ..accel.binned import build_standard, opencl_builder
 from ..accel.compact import compact_tree
-from ..accel.kdtree_cl import build_standard, opencl_builder
+from ..accel.reorder import treelet_order
 from ..scene.model import SceneError
 from ..scene.scene import checked_depth, tree_digest
 from ..scene.tree_files import TreeFiles
@@ -47,7 +48,8 @@ class TreeCache:
         (core.accel.compact.user_settings). progress(fraction, message) covers both steps:
         the SAH build 0-0.8, compaction 0.8-1. Both run on the OpenCL device `device` (the
         preferences' local slave device) when there is one, else with numpy; the tree's stats
-        say which builder ran where."""
+        say which builder ran where. The tree comes in its final node order (treelets,
+        core/accel/reorder.py), which slaves upload as it is."""
         report = progress or (lambda fraction, message: None)
         key = (geometry.content_hash(), mode, tuple(sorted(settings.items())))
         with self._lock:
@@ -75,6 +77,8 @@ class TreeCache:
             builder = opencl_builder(device)[0]
         compact = compact_tree(standard, geometry.triangle_count, mode, **settings,
                                progress=lambda f, m: report(0.8 + 0.2 * f, m), device=builder)
+        laying_out = lambda: report(1.0, "laying the kd-tree out in treelets")     # noqa: E731
+        compact = treelet_order(compact, heartbeat=laying_out)
         compact.stats.update({k: standard.stats[k] for k in ("builder", "device", "build_seconds")})
         # The scene's checks of the tree and its digest, done here where Esc is heard (12
         # dragons': 3-4 s); the scene finds them done.

@@ -3,10 +3,10 @@ a render farm), F12 on an unchanged mesh reads its tree instead of building it a
 dragon's 4 s, 12 dragons' 53 s on the 2-core machine of docs/kdtree_native.md).
 
 A tree's file is named by its key: the mesh's content hash, the kd-tree mode and the settings
-it uses, and a hash of every source that decides a tree (the numpy and OpenCL builders and
-compactors, their kernels, the layout: they make the same tree bit for bit on every device,
-docs/kdtree_native.md), so a new version of KD Trace builds anew instead of reading a tree an
-older one made. The file holds the tree's arrays (those a scene sends), its parameters and
+it uses, and a hash of every source that decides a tree (the builders and compactors, their
+kernels, the layout, the treelet order: the kernels make the same tree bit for bit on every
+device, docs/kdtree_native.md), so a new version of KD Trace builds anew instead of reading a
+tree an older one made. The file holds the tree's arrays (those a scene sends), its parameters and
 stats as JSON, the triangle count it was built for and a digest of all of it. Reading checks
 the digest and validates the tree (checked_depth, as every scene does), so a damaged or
 foreign file is deleted and the tree built again, never trusted.
@@ -33,7 +33,8 @@ EXTENSION_ROOT = pathlib.Path(__file__).resolve().parents[2]
 # What decides a tree's bits, relative to the extension's root (files, or folders of them).
 DECIDING_SOURCES = ("core/layout.py", "core/opencl.py", "core/accel/arrays.py",
                     "core/accel/kdtree.py", "core/accel/device.py", "core/accel/kdtree_cl.py",
-                    "core/accel/compact.py", "core/accel/compact_cl.py", "kernels/build")
+                    "core/accel/binned.py", "core/accel/compact.py", "core/accel/compact_cl.py",
+                    "core/accel/reorder.py", "kernels/build")
 
 
 def builder_version(root: pathlib.Path = EXTENSION_ROOT) -> str:
