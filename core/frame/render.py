@@ -74,34 +74,17 @@ def render_frame(session: FrameSession, exported, view, options: FrameOptions, h
     try:
         if options.use_zeroconf:
             session.browser()   # if not running yet: it looks while the kd-trees build
-        meshes, hashes_reused = session.order_meshes(exported.meshes)
-        exported_at = steps.mark("export")
-        trees, sources = _trees(session, meshes, options, host)
-        steps.mark("kd-tree cache")
-        scene = session.frame_scene(meshes, trees, exported, (
-            options.tree_mode, tuple(sorted(options.tree_settings.items()))))
-        steps.mark("scene")
+        scene, trees, sources, hashes_reused = frame_scene(session, exported, options, host,
+                                                           steps)
+        exported_at = steps.seconds["export"] + started
         scene.check_view(view)
         memory = memory_report(scene)
         tree_done = steps.mark("view check")
         if host.cancelled():
             return None
-        # Who gets the scene: slaves the user approved, the local slaves started for this
-        # master, or (with the farm secret) those that prove it (core/net/trust.py).
-        identity = session.master_identity(options.identity_folder)
-        approved = AllowList(options.approved_slaves)
-        endpoints = find_slaves(session, options, host, identity, approved)
-        steps.mark("find slaves")
-        for local_id in session.local_slaves.ids():
-            approved.add(local_id)
-        with Master(endpoints, secret=options.secret, identity=identity,
-                    approved_slaves=approved) as master:
-            legend = session.start_legend(master)   # the panel follows each slave from here on
-            try:
-                master.connect()
-            finally:   # slaves refused as not approved: the panel offers Approve and Pair
-                session.unapproved.update(master.unapproved)
-            steps.mark("connect")
+        with master_for(session, options, host) as master:
+            legend = session.legend
+            steps.mark("find slaves and connect")
             host.status(f"Sending scene to {len(master.slaves)} slave(s)")
             master.load_scene(scene)
             steps.mark("scene query")
@@ -143,6 +126,44 @@ def render_frame(session: FrameSession, exported, view, options: FrameOptions, h
         "local_reason": session.local_reason,
         "joined_during_frame": [f"{host}:{port}" for host, port in session.joined]}
     return session.last_render
+
+
+def frame_scene(session, exported, options, host, steps) -> tuple:
+    """The frame's Scene from the export: each mesh in spatial order, its kd-tree from the
+    cache or built, and the scene assembled (FrameSession.frame_scene: the last scene placed
+    anew where only instances moved). Returns (scene, trees, where each tree came from, meshes
+    whose hash was reused); `steps` marks "export", "kd-tree cache" and "scene"."""
+    meshes, hashes_reused = session.order_meshes(exported.meshes)
+    steps.mark("export")
+    trees, sources = _trees(session, meshes, options, host)
+    steps.mark("kd-tree cache")
+    scene = session.frame_scene(meshes, trees, exported, (
+        options.tree_mode, tuple(sorted(options.tree_settings.items()))))
+    steps.mark("scene")
+    return scene, trees, sources, hashes_reused
+
+
+def master_for(session, options, host) -> Master:
+    """A Master connected to the slaves of this frame: those found (find_slaves) that the user
+    approved, the local slaves started for this master, or (with the farm secret) those that
+    prove it (core/net/trust.py). The session's legend follows it; slaves refused as not
+    approved reach the panel, which offers Approve and Pair. The caller closes it."""
+    identity = session.master_identity(options.identity_folder)
+    approved = AllowList(options.approved_slaves)
+    endpoints = find_slaves(session, options, host, identity, approved)
+    for local_id in session.local_slaves.ids():
+        approved.add(local_id)
+    master = Master(endpoints, secret=options.secret, identity=identity,
+                    approved_slaves=approved)
+    session.start_legend(master)   # the panel follows each slave from here on
+    try:
+        master.connect()
+    except BaseException:
+        master.close()
+        raise
+    finally:
+        session.unapproved.update(master.unapproved)
+    return master
 
 
 def summary(report: dict) -> str:
