@@ -626,6 +626,21 @@ def test_bad_node_programs_are_refused(bad):
         check_node_program(rows, [0])
 
 
+def test_a_program_whose_tables_follow_in_another_order_is_accepted():
+    """A TRANSFORM before a RAMP (the compiler writes the ramp's table first): the check skips
+    both tables after the END whatever their order (a transform row of 0.9999 read as an
+    operation refused the scene on every slave)."""
+    from core.scene.model import check_node_program
+    from core.layout import NODE_RAMP_SIZE, NODE_TRANSFORM_SIZE
+    tables = 8                                              # the first table's row
+    rows = [[16, 0, 0, 0], [0, tables + NODE_RAMP_SIZE, 0, 0],        # TRANSFORM
+            [9, 1, 4, 0], [0, tables - 2, 1, 0],                      # RAMP
+            [10, 0, 8 + 4, 0], [0, 0, 0, 0],                          # OUT
+            [0, 0, 0, 0], [0, 0, 0, 0]]                               # END
+    rows += [[0.5, 0.5, 0.5, 1.0]] * NODE_RAMP_SIZE + [[0.9999, 0, 0, 0.1]] * NODE_TRANSFORM_SIZE
+    check_node_program(rows, [0])
+
+
 def test_a_node_program_reading_a_missing_texture_is_refused():
     """Scene.check_view refuses a program whose Image Texture is not in the geometry."""
     from core.scene.model import MATERIAL_PARAMS, SceneError, default_material_params

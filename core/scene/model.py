@@ -565,9 +565,12 @@ def check_node_program(rows, starts) -> np.ndarray:
         if op == NODE_OP_CODES["IMAGE"] and not (w1[1] == int(w1[1]) and 0 <= w1[1] < MAX_TEXTURES):
             raise SceneError(f"node program row {pc}: bad texture {w1[1]}")
         pc += 2
-        for lo, hi in ramps:            # a table after an END
-            if pc == lo:
-                pc = hi
+        skipped = True                  # the tables after an END, whatever their order
+        while skipped:
+            skipped = False
+            for lo, hi in ramps:
+                if pc == lo:
+                    pc, skipped = hi, True
         if pc % 2:
             raise SceneError("node program tables must end on an even row")
     # Instructions from each instruction row to the END that stops it (None: a table row or
