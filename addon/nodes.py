@@ -14,7 +14,10 @@ from ..core.layout import (CLOSURE_CODES, MAX_CLOSURES, NODE_EXTENSION_CODES, NO
                            NODE_NOISE_TYPE_CODES, NODE_NORMAL_SPACE_CODES,
                            NODE_OBJECT_NORMAL_SPACES, NODE_OP_CODES,
                            NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS,
-                           NODE_TRANSFORM_SIZE, NODE_VECTOR_MATH_CODES)
+                           NODE_TRANSFORM_SIZE, NODE_VECTOR_MATH_CODES,
+                           NODE_VORONOI_FEATURE_CODES, NODE_VORONOI_METRIC_CODES,
+                           NODE_VORONOI_OUTPUT_CODES, NODE_WAVE_BANDS_CODES,
+                           NODE_WAVE_PROFILE_CODES, NODE_WAVE_RINGS_CODES, NODE_WAVE_TYPE_CODES)
 from ..core.scene.model import DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS
 
 # What Cycles renders where there is no material: a default Principled BSDF.
@@ -365,6 +368,35 @@ class NodeProgram:
             return self._lane(register, 0) if name == "Fac" else self._whole(register)
         if kind == "TEX_NOISE":
             return self._noise(node, name)
+        if kind == "TEX_VORONOI":
+            return self._voronoi(node, name)
+        if kind == "TEX_WAVE":
+            settings = self._pack(node, ("Scale", "Distortion", "Detail"))
+            more = self._pack(node, ("Detail Scale", "Detail Roughness", "Phase Offset"))
+            register = self._register()
+            flags = NODE_WAVE_TYPE_CODES[node.wave_type] + 2 * NODE_WAVE_BANDS_CODES[
+                node.bands_direction] + 8 * NODE_WAVE_RINGS_CODES[node.rings_direction] + \
+                32 * NODE_WAVE_PROFILE_CODES[node.wave_profile]
+            self._emit("WAVE", register, self._texture_vector(node), settings, more,
+                       params=(float(flags),))
+            return self._lane(register, 0) if name == "Fac" else self._whole(register)
+        if kind == "TEX_MAGIC":
+            register = self._register()
+            self._emit("MAGIC", register, self._texture_vector(node),
+                       self._pack(node, ("Scale", "Distortion")),
+                       params=(float(node.turbulence_depth),))
+            return self._lane(register, 3) if name == "Fac" else self._whole(register)
+        if kind == "TEX_BRICK":
+            return self._brick(node, name)
+        if kind == "TEX_WHITE_NOISE":
+            dims = int(node.noise_dimensions[0])
+            w = _named_input(node, "W")
+            register = self._register()
+            self._emit("WHITE_NOISE", register,
+                       self._texture_vector(node) if dims > 1 else 0,
+                       self._as_float(self._operand(w)) if dims in (1, 4) else 0,
+                       params=(float(dims + 8 * (name == "Color")),))
+            return self._whole(register) if name == "Color" else self._lane(register, 0)
         if kind == "NORMAL_MAP":
             colour, strength = self._input(node, "Color"), self._input(node, "Strength")
             register = self._register()
@@ -414,6 +446,62 @@ class NodeProgram:
             self._values[key] = register
         register = self._values[key]
         return self._lane(register, 0) if name == "Fac" else self._whole(register)
+
+    def _texture_vector(self, node):
+        """A texture's Vector: its link, else the Generated coordinates (Cycles' default)."""
+        return self._input(node, "Vector") if node.inputs["Vector"].is_linked \
+            else self._coordinates("GENERATED")
+
+    def _voronoi(self, node, name):
+        """Voronoi Texture (every feature and metric, 1D to 4D, fractal detail): one
+        instruction per output (Distance or Radius, Color, Position with W in its last lane)."""
+        dims = int(node.voronoi_dimensions[0])
+        for socket in (_named_input(node, "W"), _named_input(node, "Randomness")):
+            if socket.is_linked:
+                raise _Unsupported(f"node '{node.name}' (Voronoi Texture, linked {socket.name}) "
+                                   "is not evaluated")
+        output = {"Color": "COLOR", "Position": "POSITION", "W": "POSITION"}.get(name, "DISTANCE")
+        key = (node.name, "voronoi", output, self._step)
+        if key not in self._values:
+            vector = self._texture_vector(node) if dims > 1 else 0
+            settings = self._pack(node, ("Scale", "Detail", "Roughness"))
+            more = self._pack(node, ("Lacunarity", "Smoothness", "Exponent"))
+            register = self._register()
+            flags = dims + 8 * NODE_VORONOI_FEATURE_CODES[node.feature] + \
+                64 * NODE_VORONOI_METRIC_CODES[node.distance] + 512 * int(node.normalize) + \
+                1024 * NODE_VORONOI_OUTPUT_CODES[output]
+            self._emit("VORONOI", register, vector, settings, more,
+                       params=(float(flags), float(_named_input(node, "Randomness").default_value),
+                               float(_named_input(node, "W").default_value)))
+            self._values[key] = register
+        register = self._values[key]
+        if name in ("Color", "Position"):
+            return self._whole(register)
+        return self._lane(register, 3 if name == "W" else 0)
+
+    def _brick(self, node, name):
+        """Brick Texture: BRICK gives (tint, mortar); the colour is two Mix instructions, as
+        Cycles blends Color1 to Color2 by the tint, then to Mortar by the mortar."""
+        key = (node.name, "brick", self._step)
+        if key not in self._values:
+            register = self._register()
+            self._emit("BRICK", register, self._texture_vector(node),
+                       self._pack(node, ("Scale", "Mortar Size", "Mortar Smooth")),
+                       self._pack(node, ("Bias", "Brick Width", "Row Height")),
+                       params=(float(node.offset_frequency + 256 * node.squash_frequency),
+                               float(node.offset), float(node.squash)))
+            self._values[key] = register
+        register = self._values[key]
+        if name == "Fac":
+            return self._lane(register, 1)
+        c1, c2, mortar = (self._input(node, k) for k in ("Color1", "Color2", "Mortar"))
+        tinted = self._register()
+        self._emit("MIX", tinted, self._lane(register, 0), c1, c2,
+                   params=(NODE_MIX_CODES["MIX"], 0.0))
+        colour = self._register()
+        self._emit("MIX", colour, self._lane(register, 1), self._whole(tinted), mortar,
+                   params=(NODE_MIX_CODES["MIX"], 0.0))
+        return self._whole(colour)
 
     def _bump(self, node):
         """Bump: its height compiled three times, at the hit and at two steps along the surface

@@ -242,7 +242,8 @@ MAX_CLOSURES = 4
 NODE_OP_CODES = {"END": 0, "CONST": 1, "UV": 2, "IMAGE": 3, "COMBINE": 4, "MIX": 5, "MATH": 6,
                  "INVERT": 7, "CHECKER": 8, "RAMP": 9, "OUT": 10, "DOT": 11, "MAP_RANGE": 12,
                  "VECTOR_MATH": 13, "HSV": 14, "GRADIENT": 15, "TRANSFORM": 16, "NOISE": 17,
-                 "NORMAL_MAP": 18, "BUMP": 19, "FRESNEL": 20, "LAYER_WEIGHT": 21}
+                 "NORMAL_MAP": 18, "BUMP": 19, "FRESNEL": 20, "LAYER_WEIGHT": 21, "VORONOI": 22,
+                 "WAVE": 23, "MAGIC": 24, "BRICK": 25, "WHITE_NOISE": 26}
 NODE_MIX_CODES = {"MIX": 0, "ADD": 1, "MULTIPLY": 2, "SUBTRACT": 3, "SCREEN": 4,
                   "DIFFERENCE": 5, "DARKEN": 6, "LIGHTEN": 7}
 # Blender's Math and Vector Math operations, every one (Cycles' svm_math, svm_vector_math).
@@ -273,6 +274,18 @@ NODE_OUT_CODES = {"BASE_COLOR": 0, "ALPHA": 1, "METALLIC": 2, "ROUGHNESS": 3,
                   "WEIGHT": 9}
 # Layer Weight outputs (LAYER_WEIGHT p0): Cycles' NODE_LAYER_WEIGHT_FRESNEL and _FACING.
 NODE_LAYER_WEIGHT_CODES = {"FRESNEL": 0, "FACING": 1}
+# Voronoi Texture (VORONOI p0 = dimensions + 8 feature + 64 metric + 512 normalize + 1024
+# output; p1 randomness, p2 W): Blender's features and metrics, and which output the
+# instruction computes (DISTANCE: the Distance or the Radius; POSITION: the Position and W).
+NODE_VORONOI_FEATURE_CODES = {"F1": 0, "F2": 1, "SMOOTH_F1": 2, "DISTANCE_TO_EDGE": 3,
+                              "N_SPHERE_RADIUS": 4}
+NODE_VORONOI_METRIC_CODES = {"EUCLIDEAN": 0, "MANHATTAN": 1, "CHEBYCHEV": 2, "MINKOWSKI": 3}
+NODE_VORONOI_OUTPUT_CODES = {"DISTANCE": 0, "COLOR": 1, "POSITION": 2}
+# Wave Texture (WAVE p0 = type + 2 bands direction + 8 rings direction + 32 profile).
+NODE_WAVE_TYPE_CODES = {"BANDS": 0, "RINGS": 1}
+NODE_WAVE_BANDS_CODES = {"X": 0, "Y": 1, "Z": 2, "DIAGONAL": 3}
+NODE_WAVE_RINGS_CODES = {"X": 0, "Y": 1, "Z": 2, "SPHERICAL": 3}
+NODE_WAVE_PROFILE_CODES = {"SIN": 0, "SAW": 1, "TRI": 2}
 NODE_NORMAL_SPACE_CODES = {"TANGENT": 0, "OBJECT": 1, "WORLD": 2, "BLENDER_OBJECT": 3,
                            "BLENDER_WORLD": 4}      # Normal Map (NORMAL_MAP p1)
 NODE_OBJECT_NORMAL_SPACES = ("OBJECT", "BLENDER_OBJECT")    # these read the object's rows (p0)
@@ -318,6 +331,15 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("NODE_NOISE_TYPE", "Noise Texture types (NOISE p0 / 32)", NODE_NOISE_TYPE_CODES),
          Codes("NODE_LAYER_WEIGHT", "Layer Weight outputs (LAYER_WEIGHT p0)",
                NODE_LAYER_WEIGHT_CODES),
+         Codes("NODE_VORONOI", "Voronoi features (VORONOI p0 / 8 % 8)", NODE_VORONOI_FEATURE_CODES),
+         Codes("NODE_VORONOI_METRIC", "Voronoi distance metrics (VORONOI p0 / 64 % 8)",
+               NODE_VORONOI_METRIC_CODES),
+         Codes("NODE_VORONOI_OUT", "Voronoi outputs (VORONOI p0 / 1024)",
+               NODE_VORONOI_OUTPUT_CODES),
+         Codes("NODE_WAVE", "Wave types (WAVE p0 % 2)", NODE_WAVE_TYPE_CODES),
+         Codes("NODE_WAVE_BANDS", "Wave bands directions (WAVE p0 / 2 % 4)", NODE_WAVE_BANDS_CODES),
+         Codes("NODE_WAVE_RINGS", "Wave rings directions (WAVE p0 / 8 % 4)", NODE_WAVE_RINGS_CODES),
+         Codes("NODE_WAVE_PROFILE", "Wave profiles (WAVE p0 / 32)", NODE_WAVE_PROFILE_CODES),
          Codes("TOPLEVEL", "Top-level BVH sizes",
                {"LEAF_MAX": TOPLEVEL_LEAF_MAX, "MAX_DEPTH": TOPLEVEL_MAX_DEPTH}),
          Codes("NODE", "Shader node program sizes",

@@ -6,7 +6,7 @@ light, Film > Transparent with a holdout, ray visibility, depth of field, camera
 object motion blur, shader node programs and procedural textures, texture coordinates through
 Mapping nodes (as Blender's glTF importer makes them), the Material and World Output Cycles
 uses where there are several, Mix and Add Shaders (closures), Translucent and Transparent
-BSDFs, and odd input (an object
+BSDFs, the Voronoi, Wave, Magic, Brick and White Noise textures, and odd input (an object
 scaled to 0 on an axis and on all, text, curve and metaball objects, an image that cannot be
 loaded, an area light flattened to a line). Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
 uses; what is not supported is named in warnings. docs/cycles_features.md lists the rows."""
@@ -49,6 +49,7 @@ SCENES = {
     "closures": (12, {"ALPHA", "AREA", "BOUNCES", "CLOSURES", "EMISSION", "HOLDOUT", "NODES",
                       "SMOOTH", "SPECULAR", "TRANSPARENT_FILM", "VISIBILITY", "WORLD"}),
     "translucent": (12, {"ALPHA", "AREA", "BOUNCES", "CLOSURES", "SMOOTH", "TRANSLUCENT", "WORLD"}),
+    "textures": (12, {"AREA", "BOUNCES", "NODES", "NOISE", "SMOOTH", "SPECULAR", "VORONOI", "WORLD"}),
 }
 # What a scene's export may warn of (each warning names the object or material, and each
 # expected fragment is found): the rest must export without a warning.
@@ -149,5 +150,5 @@ def test_unsupported_things_are_named(renders):
     one("object 'moving box'", "motion blur", "parents")
     one("object 'spinning box'", "motion blur", "turns or scales through zero")
     one("object 'two maps'", "material 'second uvs'", "'second'", "one UV map per mesh")
-    one("material 'noisy'", "object 'noisy cube'", "Voronoi Texture")
+    one("material 'noisy'", "object 'noisy cube'", "Gabor Texture")
     assert len(warnings) == 8, warnings

@@ -32,7 +32,9 @@ FEATURES = {
     "DOF": (),                # depth of field: a thin lens with an aperture
     "CAMERA_MOTION": (),      # camera motion blur: the camera moves while the shutter is open
     "NODES": ("uvs",),        # shader node programs compute BSDF inputs per hit
-    "NOISE": (),              # a node program evaluates a Noise Texture
+    "NOISE": (),              # a node program evaluates a Noise, Wave, Magic, Brick or White Noise
+                              # Texture
+    "VORONOI": (),            # a node program evaluates a Voronoi Texture
     "NORMAL_MAP": (),         # a node program evaluates a Normal Map (sets the shading normal)
     "BUMP": (),               # a node program evaluates a Bump (heights at three points)
     "CLOSURES": (),           # materials of several closures (Mix / Add Shader) or of closures
@@ -76,9 +78,11 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
     if (programs >= 0).any():
         features.add("NODES")
         ops = program_instructions(shading.node_program, programs[programs >= 0])[:, 0]
-        for feature in ("NOISE", "NORMAL_MAP", "BUMP"):
+        for feature in ("NOISE", "NORMAL_MAP", "BUMP", "VORONOI"):
             if (ops == NODE_OP_CODES[feature]).any():
                 features.add(feature)
+        if np.isin(ops, [NODE_OP_CODES[op] for op in ("WAVE", "MAGIC", "BRICK", "WHITE_NOISE")]).any():
+            features.add("NOISE")
     if geometry.texture_count and ((column("texture") >= 0).any() or
                                    program_textures(shading.node_program, programs[programs >= 0])):
         features.add("TEXTURES")

@@ -485,6 +485,29 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Su
                      : n.dims == 2 ? (float4)(a.xy, 0.0f, 0.0f)
                                    : (float4)(a.xyz, n.dims == 4 ? w1.w : 0.0f);
             out = node_noise(&n, q * c.x, w1.z, (flags & 2) != 0);
+        } else if (op == NODE_OP_WAVE) {   // a: vector; b: scale, distortion, detail; c: detail scale, roughness, phase
+            float f = node_wave((int)w1.y, a * b.x, b.y, b.z, c.x, c.y, c.z);
+            out = (float4)(f, f, f, f);
+        } else if (op == NODE_OP_MAGIC) {  // a: vector; b: scale, distortion; p0: depth
+            out = node_magic(a, b.x, (int)w1.y, b.y);
+        } else if (op == NODE_OP_BRICK) {  // a: vector; b: scale, mortar size and smooth; c: bias, width, row height
+            int frequency = (int)w1.y;     // p0: offset frequency + 256 squash frequency; p1, p2: offset, squash
+            out = node_brick(a * b.x, b.y, b.z, c.x, c.y, c.z, w1.z, frequency & 255, w1.w,
+                             frequency >> 8);
+        } else if (op == NODE_OP_WHITE_NOISE) {    // a: vector; b: W; p0: dimensions + 8 colour
+            int flags = (int)w1.y, dims = clamp(flags & 7, 1, 4);
+            float4 q = dims == 1 ? (float4)(b.x, 0.0f, 0.0f, 0.0f) : dims == 2 ? (float4)(a.xy, 0.0f, 0.0f)
+                     : (float4)(a.xyz, dims == 4 ? b.x : 0.0f);
+            out = node_white_noise(dims, q, (flags & 8) != 0);
+#endif
+#ifdef HAS_VORONOI
+        } else if (op == NODE_OP_VORONOI) {    // a: vector; b: scale, detail, roughness; c: lacunarity, smoothness, exponent
+            int flags = (int)w1.y;             // p0: flags (VORONOI p0); p1: randomness; p2: W
+            VoronoiParams v = {clamp(flags & 7, 1, 4), (flags >> 3) & 7, (flags >> 6) & 7, b.y, b.z,
+                               c.x, c.y, c.z, w1.z, 0.0f, (flags & 512) != 0};
+            float4 q = v.dims == 1 ? (float4)(w1.w, 0.0f, 0.0f, 0.0f)
+                     : v.dims == 2 ? (float4)(a.xy, 0.0f, 0.0f) : (float4)(a.xyz, v.dims == 4 ? w1.w : 0.0f);
+            out = node_voronoi(&v, q * b.x, b.x, flags >> 10);
 #endif
         } else if (op == NODE_OP_TRANSFORM) {  // Generated / Object coordinates of the hit
             __global const float4 *rows = code + pc + (int)w1.y;

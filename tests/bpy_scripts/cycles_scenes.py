@@ -909,6 +909,57 @@ def build(name):
         light("AREA", (1.2, 2.0, 1.0), (0.7, 0.4, 0.6), energy=60.0, size=0.6)
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=40.0, size=1.0)
         camera((0.0, -4.0, 1.6), (0, 0.3, 0.5), lens=35)
+    elif name == "textures":
+        # Voronoi, Wave, Magic, Brick and White Noise (issue 38) at their default Generated
+        # coordinates and through Object coordinates.
+        world((0.3, 0.32, 0.36))
+
+        def textured(name, kind, output, socket="Base Color", vector=None, **settings):
+            m, nodes, links, bsdf = node_material(name)
+            node = nodes.new(kind)
+            for key, value in settings.items():
+                if key.startswith("in_"):
+                    node.inputs[key[3:].replace("_", " ")].default_value = value
+                else:
+                    setattr(node, key, value)
+            if vector is not None:
+                links.new(vector(nodes, links), node.inputs["Vector"])
+            links.new(node.outputs[output], bsdf.inputs[socket])
+            return m, nodes, links, bsdf
+
+        bricks, *_ = textured("bricks", "ShaderNodeTexBrick", "Color", in_Scale=4.0,
+                              in_Mortar_Smooth=0.3, offset=0.4, squash=1.4, squash_frequency=3)
+        floor(bricks, size=6.0)
+        cells, *_ = textured("cells", "ShaderNodeTexVoronoi", "Color", in_Scale=6.0)
+        sphere(cells, (-1.4, 0.3, 0.5), radius=0.5)
+        smooth, nodes, links, bsdf = textured("smooth cells", "ShaderNodeTexVoronoi", "Distance",
+                                              socket="Roughness", feature="SMOOTH_F1",
+                                              distance="MANHATTAN", in_Scale=5.0, in_Detail=1.5)
+        edges = nodes.new("ShaderNodeTexVoronoi")
+        edges.feature = "DISTANCE_TO_EDGE"
+        edges.inputs["Scale"].default_value = 4.0
+        ramp = nodes.new("ShaderNodeValToRGB")
+        ramp.color_ramp.elements[0].color = (0.05, 0.05, 0.05, 1)
+        ramp.color_ramp.elements[1].position = 0.15
+        ramp.color_ramp.elements[1].color = (0.9, 0.6, 0.2, 1)
+        links.new(edges.outputs["Distance"], ramp.inputs["Fac"])
+        links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
+        sphere(smooth, (-0.45, 0.6, 0.5), radius=0.5)
+        waves, *_ = textured("waves", "ShaderNodeTexWave", "Color", wave_type="RINGS",
+                             wave_profile="SAW", in_Scale=2.0, in_Distortion=4.0, in_Detail=2.0)
+        add(bpy.ops.mesh.primitive_cube_add, waves, size=0.8, location=(0.55, 0.6, 0.4),
+            rotation=(0, 0, math.radians(25)))
+        magic, *_ = textured("magic", "ShaderNodeTexMagic", "Color", turbulence_depth=3,
+                             in_Scale=3.0, in_Distortion=1.5)
+        sphere(magic, (1.5, 0.3, 0.5), radius=0.5)
+
+        def snapped(nodes, links):
+            coords = nodes.new("ShaderNodeTexCoord")
+            return vector_math(nodes, links, "SNAP", coords.outputs["Object"], second=(0.25,) * 3)
+        speckle, *_ = textured("speckle", "ShaderNodeTexWhiteNoise", "Color", vector=snapped)
+        add(bpy.ops.mesh.primitive_cube_add, speckle, size=0.6, location=(-0.5, -0.8, 0.3))
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "warned":
         # Things KD Trace does not render, each to be named in a warning (export only).
         w = bpy.data.worlds.new("sky world")
@@ -918,8 +969,8 @@ def build(name):
         bpy.context.scene.world = w
         coat = material("coated", color=(0.5, 0.5, 0.8), **{"Coat Weight": 0.5})
         bump = coat.node_tree.nodes.new("ShaderNodeBump")
-        cells = coat.node_tree.nodes.new("ShaderNodeTexVoronoi")     # a height not evaluated
-        coat.node_tree.links.new(cells.outputs["Distance"], bump.inputs["Height"])
+        cells = coat.node_tree.nodes.new("ShaderNodeTexGabor")       # a height not evaluated
+        coat.node_tree.links.new(cells.outputs["Value"], bump.inputs["Height"])
         coat.node_tree.links.new(bump.outputs["Normal"],
                                  coat.node_tree.nodes["Principled BSDF"].inputs["Normal"])
         sphere(coat, (0, 0, 0.5), radius=0.5).name = "coated ball"
@@ -929,8 +980,8 @@ def build(name):
         toon.node_tree.links.new(node.outputs[0], toon.node_tree.nodes["Material Output"].inputs["Surface"])
         floor(toon).name = "toon floor"
         noisy, nodes, links, bsdf = node_material("noisy")
-        voronoi = nodes.new("ShaderNodeTexVoronoi")
-        links.new(voronoi.outputs["Color"], bsdf.inputs["Base Color"])
+        gabor = nodes.new("ShaderNodeTexGabor")
+        links.new(gabor.outputs["Value"], bsdf.inputs["Base Color"])
         add(bpy.ops.mesh.primitive_cube_add, noisy, size=0.4, location=(-1.5, 0.0, 0.2)).name = "noisy cube"
         light("AREA", (0, 0, 3), (0, 0, 0), energy=100.0, size=1.0, spread=math.radians(60))
         bpy.data.objects["area"].name = "narrow area"
