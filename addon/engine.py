@@ -1,7 +1,8 @@
-"""The render engine Blender lists as "KD Trace". A thin shell: the work is in render.py."""
+"""The render engine Blender lists as "KD Trace". A thin shell: F12 is render.py, the
+viewport's Rendered mode viewport.py."""
 import bpy
 
-from . import render
+from . import render, viewport
 
 
 class KDTraceRenderEngine(bpy.types.RenderEngine):
@@ -10,8 +11,27 @@ class KDTraceRenderEngine(bpy.types.RenderEngine):
     bl_use_preview = False
     bl_use_postprocess = True
 
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.kdtrace_viewport = None    # viewport.ViewportState, from the first view_update
+
+    def __del__(self):
+        # Rendered mode left or the viewport closed.
+        try:
+            state = self.kdtrace_viewport
+        except (ReferenceError, AttributeError):   # at exit: Blender freed the engine first
+            return
+        if state is not None:
+            state.viewport.close()
+
     def render(self, depsgraph):
         render.render(self, depsgraph)
+
+    def view_update(self, context, depsgraph):
+        viewport.view_update(self, context, depsgraph)
+
+    def view_draw(self, context, depsgraph):
+        viewport.view_draw(self, context, depsgraph)
 
     def update_render_passes(self, scene=None, renderlayer=None):
         # Declared so the compositor sees the passes the slaves fill.

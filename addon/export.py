@@ -38,15 +38,17 @@ def export_view(depsgraph) -> tuple[Geometry, View, dict]:
     return geometry, view, {"warnings": warnings}
 
 
-def export_instanced_view(depsgraph, every_object: bool = False
+def export_instanced_view(depsgraph, every_object: bool = False, viewport=None
                           ) -> tuple[InstancedExport, View, dict]:
     """export_view with the instances of shared meshes kept as instances (each mesh
     exported once, in object space). `every_object` (an animation render): an object of its
     own mesh is an instance too, so when it only moves its mesh and kd-tree stay the same.
     With Motion Blur on, an object whose transform changes over the shutter is an instance
-    with its transforms at shutter open and close (docs/instances.md, object motion blur)."""
+    with its transforms at shutter open and close (docs/instances.md, object motion blur).
+    `viewport`: (camera, width, height) of a 3D viewport, seen instead of the scene camera
+    (addon/viewport.py)."""
     (meshes, instance_mesh, to_world, to_world_end), view, warnings, materials = _export(
-        depsgraph, True, every_object)
+        depsgraph, True, every_object, viewport)
     texels, sizes = materials.texture_arrays()
     features = frozenset().union(*(scene_features(
         Geometry(m.vertices, m.triangles, m.material_ids, m.normals, m.uvs, texels, sizes), view)
@@ -57,7 +59,7 @@ def export_instanced_view(depsgraph, every_object: bool = False
                             to_world, texels, sizes, to_world_end), view, {"warnings": warnings})
 
 
-def _export(depsgraph, instanced: bool, every_object: bool = False):
+def _export(depsgraph, instanced: bool, every_object: bool = False, viewport=None):
     scene = depsgraph.scene
     warnings = []
     materials = _MaterialTable(warnings)
@@ -68,8 +70,14 @@ def _export(depsgraph, instanced: bool, every_object: bool = False):
                                 motion_handled)
     shading = Shading(materials.colors(), _export_lights(depsgraph, warnings), world_color,
                       materials.params(), world_texture, np.array(materials.node_rows, np.float32))
-    view = View(_export_camera(depsgraph, warnings), *render_size(scene), shading,
-                render_region(scene), render_settings(scene), bool(scene.render.film_transparent))
+    if viewport is None:
+        view = View(_export_camera(depsgraph, warnings), *render_size(scene), shading,
+                    render_region(scene), render_settings(scene),
+                    bool(scene.render.film_transparent))
+    else:
+        camera, width, height = viewport
+        view = View(camera, width, height, shading, (0, 0, width, height),
+                    render_settings(scene), bool(scene.render.film_transparent))
     _motion_warnings(depsgraph, warnings, motion_handled)
     _missing_warnings(scene, warnings)
     return geometry, view, warnings, materials
@@ -698,13 +706,10 @@ def _export_camera(depsgraph, warnings: list) -> Camera:
     projection = np.array(camera.calc_matrix_camera(
         depsgraph, x=width, y=height, scale_x=r.pixel_aspect_x, scale_y=r.pixel_aspect_y))
     data = camera.data
-    sx, sy = 1.0 / projection[0, 0], 1.0 / projection[1, 1]
-    if data.type == "ORTHO":
-        kind, offset = "ORTHO", (-projection[0, 3] * sx, -projection[1, 3] * sy)
-    elif data.type == "PERSP":
-        kind, offset = "PERSP", (projection[0, 2] * sx, projection[1, 2] * sy)
-    else:
+    if data.type not in ("ORTHO", "PERSP"):
         raise SceneError(f"camera type {data.type} is not supported (use perspective or orthographic)")
+    kind = data.type
+    (sx, sy), offset = projection_ndc(kind, projection)
     to_world = np.array(camera.matrix_world.normalized(), np.float64)
     if not (np.isfinite(to_world).all() and
             np.allclose(np.linalg.norm(to_world[:3, :3], axis=0), 1.0, atol=1e-4)):
@@ -735,6 +740,16 @@ def _export_camera(depsgraph, warnings: list) -> Camera:
         warnings.append(f"camera '{scene.camera.name}': " + "; ".join(problems))
     return Camera(kind, to_world, (sx, sy), offset, data.clip_start, data.clip_end,
                   to_world_end=end, **lens)
+
+
+def projection_ndc(kind: str, projection: np.ndarray) -> tuple:
+    """(ndc_scale, ndc_offset) of core.scene.model.Camera from an OpenGL projection matrix of
+    Blender's (a camera's calc_matrix_camera, a viewport's window_matrix): sensor fit, shift
+    and aspect are in it."""
+    sx, sy = 1.0 / projection[0, 0], 1.0 / projection[1, 1]
+    if kind == "ORTHO":
+        return (sx, sy), (-projection[0, 3] * sx, -projection[1, 3] * sy)
+    return (sx, sy), (projection[0, 2] * sx, projection[1, 2] * sy)
 
 
 def _focus_distance(camera, dof) -> float:

@@ -6,6 +6,7 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
                        IntProperty, PointerProperty, StringProperty)
 
 from ..core.accel.compact import USER_SETTING_LIMITS as TREE_LIMITS, compact_params
+from ..core.frame import viewport
 from ..core.frame.options import DISCOVERY_SECONDS_RANGE, LOCAL_SLAVES_RANGE, FrameOptions
 from ..core.net.master import DEFAULT_TILE_SIZE, DEFAULT_TILES_IN_FLIGHT, MAX_TILES_IN_FLIGHT
 from ..core.net.protocol import DEFAULT_MODEL, DEFAULT_PORT, MAX_TILE_SIZE
@@ -74,6 +75,17 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
                 "once that tile has arrived", 1)],
         default=DEFAULT_MODEL)
 
+    # The viewport's Rendered mode (defaults and ranges: core/frame/viewport.py).
+    viewport_samples_per_axis: IntProperty(
+        name="Viewport Max Samples", description="N x N samples per pixel the viewport refines "
+        "to (progressively: 1, then 4, 16, ... after each change)",
+        default=viewport.SAMPLES_PER_AXIS, min=viewport.SAMPLES_PER_AXIS_RANGE[0],
+        max=viewport.SAMPLES_PER_AXIS_RANGE[1])
+    viewport_time_limit: FloatProperty(
+        name="Viewport Time Limit", description="Seconds the viewport refines after a change "
+        "(0: until its max samples)", default=viewport.TIME_LIMIT,
+        min=viewport.TIME_LIMIT_RANGE[0], max=viewport.TIME_LIMIT_RANGE[1],
+        subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
     # Sampling and Light Paths, as Cycles' panels (defaults and ranges: core RenderSettings).
     samples_per_axis: IntProperty(
         name="Max Samples", description="N x N stratified samples per pixel at most "

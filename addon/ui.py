@@ -32,7 +32,8 @@ class RENDER_PT_kdtrace(KDTracePanel, bpy.types.Panel):
 
 
 class RENDER_PT_kdtrace_sampling(KDTracePanel, bpy.types.Panel):
-    """As Cycles' Sampling panel: Noise Threshold (adaptive), Max and Min Samples."""
+    """As Cycles' Sampling panel: Noise Threshold (adaptive), Max and Min Samples; the
+    viewport's Max Samples and Time Limit."""
     bl_label = "Sampling"
     bl_parent_id = "RENDER_PT_kdtrace"
 
@@ -52,6 +53,9 @@ class RENDER_PT_kdtrace_sampling(KDTracePanel, bpy.types.Panel):
         layout.label(text=f"{settings.samples_per_axis ** 2} samples at most")
         layout.prop(settings, "light_samples_per_axis")
         layout.prop(settings, "seed")
+        col = layout.column(align=True, heading="Viewport")
+        col.prop(settings, "viewport_samples_per_axis", text="Max Samples")
+        col.prop(settings, "viewport_time_limit", text="Time Limit")
 
 
 class RENDER_PT_kdtrace_light_paths(KDTracePanel, bpy.types.Panel):

@@ -26,6 +26,11 @@ from .render import FRAME_ERRORS, FrameHost, Steps, frame_scene, master_for
 from .session import FrameSession
 
 PREVIEW_PIXELS = 160        # the first image of a view: its longest side at most this
+# The viewport's sampling (Cycles' Viewport Max Samples and Time Limit; the panel reads these).
+SAMPLES_PER_AXIS = 8        # N x N = 64 samples per pixel at most
+SAMPLES_PER_AXIS_RANGE = (1, 64)
+TIME_LIMIT = 0.0            # seconds of refinement after a change, 0: none
+TIME_LIMIT_RANGE = (0.0, 86400.0)
 POLL_SECONDS = 0.02         # how often a pass in flight looks for a newer request
 
 
@@ -63,8 +68,9 @@ def passes(view: View, samples_per_axis: int) -> list[View]:
 
 
 class ViewportSession:
-    def __init__(self, session: FrameSession, options: FrameOptions, samples_per_axis: int = 16,
-                 time_limit: float = 0.0, host: FrameHost | None = None):
+    def __init__(self, session: FrameSession, options: FrameOptions,
+                 samples_per_axis: int = SAMPLES_PER_AXIS, time_limit: float = TIME_LIMIT,
+                 host: FrameHost | None = None):
         """`samples_per_axis`: the viewport's N (N x N samples at most, Cycles' Viewport Max
         Samples); `time_limit`: seconds of refinement after a change (0: none). `host` hears
         the status and reports (the viewport shows them in its header)."""
