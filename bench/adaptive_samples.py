@@ -46,7 +46,7 @@ def write_png(path, grey):
 def kdtrace_samples(export_path):
     """KD Trace's samples per pixel (each 8 x 8 tile's mean) and render seconds."""
     from core.accel.compact import compact_tree
-    from core.accel.kdtree_cl import build_standard
+    from core.accel.binned import build_standard
     from core.frame.exported import load_export
     from core.scene.scene import Scene
     from slave.tracer import Tracer

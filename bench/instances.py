@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 
 from bench.trace_vs_embree import best_time, cpu_model  # noqa: E402
 from core.accel.compact import compact_tree  # noqa: E402
-from core.accel.kdtree_cl import build_standard  # noqa: E402
+from core.accel.binned import build_standard  # noqa: E402
 from core.accel.toplevel import build_toplevel  # noqa: E402
 from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View  # noqa: E402
 from core.scene.scene import Scene, memory_report, memory_summary  # noqa: E402

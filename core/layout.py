@@ -297,15 +297,8 @@ NODE_TRANSFORM_SIZE = 4         # TRANSFORM: the hit point through a 3 x 4 matri
 # The top-level BVH of instanced scenes (core/accel/toplevel.py; TOPLEVEL_NODE below).
 TOPLEVEL_LEAF_MAX = 4           # instances in a top-level leaf
 TOPLEVEL_MAX_DEPTH = 48         # levels of the top-level BVH (its traversal stack)
-# The kd-tree builder (SUBTREE_RESULT below) and compactor (compact.cl lift_candidates: per
-# reference of a triangle, its nearest gaps on the left and right and a stack).
-SUBTREE_STATUS = {"OK": 0, "SCRATCH": 1, "RECORDS": 2, "LEAF_REFS": 3, "RANKS": 4}
-DECISION_FLAGS = {"LEAF": 1, "PLANAR_BELOW": 2}     # bits of BIG_DECISION's flags
-SUBTREE_LEVELS = 64             # a subtree spans fewer levels than this (subtree.cl's stack)
-# A chunk's histogram (big.cl big_bin): per bin, the low and the high ends on each axis; then
-# the tight bounds (min lo, max hi per axis).
-HISTOGRAM_WORDS_PER_BIN = 6
-HISTOGRAM_BOUND_WORDS = 6
+# The compactor (compact.cl lift_candidates: per reference of a triangle, its nearest gaps on
+# the left and right and a stack).
 LIFT_SCRATCH_WORDS = 3
 CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("LIGHT_SHAPE", "Area light shapes (LIGHT_AREA_SHAPE)", AREA_SHAPE_CODES),
@@ -345,12 +338,6 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("NODE", "Shader node program sizes",
                {"REGISTERS": NODE_REGISTERS, "REF_REGISTER": NODE_REF_REGISTER,
                 "RAMP_SIZE": NODE_RAMP_SIZE, "TRANSFORM_SIZE": NODE_TRANSFORM_SIZE}),
-         Codes("SUBTREE", "Outcomes of a subtree's build (SUBTREE_RESULT_STATUS)", SUBTREE_STATUS),
-         Codes("SUBTREE_MAX", "A subtree's levels (build_subtrees' stack)",
-               {"LEVELS": SUBTREE_LEVELS}),
-         Codes("DECISION", "A big node's decision flags (BIG_DECISION_FLAGS)", DECISION_FLAGS),
-         Codes("HISTOGRAM", "A chunk's histogram: words per bin and of the tight bounds",
-               {"WORDS_PER_BIN": HISTOGRAM_WORDS_PER_BIN, "BOUND_WORDS": HISTOGRAM_BOUND_WORDS}),
          Codes("LIFT_SCRATCH", "lift_candidates' scratch", {"WORDS": LIFT_SCRATCH_WORDS}))
 
 LIGHT = Record("LIGHT", "A light (lights buffer, light_count records)", 6, (
@@ -492,55 +479,11 @@ MESH = Columns("MESH", "A mesh of an instanced scene (meshes, uint32 rows)",
                ("tri_base", "tri_count", "node_base", "leaf32_base", "leaf16_base", "leaf_shift"))
 
 # ---------------------------------------------------------------------------------------------
-# The kd-tree builder's and compactor's buffers (core/accel/kdtree_cl.py, compact_cl.py;
+# The kd-tree builder's and compactor's buffers (core/accel/binned.py, compact_cl.py;
 # kernels/build/): rows the host writes or reads by column, and the elements it only sizes.
 
-# A subtree root of the build (kdtree_cl.py _BuildState.subtree_stage; subtree.cl): its cell,
-# where its references wait in the queue, and where its outputs go (offset and capacity in
-# the batch's buffers; a subtree that outgrows one is built again with more room).
-SUBTREE_ROOT = Columns("SUBTREE_ROOT", "A subtree root (roots buffer, uint32 rows; lo and hi "
-                       "float32 bits)",
-                       ("lo_x", "lo_y", "lo_z", "hi_x", "hi_y", "hi_z", "level", "bad_refines",
-                        "ref_first", "ref_count", "record_offset", "record_capacity",
-                        "leaf_offset", "leaf_capacity", "scratch_offset", "scratch_capacity",
-                        "level_offset", "level_span"))
-SUBTREE_RESULT = Columns("SUBTREE_RESULT", "A built subtree (result buffer, uint32 rows): a "
-                         "SUBTREE_<STATUS> code, its node records, leaf references and levels",
-                         ("status", "records", "leaf_refs", "levels"))
-SUBTREE_PLACE = Columns("SUBTREE_PLACE", "Where a finished subtree lies in the store (places "
-                        "buffer; place_subtrees)",
-                        ("record_first", "records", "leaf_first", "level_offset"), "uint4")
-STORE_MOVE = Columns("STORE_MOVE", "A finished subtree's move into the store (moves buffer; "
-                     "store_subtrees): its records' and leaf references' source, destination, "
-                     "count",
-                     ("record_from", "record_to", "records", "leaf_from", "leaf_to", "leaf_refs"))
-LEVEL_COUNT = Columns("LEVEL_COUNT", "A subtree's nodes and leaf references on one of its levels "
-                      "(build_subtrees' level counts)", ("nodes", "leaf_refs"), "uint2")
-LEVEL_BASE = Columns("LEVEL_BASE", "Where a subtree's level starts in the tree: its first node, "
-                     "its first leaf reference (place_subtrees' bases)", ("node", "leaf"), "uint2")
-CORNERS = Columns("CORNERS", "A triangle's corners side by side for the clipping (corners buffer, "
-                  "float32 rows)", tuple(f"v{k}_{axis}" for k in range(3) for axis in "xyz"))
-CELL = Columns("CELL", "A box (float32 rows): a node's cell in the big-node passes (by node of "
-               "the level) and the compaction's topology (by place in the level), a chunk's "
-               "references' box", ("lo_x", "lo_y", "lo_z", "hi_x", "hi_y", "hi_z"))
-# The big-node passes (kdtree_cl.py _BuildState.big_stage; big.cl), over chunks of a level's
-# references: a big node's chunks, its binned choice, the counts at its plane, its decision.
-BIG_CHUNK = Columns("BIG_CHUNK", "A chunk of a big node's references (chunks buffer)",
-                    ("node", "ref_first", "ref_count", "unused"), "uint4")
-NODE_CHUNKS = Columns("NODE_CHUNKS", "A big node's chunks (node_chunks buffer)",
-                      ("first", "count"), "uint2")
-BIG_CHOICE = Columns("BIG_CHOICE", "A big node's binned split (choice buffer; plane: float32 "
-                     "bits)", ("valid", "axis", "plane", "unused"), "uint4")
-PLANE_COUNTS = Columns("PLANE_COUNTS", "A chunk's references below, above and in its node's "
-                       "plane (counts buffer)", ("below", "above", "planar", "unused"), "uint4")
-BIG_DECISION = Columns("BIG_DECISION", "A big node's decision (decision buffer): DECISION_<FLAG> "
-                       "bits, bad refines on its path, split axis and plane (float32 bits)",
-                       ("flags", "bad_refines", "axis", "plane"), "uint4")
-CHILD_COUNTS = Columns("CHILD_COUNTS", "A chunk's references that go to each child (out buffer)",
-                       ("below", "above"), "uint2")
-BIG_DEST = Columns("BIG_DEST", "Where a chunk's references go (dest buffer): per child, 1 for the "
-                   "queue of subtree roots (else the next level), and its first place",
-                   ("below_to_queue", "below_first", "above_to_queue", "above_first"), "uint4")
+CELL = Columns("CELL", "A box (float32 rows): a node's cell in the compaction's topology (by "
+               "place in the level)", ("lo_x", "lo_y", "lo_z", "hi_x", "hi_y", "hi_z"))
 # The compaction (compact_cl.py; compact.cl).
 CLIMB = Columns("CLIMB", "A node's climb record, by its preorder number (climb buffer): end of its "
                 "preorder range, the parent's number, depth, the node",
@@ -575,18 +518,17 @@ BIN_PLACES = Columns("BIN_PLACES", "A block's first inner node, reference place 
 BIN_BOUNDS = Columns("BIN_BOUNDS", "A block of first references' bounds (ref_bounds, float32 "
                      "rows; kept: uint bits)", ("lo_x", "lo_y", "lo_z", "hi_x", "hi_y", "hi_z",
                                                 "kept"))
-COLUMNS = (TEXTURE_SIZE, MESH, SUBTREE_ROOT, SUBTREE_RESULT, SUBTREE_PLACE, STORE_MOVE,
-           LEVEL_COUNT, LEVEL_BASE, CORNERS, CELL, BIG_CHUNK, NODE_CHUNKS, BIG_CHOICE, PLANE_COUNTS,
-           BIG_DECISION, CHILD_COUNTS, BIG_DEST, CLIMB, LIFT_GROUPED, LIFT_CANDIDATE,
-           LAYOUT_COUNTS, BIN_NODE, BIN_CHUNK, BIN_BIG, BIN_SUMS,
-           BIN_PLACES, BIN_BOUNDS)
+COLUMNS = (TEXTURE_SIZE, MESH, CELL, CLIMB, LIFT_GROUPED, LIFT_CANDIDATE, LAYOUT_COUNTS,
+           BIN_NODE, BIN_CHUNK, BIN_BIG, BIN_SUMS, BIN_PLACES, BIN_BOUNDS)
 
-BUILD_REF = Element("BUILD_REF", "A triangle reference of the build (split.cl): its box, the "
+BUILD_REF = Element("BUILD_REF", "A triangle reference of the build (binned.cl): its box, the "
                     "triangle's uint bits in lo.w", "Ref", 32)
+BUILD_SPLIT = Element("BUILD_SPLIT", "A node's decision and its children's places (binned.cl)",
+                      "Split", 32)
 WALK = Element("WALK", "A node's walk record by preorder number (compact.cl): area, the "
                "parent's number, non-empty leaves below and whether the area never shrinks up",
                "WalkRecord", 16)
-ELEMENTS = (BUILD_REF, WALK)
+ELEMENTS = (BUILD_REF, BUILD_SPLIT, WALK)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.accel.buffer_pool import MIN_POOLED_BYTES
-from core.accel.kdtree_cl import KDTreeBuilderCL
+from core.accel.device import DeviceContext
 
 
 def _fill(builder, buffer, value, nbytes):
@@ -18,7 +18,7 @@ def _read(builder, buffer, nbytes):
 
 
 def test_freed_regions_are_lent_again_and_held_ones_never():
-    b = KDTreeBuilderCL("cpu")
+    b = DeviceContext("cpu")
     pool, n = b.buffers, 3 * MIN_POOLED_BYTES
     kept = [pool.take(n) for _ in range(3)]
     for i, buffer in enumerate(kept):

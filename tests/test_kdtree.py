@@ -225,20 +225,6 @@ def test_coarse_bins_still_correct():
     build_and_check(vertices, triangles, KDTreeParams(max_bins=4, min_bins=2))
 
 
-@pytest.mark.parametrize("name", ["bunny", "cube_of_quads", "slivers"])
-def test_carried_decisions_and_chunks_give_the_same_tree(name, monkeypatch):
-    # Decisions carried down chains of empty-space cuts (core.accel.kdtree._exact_chain) and exact
-    # SAH in chunks must reproduce, bit for bit, the tree built by ranking every node afresh.
-    import core.accel.kdtree as kd
-    vertices, triangles = SCENES[name]()
-    reference = build_kdtree(vertices, triangles)
-    monkeypatch.setattr(kd, "CHAIN", 0)
-    monkeypatch.setattr(kd, "EXACT_CHUNK", 7)
-    fresh = build_kdtree(vertices, triangles)
-    assert np.array_equal(reference.nodes, fresh.nodes)
-    assert np.array_equal(reference.leaf_indices, fresh.leaf_indices)
-
-
 def test_node_format_and_stats():
     vertices, triangles = uv_sphere(32, 16)
     levels = []
@@ -405,42 +391,29 @@ def test_reference_rows_keep_boxes_and_triangle_ids_bit_exact():
     assert np.array_equal(triangles, ids[index.reshape(-1)])
 
 
-@pytest.mark.parametrize("name", ["bunny", "cube_of_quads", "slivers"])
-def test_parallel_parts_give_the_same_tree(name, monkeypatch):
-    # Subtrees grown in threads (core.accel.kdtree._grow_in_parallel) are joined level by level;
-    # the layout must be exactly the single-thread one whatever the thread and part counts.
+@pytest.mark.parametrize("name", ["bunny", "cube_of_quads"])
+def test_exact_sah_in_chunks_gives_the_same_tree(name, monkeypatch):
+    # Exact SAH runs in chunks of EXACT_CHUNK nodes; the chunking must not change the tree.
     import core.accel.kdtree as kd
     vertices, triangles = SCENES[name]()
-    reference = build_kdtree(vertices, triangles, KDTreeParams(threads=1))
-    assert reference.stats["threads"] == 1
-    monkeypatch.setattr(kd, "PARALLEL_NODES", 2)
-    for threads in (2, 3):
-        parallel = build_kdtree(vertices, triangles, KDTreeParams(threads=threads))
-        assert parallel.stats["threads"] == threads
-        assert np.array_equal(reference.nodes, parallel.nodes)
-        assert np.array_equal(reference.leaf_indices, parallel.leaf_indices)
-        assert parallel.stats["sah_cost"] == pytest.approx(reference.stats["sah_cost"], rel=1e-12)
+    reference = build_kdtree(vertices, triangles)
+    monkeypatch.setattr(kd, "EXACT_CHUNK", 7)
+    chunked = build_kdtree(vertices, triangles)
+    assert np.array_equal(reference.nodes, chunked.nodes)
+    assert np.array_equal(reference.leaf_indices, chunked.leaf_indices)
 
 
-def test_parallel_progress_runs_on_the_calling_thread_and_can_stop_the_build():
-    import threading
+def test_progress_is_reported_and_can_stop_the_build():
     vertices, triangles = SCENES["bunny"]()
-    callers, fractions = set(), []
-
-    def progress(fraction, message):
-        callers.add(threading.get_ident())
-        fractions.append(fraction)
-
-    build_kdtree(vertices, triangles, KDTreeParams(threads=2), progress=progress)
-    assert callers == {threading.get_ident()}
+    fractions = []
+    build_kdtree(vertices, triangles, progress=lambda fraction, message: fractions.append(fraction))
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
 
     class Stop(Exception):
         pass
 
-    def stop_in_parallel_phase(fraction, message):
-        if "threads" in message:
+    def stop_at_level_5(fraction, message):
+        if message.startswith("kd-tree level 5"):
             raise Stop
     with pytest.raises(Stop):
-        build_kdtree(vertices, triangles, KDTreeParams(threads=2), progress=stop_in_parallel_phase)
-    assert not [t for t in threading.enumerate() if t.name.startswith("kdtree")]
+        build_kdtree(vertices, triangles, progress=stop_at_level_5)

@@ -110,10 +110,8 @@ def test_node_fields_tile_their_words():
 
 # Names under the layout's prefixes that kernels define for their own purposes (not layouts).
 LAYOUT_PREFIXES = ("KD_", "LIGHT_", "MATERIAL_", "CAMERA_", "BOUNDS_", "TRIANGLE_", "ACCUM_",
-                   "STATS_", "TEXTURE_SIZE_", "SUBTREE_", "STORE_MOVE_", "LEVEL_COUNT_",
-                   "LEVEL_BASE_", "CORNERS_", "CELL_", "BIG_", "NODE_CHUNKS_", "PLANE_COUNTS_",
-                   "CHILD_COUNTS_", "DECISION_", "HISTOGRAM_", "CLIMB_", "LIFT_", "LAYOUT_COUNTS_",
-                   "BUILD_REF_", "WALK_")
+                   "STATS_", "TEXTURE_SIZE_", "CELL_", "BIN_", "CLIMB_", "LIFT_", "LAYOUT_COUNTS_",
+                   "BUILD_REF_", "BUILD_SPLIT_", "WALK_")
 
 
 def kernel_files():
@@ -517,10 +515,10 @@ def test_build_elements_are_their_types_sizes():
     """The host sizes the buffers whose fields only kernels read by core/layout.py's ELEMENTS:
     each is sizeof(its C type) in the program that uses it, on the device, so that a struct
     changed on one side alone fails here."""
-    from core.accel import compact_cl, kdtree_cl
+    from core.accel import binned, compact_cl
     from core.accel.kdtree import KDTreeParams
-    builder = kdtree_cl.KDTreeBuilderCL("cpu")
-    programs = [(kdtree_cl.KERNEL_FILES, builder.build_options(KDTreeParams())),
+    builder = binned.BinnedBuilder("cpu")
+    programs = [(binned.KERNEL_FILES, builder.build_options(KDTreeParams())),
                 (compact_cl.KERNEL_FILES, compact_cl.program_options())]
     measured = {}
     for files, options in programs:

@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from ..layout import (BIN_BIG, BIN_BOUNDS, BIN_CHUNK, BIN_NODE, BIN_PLACES, BIN_SUMS,
-                      PLAIN_FIELD)
+                      BUILD_REF, BUILD_SPLIT, PLAIN_FIELD)
 from ..opencl import OpenCLError, kernel_source
 from .arrays import exclusive_cumsum
 from .device import DeviceContext
@@ -33,8 +33,8 @@ from .kdtree import KDTree, KDTreeParams, checked_mesh, root_bounds
 KERNEL_FILES = ("build/binned.cl",)
 EXACT_MAX = 256          # nodes of up to this many references: every reference bound a candidate
 SUM_BLOCK = 128          # nodes per work-item of level_sums and emit
-SPLIT_BYTES = 32         # binned.cl's Split
-REF_BYTES = 32           # binned.cl's Ref
+SPLIT_BYTES = BUILD_SPLIT.nbytes
+REF_BYTES = BUILD_REF.nbytes
 # Launches over more than this many nodes (or chunks' references) go in pieces, with the
 # progress callback between them, so that Esc is seen within a piece.
 PIECE_NODES = 1 << 18
@@ -70,10 +70,7 @@ class BinnedBuilder(DeviceContext):
 
     def __init__(self, device=None, big_refs: int | None = None, chunk_refs: int | None = None,
                  local_size: int | None = None, profile_kernels: bool = False):
-        super().__init__(device, False, profile_kernels)
-        if "cl_khr_fp64" not in self.device.extensions.split():
-            raise OpenCLError(f"{self.device_name} has no double precision (cl_khr_fp64), "
-                              "which the kd-tree builder's clipping needs")
+        super().__init__(device, profile_kernels)
         self.big_refs = int(big_refs or (16384 if self.is_cpu else 1024))
         self.chunk_refs = int(chunk_refs or (4096 if self.is_cpu else 256))
         if self.big_refs < EXACT_MAX:

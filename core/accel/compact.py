@@ -569,7 +569,7 @@ def compact_tree(tree, triangles_count: int, mode: str = "compressed", tau_occu:
     unlimited. Other CompactParams fields (min_refs, collapse, elide_empty, leaf16) may be
     overridden by keyword. `progress(fraction, message)` is called after each step.
     `device`: an OpenCL device (a core.accel.device.DeviceContext, such as the
-    core.accel.kdtree_cl.KDTreeBuilderCL that built the tree, or a core.opencl.select_device
+    core.accel.binned.BinnedBuilder that built the tree, or a core.opencl.select_device
     spec) that runs the heavy steps as kernels (core/accel/compact_cl.py) for trees in the
     builders' order; the result is the same, bit for bit. None: numpy only.
     """

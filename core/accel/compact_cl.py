@@ -1,6 +1,6 @@
 """core/accel/compact.py's compaction in OpenCL kernels (kernels/build/compact.cl), for trees in
 the builders' order: breadth-first with the k-th inner node's children at 1 + 2k, leaf lists in
-node order (what core/accel/kdtree.py and kdtree_cl.py both build). Each level of such a tree is
+node order (what core/accel/kdtree.py and binned.py both build). Each level of such a tree is
 a contiguous range of nodes whose inner nodes' children are, pair by pair, the next level, so
 every per-level step is one kernel over a range, and the final numbering is a prefix sum in
 node order. The result is compact_tree's, bit for bit: the kernels use its float64 arithmetic
@@ -19,7 +19,7 @@ from ..opencl import kernel_source
 from .arrays import exclusive_cumsum, run_starts
 from .device import DeviceContext, device_for
 
-KERNEL_FILES = ("build/fp64.cl", "build/common.cl", "build/compact.cl")
+KERNEL_FILES = ("build/common.cl", "build/compact.cl")
 U4 = np.uint32
 PRIVATE_GAPS = 64         # a triangle with more references keeps its lift stacks in the scratch
 TOPO_STACK = 64           # topo_subtrees' stack: more than the levels below its start
@@ -384,7 +384,7 @@ class CompactorCL:
 
 def compact_on_device(device, tree, triangles_count, params, leaf_shift, report):
     """compact.py's post-pass with its steps in kernels (the choice of lifts and the stats on
-    the host) on `device`, a DeviceContext (a KDTreeBuilderCL is one) or a select_device spec.
+    the host) on `device`, a DeviceContext (a BinnedBuilder is one) or a select_device spec.
     Returns what compact._finish makes the CompactTree of: (standard nodes, references,
     collapsed subtrees kept, the laid-out arrays, the most references on a path, leaf
     references, lift nodes, lift triangles); None when the tree is not in the builders'

@@ -1,4 +1,4 @@
-"""One OpenCL device as the kd-tree builder (kdtree_cl.py) and the compaction (compact_cl.py)
+"""One OpenCL device as the kd-tree builder (binned.py) and the compaction (compact_cl.py)
 use it: its context and in-order queue, programs built once, device memory from a pool
 (buffer_pool.py), launches in pieces with the progress callback between them, and reads.
 
@@ -20,15 +20,14 @@ FILL_BYTES = 64 << 20      # zeros(): fills of this many bytes, with the heartbe
 class DeviceContext:
     """An OpenCL device, its context, queue, programs and buffer pool.
 
-    device: a core.opencl.select_device spec (None: a GPU if any, else the CPU); soft_fp64:
-    the kernels' doubles in software (None: where the device lacks cl_khr_fp64);
-    profile_kernels: each launch's event is kept, so that kernel_times() can sum device time
+    device: a core.opencl.select_device spec (None: a GPU if any, else the CPU), which must
+    have double precision (cl_khr_fp64: the clipping and the compaction's areas; OpenCLError
+    otherwise); profile_kernels: each launch's event is kept, so that kernel_times() can sum device time
     per kernel (for the benchmark's profile; off otherwise).
     """
 
-    def __init__(self, device=None, soft_fp64: bool | None = None,
-                 profile_kernels: bool = False):
-        from ..opencl import Programs, ensure_pocl_cache_dir, select_device
+    def __init__(self, device=None, profile_kernels: bool = False):
+        from ..opencl import OpenCLError, Programs, ensure_pocl_cache_dir, select_device
         ensure_pocl_cache_dir()
         import pyopencl as cl
         self._cl = cl
@@ -40,8 +39,9 @@ class DeviceContext:
         self._programs = Programs(cl, self.context, self.device)
         self.buffers = BufferPool(cl, self.context, self.device)
         self.is_cpu = bool(self.device.type & cl.device_type.CPU)
-        has_fp64 = "cl_khr_fp64" in self.device.extensions.split()
-        self.soft_fp64 = (not has_fp64) if soft_fp64 is None else bool(soft_fp64)
+        if "cl_khr_fp64" not in self.device.extensions.split():
+            raise OpenCLError(f"{self.device_name} has no double precision (cl_khr_fp64), "
+                              "which the kd-tree build and compaction need")
         self._progress = None          # the running work's callback (reporting, heartbeat)
         self._last_progress = (0.0, "")
 
@@ -54,10 +54,8 @@ class DeviceContext:
         return int(self.device.max_compute_units)
 
     def kernels(self, source: str, options) -> dict:
-        """The kernels of `source` built with `options` and this device's double arithmetic
-        (-DKDTRACE_SOFT_FP64 for kernels/build/fp64.cl's software double), built once."""
-        options = list(options) + (["-DKDTRACE_SOFT_FP64"] if self.soft_fp64 else [])
-        return self._programs.kernels(source, options)
+        """The kernels of `source` built with `options`, built once."""
+        return self._programs.kernels(source, list(options))
 
     # -- progress --------------------------------------------------------------------------
     def reporting(self, progress):

@@ -1,26 +1,21 @@
-"""SAH kd-tree over triangles, built breadth-first with vectorised numpy.
+"""SAH kd-tree over triangles, built breadth-first with vectorised numpy: the oracle the kernel
+builder (core/accel/binned.py) is tested against, and the builder of a master without OpenCL.
 
 The tree follows Wald & Havran 2006 (SAH cost, automatic termination, perfect splits) and is stored
 in Wald's 8-byte node layout described in docs/architecture.md. docs/kdtree.md describes the
-algorithm and its measured numbers.
+algorithm.
 
 The build keeps one flat list of *references* (triangle id, node, clipped float32 box) sorted by
 node, each one row of 7 float32 words (box, then the triangle id's int32 bits), and processes a
 whole level of the tree at a time: every step below is a numpy operation over all references or
-all nodes of the level, never a Python loop per node or per triangle. Once a level is wide
-enough, contiguous ranges of its nodes grow their subtrees in threads (numpy releases the GIL in
-its loops) and are joined level by level, giving the same tree as one thread.
+all nodes of the level, never a Python loop per node or per triangle.
 
 Zero-area triangles (exactly zero cross product in float64) are dropped: a watertight ray test
 never reports a hit on them, and their clipped pieces would all look like zero-area contacts.
 """
 from __future__ import annotations
 
-import concurrent.futures
 import math
-import os
-import queue
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -48,12 +43,6 @@ class KDTreeParams:
     max_bad_refines: int = 3          # as pbrt: a leaf once a path has refined badly this often
     small_node: int = 16              # nodes with fewer references never refine badly
     max_depth: int | None = None      # None: 8 + 1.3 log2(triangle count), rounded
-    threads: int | None = None        # None: every CPU this process may run on
-
-    def thread_count(self) -> int:
-        if self.threads is not None:
-            return max(1, int(self.threads))
-        return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
     def depth_cap(self, triangle_count: int) -> int:
         if self.max_depth is not None:
@@ -412,14 +401,13 @@ def _binned_best_splits(params, cell_lo, cell_hi, counts, ref_lo, ref_hi):
     return best_cost, best_axis, best_plane
 
 
-def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, refs, width, chain=0):
+def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, refs, width):
     """Exact SAH over all candidate planes of small nodes (at most `width` references each).
 
     Every reference bound is a candidate. The nodes' references are packed into (n, width)
     arrays (padding counts on no side), and each candidate is compared against all of its
     node's boxes: below = low end < plane, above = high end > plane, planar = flat at the plane
-    (planar references go to the cheaper side). Returns (cost, axis, plane float32) and the
-    chain of up to `chain` later decisions (see `_exact_chain`).
+    (planar references go to the cheaper side). Returns (cost, axis, plane float32).
     """
     slots = np.arange(width)
     used = slots[None, :] < counts[:, None]
@@ -459,17 +447,12 @@ def _exact_best_splits(params, cell_lo, cell_hi, counts, first_ref, refs, width,
             on_plane[pr] = p_on
         per_axis.append(_ranking_terms(params, cand, below, above, on_plane, planar_rows))
     del group
-    cost, axis, plane, n_below, n_above, n_planar = _rank_exact(params, per_axis, cell_lo,
-                                                                cell_hi, None)
-    chained = _exact_chain(params, per_axis, cell_lo, cell_hi, counts, chain, axis, plane,
-                           cost, n_below, n_above, n_planar)
-    return cost, axis, plane, chained
+    return _rank_exact(params, per_axis, cell_lo, cell_hi)
 
 
 def _ranking_terms(params, cand, below, above, on_plane, planar_rows):
-    """What `_rank_exact` needs of one axis of `_exact_best_splits`' counts, with the parts
-    that do not depend on the cell (counts as float32, the empty-bonus factor) formed once:
-    a node's chain re-ranks the same counts for up to CHAIN other cells.
+    """What `_rank_exact` needs of one axis of `_exact_best_splits`' counts: counts as
+    float32, the empty-bonus factor.
 
     Planar variants (planar references below / above) only for the rows that have planar
     references, `planar_at[row]` a planar row's index among them.
@@ -494,10 +477,9 @@ def _ranking_terms(params, cand, below, above, on_plane, planar_rows):
     return terms
 
 
-def _rank_exact(params, per_axis, cell_lo, cell_hi, rows_of):
-    """Cheapest candidate of each node from the counts of `_exact_best_splits` (rows `rows_of`
-    of them, or all), for cells (cell_lo, cell_hi). Returns cost, axis, plane and the counts
-    below / above / planar at that plane."""
+def _rank_exact(params, per_axis, cell_lo, cell_hi):
+    """Cheapest candidate of each node from the counts of `_exact_best_splits`, for cells
+    (cell_lo, cell_hi): cost, axis and plane."""
     dims = (cell_hi.astype(np.float64) - cell_lo)
     inv_area = 1.0 / _surface_area(dims)
     dims = dims.astype(np.float32)
@@ -505,18 +487,11 @@ def _rank_exact(params, per_axis, cell_lo, cell_hi, rows_of):
     best_cost = np.full(n, np.inf)
     best_axis = np.zeros(n, np.int64)
     best_plane = np.zeros(n, np.float32)
-    best_counts = np.zeros((3, n), np.int8)
     rows = np.arange(n)
     K_T = np.float32(params.traversal_cost)
     for axis, terms in enumerate(per_axis):
-        cand, below, above, on_plane = (terms["cand"], terms["below"], terms["above"],
-                                        terms["on_plane"])
+        cand, on_plane = terms["cand"], terms["on_plane"]
         nb, na, fac, planar_rows = terms["nb"], terms["na"], terms["fac"], terms["planar_rows"]
-        if rows_of is not None:
-            cand, nb, na, fac = cand[rows_of], nb[rows_of], na[rows_of], fac[rows_of]
-            planar_rows = planar_rows[rows_of]
-            if on_plane is not None and not planar_rows.any():
-                on_plane = None
         # Costs in float32 (they only rank candidates; the caller recounts the chosen plane).
         # With w the width below the plane, area_below = w P + Q and area_above = R - w P
         # (all scaled by K_I / area).
@@ -527,21 +502,12 @@ def _rank_exact(params, per_axis, cell_lo, cell_hi, rows_of):
         R = dims[:, axis, None] * P + Q
         cell_low = cell_lo[:, axis:axis + 1]
         inside = (cand > cell_low) & (cand < cell_hi[:, axis:axis + 1])
-        wP = np.where(inside, cand - cell_low, np.float32(0))
-        wP *= P
+        wP = np.where(inside, cand - cell_low, np.float32(0)) * P
         no_plane = np.where(inside, np.float32(1), np.float32(np.inf))
-        del inside
 
         def variant(n_below, n_above, fac, wP=wP, Q=Q, R=R, no_plane=no_plane):
-            # The same float32 operations, in the same order, as the cost written out:
-            # ((wP + Q) n_below + (R - wP) n_above + K_T) (lambda if a side is empty) no_plane.
-            cost = wP + Q
-            cost *= n_below
-            cost += (R - wP) * n_above
-            cost += K_T
-            cost *= fac
-            cost *= no_plane
-            return cost
+            # ((wP + Q) n_below + (R - wP) n_above + K_T) (lambda if a side is empty)
+            return ((wP + Q) * n_below + (R - wP) * n_above + K_T) * fac * no_plane
 
         cost = variant(nb, na, fac)
         if on_plane is not None:
@@ -550,67 +516,14 @@ def _rank_exact(params, per_axis, cell_lo, cell_hi, rows_of):
             pr = np.flatnonzero(planar_rows)
             sub = dict(wP=wP[pr], Q=Q[pr], R=R[pr], no_plane=no_plane[pr])
             variants = terms["variants"]
-            if rows_of is not None:
-                at = terms["planar_at"][rows_of[pr]]
-                variants = [[part[at] for part in v] for v in variants]
             cost[pr] = np.minimum(variant(*variants[0], **sub), variant(*variants[1], **sub))
         k = np.argmin(cost, 1)
         c = cost[rows, k].astype(np.float64)
         better = c < best_cost
         best_cost[better] = c[better]
         best_axis[better] = axis
-        rb = rows[better]
-        best_plane[better] = cand[rb, k[better]]
-        src_rows = rb if rows_of is None else rows_of[rb]
-        best_counts[0, better] = below[src_rows, k[better]]
-        best_counts[1, better] = above[src_rows, k[better]]
-        if on_plane is not None:
-            best_counts[2, better] = on_plane[src_rows, k[better]]
-        else:
-            best_counts[2, better] = 0
-    return best_cost, best_axis, best_plane, best_counts[0], best_counts[1], best_counts[2]
-
-
-def _exact_chain(params, per_axis, cell_lo, cell_hi, counts, chain, axis, plane, cost,
-                 n_below, n_above, n_planar):
-    """Decisions of the nodes that the chosen splits leave with the same references.
-
-    A split with every reference strictly on one side (an empty-space cut: nothing on the
-    other side, nothing planar at the plane) gives a child with exactly its parent's
-    references and boxes, so its candidate counts are the parent's; only the cell, and so the
-    costs, differ. This ranks those children's candidates from the counts already taken, and
-    theirs in turn, up to `chain` levels down. Returns (cost float32, axis int8, plane float32)
-    arrays (n, chain) and the chain length of each node; the build hands them to that child.
-    """
-    n = len(counts)
-    fut_cost = np.full((n, chain), np.inf, np.float32)
-    fut_axis = np.zeros((n, chain), np.int8)
-    fut_plane = np.zeros((n, chain), np.float32)
-    fut_len = np.zeros(n, np.int8)
-    active = np.arange(n)
-    lo, hi = cell_lo, cell_hi
-    count = counts.astype(np.int8)
-    for step in range(chain):
-        pure = np.isfinite(cost) & (n_planar == 0) & (
-            ((n_below == count) & (n_above == 0)) | ((n_below == 0) & (n_above == count)))
-        keep = np.flatnonzero(pure)
-        if not len(keep):
-            break
-        active, count = active[keep], count[keep]
-        lo, hi = lo[keep].copy(), hi[keep].copy()
-        goes_below = n_below[keep] == count
-        ax = axis[keep]
-        r = np.arange(len(keep))
-        # The child that keeps every reference: below child (hi = plane) or above (lo = plane).
-        hi[r[goes_below], ax[goes_below]] = plane[keep][goes_below]
-        lo[r[~goes_below], ax[~goes_below]] = plane[keep][~goes_below]
-        cost, axis, plane, n_below, n_above, n_planar = _rank_exact(params, per_axis, lo, hi,
-                                                                    active)
-        fut_cost[active, step] = cost
-        fut_axis[active, step] = axis
-        fut_plane[active, step] = plane
-        fut_len[active] = step + 1
-    return fut_cost, fut_axis, fut_plane, fut_len
+        best_plane[better] = cand[rows[better], k[better]]
+    return best_cost, best_axis, best_plane
 
 
 # ---------------------------------------------------------------------------------------------
@@ -619,7 +532,6 @@ def _exact_chain(params, per_axis, cell_lo, cell_hi, counts, chain, axis, plane,
 EXACT_WIDTHS = (1, 2, 4, 8, 16)   # nodes with up to 16 references: exact SAH in padded groups
 EXACT_CHUNK = 16384               # nodes per exact-SAH step (temporaries stay in cache)
 BINNED_CHUNK = 1024               # nodes per binned-SAH step (cost arrays stay in cache)
-CHAIN = 6                         # later decisions carried down chains of empty-space cuts
 
 
 def root_bounds(boxes_lo, boxes_hi, vertices):
@@ -641,33 +553,28 @@ def root_bounds(boxes_lo, boxes_hi, vertices):
     return np.stack([_round_down_f32(lo), _round_up_f32(hi)]).astype(np.float32)
 
 
-def _no_decisions(n: int, chain: int) -> tuple:
-    """Split decisions of n nodes, none made yet: cost, axis, plane, and the carried chains'
-    costs, axes, planes and lengths."""
-    return (np.full(n, np.inf), np.zeros(n, np.int64), np.zeros(n, np.float32),
-            np.full((n, chain), np.inf, np.float32), np.zeros((n, chain), np.int8),
-            np.zeros((n, chain), np.float32), np.zeros(n, np.int8))
+def _no_decisions(n: int) -> tuple:
+    """Split decisions of n nodes, none made yet: cost, axis, plane."""
+    return np.full(n, np.inf), np.zeros(n, np.int64), np.zeros(n, np.float32)
 
 
-def _best_splits(params, cell_lo, cell_hi, counts, ref_start, refs, chain):
-    """Best split of every node given (all with at least one reference).
+def _best_splits(params, cell_lo, cell_hi, counts, ref_start, refs):
+    """Best split of every node given (all with at least one reference): cost, axis, plane.
 
     Small nodes get exact SAH over all their references' bounds, in chunks of EXACT_CHUNK
-    nodes (smaller temporaries), plus their chains of later decisions (`_exact_chain`);
-    bigger ones binned SAH. Returns cost, axis, plane and the chains (length 0 for binned).
+    nodes (smaller temporaries); bigger ones binned SAH.
     """
     n = len(counts)
-    cost, axis, plane, fut_cost, fut_axis, fut_plane, fut_len = _no_decisions(n, chain)
+    cost, axis, plane = _no_decisions(n)
     smaller = 0
     for width in EXACT_WIDTHS:
         group = np.flatnonzero((counts > smaller) & (counts <= width))
         smaller = width
         for at in range(0, len(group), EXACT_CHUNK):
             part = group[at:at + EXACT_CHUNK]
-            cost[part], axis[part], plane[part], chained = _exact_best_splits(
+            cost[part], axis[part], plane[part] = _exact_best_splits(
                 params, cell_lo[part], cell_hi[part], counts[part], ref_start[part],
-                refs, width, chain)
-            fut_cost[part], fut_axis[part], fut_plane[part], fut_len[part] = chained
+                refs, width)
     big = np.flatnonzero(counts > smaller)
     if len(big):
         if int(counts[big].sum()) < len(refs):       # the big nodes' references only
@@ -683,35 +590,23 @@ def _best_splits(params, cell_lo, cell_hi, counts, ref_start, refs, chain):
             refs = slice(big_first[at], big_first[at + len(part)])
             cost[part], axis[part], plane[part] = _binned_best_splits(
                 params, cell_lo[part], cell_hi[part], counts[part], ref_lo[refs], ref_hi[refs])
-    return cost, axis, plane, (fut_cost, fut_axis, fut_plane, fut_len)
+    return cost, axis, plane
 
 
 @dataclass
 class _Frontier:
     """The nodes of one level, not yet decided, with their references (rows sorted by node)
-    and what each inherits: its path's bad-refine count and a carried chain of decisions."""
+    and their paths' bad-refine counts."""
 
     cell_lo: np.ndarray        # (n, 3) float32
     cell_hi: np.ndarray
     counts: np.ndarray         # (n,) int64 references per node
     bad_refines: np.ndarray    # (n,) int64
-    pend_cost: np.ndarray      # (n, CHAIN) float32, inf where nothing is carried
-    pend_axis: np.ndarray      # (n, CHAIN) int8
-    pend_plane: np.ndarray     # (n, CHAIN) float32
-    pend_len: np.ndarray       # (n,) int8 carried decisions
     refs: np.ndarray           # (R, REF_WORDS) float32
 
     def __len__(self) -> int:
         return len(self.counts)
 
-    def part(self, first: int, last: int) -> "_Frontier":
-        """Nodes first..last-1 with their references: a part whose subtrees grow on their own."""
-        ref_first, ref_last = int(self.counts[:first].sum()), int(self.counts[:last].sum())
-        nodes = slice(first, last)
-        return _Frontier(self.cell_lo[nodes], self.cell_hi[nodes], self.counts[nodes],
-                         self.bad_refines[nodes], self.pend_cost[nodes], self.pend_axis[nodes],
-                         self.pend_plane[nodes], self.pend_len[nodes],
-                         self.refs[ref_first:ref_last])
 
 
 @dataclass
@@ -726,15 +621,6 @@ class _Level:
     leaf_triangles: np.ndarray  # uint32
     sah_cost: float
 
-    @staticmethod
-    def join(parts: list) -> "_Level":
-        """The parts of one level, side by side in node order."""
-        if len(parts) == 1:
-            return parts[0]
-        return _Level(np.concatenate([p.words for p in parts]),
-                      np.concatenate([p.make_leaf for p in parts]),
-                      np.concatenate([p.leaf_triangles for p in parts]),
-                      sum(p.sah_cost for p in parts))
 
 
 @dataclass(frozen=True)
@@ -755,28 +641,12 @@ def _step(fr: _Frontier, level: int, ctx: _BuildContext):
     area = _surface_area(dims)
 
     # 1. Best split of every non-empty node that may still split.
-    #    A node that an empty-space cut left with its parent's references carries its
-    #    decision (and those of its own such children) from `_exact_chain`.
-    cost, axis, plane, fut_cost, fut_axis, fut_plane, fut_len = _no_decisions(node_count, CHAIN)
+    cost, axis, plane = _no_decisions(node_count)
     if level < ctx.depth_cap:
-        chain = min(CHAIN, ctx.depth_cap - level - 1)
-        cand = np.flatnonzero((counts > 0) & (fr.pend_len == 0))
+        cand = np.flatnonzero(counts > 0)
         if len(cand):
-            cost[cand], axis[cand], plane[cand], chained = _best_splits(
-                params, cell_lo[cand], cell_hi[cand], counts[cand], ref_start[cand],
-                refs, chain)
-            for fut, part in zip((fut_cost, fut_axis, fut_plane), chained):
-                fut[cand, :chain] = part
-            fut_len[cand] = chained[3]
-        carried = np.flatnonzero(fr.pend_len > 0)
-        if len(carried):
-            cost[carried] = fr.pend_cost[carried, 0]
-            axis[carried] = fr.pend_axis[carried, 0]
-            plane[carried] = fr.pend_plane[carried, 0]
-            for fut, pend in ((fut_cost, fr.pend_cost), (fut_axis, fr.pend_axis),
-                              (fut_plane, fr.pend_plane)):
-                fut[carried, :-1] = pend[carried, 1:]
-            fut_len[carried] = fr.pend_len[carried] - 1
+            cost[cand], axis[cand], plane[cand] = _best_splits(
+                params, cell_lo[cand], cell_hi[cand], counts[cand], ref_start[cand], refs)
     has_plane = np.isfinite(cost)
 
     # 2. Exact counts at the chosen planes (references of nodes with a plane only); planar
@@ -847,7 +717,6 @@ def _step(fr: _Frontier, level: int, ctx: _BuildContext):
     # 5. Send the references of split nodes (a subset of `sel`) to the children; clip those
     #    that straddle the plane.
     split_nodes = np.flatnonzero(split)
-    split_rank = np.cumsum(split) - 1
     in_split = split[cand]                                  # per node of `cand`
     sel_split = np.repeat(in_split, sel_counts)
     src = sel[sel_split]                                    # reference ids, by node
@@ -904,91 +773,8 @@ def _step(fr: _Frontier, level: int, ctx: _BuildContext):
     rows = np.arange(2 * split_count)
     child_hi[rows[0::2], child_axis[0::2]] = child_plane[0::2]
     child_lo[rows[1::2], child_axis[1::2]] = child_plane[1::2]
-    # The child of an empty-space cut that keeps all references inherits the chain.
-    pend_cost, pend_axis, pend_plane, pend_len = _no_decisions(2 * split_count, CHAIN)[3:]
-    heirs = split_nodes[fut_len[split_nodes] > 0]
-    heir = 2 * split_rank[heirs] + (n_below[heirs] != counts[heirs])
-    same = child_counts[heir] == counts[heirs]                   # always, by construction
-    heirs, heir = heirs[same], heir[same]
-    for pend, fut in ((pend_cost, fut_cost), (pend_axis, fut_axis), (pend_plane, fut_plane)):
-        pend[heir] = fut[heirs]
-    pend_len[heir] = fut_len[heirs]
     return decided, _Frontier(child_lo, child_hi, child_counts,
-                              np.repeat(bad_refines[split_nodes], 2),
-                              pend_cost, pend_axis, pend_plane, pend_len, new_refs)
-
-
-class _Cancelled(Exception):
-    """Another part of a parallel build failed or the caller's progress callback raised."""
-
-
-def _grow(frontier, level, ctx, stop=lambda frontier: False, on_level=None):
-    """Decide level after level until nothing splits or `stop(frontier)`.
-    Returns (the decided levels, the frontier left or None, the next level)."""
-    decided = []
-    while frontier is not None and not stop(frontier):
-        if on_level is not None:
-            on_level(level, frontier)
-        record, frontier = _step(frontier, level, ctx)
-        decided.append(record)
-        level += 1
-    return decided, frontier, level
-
-
-PARALLEL_NODES = 16      # a level this wide is split into parts that grow in parallel
-PARTS_PER_THREAD = 2     # parts per thread, for balance (each part pays Python per level)
-
-
-def _grow_in_parallel(frontier, level, ctx, threads, progress):
-    """Grow contiguous node ranges of `frontier` in `threads` threads (numpy releases the
-    GIL in its loops). Node ranges in order give each level's nodes in order, so the tree is
-    the one a single thread builds. `progress` is called on this thread only."""
-    counts = frontier.counts
-    part_count = min(PARTS_PER_THREAD * threads, len(counts))
-    shares = counts.sum() * np.arange(1, part_count) / part_count
-    ends = np.searchsorted(np.cumsum(counts), shares) + 1   # a part ends at the node reaching its share
-    bounds = np.unique(np.concatenate([[0], ends, [len(counts)]]).clip(0, len(counts)))
-    parts = [frontier.part(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
-    del frontier
-    reached = queue.Queue()
-    cancel = threading.Event()
-
-    def grow(part):
-        def on_level(lvl, fr):
-            if cancel.is_set():
-                raise _Cancelled
-            reached.put((lvl, len(fr), len(fr.refs)))
-        return _grow(part, level, ctx, on_level=on_level)[0]
-
-    with concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="kdtree") as pool:
-        # Biggest parts first, so that no thread is left with a big one at the end.
-        order = sorted(range(len(parts)), key=lambda i: -len(parts[i].refs))
-        futures = {pool.submit(grow, parts[i]): i for i in order}
-        del parts
-        try:
-            pending = set(futures)
-            levels_done = 0
-            while pending:
-                done, pending = concurrent.futures.wait(pending, timeout=0.1,
-                                                        return_when="FIRST_COMPLETED")
-                for future in done:
-                    future.result()                 # a part's error is raised here
-                while not reached.empty():
-                    lvl, nodes, refs = reached.get()
-                    levels_done += 1
-                    if progress is not None:
-                        fraction = level + levels_done / len(futures)
-                        progress(min(fraction / (ctx.depth_cap + 1), 1.0),
-                                 f"kd-tree level {lvl} ({len(futures)} parts in {threads} "
-                                 f"threads): {nodes} nodes, {refs} references")
-        except BaseException:
-            cancel.set()
-            raise
-        decided = [None] * len(futures)
-        for future, i in futures.items():
-            decided[i] = future.result()
-    depth = max(len(d) for d in decided)
-    return [_Level.join([d[k] for d in decided if k < len(d)]) for k in range(depth)]
+                              np.repeat(bad_refines[split_nodes], 2), new_refs)
 
 
 def _write_nodes(levels: list) -> tuple:
@@ -1014,7 +800,7 @@ def _write_nodes(levels: list) -> tuple:
 
 def checked_mesh(vertices, triangles):
     """float32 (V, 3) vertices and (T, 3) triangles, or ValueError for indices out of range
-    or non-finite coordinates (both builders, core/accel/kdtree_cl.py too)."""
+    or non-finite coordinates (both builders, core/accel/binned.py too)."""
     vertices = np.ascontiguousarray(vertices, np.float32).reshape(-1, 3)
     triangles = np.asarray(triangles).reshape(-1, 3)
     if len(triangles) and (triangles.min() < 0 or triangles.max() >= len(vertices)):
@@ -1052,21 +838,18 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
     ctx = _BuildContext(params, params.depth_cap(triangle_count), corners,
                         float(_surface_area(bounds[1].astype(np.float64) - bounds[0])))
     root = _Frontier(bounds[:1].copy(), bounds[1:].copy(), np.array([len(kept)], np.int64),
-                     np.zeros(1, np.int64), *_no_decisions(1, CHAIN)[3:], refs)
+                     np.zeros(1, np.int64), refs)
     del refs
 
-    def on_level(level, frontier):
+    levels, frontier, level = [], root, 0
+    while frontier is not None:
         if progress is not None:
             progress(min(level / (ctx.depth_cap + 1), 1.0),
                      f"kd-tree level {level}: {len(frontier)} nodes, "
                      f"{len(frontier.refs)} references")
-
-    threads = params.thread_count()
-    levels, frontier, level = _grow(
-        root, 0, ctx, stop=lambda fr: threads > 1 and len(fr) >= PARALLEL_NODES,
-        on_level=on_level)
-    if frontier is not None:
-        levels += _grow_in_parallel(frontier, level, ctx, threads, progress)
+        decided, frontier = _step(frontier, level, ctx)
+        levels.append(decided)
+        level += 1
     nodes, leaf_indices = _write_nodes(levels)
     leaf_levels = [k for k, d in enumerate(levels) if d.make_leaf.any()]
     tree = KDTree(nodes, leaf_indices, bounds)
@@ -1083,7 +866,7 @@ def build_kdtree(vertices, triangles, params: KDTreeParams | None = None, progre
         "bytes": tree.nbytes,
         "sah_cost": float(sum(d.sah_cost for d in levels)),
         "build_seconds": time.perf_counter() - started,
-        "threads": threads,
+        "threads": 1,
     }
     if progress is not None:
         progress(1.0, f"kd-tree done: {len(nodes)} nodes, {len(leaf_indices)} references")

@@ -1,6 +1,6 @@
-/* What the build programs (split.cl ... layout.cl) and the compaction (compact.cl) share:
-   plain-node tests and the share of work of one work-item. Included after fp64.cl. */
+/* The compaction's (compact.cl) plain-node tests and the share of work of one work-item. */
 
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
 
 #define NONE 0xFFFFFFFFu

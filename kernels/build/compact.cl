@@ -1,6 +1,6 @@
 /* The compaction of a builder-ordered plain kd-tree (core/accel/compact_cl.py), step for step
-   core/accel/compact.py's numpy post-pass, with the same float64 arithmetic (fp64.cl), so the
-   compact tree is the same bits.
+   core/accel/compact.py's numpy post-pass, with the same float64 arithmetic (IEEE double:
+   cl_khr_fp64), so the compact tree is the same bits.
 
    A builder-ordered tree is breadth-first with the k-th inner node's children at 1 + 2k: each
    level is a contiguous range of nodes and the children of its inner nodes, pair by pair,
@@ -8,26 +8,18 @@
 
 #pragma OPENCL FP_CONTRACT OFF
 
-/* Double compare helpers (fp64.cl has no isfinite). */
-#ifndef KDTRACE_SOFT_FP64
 inline int d_finite(double x)
 {
     return x == x && x != INFINITY && x != -INFINITY;
 }
-#else
-inline int d_finite(ulong x)
-{
-    return ((x >> 52) & 0x7FF) != 0x7FF;
-}
-#endif
 
-inline dbl cell_area(const float* lo, const float* hi)
+inline double cell_area(const float* lo, const float* hi)
 {
-    dbl d[3];
+    double d[3];
     for (int a = 0; a < 3; a++)
-        d[a] = D_SUB(D_FROM_F(hi[a]), D_FROM_F(lo[a]));
-    dbl sum = D_ADD(D_ADD(D_MUL(d[0], d[1]), D_MUL(d[1], d[2])), D_MUL(d[2], d[0]));
-    return D_MUL(D_BITS(0x4000000000000000UL), sum);
+        d[a] = ((double)hi[a] - (double)lo[a]);
+    double sum = (((d[0] * d[1]) + (d[1] * d[2])) + (d[2] * d[0]));
+    return 2.0 * sum;
 }
 
 /* ----------------------------------------------------------------------------------------
@@ -61,7 +53,7 @@ __kernel void order_check(__global const uint2* restrict nodes,
                 never shrinks from here up to the root << 31). */
 
 typedef struct {
-    dbl area;
+    double area;
     uint parent;             /* preorder number, NONE at the root */
     uint nonempty_stops;
 } WalkRecord;
@@ -87,11 +79,11 @@ __kernel void topo_up(__global const uint2* restrict nodes, __global uint* restr
 
 /* Returns whether the area never shrinks from x up to the root (its children's parent_stops). */
 inline int put_records(uint x, uint p, uint parent_pre, uint depth, int parent_stops,
-                        dbl parent_area, dbl A, __global const uint* size,
+                        double parent_area, double A, __global const uint* size,
                         __global const uint* nonempty, __global uint4* climb,
                         __global WalkRecord* walk)
 {
-    int stops = d_finite(A) && D_LT(D_ZERO, A) && parent_stops && D_GE(parent_area, A);
+    int stops = d_finite(A) && (0.0 < A) && parent_stops && (parent_area >= A);
     uint4 c;
     CLIMB_END_OF(c) = p + size[x];
     CLIMB_PARENT_OF(c) = parent_pre;
@@ -118,7 +110,7 @@ __kernel void topo_root(__global const float* restrict bounds, __global float* r
         cells[CELL_LO_X + a] = lo[a];
         cells[CELL_HI_X + a] = hi[a];
     }
-    dbl A = cell_area(lo, hi);
+    double A = cell_area(lo, hi);
     pre[0] = 0u;
     put_records(0u, 0u, NONE, 0u, 1, A, A, size, nonempty, climb, walk);
 }
@@ -181,7 +173,7 @@ __kernel void topo_subtrees(__global const uint2* restrict nodes, __global const
     if (!level_node(first, end, &i))
         return;
     float s_lo[3][TOPO_STACK], s_hi[3][TOPO_STACK];
-    dbl s_area[TOPO_STACK];
+    double s_area[TOPO_STACK];
     uint s_node[TOPO_STACK], s_pre[TOPO_STACK], s_depth[TOPO_STACK];
     int s_stops[TOPO_STACK];
     int sp = 0;
@@ -193,7 +185,7 @@ __kernel void topo_subtrees(__global const uint2* restrict nodes, __global const
     }
     uint node = i, p = pre[i], depth = level;
     WalkRecord own = walk[p];
-    dbl area = own.area;
+    double area = own.area;
     int stops = own.nonempty_stops >> 31;
     while (true) {
         uint2 w = nodes[node];
@@ -224,7 +216,7 @@ __kernel void topo_subtrees(__global const uint2* restrict nodes, __global const
             above_lo[a] = a == axis ? split : lo[a];
             s_lo[a][sp] = above_lo[a];
         }
-        dbl above_area = cell_area(above_lo, hi);
+        double above_area = cell_area(above_lo, hi);
         pre[c + 1u] = above_pre;
         s_stops[sp] = put_records(c + 1u, above_pre, p, depth + 1u, stops, area, above_area,
                                   size, nonempty, climb, walk);
@@ -234,7 +226,7 @@ __kernel void topo_subtrees(__global const uint2* restrict nodes, __global const
         s_area[sp] = above_area;
         sp++;
         hi[axis] = split;
-        dbl below_area = cell_area(lo, hi);
+        double below_area = cell_area(lo, hi);
         pre[c] = below_pre;
         stops = put_records(c, below_pre, p, depth + 1u, stops, area, below_area, size,
                             nonempty, climb, walk);
@@ -391,35 +383,35 @@ __kernel void neighbour_lcas(__global const uint* restrict s_pre, __global const
 
 #define AREA_OF(k) walk[s_pre[k]].area
 
-inline dbl pairwise_block(__global const WalkRecord* walk, __global const uint* s_pre, uint first,
+inline double pairwise_block(__global const WalkRecord* walk, __global const uint* s_pre, uint first,
                           uint n)
 {
     if (n < 8u) {
-        dbl res = D_ZERO;
+        double res = 0.0;
         for (uint i = 0; i < n; i++)
-            res = D_ADD(res, AREA_OF(first + i));
+            res = (res + AREA_OF(first + i));
         return res;
     }
-    dbl r[8];
+    double r[8];
     for (int j = 0; j < 8; j++)
         r[j] = AREA_OF(first + j);
     uint i = 8u;
     for (; i < n - (n % 8u); i += 8u)
         for (int j = 0; j < 8; j++)
-            r[j] = D_ADD(r[j], AREA_OF(first + i + j));
-    dbl res = D_ADD(D_ADD(D_ADD(r[0], r[1]), D_ADD(r[2], r[3])), D_ADD(D_ADD(r[4], r[5]), D_ADD(r[6], r[7])));
+            r[j] = (r[j] + AREA_OF(first + i + j));
+    double res = (((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7])));
     for (; i < n; i++)
-        res = D_ADD(res, AREA_OF(first + i));
+        res = (res + AREA_OF(first + i));
     return res;
 }
 
-inline dbl pairwise_sum(__global const WalkRecord* walk, __global const uint* s_pre, uint first,
+inline double pairwise_sum(__global const WalkRecord* walk, __global const uint* s_pre, uint first,
                         uint n)
 {
     /* A frame per pending half: its range, and whether its left half is done (then kept). */
     uint f_first[PAIRWISE_STACK], f_n[PAIRWISE_STACK];
     int f_right[PAIRWISE_STACK];
-    dbl f_left[PAIRWISE_STACK];
+    double f_left[PAIRWISE_STACK];
     int sp = 0;
     f_first[0] = first;
     f_n[0] = n;
@@ -432,7 +424,7 @@ inline dbl pairwise_sum(__global const WalkRecord* walk, __global const uint* s_
             f_n[sp + 1] = n2;
             sp++;
         }
-        dbl value = pairwise_block(walk, s_pre, f_first[sp], f_n[sp]);
+        double value = pairwise_block(walk, s_pre, f_first[sp], f_n[sp]);
         for (;;) {                                /* up, until a right half is pending */
             if (sp == 0)
                 return value;
@@ -447,15 +439,15 @@ inline dbl pairwise_sum(__global const WalkRecord* walk, __global const uint* s_
                 sp++;
                 break;
             }
-            value = D_ADD(f_left[sp], value);
+            value = (f_left[sp] + value);
         }
     }
 }
 
-inline dbl run_area(__global const WalkRecord* walk, __global const uint* s_pre, uint first, uint n)
+inline double run_area(__global const WalkRecord* walk, __global const uint* s_pre, uint first, uint n)
 {
-    dbl head = AREA_OF(first);
-    return n > 1u ? D_ADD(head, pairwise_sum(walk, s_pre, first + 1u, n - 1u)) : head;
+    double head = AREA_OF(first);
+    return n > 1u ? (head + pairwise_sum(walk, s_pre, first + 1u, n - 1u)) : head;
 }
 
 /* Candidates (LIFT_CANDIDATE rows, core/layout.py) are appended in blocks through `used`
@@ -493,7 +485,7 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
     uint a = tri_first[t], e = tri_first[t + 1];
     if (e == a)
         return;
-    dbl tau_occu = D_BITS(tau_occu_bits), tau_freq = D_BITS(tau_freq_bits);
+    double tau_occu = as_double((ulong)tau_occu_bits), tau_freq = as_double((ulong)tau_freq_bits);
     /* Nearest gap to the left with depth <= ours, to the right with depth < ours (by gap
        index relative to a; private arrays, or for a triangle with many references its
        part of the scratch: three arrays of its reference count). */
@@ -565,15 +557,15 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
         uint r = run_hi - run_lo;
         if (!(r >= min_refs && run_depth >= top_depth && run_depth >= 0))
             continue;
-        dbl area_sum = run_area(walk, s_pre, run_lo, r);
-        dbl count = D_FROM_U(r);
+        double area_sum = run_area(walk, s_pre, run_lo, r);
+        double count = (double)r;
         int d = run_depth;
         for (;;) {
             WalkRecord w = walk[node];
-            dbl occupancy = D_DIV(area_sum, w.area);
+            double occupancy = (area_sum / w.area);
             uint ne = w.nonempty_stops & 0x7FFFFFFFu;
-            dbl frequency = D_DIV(count, D_FROM_U(ne > 1u ? ne : 1u));
-            int ok = D_GE(occupancy, tau_occu) && D_GE(frequency, tau_freq);
+            double frequency = (count / (double)(ne > 1u ? ne : 1u));
+            int ok = (occupancy >= tau_occu) && (frequency >= tau_freq);
             if (ok) {
                 if (held == CANDIDATE_BLOCK) {
                     uint at = atomic_add(used, held);
@@ -755,24 +747,24 @@ __kernel void collapse(__global const uint2* restrict nodes, __global const uint
                        __global const WalkRecord* restrict walk,
                        __global const uint* restrict leaf_count,
                        __global const uint* restrict refs_at, __global const int* restrict distinct,
-                       __global dbl* restrict cost, __global uchar* restrict collapsed,
+                       __global double* restrict cost, __global uchar* restrict collapsed,
                        uint first, uint end, ulong kt_bits, ulong ki_bits)
 {
     uint i;
     if (!level_node(first, end, &i))
         return;
     uint2 w = nodes[i];
-    dbl K_T = D_BITS(kt_bits), K_I = D_BITS(ki_bits);
+    double K_T = as_double((ulong)kt_bits), K_I = as_double((ulong)ki_bits);
     if (is_leaf(w)) {
-        cost[i] = D_MUL(K_I, D_FROM_U(leaf_count[i]));
+        cost[i] = (K_I * (double)leaf_count[i]);
         collapsed[i] = 0;
         return;
     }
     uint c = KD_PLAIN_FIELD(w.x);
-    dbl below = D_ADD(D_MUL(walk[pre[c]].area, cost[c]), D_MUL(walk[pre[c + 1]].area, cost[c + 1]));
-    dbl sub = D_ADD(D_ADD(K_T, D_MUL(K_I, D_FROM_U(refs_at[i]))), D_DIV(below, walk[pre[i]].area));
-    dbl as_leaf = D_MUL(K_I, D_FROM_U((uint)distinct[i]));
-    int take = D_LE(as_leaf, sub);
+    double below = ((walk[pre[c]].area * cost[c]) + (walk[pre[c + 1]].area * cost[c + 1]));
+    double sub = ((K_T + (K_I * (double)refs_at[i])) + (below / walk[pre[i]].area));
+    double as_leaf = (K_I * (double)((uint)distinct[i]));
+    int take = (as_leaf <= sub);
     collapsed[i] = (uchar)take;
     cost[i] = take ? as_leaf : sub;
 }
