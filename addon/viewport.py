@@ -40,7 +40,9 @@ def view_update(engine, context, depsgraph) -> None:
     viewport.samples_per_axis = settings.viewport_samples_per_axis
     viewport.time_limit = settings.viewport_time_limit
     camera, width, height, key = viewport_camera(context, depsgraph.scene)
-    exported, view, info = export_instanced_view(depsgraph, viewport=(camera, width, height))
+    # Every object an instance: an object moved changes only the instances the slaves get.
+    exported, view, info = export_instanced_view(depsgraph, every_object=True,
+                                                 viewport=(camera, width, height))
     state.view, state.key = view, key
     state.viewport.update(view, exported, info["warnings"])
 
