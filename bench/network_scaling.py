@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 from core.accel.kdtree import build_kdtree  # noqa: E402
 from tests.linkemu import LinkEmulator  # noqa: E402
 from core.net.master import Master  # noqa: E402
-from core.net.protocol import TILE_BYTES_PER_PIXEL  # noqa: E402
+from core.net.protocol import ALL_PASSES, tile_bytes_per_pixel  # noqa: E402
 from core.scene.model import Geometry  # noqa: E402
 from core.scene.scene import Scene  # noqa: E402
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere  # noqa: E402
@@ -275,7 +275,7 @@ def main():
         for part in (4, 8, 16):
             per_tile = sorted(tiles_1[("wifi", part)])
             ms = [p[2] for p in per_tile]
-            nbytes = [p[1] * TILE_BYTES_PER_PIXEL for p in per_tile]
+            nbytes = [p[1] * tile_bytes_per_pixel("f32", ALL_PASSES) for p in per_tile]
             t1 = simulate(ms, nbytes, 1, latency, bandwidth)
             for count in (1, 2, 6, 16, 64):
                 ts = simulate(ms, nbytes, count, latency, bandwidth)

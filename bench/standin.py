@@ -90,10 +90,10 @@ class StandInTracer:
     def load(self, scene) -> None:
         pass
 
-    def prepare(self, view) -> None:
+    def prepare(self, view, passes=()) -> None:
         pass
 
-    def render_tile(self, view, x: int, y: int, w: int, h: int) -> dict:
+    def render_tile(self, view, x: int, y: int, w: int, h: int, passes=()) -> dict:
         ms = self.calibration.tile_ms.get((x, y, w, h))
         if ms is None:
             raise ValueError(f"tile {(x, y, w, h)} was not calibrated (tile sizes: "

@@ -418,6 +418,19 @@ ACCUM = Record("ACCUM", "A pixel's colour accumulator (accum buffer, by tile pix
     Slot("half", 1, "yzw", "sum of the odd-numbered samples' RGB (Cycles' adaptive half buffer)"),
 ))
 
+# The passes beside the image (kernels/shade/film.cl; finished by slave/film.py): a pixel's
+# sums, kept only when the frame asks for a pass that needs them (the FILM feature). Its
+# guides (GUIDES) are Cycles' denoising features; the others its data passes of the camera hit.
+FILM = Record("FILM", "A pixel's pass sums (film buffer, by tile pixel)", 5, (
+    Slot("albedo", 0, "xyz", "Denoising Albedo: the guide surface's albedo x the tint on the way"),
+    Slot("samples", 0, "w", "samples traced into this record"),
+    Slot("guide_normal", 1, "xyz", "Denoising Normal: the guide surface's shading normal (world)"),
+    Slot("mist", 1, "w", "Mist: (1 - mist) x the path's weight at the camera hit, summed"),
+    Slot("emission", 2, "xyz", "Emission: emission seen by camera rays"),
+    Slot("diffuse_color", 3, "xyz", "Diffuse Color: the camera hit's diffuse albedo"),
+    Slot("glossy_color", 4, "xyz", "Glossy Color: the camera hit's glossy albedo"),
+))
+
 # The world as a light (core/scene/model.py Shading.world_color and world_texture; packed by
 # slave/buffers.py pack_world). The constant colour itself is CAMERA_WORLD_COLOR; with a texture
 # it multiplies the texture. Directions go to the texture's own space through `to_texture`
@@ -467,7 +480,7 @@ TOPLEVEL_NODE = Record("TOPLEVEL", "A top-level BVH node (toplevel buffer; node 
     Slot("count", 1, "w", "leaf: its instances (1 to TOPLEVEL_LEAF_MAX); inner: 0 (uint bits)"),
 ))
 
-RECORDS = (LIGHT, MATERIAL, CAMERA, BOUNDS, TRIANGLE, ACCUM, WORLD, EMITTER, INSTANCE,
+RECORDS = (LIGHT, MATERIAL, CAMERA, BOUNDS, TRIANGLE, ACCUM, FILM, WORLD, EMITTER, INSTANCE,
            TOPLEVEL_NODE)
 
 # Geometry.texture_sizes (core/scene/model.py): one row per texture.
@@ -629,7 +642,8 @@ RENDER_SAMPLES = KernelParams("render_samples", "Camera samples of a tile's pixe
     Param("world", "float4*"), Param("env_cdf", "float*"), Param("emitters", "float4*"),
     Param("emitter_count", "uint"), Param("emitter_power", "float"),
     Param("accum", "float4*", "out"),
-    Param("out_depth", "float*", "out"), Param("out_normal", "float*", "out")))
+    Param("out_depth", "float*", "out"), Param("out_normal", "float*", "out"),
+    Param("film", "float4*", "out", when=("FILM",))))
 KERNEL_PARAMS = (INTERSECT_RAYS, OCCLUDED_RAYS, RENDER_SAMPLES)
 
 

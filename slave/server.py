@@ -866,10 +866,10 @@ class SlaveServer:
                 self.tracer.load(frame.scene)
                 self._loaded_hash = frame.scene.hash
             step("compiling")
-            self.tracer.prepare(frame.view)
+            self.tracer.prepare(frame.view, frame.passes)
             step("rendering")
             start = time.perf_counter()
-            passes = self.tracer.render_tile(frame.view, x, y, w, h)
+            passes = self.tracer.render_tile(frame.view, x, y, w, h, frame.passes)
             return passes, (time.perf_counter() - start) * 1000.0
 
     def close(self) -> None:

@@ -21,11 +21,12 @@ from core.accel.morton import morton_order
 from core.layout import (ACCUM, INTERSECT_RAYS, MESH, OCCLUDED_RAYS, RENDER_SAMPLES,
                          TREE_PARAMS, KernelParams, c_header)
 from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
-from core.scene.features import ALL_FEATURES, needed_arrays
+from core.scene.features import ALL_FEATURES, needed_arrays, pass_features
 from core.scene.model import SceneError, View
 from core.scene.scene import Scene
 
 from .adaptive import pixel_rgba, sample_tile
+from .film import TileFilm
 from .buffers import (pack_bounds, pack_camera, pack_emitters, pack_instances, pack_lights,
                       pack_materials, pack_triangles, pack_world, world_importance)
 
@@ -43,6 +44,7 @@ KERNEL_FILES = ("trace/trace.cl",           # rays, triangles, the kd-tree, trac
                 "shade/material.cl",        # the material at a hit, ray visibility
                 "shade/bsdf.cl",            # Fresnel, GGX, Principled's lobes, MIS weight
                 "shade/lights.cl",          # the world, emissive triangles, Blender's lights
+                "shade/film.cl",            # passes beside the image: guides, data passes
                 "shade/integrator.cl",      # shadow rays, direct light, trace_path
                 "trace/packet.cl",          # 8-ray packets (CPU ray queries)
                 "trace/intersect.cl",       # intersect_rays, occluded_rays
@@ -345,8 +347,10 @@ class Tracer:
         return outs
 
     # -- camera tiles --------------------------------------------------------------------
-    def render_tile(self, view: View, x: int, y: int, w: int, h: int) -> dict:
-        """Render pixels [x, x+w) x [y, y+h) of the full image (top-left origin).
+    def render_tile(self, view: View, x: int, y: int, w: int, h: int, passes=()) -> dict:
+        """Render pixels [x, x+w) x [y, y+h) of the full image (top-left origin): combined,
+        depth and normal, and the other `passes` asked for (core/net/protocol.py TILE_PASSES:
+        the denoising guides, data passes; slave/film.py).
 
         Samples as view.settings says (core/scene/model.py RenderSettings): uniform N x N stratified,
         or adaptive. Seeds depend only on the global pixel index and the sample number, so a
@@ -359,7 +363,7 @@ class Tracer:
                              f"{view.width}x{view.height} image")
         scene = self._scene_buffers()
         shading = view.shading
-        kernel, flags = self._render_kernel(view)
+        kernel, flags = self._render_kernel(view, passes)
         mf = cl.mem_flags
         ctx = self.context
 
@@ -382,17 +386,21 @@ class Tracer:
                   "emitters": emitters, "emitter_count": emitter_count,
                   "emitter_power": emitter_power, "accum": accum_buf,
                   "out_depth": depth_buf, "out_normal": normal_buf}
+        film = TileFilm(cl, ctx, flags, n)
+        values.update(film.values)
         started = time.perf_counter()
         tile = _TileOnDevice(self, kernel, flags, values, settings, accum, accum_buf)
         sample_tile(tile, settings, x, y, w, h, tile_pixel_order(w, h))
         cl.enqueue_copy(self.queue, accum, accum_buf)
         cl.enqueue_copy(self.queue, depth, depth_buf)
         cl.enqueue_copy(self.queue, normal, normal_buf)
+        film.read(self.queue)
         self.queue.finish()
         combined = pixel_rgba(accum)
         self.last_render = {"kernel_seconds": time.perf_counter() - started,
                             "samples": tile.traced, "features": sorted(flags)}
-        return {"combined": combined.reshape(h, w, 4), "depth": depth, "normal": normal}
+        return {"combined": combined.reshape(h, w, 4), "depth": depth, "normal": normal,
+                **film.passes(view, w, h, passes)}
 
     def _lights_for(self, shading, flags) -> tuple:
         """The world and emitter buffers of `shading` on the loaded scene: the world
@@ -420,12 +428,13 @@ class Tracer:
                                         upload(records), count, power))
         return self._light_tables[1]
 
-    def prepare(self, view: View) -> None:
-        """Check `view` against the loaded scene and build its render kernel (cached): what
-        render_tile does first, callable on its own so that a slave can say it is compiling."""
-        self._render_kernel(view)
+    def prepare(self, view: View, passes=()) -> None:
+        """Check `view` against the loaded scene and build its render kernel (cached) for
+        `passes`: what render_tile does first, callable on its own so that a slave can say it
+        is compiling."""
+        self._render_kernel(view, passes)
 
-    def _render_kernel(self, view: View) -> tuple:
+    def _render_kernel(self, view: View, passes=()) -> tuple:
         self._scene_buffers()
         if view is not self._checked_view:     # once per frame: its tiles share the view
             try:
@@ -437,6 +446,7 @@ class Tracer:
         flags = self._loaded.features(view)
         if not self.specialise:     # every feature but the scene's own structure
             flags = ALL_FEATURES - SCENE_STRUCTURE | (flags & SCENE_STRUCTURE)
+        flags |= pass_features(passes)
         missing = [name for name in needed_arrays(flags) if getattr(geometry, name) is None]
         if missing:
             raise TracerError(f"features {sorted(flags)} need the geometry arrays {missing}; "

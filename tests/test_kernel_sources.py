@@ -71,8 +71,9 @@ def test_each_kernel_file_stays_under_the_size_of_one_job():
 # ---------------------------------------------------------------------------------------------
 # Kernel parameters (core/layout.py KERNEL_PARAMS)
 
-# The feature sets that change some kernel's parameters (the `when` of TOPLEVEL_PARAMS).
-PARAMETER_FLAGS = [(), ("INSTANCES",), ("INSTANCES", "OBJECT_MOTION")]
+# The feature sets that change some kernel's parameters (the `when` of TOPLEVEL_PARAMS and of
+# the film buffer).
+PARAMETER_FLAGS = [(), ("INSTANCES",), ("INSTANCES", "OBJECT_MOTION"), ("FILM", "GUIDES")]
 
 
 def test_kernels_are_declared_by_their_generated_parameter_lists():
@@ -200,6 +201,8 @@ def test_the_tracer_passes_arguments_in_the_order_of_the_table(instanced, monkey
     view = View(Camera("PERSP", look_at((0.0, -9.0, 6.0), (0.0, 0.0, 0.5))), 24, 18, shading,
                 settings=settings)
     tracer.render_tile(view, 3, 2, 13, 11)
+    tracer.render_tile(view, 3, 2, 13, 11, ("combined", "albedo", "denoising_normal"))
+    assert {"FILM", "GUIDES"} <= set(tracer.last_render["features"])     # with its film buffer
     origins = np.tile(np.float32([[0.0, -9.0, 6.0]]), (37, 1))
     directions = np.random.default_rng(1).normal(size=(37, 3)).astype(np.float32) - [0, -1, 1]
     tracer.intersect(origins, directions, tmin=0.125, tmax=1000.0, time=0.25)

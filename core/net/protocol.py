@@ -112,8 +112,14 @@ MASTER_TO_SLAVE = frozenset({MsgType.HELLO, MsgType.SCENE_QUERY, MsgType.SCENE_U
 SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_RESULT,
                              MsgType.CANCEL, MsgType.ERROR, MsgType.HEARTBEAT})
 
-# Tile passes: name -> (channels, dtype); (h, w) or (h, w, channels).
-TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3}
+# Tile passes: name -> channels; (h, w) or (h, w, channels). Beyond the image, depth and normal:
+# the denoising guides (Blender's Denoising Albedo and Denoising Normal, Cycles' camera space)
+# and the data passes, computed by the slave only when a frame asks (slave/film.py).
+TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3, "albedo": 3, "denoising_normal": 3}
+# How a pass travels in the small payloads (f16, u8): "rgba" and "color" as colour, "direction"
+# as a unit vector's codes, "exact" always float32.
+PASS_CODING = {"combined": "rgba", "depth": "exact", "normal": "direction", "albedo": "color",
+               "denoising_normal": "direction"}
 TILE_BYTES_PER_PIXEL = 4 * sum(TILE_PASSES.values())   # the most a tile pixel may take
 # The most an instance takes on the wire: its mesh (u4), 3x4 transforms at shutter open and
 # close (f4; the close one only with motion blur) and visibility (u1).
@@ -814,13 +820,15 @@ def check_scene_hash(value) -> str:
 
 # ----------------------------------------------------------------------------- tile payloads
 #
-# A frame asks for the passes it needs (FRAME_START "passes": combined, plus depth and normal
-# only when the view layer shows them) in one payload:
+# A frame asks for the passes it needs (FRAME_START "passes": combined, plus the others only
+# when the view layer shows them or the master denoises) in one payload:
 #   f32  every pass float32 (exact);
-#   f16  combined and normal float16, depth float32 (its miss value 1e10 does not fit float16);
-#   u8   an 8-bit preview: combined's colour as sRGB codes, its alpha and the normal linear
-#        codes, depth float32. Decoding is a table lookup, so a decoded value is exactly the
-#        centre of its code (PREVIEW_* tables below): "exact to its quantisation".
+#   f16  float16 but the "exact" passes (PASS_CODING), float32 (depth's miss value 1e10 does
+#        not fit float16);
+#   u8   an 8-bit preview: combined's colour and the colour passes as sRGB codes, its alpha and
+#        the normals linear codes, the exact passes float32. Decoding is a table lookup, so a
+#        decoded value is exactly the centre of its code (PREVIEW_* tables below): "exact to
+#        its quantisation".
 # With compression on, the slave deflates the passes (zlib level 1) and sends one u1 array
 # "zlib" instead, but only when that saves at least 10 %; the master inflates it with a bound
 # of exactly the expected size, so a "zip bomb" costs nothing. The master checks a tile (names,
@@ -828,7 +836,9 @@ def check_scene_hash(value) -> str:
 # `out`): no intermediate float32 copy per tile.
 
 PAYLOADS = ("f32", "f16", "u8")
-ALL_PASSES = tuple(TILE_PASSES)
+# The passes a frame asks for unless it says: the image, depth and normal (the others cost the
+# slave work: only a frame that needs them asks).
+ALL_PASSES = ("combined", "depth", "normal")
 F16_MAX = 65504.0
 
 
@@ -855,7 +865,9 @@ def check_passes(passes) -> tuple:
     if (not isinstance(passes, (list, tuple)) or not all(isinstance(p, str) for p in passes)
             or not set(passes) <= set(TILE_PASSES) or len(set(passes)) != len(passes)
             or "combined" not in passes):
-        raise ValueError(f"passes must be combined plus any of depth, normal, got {passes!r}")
+        raise ValueError(f"passes must be combined plus any of "
+                         f"{', '.join(name for name in TILE_PASSES if name != 'combined')}, "
+                         f"got {passes!r}")
     return tuple(name for name in TILE_PASSES if name in passes)
 
 
@@ -875,7 +887,8 @@ def _checked_pass_dtypes(payload: str, passes: tuple) -> dict:
 @functools.lru_cache(maxsize=64)
 def _pass_dtypes(payload: str, passes: tuple) -> tuple:
     small = {"f32": "<f4", "f16": "<f2", "u8": "|u1"}[payload]
-    return tuple((name, np.dtype("<f4" if name == "depth" else small)) for name in passes)
+    return tuple((name, np.dtype("<f4" if PASS_CODING[name] == "exact" else small))
+                 for name in passes)
 
 
 def tile_bytes_per_pixel(payload: str, passes=ALL_PASSES) -> int:
@@ -891,8 +904,10 @@ def _encode_pass(name: str, array: np.ndarray, dtype: np.dtype) -> np.ndarray:
         if dtype.itemsize == 2:
             array = np.clip(array, -F16_MAX, F16_MAX)
         return np.ascontiguousarray(array, dtype)
-    if name == "normal":
+    if PASS_CODING[name] == "direction":
         return np.rint((np.clip(array, -1.0, 1.0, dtype=np.float64) + 1.0) * 127.5).astype(np.uint8)
+    if PASS_CODING[name] == "color":
+        return np.searchsorted(PREVIEW_COLOR_BOUNDS, array, side="right").astype(np.uint8)
     codes = np.empty(array.shape, np.uint8)
     codes[..., :3] = np.searchsorted(PREVIEW_COLOR_BOUNDS, array[..., :3], side="right")
     codes[..., 3] = np.rint(np.clip(array[..., 3], 0.0, 1.0, dtype=np.float64) * 255.0)
@@ -968,8 +983,10 @@ def decode_tile(header: dict, arrays: dict, w: int, h: int, payload: str, passes
         source, target = arrays[name], out[name]
         if dtype.kind == "f":
             np.copyto(target, source)
-        elif name == "normal":
+        elif PASS_CODING[name] == "direction":
             target[...] = PREVIEW_NORMAL.take(source)
+        elif PASS_CODING[name] == "color":
+            target[...] = PREVIEW_COLOR.take(source)
         else:
             codes = source.astype(np.uint16)
             codes += _RGBA_OFFSETS

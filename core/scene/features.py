@@ -44,6 +44,24 @@ FEATURES = {
 }
 ALL_FEATURES = frozenset(FEATURES)
 
+# The passes a frame may ask for beyond the image, depth and normal (core/net/protocol.py
+# TILE_PASSES), and the kernel features that compute them: FILM (the film buffer of pass sums,
+# core/layout.py FILM) with what fills it. Never part of a scene's features: a frame asks.
+PASS_FEATURES = {
+    "albedo": ("FILM", "GUIDES"),               # Denoising Albedo (Cycles' guides)
+    "denoising_normal": ("FILM", "GUIDES"),     # Denoising Normal
+    "mist": ("FILM", "PASS_MIST"),
+    "emission": ("FILM", "PASS_EMISSION"),
+    "diffuse_color": ("FILM", "PASS_DIFFUSE_COLOR"),
+    "glossy_color": ("FILM", "PASS_GLOSSY_COLOR"),
+}
+
+
+def pass_features(passes) -> frozenset:
+    """The kernel features that compute the passes `passes` (names of TILE_PASSES); the
+    image, depth and normal need none."""
+    return frozenset(feature for name in passes for feature in PASS_FEATURES.get(name, ()))
+
 
 def scene_features(geometry: Geometry, view: View, used_materials=None,
                    instances=None) -> frozenset:

@@ -219,10 +219,11 @@ typedef struct {
 // miss). At each surface: its emission and direct light from every light, the world and the
 // emissive triangles (multiple importance sampling against the BSDF), then one BSDF sample to
 // continue. A path that reaches a bounce limit still traces its last BSDF ray to collect the
-// light it hits (as Cycles), so direct light is complete with any limit.
+// light it hits (as Cycles), so direct light is complete with any limit. `film` collects the
+// frame's other passes (film.cl).
 inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, float3 d,
                          Rng *rng, const PathLimits *limits, float *depth, float3 *normal,
-                         float *alpha)
+                         float *alpha, Film *film)
 {
     float3 radiance = (float3)(0.0f, 0.0f, 0.0f), beta = (float3)(1.0f, 1.0f, 1.0f);
     float along = kd_dot(d, CAMERA_VIEW_AXIS(cam));     // view-axis distance per unit of t
@@ -257,7 +258,9 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
             float3 Le = area_light_hit(sc, o, d, hit ? h.t : INFINITY, &pdf_l);
             if (any(Le != 0.0f)) {
                 float w = pdf_prev > 0.0f ? mis_weight(pdf_prev, n_light * pdf_l) : 1.0f;
-                radiance += clamp_sample(beta * Le * w, limit_found);
+                float3 found = clamp_sample(beta * Le * w, limit_found);
+                radiance += found;
+                film_light(film, found, false);
                 break;
             }
         }
@@ -283,7 +286,9 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
             if (!primary)
                 Le += sun_disks(sc, d, pdf_prev, n_light);
 #endif
-            radiance += clamp_sample(beta * Le, limit_found);
+            float3 found = clamp_sample(beta * Le, limit_found);
+            radiance += found;
+            film_light(film, found, false);
             break;
         }
         Surface s = surface_at(sc, &h, d);
@@ -327,9 +332,12 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
             *alpha = fmax(*alpha - cs.holdout * mean3(beta), 0.0f);
 #endif
 #ifdef HAS_EMISSION
-        if (any(cs.emission > 0.0f))
-            radiance += clamp_sample(beta * cs.emission * emission_mis(sc, &h, d, pdf_prev,
-                                                                       n_light), limit_found);
+        if (any(cs.emission > 0.0f)) {
+            float3 found = clamp_sample(beta * cs.emission * emission_mis(sc, &h, d, pdf_prev,
+                                                                          n_light), limit_found);
+            radiance += found;
+            film_light(film, found, bounces == 0);
+        }
 #endif
         float p_pass = 0.0f;
 #ifdef HAS_ALPHA
@@ -339,8 +347,10 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         if (see_through > 0.0f) {
             p_pass = see_through / (see_through + cs.scatter);
             pass = rng_next(rng) < p_pass;
-            if (pass)
+            if (pass) {
                 beta *= cs.transparency / p_pass;
+                film_scale(film, cs.transparency / p_pass);
+            }
         }
 #endif
 #else
@@ -366,10 +376,14 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         if (!(cs.scatter > 0.0f))
             break;
         beta *= cs.scatter / (1.0f - p_pass);
+        film_scale(film, (float3)(cs.scatter / (1.0f - p_pass)));
 #elif defined(HAS_EMISSION)
-        if (any(m.emission > 0.0f))
-            radiance += clamp_sample(beta * m.emission * emission_mis(sc, &h, d, pdf_prev,
-                                                                      n_light), limit_found);
+        if (any(m.emission > 0.0f)) {
+            float3 found = clamp_sample(beta * m.emission * emission_mis(sc, &h, d, pdf_prev,
+                                                                         n_light), limit_found);
+            radiance += found;
+            film_light(film, found, bounces == 0);
+        }
 #endif
         if (last)
             break;
@@ -386,6 +400,8 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
         lobes.unbumped = to_local(&fr, m.unbumped);
 #endif
+        film_surface(film, cam, &m, &lobes, wo_l.z, s.ns, beta, bounces == 0,
+                     (t_before + h.t) * kd_length(d));
         rng->depth = (uint)bounces;     // the point sequences of this scattering event
         radiance += direct_light(sc, &s, &m, &lobes, &fr, wo_l, beta, limit, rng);
 #ifdef HAS_BOUNCES

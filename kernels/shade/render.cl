@@ -80,12 +80,13 @@ inline float filter_offset(__global const float4 *cam, float u)
 }
 
 // Samples sample_start .. + sample_count of pixel `here` (tile-local index) into its accum
-// record (render_samples).
+// record and, with HAS_FILM, its FILM record in `film` (render_samples).
 inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits *limits,
                          int here, int x0, int y0, int tile_w, int sample_start,
                          int sample_count, int strata, uint seed, int write_aux,
                          __global float4 *accum,
-                         __global float *out_depth, __global float *out_normal)
+                         __global float *out_depth, __global float *out_normal,
+                         __global float4 *film)
 {
     int px = x0 + here % tile_w, py = y0 + here / tile_w;
     uint pixel_index = (uint)py * (uint)CAMERA_WIDTH(cam) + (uint)px;   // global: same on every slave
@@ -93,6 +94,13 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
     float4 sum[ACCUM_SIZE];         // this pixel's ACCUM record, kept in registers
     for (int k = 0; k < ACCUM_SIZE; ++k)
         sum[k] = accum[ACCUM_SIZE * here + k];
+#ifdef HAS_FILM
+    float4 film_sum[FILM_SIZE];     // and its FILM record
+    for (int k = 0; k < FILM_SIZE; ++k)
+        film_sum[k] = film[FILM_SIZE * here + k];
+#else
+    float4 *film_sum = 0;
+#endif
     float depth;
     float3 normal;
     for (int k = 0; k < sample_count; ++k) {
@@ -119,7 +127,8 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
         camera_ray(cam, (float)px + 0.5f + filter_offset(cam, jx),
                    (float)py + 0.5f + filter_offset(cam, jy), lens, time, &o, &d);
         float alpha;
-        float3 c = trace_path(sc, cam, o, d, &rng, limits, &depth, &normal, &alpha);
+        Film path_film = film_path(film_sum);
+        float3 c = trace_path(sc, cam, o, d, &rng, limits, &depth, &normal, &alpha, &path_film);
         if (!all(isfinite(c)))
             c = (float3)(0.0f, 0.0f, 0.0f);                 // never let NaN/inf reach a pixel
         if (write_aux && strata == 0 && k == 0) {
@@ -134,6 +143,10 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
     }
     for (int k = 0; k < ACCUM_SIZE; ++k)
         accum[ACCUM_SIZE * here + k] = sum[k];
+#ifdef HAS_FILM
+    for (int k = 0; k < FILM_SIZE; ++k)
+        film[FILM_SIZE * here + k] = film_sum[k];
+#endif
     if (write_aux && strata > 0) {
         // Depth and normal from the pixel centre, as with one sample.
 #ifdef HAS_OBJECT_MOTION
@@ -172,12 +185,18 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
 // centre (one sample). pixels[i]: tile-local index (row * tile_w + column).
 // accum: ACCUM records (sums of RGB and alpha, the sample count, the odd samples' RGB).
 // write_aux: also write the depth and normal passes (from the pixel-centre ray).
+// film (HAS_FILM): FILM records, the sums of the other passes the frame asks for (film.cl).
 // With RENDER_PIXEL_QUEUE (CPU devices) a few work-items take the pixels in turn from the
 // counter next_pixel (0 at launch), one at a time as each finishes one: a tile's pixels differ
 // in cost many times over, and PoCL shares work-groups out between its threads in halves, so
 // one thread would wait for the other. Otherwise one work-item per pixel. The pixels do not
 // depend on which work-item renders them. The parameters are core/layout.py's RENDER_SAMPLES
 // table (the header's RENDER_SAMPLES_PARAMS), which slave/tracer.py passes its arguments by.
+#ifdef HAS_FILM
+#define FILM_BUFFER film
+#else
+#define FILM_BUFFER 0
+#endif
 __kernel void render_samples(RENDER_SAMPLES_PARAMS)
 {
     Scene sc;
@@ -211,5 +230,5 @@ __kernel void render_samples(RENDER_SAMPLES_PARAMS)
     if (i < pixel_count)
 #endif
         render_pixel(&sc, cam, &limits, pixels[i], x0, y0, tile_w, sample_start, sample_count,
-                     strata, seed, write_aux, accum, out_depth, out_normal);
+                     strata, seed, write_aux, accum, out_depth, out_normal, FILM_BUFFER);
 }
