@@ -7,6 +7,7 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
 
 from ..core.accel.compact import USER_SETTING_LIMITS as TREE_LIMITS, compact_params
 from ..core.frame import viewport
+from ..core.frame import denoising as DENOISING
 from ..core.frame.options import DISCOVERY_SECONDS_RANGE, LOCAL_SLAVES_RANGE, FrameOptions
 from ..core.net.master import DEFAULT_TILE_SIZE, DEFAULT_TILES_IN_FLIGHT, MAX_TILES_IN_FLIGHT
 from ..core.net.protocol import DEFAULT_MODEL, DEFAULT_PORT, MAX_TILE_SIZE
@@ -18,6 +19,11 @@ from ..core.scene.tree_files import DEFAULT_LIMIT_MIB as TREE_FILES_MIB, LIMIT_M
 RENDER = RenderSettings()
 TREE = compact_params()             # the default mode, compressed, and its thresholds
 FRAME = FrameOptions()              # how slaves are found, tiles handed out
+PREFILTER_TEXT = {"NONE": "No prefiltering: for guides without noise",
+                  "FAST": "The guides are denoised together with the image",
+                  "ACCURATE": "Each guide is denoised first (slower, sharper)"}
+QUALITY_TEXT = {"HIGH": "The best quality", "BALANCED": "Between quality and speed",
+                "FAST": "The fastest, lowest quality"}
 
 
 class KDTraceHost(bpy.types.PropertyGroup):
@@ -155,6 +161,21 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         min=LIMITS["filter_width"][0], max=LIMITS["filter_width"][1], subtype="PIXEL")
     seed: IntProperty(name="Seed", description="Seed of the sampling pattern",
                       default=RENDER.seed, min=LIMITS["seed"][0], max=LIMITS["seed"][1])
+    # Sampling > Denoise, as Cycles' (defaults and choices: core/frame/denoising.py).
+    use_denoising: BoolProperty(
+        name="Denoise", description="Denoise the rendered image with Open Image Denoise once "
+        "the last tile is in (the whole image at once: no seams between tiles)",
+        default=DENOISING.DENOISE)
+    denoising_prefilter: EnumProperty(
+        name="Prefilter", description="How the albedo and normal guides are cleaned before "
+        "denoising", items=[(name, name.title(), PREFILTER_TEXT[name], index)
+                            for index, name in enumerate(DENOISING.PREFILTER_CHOICES)],
+        default=DENOISING.PREFILTER)
+    denoising_quality: EnumProperty(
+        name="Quality", description="Open Image Denoise's quality mode",
+        items=[(name, name.title(), QUALITY_TEXT[name], index)
+               for index, name in enumerate(DENOISING.QUALITY_CHOICES)],
+        default=DENOISING.QUALITY)
 
     # The kd-tree layout (core/accel/compact.py, docs/kdtree_compression.md); part of the scene
     # the slaves receive, so a change gives another scene hash (and one upload).

@@ -10,6 +10,7 @@ import traceback
 import numpy as np
 
 from ..core.accel.compact import user_settings
+from ..core.frame.denoising import DenoiseSettings
 from ..core.frame.options import FrameOptions
 from ..core.frame.render import FRAME_ERRORS, FrameError, FrameHost, render_frame, summary
 from ..core.net.slave_colors import slave_color
@@ -73,7 +74,9 @@ def frame_options(settings, prefs, view_layer) -> FrameOptions:
         tile_size=settings.tile_size, tiles_in_flight=settings.tiles_in_flight,
         partition=None if settings.tile_partition == "SIZE" else int(settings.tile_partition),
         model=settings.interaction, payload=settings.payload.split("_")[0].lower(),
-        compress=settings.payload.endswith("ZLIB"), passes=passes)
+        compress=settings.payload.endswith("ZLIB"), passes=passes,
+        denoise=DenoiseSettings(settings.use_denoising, settings.denoising_prefilter,
+                                settings.denoising_quality))
 
 
 def listed_hosts(settings) -> list[tuple[str, int]]:
@@ -128,6 +131,9 @@ class EngineHost(FrameHost):
     def tile(self, tile) -> None:
         self.canvas.add(tile)
 
+    def denoised(self, job, noisy) -> None:
+        self.canvas.denoised(noisy)
+
     def end(self, job) -> None:
         self.canvas.finish()
 
@@ -141,7 +147,8 @@ class TileCanvas:
     its slave's colour) is written in one go, so the final Combined pass carries no frames.
     """
 
-    BLENDER_PASSES = {"combined": "Combined", "depth": "Depth", "normal": "Normal"}
+    BLENDER_PASSES = {"combined": "Combined", "depth": "Depth", "normal": "Normal",
+                      "albedo": "Denoising Albedo", "denoising_normal": "Denoising Normal"}
 
     def __init__(self, engine, job):
         x0, y0, x1, y1 = job.view.region
@@ -162,6 +169,11 @@ class TileCanvas:
             framed[:, edge] = color
         self._write(left, top, tile.w, tile.h, {"Combined": framed})
         self.received += 1
+
+    def denoised(self, noisy):
+        """The master denoised Combined (in place, job.image); `noisy`: the image before, for
+        the Noisy Image pass."""
+        self.passes["Noisy Image"] = noisy
 
     def finish(self):
         """Write the clean region (what arrived; the rest stays empty on a cancel)."""

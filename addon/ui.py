@@ -58,6 +58,23 @@ class RENDER_PT_kdtrace_sampling(KDTracePanel, bpy.types.Panel):
         col.prop(settings, "viewport_time_limit", text="Time Limit")
 
 
+class RENDER_PT_kdtrace_denoise(KDTracePanel, bpy.types.Panel):
+    """As Cycles' Sampling > Denoise: the master denoises the finished image (Open Image
+    Denoise, Blender's own library)."""
+    bl_label = "Denoise"
+    bl_parent_id = "RENDER_PT_kdtrace_sampling"
+
+    def draw_header(self, context):
+        self.layout.prop(context.scene.kdtrace, "use_denoising", text="")
+
+    def draw(self, context):
+        layout, settings = property_layout(self, context)
+        layout.active = settings.use_denoising
+        layout.label(text="Open Image Denoise, albedo and normal")
+        layout.prop(settings, "denoising_prefilter")
+        layout.prop(settings, "denoising_quality")
+
+
 class RENDER_PT_kdtrace_light_paths(KDTracePanel, bpy.types.Panel):
     """As Cycles' Light Paths panel: Max Bounces, Clamping, Caustics."""
     bl_label = "Light Paths"
@@ -262,6 +279,12 @@ class RENDER_PT_kdtrace_legend(KDTracePanel, bpy.types.Panel):
             grid.label(text=status.state)
         if state.local_reason:
             self.layout.label(text=f"Local slaves started: {state.local_reason}", icon="CONSOLE")
+        report = state.last_render
+        if report.get("denoised"):
+            self.layout.label(text=f"Denoised in {report['denoise_seconds']:.2f} s "
+                                   f"({report['denoise_note']})")
+        elif report.get("denoise_note", "off") not in ("off", "frame not finished"):
+            self.layout.label(text=f"Not denoised: {report['denoise_note']}", icon="ERROR")
 
 
 def color_icon(color) -> str:
@@ -273,7 +296,7 @@ def color_icon(color) -> str:
     return min(palette, key=lambda icon: sum((a - b) ** 2 for a, b in zip(palette[icon], color)))
 
 
-classes = (KDTRACE_UL_hosts, RENDER_PT_kdtrace, RENDER_PT_kdtrace_sampling,
+classes = (KDTRACE_UL_hosts, RENDER_PT_kdtrace, RENDER_PT_kdtrace_sampling, RENDER_PT_kdtrace_denoise,
            RENDER_PT_kdtrace_light_paths, RENDER_PT_kdtrace_film, RENDER_PT_kdtrace_motion_blur,
            OBJECT_PT_kdtrace_visibility, RENDER_PT_kdtrace_kdtree, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_network,
            RENDER_PT_kdtrace_legend)

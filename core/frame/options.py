@@ -9,6 +9,7 @@ from ..accel.compact import compact_params, user_settings
 from ..net import protocol
 from ..net.master import DEFAULT_TILE_SIZE, DEFAULT_TILES_IN_FLIGHT
 from ..scene.tree_files import DEFAULT_LIMIT_MIB
+from .denoising import DenoiseSettings
 
 DISCOVERY_SECONDS = 3.0           # how long F12 waits for a young LAN browser's first slave
 DISCOVERY_SECONDS_RANGE = (0.1, 30.0)
@@ -48,10 +49,13 @@ class FrameOptions:
     model: str = protocol.DEFAULT_MODEL
     payload: str = "f32"
     compress: bool = False
-    passes: tuple = ("combined",)
+    passes: tuple = ("combined",)     # the passes the host shows
+    # the master's denoising of the finished frame (core/frame/denoising.py)
+    denoise: DenoiseSettings = field(default_factory=DenoiseSettings)
 
     def job_options(self) -> dict:
-        """Master.render's keyword arguments."""
+        """Master.render's keyword arguments (the passes: those the host shows; an F12 frame
+        adds the denoiser's guides, render_frame)."""
         return {"tile_size": self.tile_size, "tiles_in_flight": self.tiles_in_flight,
                 "partition": self.partition, "model": self.model, "payload": self.payload,
                 "compress": self.compress, "passes": list(self.passes),

@@ -12,6 +12,7 @@ from ..net.slave_colors import slave_color
 from ..net.trust import AllowList, AuthError
 from ..scene.model import SceneError
 from ..scene.scene import memory_report, memory_summary
+from .denoising import denoise_frame, with_guides
 from .options import FrameOptions
 from .session import FrameSession
 
@@ -55,6 +56,10 @@ class FrameHost:
     def tile(self, tile) -> None:
         """A tile arrived (core.net.master.TileResult); its pixels are in job.image already."""
 
+    def denoised(self, job, noisy) -> None:
+        """The master denoised job.image's Combined pass in place (after the last tile, before
+        end); `noisy` is the image before (Blender's Noisy Image pass)."""
+
     def end(self, job) -> None:
         """The frame is over (finished, cancelled or failed): job.image is the image."""
 
@@ -90,13 +95,15 @@ def render_frame(session: FrameSession, exported, view, options: FrameOptions, h
             steps.mark("scene query")
             for problem in master.errors:
                 host.report("WARNING", f"KD Trace: {problem}")
-            job = master.render(view, **options.job_options())
+            job = master.render(view, **with_guides(options.job_options(), options.denoise))
             host.begin(job)
             steps.mark("frame start")
             try:
                 _receive_tiles(session, host, job, legend, master,
                                local_takeover(session, options, host, master), steps)
                 steps.mark("other tiles")
+                denoised = denoise_frame(session.denoiser, options.denoise, job, host)
+                steps.mark("denoise")
             finally:
                 host.end(job)
                 steps.mark("image")
@@ -123,7 +130,7 @@ def render_frame(session: FrameSession, exported, view, options: FrameOptions, h
         "tiles_per_slave": per_slave,
         "slave_colors": {name: slave_color(name) for name in per_slave},
         "uploaded_to": uploaded_to, "scene_bytes": scene_bytes, "cancelled": job.cancelled,
-        "local_reason": session.local_reason,
+        "local_reason": session.local_reason, **denoised,
         "joined_during_frame": [f"{host}:{port}" for host, port in session.joined]}
     return session.last_render
 
@@ -176,7 +183,9 @@ def summary(report: dict) -> str:
             f"{report['tree_seconds']:.2f} s ({stats['mode']}: {report['tree_nodes']:,} nodes, "
             f"{report['tree_bytes'] / 1e6:.1f} MB; {stats['builder']} builder on "
             f"{stats['device']}); {memory_summary(report['memory'])}; render "
-            f"{report['render_seconds']:.2f} s; tiles: "
+            f"{report['render_seconds']:.2f} s"
+            + (f" (denoised in {report['denoise_seconds']:.2f} s)" if report.get("denoised")
+               else "") + "; tiles: "
             + ", ".join(f"{name} {count}" for name, count in sorted(per_slave.items()))
             + (f"; local slaves started: {report['local_reason']}" if report["local_reason"] else "")
             + ("; joined during the frame: " + ", ".join(report["joined_during_frame"])

@@ -13,6 +13,7 @@ import numpy as np
 from ..net.slave_colors import slave_color
 from ..scene.scene import Scene
 from ..scene.spatial_order import spatial_order
+from .denoising import FrameDenoiser
 from .local_slaves import LocalSlaves
 from .tree_cache import TreeCache
 
@@ -82,6 +83,7 @@ class FrameSession:
         # for the panel's Approve buttons.
         self.unapproved: dict = {}
         self._identity = None        # this master's (master_identity)
+        self.denoiser = FrameDenoiser()  # Open Image Denoise, made at the first denoised frame
 
     def master_identity(self, folder=None):
         """This master's identity: kept in `folder` (the add-on: its user folder), made there
@@ -212,3 +214,4 @@ class FrameSession:
     def close(self):
         self.stop_browser()
         self.local_slaves.stop_all()
+        self.denoiser.close()
