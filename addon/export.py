@@ -11,12 +11,14 @@ exported only when the scene needs them (core/scene/features.py).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import numpy as np
 
 from ..core.frame.exported import InstancedExport
 from ..core.layout import VISIBILITY_CODES, VISIBLE_TO_ALL
 from ..core.scene.instances import blend_stays_invertible
+from ..core.scene.spatial_order import spatial_order
 from ..core.scene.features import needed_arrays, scene_features, strip_geometry
 from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
                                 MAX_MATERIALS, RenderSettings, SceneError, Shading, View,
@@ -137,6 +139,8 @@ class _MaterialTable:
         self._spatial = {}          # material key -> its NodeProgram reading the hit's position
         self._uv_programs = set()   # keys of the materials whose node program reads UVs
         self.named_uv_maps = {}     # material key -> UV maps its UV Map nodes name
+        self.attributes = {}        # mesh attribute name -> its corners' texture (a placeholder
+        #                             in self.textures until fill_attributes)
 
     def index(self, material, obj_name: str | None = None,
               visibility: int = VISIBLE_TO_ALL, placement=None) -> int:
@@ -169,7 +173,8 @@ class _MaterialTable:
         if key not in self._index:
             owner = f"material '{material.name}'" if material is not None else "material"
             closures, problems = material_closures(
-                material, lambda: NodeProgram(lambda image: self.texture(image, owner)))
+                material, lambda: NodeProgram(lambda image: self.texture(image, owner),
+                                              self.attribute, getattr(material, "pass_index", 0)))
             self._index[key] = self._reserve(len(closures))
             spatial = []
             for k, closure in enumerate(closures):
@@ -260,6 +265,30 @@ class _MaterialTable:
     def params(self) -> np.ndarray:
         return np.array(self._params, np.float32)
 
+    def attribute(self, name: str) -> int:
+        """The texture that will hold mesh attribute `name`'s value at every triangle corner
+        ("": the default colour attribute) for Color Attribute and Attribute nodes."""
+        if name not in self.attributes:
+            self.attributes[name] = len(self.textures)
+            self.textures.append(None)
+        return self.attributes[name]
+
+    def fill_attributes(self, corners: dict) -> None:
+        """Each attribute's corner values (name -> (T, 3, 4) float32, the realised triangles in
+        order; missing: zeros) as a texture of 4096 texels a row (corner 3 t + k at texel
+        3 t + k), half floats."""
+        count = next((len(v) for v in corners.values()), 0)
+        for name, index in self.attributes.items():
+            values = corners.get(name)
+            flat = np.zeros((max(3 * count, 1), 4), np.float32)
+            if values is not None:
+                flat[:3 * count] = np.clip(np.nan_to_num(values.reshape(-1, 4)), -HALF_MAX, HALF_MAX)
+            width = min(len(flat), 4096)
+            height = -(-len(flat) // width)
+            texels = np.zeros((width * height, 4), np.float16)
+            texels[:len(flat)] = flat
+            self.textures[index] = (texels, width, height)
+
     def texture_arrays(self):
         if not self.textures:
             return None, None
@@ -299,25 +328,49 @@ def normal_matrix(linear: np.ndarray) -> np.ndarray:
     return np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)], axis=1).astype(np.float32)
 
 
+def object_random_id(name: str) -> int:
+    """Cycles' random id of an object that is not an instance (Object Info's Random): Bob
+    Jenkins' lookup3 (hash_uint2) of its name's hash_string (i = 37 i + byte) and 0."""
+    def rot(x, k):
+        return ((x << k) | (x >> (32 - k))) & 0xFFFFFFFF
+    i = 0
+    for byte in name.encode():
+        i = (i * 37 + byte) & 0xFFFFFFFF
+    a = b = c = (0xDEADBEEF + (2 << 2) + 13) & 0xFFFFFFFF
+    a = (a + i) & 0xFFFFFFFF
+    for x, y, k in (("c", "b", 14), ("a", "c", 11), ("b", "a", 25), ("c", "b", 16), ("a", "c", 4),
+                    ("b", "a", 14), ("c", "b", 24)):
+        v = {"a": a, "b": b, "c": c}
+        v[x] = ((v[x] ^ v[y]) - rot(v[y], k)) & 0xFFFFFFFF
+        a, b, c = v["a"], v["b"], v["c"]
+    return c
+
+
 class Placement:
     """Where an object instance is, for node programs: `matrices` maps "OBJECT" and
     "GENERATED" to 3 x 4 world -> coordinates matrices (Object: the inverse of its world
     matrix; Generated: then Cycles' texture space map, (P - location) / (2 size) + 0.5 per
     axis, 0.5 where a size is 0); `key` tells placements apart."""
 
-    def __init__(self, matrix_world, texspace_location, texspace_size):
+    def __init__(self, matrix_world, texspace_location, texspace_size, obj=None, random_id=0):
         to_object = object_inverse(np.asarray(matrix_world, np.float64))[:3]
         size = np.asarray(texspace_size, np.float64)
         scale = np.where(size != 0, 0.5 / np.where(size != 0, size, 1.0), 0.0)
         offset = 0.5 - np.asarray(texspace_location, np.float64) * scale
         generated = scale[:, None] * to_object
         generated[:, 3] += offset
-        self.matrices = {"OBJECT": to_object, "GENERATED": generated}
-        self.key = np.concatenate([to_object.ravel(), generated.ravel()]).tobytes()
+        # Object Info (Cycles' object data): location and Random (random_id / 2^32 - 1, as
+        # Cycles), colour and alpha, pass index.
+        colour = tuple(obj.color) if obj is not None else (1.0, 1.0, 1.0, 1.0)
+        info = np.array([[*np.asarray(matrix_world, np.float64)[:3, 3],
+                          float(np.float32(random_id & 0xFFFFFFFF) * np.float32(1.0 / 0xFFFFFFFF))],
+                         colour, [float(getattr(obj, "pass_index", 0)), 0.0, 0.0, 0.0]])
+        self.matrices = {"OBJECT": to_object, "GENERATED": generated, "INFO": info}
+        self.key = np.concatenate([to_object.ravel(), generated.ravel(), info.ravel()]).tobytes()
 
 
 
-def _mesh_arrays(mesh, want_normals: bool, want_uvs: bool) -> dict:
+def _mesh_arrays(mesh, want_normals: bool, want_uvs: bool, attributes=()) -> dict:
     """Vertices (V,3) float32, triangles (T,3), per-triangle slot indices, and when asked and
     present: corner normals (T,3,3) (only if some face is smooth) and corner UVs (T,3,2).
 
@@ -328,7 +381,7 @@ def _mesh_arrays(mesh, want_normals: bool, want_uvs: bool) -> dict:
     triangles only needs no loop triangles: its triangle i is face i, corners 3i to 3i+2."""
     if not len(mesh.polygons):   # no corners (and an empty mesh has no positions either)
         return {"vertices": np.zeros((0, 3), np.float32), "triangles": np.zeros((0, 3), np.int32),
-                "slots": np.zeros(0, np.int32), "normals": None, "uvs": None}
+                "slots": np.zeros(0, np.int32), "normals": None, "uvs": None, "attributes": {}}
     vertices = _attribute(mesh, "position", np.float32, 3)
     corner_vertex = _attribute(mesh, ".corner_vert", np.int32)
     if len(mesh.loops) == 3 * len(mesh.polygons):   # every face a triangle (>= 3 corners each)
@@ -350,7 +403,11 @@ def _mesh_arrays(mesh, want_normals: bool, want_uvs: bool) -> dict:
     else:
         slots = np.zeros(len(triangles), np.int32)
     out = {"vertices": vertices, "triangles": triangles,
-           "slots": slots, "normals": None, "uvs": None}
+           "slots": slots, "normals": None, "uvs": None, "attributes": {}}
+    for name in attributes:             # Color Attribute / Attribute nodes' values per corner
+        values = _corner_attribute(mesh, name, corner_vertex)
+        if values is not None:
+            out["attributes"][name] = per_corner(values).reshape(-1, 3, 4)
     if want_normals and len(triangles) and (mesh.has_custom_normals or _has_smooth_faces(mesh)):
         normals = np.empty(len(mesh.loops) * 3, np.float32)
         mesh.corner_normals.foreach_get("vector", normals)
@@ -365,6 +422,39 @@ def _mesh_arrays(mesh, want_normals: bool, want_uvs: bool) -> dict:
             uv = uv.reshape(-1, 2)
         out["uvs"] = per_corner(uv).reshape(-1, 3, 2)
     return out
+
+
+def _corner_attribute(mesh, name: str, corner_vertex):
+    """Mesh attribute `name` ("": the colour attribute Cycles renders by default) as RGBA per
+    face corner (float32; colours linear, a value in all three, a vector's xyz; alpha 1), from
+    its point, corner or face domain; None without one."""
+    if not name:
+        name = mesh.color_attributes.default_color_name or ""
+    attribute = mesh.attributes.get(name) if name else None
+    if attribute is None or attribute.domain not in ("POINT", "CORNER", "FACE"):
+        return None
+    width = {"FLOAT_COLOR": 4, "BYTE_COLOR": 4, "FLOAT_VECTOR": 3, "FLOAT2": 2, "FLOAT": 1,
+             "INT": 1, "BOOLEAN": 1}.get(attribute.data_type)
+    if width is None:
+        return None
+    prop = "color" if width == 4 else "vector" if width > 1 else "value"
+    raw = np.empty(len(attribute.data) * width, np.float32 if prop != "value" or
+                   attribute.data_type == "FLOAT" else np.int32)
+    attribute.data.foreach_get(prop, raw)
+    raw = raw.astype(np.float32).reshape(-1, width)
+    rgba = np.ones((len(raw), 4), np.float32)
+    rgba[:, :min(width, 3) if width < 4 else 4] = raw[:, :4]
+    if width == 1:
+        rgba[:, 1:3] = rgba[:, :1]
+    elif width == 2:
+        rgba[:, 2] = 0.0
+    if attribute.domain == "POINT":
+        rgba = rgba[corner_vertex]
+    elif attribute.domain == "FACE":        # each corner of a face: the face's value
+        starts = np.empty(len(mesh.polygons), np.int32)
+        mesh.polygons.foreach_get("loop_start", starts)
+        rgba = rgba[np.searchsorted(starts, np.arange(len(mesh.loops)), side="right") - 1]
+    return rgba
 
 
 def render_uv_layer(mesh):
@@ -455,7 +545,7 @@ class _MeshParts:
         # triangles.view: the corners' int32 vertex indices (>= 0) as the uint32 stored.
         self.parts.append({"v": placed32, "t": triangles.view(np.uint32), "keep": keep,
                            "base": self.vertex_count, "m": slot_materials.take(slots, mode="clip"),
-                           "n": normals, "uv": arrays["uvs"]})
+                           "n": normals, "uv": arrays["uvs"], "attr": arrays["attributes"]})
         self.vertex_count += len(vertices)
 
     def _warn(self, name, message):
@@ -466,6 +556,13 @@ class _MeshParts:
     @property
     def empty(self) -> bool:
         return not self.parts
+
+    def corner_attributes(self, names) -> dict:
+        """The gathered triangles' attribute values per corner (name -> (T, 3, 4) float32;
+        zeros where an object has none), in the order geometry() keeps the triangles."""
+        keeps = [p["keep"] for p in self.parts]
+        return {name: _kept([p["attr"].get(name, np.zeros((len(p["t"]), 3, 4), np.float32))
+                             for p in self.parts], keeps) for name in names} if self.parts else {}
 
     def geometry(self, with_uvs: bool, texels=None, sizes=None) -> Geometry:
         """The gathered triangles; `with_uvs`: UVs for every triangle (zeros where an object
@@ -546,16 +643,17 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
                                 "skipped")
             continue
         visibility = object_visibility(obj)
-        placement = Placement(matrix, mesh.texspace_location, mesh.texspace_size)
+        placement = Placement(matrix, mesh.texspace_location, mesh.texspace_size, obj,
+                              instance.random_id if instance.is_instance else object_random_id(obj.name))
         slot_materials = np.array(
             [materials.index(slot.material, name, visibility, placement)
              for slot in obj.material_slots]
             or [materials.index(None, name, visibility)], np.uint16)
         textured = any(materials.uses_texture(slot.material) for slot in obj.material_slots)
         _warn_other_uv_maps(obj, mesh, name, materials, warnings, warned)
-        key = (mesh.as_pointer(), textured)
+        key = (mesh.as_pointer(), textured, tuple(materials.attributes))
         if key not in mesh_cache:
-            mesh_cache[key] = _mesh_arrays(mesh, True, textured)
+            mesh_cache[key] = _mesh_arrays(mesh, True, textured, materials.attributes)
         arrays = mesh_cache[key]
         if len(arrays["triangles"]) == 0:
             if name not in warned:
@@ -593,15 +691,26 @@ def _export_geometry(depsgraph, materials: _MaterialTable, warnings: list,
             instance_mesh.append(shared)
             to_world.append(matrix)
             to_world_end.append(matrix if end is None else end)
+    with_uvs = bool(materials.textures) or bool(materials.node_rows)  # textures, node programs
+    realised = world.geometry(with_uvs)
+    # Color Attribute / Attribute nodes read the realised triangles' corners (node programs put
+    # their objects there: mesh 0 of an instanced export) by triangle index: those triangles go
+    # in spatial order here already (the frame session finds them sorted and keeps the order,
+    # core/scene/spatial_order.py), so that the corner arrays stay with their triangles.
+    corners = world.corner_attributes(materials.attributes)
+    if corners:
+        realised, order = spatial_order(realised)
+        corners = {name: values if order is None else values[order]
+                   for name, values in corners.items()}
+    materials.fill_attributes(corners)
     texels, sizes = materials.texture_arrays()
-    with_uvs = texels is not None or bool(materials.node_rows)  # textures, node programs
     if not instanced:
-        return world.geometry(with_uvs, texels, sizes)
+        return dataclasses.replace(realised, texels=texels, texture_sizes=sizes)
     kept = {k: i for i, k in enumerate(k for k, parts in meshes.items() if not parts.empty)}
     instance_mesh = [kept[k] for k in instance_mesh]
     out = [meshes[k].geometry(with_uvs) for k in kept]
     if not world.empty or not out:      # the realised triangles: mesh 0, placed by the identity
-        out.insert(0, world.geometry(with_uvs))
+        out.insert(0, realised)
         instance_mesh = [0] + [m + 1 for m in instance_mesh]
         to_world = [np.eye(4)] + to_world
         to_world_end = [np.eye(4)] + to_world_end

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.layout import (CLOSURE_CODES, MAX_CLOSURES, NODE_EXTENSION_CODES, NODE_GRADIENT_CODES,
+from ..core.layout import (CLOSURE_CODES, MAX_CLOSURES, NODE_ATTRIBUTE_CODES, NODE_EXTENSION_CODES,
+                           NODE_GEOMETRY_CODES, NODE_GRADIENT_CODES, NODE_LIGHT_PATH_CODES,
+                           NODE_OBJECT_INFO_CODES,
                            NODE_LAYER_WEIGHT_CODES, NODE_MATH_CODES, NODE_MIX_CODES,
                            NODE_NOISE_TYPE_CODES, NODE_NORMAL_SPACE_CODES,
                            NODE_OBJECT_NORMAL_SPACES, NODE_OP_CODES,
@@ -61,15 +63,18 @@ class NodeProgram:
     type, 1D to 4D), Color Ramp, Value and RGB; into a BSDF's Normal: Normal Map (tangent, object, world
     space) and Bump; emission as colour x strength. Another node makes its input keep its value, and the problem names it."""
 
-    def __init__(self, texture_index):
+    def __init__(self, texture_index, attribute_index=None, pass_index=0):
         self._texture_index = texture_index     # image -> texture table index
+        self._attribute_index = attribute_index     # mesh attribute name -> its corners' texture
+        self._pass_index = pass_index           # the material's pass index (Object Info)
         self._code = []                         # instructions: (op, dst, a, b, c, p0, p1, p2)
         self._ramps = []                        # (instruction index, table rows)
         self._values = {}                       # (node name, output) -> operand
         self._kinds = {}                        # operand -> its socket's type (RGBA, VECTOR)
         self._next = 0
         self.outputs = []
-        self.transforms = []                    # (instruction index, "OBJECT" or "GENERATED")
+        self.transforms = []                    # (instruction index, "OBJECT", "GENERATED" or
+        #                                         "INFO": Placement.matrices' tables)
         self.uv_maps = set()                    # UV maps UV Map nodes name ("": the default)
         self._step = 0                          # compiling a Bump's height: its step 0, 1, 2
 
@@ -409,6 +414,35 @@ class NodeProgram:
             return self._bump(node)
         if kind == "MAPPING":
             return self._mapping(node)
+        if kind == "LIGHT_PATH":
+            code = NODE_LIGHT_PATH_CODES[name.upper().replace(" ", "_")]
+            register = self._register()
+            self._emit("LIGHT_PATH", register, params=(float(code),))
+            return self._lane(register, 0)
+        if kind == "NEW_GEOMETRY" and name.upper().replace(" ", "_") in NODE_GEOMETRY_CODES:
+            code = NODE_GEOMETRY_CODES[name.upper().replace(" ", "_")]
+            register = self._register()
+            self._emit("GEOMETRY", register, params=(float(code), float(self._step)))
+            if name == "Backfacing":
+                return self._lane(register, 0)
+            self._kinds[self._whole(register)] = "VECTOR"
+            return self._whole(register)
+        if kind == "OBJECT_INFO":
+            if name == "Material Index":
+                return self._constant(float(self._pass_index))
+            register = self._register()
+            self.transforms.append((len(self._code), "INFO"))
+            self._emit("OBJECT_INFO", register,
+                       params=(0.0, float(NODE_OBJECT_INFO_CODES[name.upper().replace(" ", "_")])))
+            return self._whole(register) if name in ("Location", "Color") else self._lane(register, 0)
+        if kind in ("VERTEX_COLOR", "ATTRIBUTE") and self._attribute_index is not None and \
+                getattr(node, "attribute_type", "GEOMETRY") == "GEOMETRY":
+            attribute = node.layer_name if kind == "VERTEX_COLOR" else node.attribute_name
+            register = self._register()
+            code = {"Alpha": "ALPHA", "Fac": "FAC"}.get(name, "COLOR")
+            self._emit("ATTRIBUTE", register, params=(float(self._attribute_index(attribute)),
+                                                      float(NODE_ATTRIBUTE_CODES[code])))
+            return self._whole(register) if code == "COLOR" else self._lane(register, 0)
         if kind in ("FRESNEL", "LAYER_WEIGHT"):
             value = self._input(node, "IOR" if kind == "FRESNEL" else "Blend")
             normal = node.inputs["Normal"]

@@ -243,7 +243,8 @@ NODE_OP_CODES = {"END": 0, "CONST": 1, "UV": 2, "IMAGE": 3, "COMBINE": 4, "MIX":
                  "INVERT": 7, "CHECKER": 8, "RAMP": 9, "OUT": 10, "DOT": 11, "MAP_RANGE": 12,
                  "VECTOR_MATH": 13, "HSV": 14, "GRADIENT": 15, "TRANSFORM": 16, "NOISE": 17,
                  "NORMAL_MAP": 18, "BUMP": 19, "FRESNEL": 20, "LAYER_WEIGHT": 21, "VORONOI": 22,
-                 "WAVE": 23, "MAGIC": 24, "BRICK": 25, "WHITE_NOISE": 26}
+                 "WAVE": 23, "MAGIC": 24, "BRICK": 25, "WHITE_NOISE": 26, "ATTRIBUTE": 27,
+                 "OBJECT_INFO": 28, "GEOMETRY": 29, "LIGHT_PATH": 30}
 NODE_MIX_CODES = {"MIX": 0, "ADD": 1, "MULTIPLY": 2, "SUBTRACT": 3, "SCREEN": 4,
                   "DIFFERENCE": 5, "DARKEN": 6, "LIGHTEN": 7}
 # Blender's Math and Vector Math operations, every one (Cycles' svm_math, svm_vector_math).
@@ -286,6 +287,23 @@ NODE_WAVE_TYPE_CODES = {"BANDS": 0, "RINGS": 1}
 NODE_WAVE_BANDS_CODES = {"X": 0, "Y": 1, "Z": 2, "DIAGONAL": 3}
 NODE_WAVE_RINGS_CODES = {"X": 0, "Y": 1, "Z": 2, "SPHERICAL": 3}
 NODE_WAVE_PROFILE_CODES = {"SIN": 0, "SAW": 1, "TRI": 2}
+# Color Attribute / Attribute (ATTRIBUTE p0: the texture holding the value at each triangle
+# corner, p1: output), Object Info (OBJECT_INFO p0: its table, p1: output: the table's rows are
+# location and Random, colour and alpha, object and material pass index), Geometry (GEOMETRY
+# p0: output, p1: bump step), Light Path (LIGHT_PATH p0: output, Cycles' NodeLightPath order).
+NODE_ATTRIBUTE_CODES = {"COLOR": 0, "FAC": 1, "ALPHA": 2}
+NODE_OBJECT_INFO_CODES = {"LOCATION": 0, "COLOR": 1, "ALPHA": 2, "OBJECT_INDEX": 3,
+                          "MATERIAL_INDEX": 4, "RANDOM": 5}
+NODE_GEOMETRY_CODES = {"POSITION": 0, "NORMAL": 1, "TRUE_NORMAL": 2, "INCOMING": 3,
+                       "BACKFACING": 4}
+NODE_LIGHT_PATH_CODES = {"IS_CAMERA_RAY": 0, "IS_SHADOW_RAY": 1, "IS_DIFFUSE_RAY": 2,
+                         "IS_GLOSSY_RAY": 3, "IS_SINGULAR_RAY": 4, "IS_REFLECTION_RAY": 5,
+                         "IS_TRANSMISSION_RAY": 6, "IS_VOLUME_SCATTER_RAY": 7, "RAY_LENGTH": 9,
+                         "RAY_DEPTH": 10, "DIFFUSE_DEPTH": 11, "GLOSSY_DEPTH": 12,
+                         "TRANSPARENT_DEPTH": 13, "TRANSMISSION_DEPTH": 14, "PORTAL_DEPTH": 15}
+# The kind of a ray a node program sees (ShadeInfo.path): Cycles' PATH_RAY_* bits it reads.
+PATH_CODES = {"CAMERA": 1, "SHADOW": 2, "DIFFUSE": 4, "GLOSSY": 8, "SINGULAR": 16, "REFLECT": 32,
+              "TRANSMIT": 64}
 NODE_NORMAL_SPACE_CODES = {"TANGENT": 0, "OBJECT": 1, "WORLD": 2, "BLENDER_OBJECT": 3,
                            "BLENDER_WORLD": 4}      # Normal Map (NORMAL_MAP p1)
 NODE_OBJECT_NORMAL_SPACES = ("OBJECT", "BLENDER_OBJECT")    # these read the object's rows (p0)
@@ -333,6 +351,11 @@ CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("NODE_WAVE_BANDS", "Wave bands directions (WAVE p0 / 2 % 4)", NODE_WAVE_BANDS_CODES),
          Codes("NODE_WAVE_RINGS", "Wave rings directions (WAVE p0 / 8 % 4)", NODE_WAVE_RINGS_CODES),
          Codes("NODE_WAVE_PROFILE", "Wave profiles (WAVE p0 / 32)", NODE_WAVE_PROFILE_CODES),
+         Codes("NODE_ATTRIBUTE", "Attribute outputs (ATTRIBUTE p1)", NODE_ATTRIBUTE_CODES),
+         Codes("NODE_OBJECT_INFO", "Object Info outputs (OBJECT_INFO p1)", NODE_OBJECT_INFO_CODES),
+         Codes("NODE_GEOMETRY", "Geometry outputs (GEOMETRY p0)", NODE_GEOMETRY_CODES),
+         Codes("NODE_LIGHT_PATH", "Light Path outputs (LIGHT_PATH p0)", NODE_LIGHT_PATH_CODES),
+         Codes("PATH", "The kind of ray a node program sees (ShadeInfo path bits)", PATH_CODES),
          Codes("TOPLEVEL", "Top-level BVH sizes",
                {"LEAF_MAX": TOPLEVEL_LEAF_MAX, "MAX_DEPTH": TOPLEVEL_MAX_DEPTH}),
          Codes("NODE", "Shader node program sizes",

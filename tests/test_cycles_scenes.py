@@ -6,7 +6,8 @@ light, Film > Transparent with a holdout, ray visibility, depth of field, camera
 object motion blur, shader node programs and procedural textures, texture coordinates through
 Mapping nodes (as Blender's glTF importer makes them), the Material and World Output Cycles
 uses where there are several, Mix and Add Shaders (closures), Translucent and Transparent
-BSDFs, the Voronoi, Wave, Magic, Brick and White Noise textures, and odd input (an object
+BSDFs, the Voronoi, Wave, Magic, Brick and White Noise textures, Color Attribute, Attribute,
+Object Info, Geometry and Light Path, and odd input (an object
 scaled to 0 on an axis and on all, text, curve and metaball objects, an image that cannot be
 loaded, an area light flattened to a line). Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
 uses; what is not supported is named in warnings. docs/cycles_features.md lists the rows."""
@@ -50,6 +51,8 @@ SCENES = {
                       "SMOOTH", "SPECULAR", "TRANSPARENT_FILM", "VISIBILITY", "WORLD"}),
     "translucent": (12, {"ALPHA", "AREA", "BOUNCES", "CLOSURES", "SMOOTH", "TRANSLUCENT", "WORLD"}),
     "textures": (12, {"AREA", "BOUNCES", "NODES", "NOISE", "SMOOTH", "SPECULAR", "VORONOI", "WORLD"}),
+    "attributes": (12, {"ALPHA", "AREA", "BOUNCES", "CLOSURES", "EMISSION", "LIGHT_PATH", "NODES",
+                        "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
 }
 # What a scene's export may warn of (each warning names the object or material, and each
 # expected fragment is found): the rest must export without a warning.

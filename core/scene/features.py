@@ -35,6 +35,7 @@ FEATURES = {
     "NOISE": (),              # a node program evaluates a Noise, Wave, Magic, Brick or White Noise
                               # Texture
     "VORONOI": (),            # a node program evaluates a Voronoi Texture
+    "LIGHT_PATH": (),         # a node program reads the ray's kind or depths (Light Path)
     "NORMAL_MAP": (),         # a node program evaluates a Normal Map (sets the shading normal)
     "BUMP": (),               # a node program evaluates a Bump (heights at three points)
     "CLOSURES": (),           # materials of several closures (Mix / Add Shader) or of closures
@@ -96,7 +97,7 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
     if (programs >= 0).any():
         features.add("NODES")
         ops = program_instructions(shading.node_program, programs[programs >= 0])[:, 0]
-        for feature in ("NOISE", "NORMAL_MAP", "BUMP", "VORONOI"):
+        for feature in ("NOISE", "NORMAL_MAP", "BUMP", "VORONOI", "LIGHT_PATH"):
             if (ops == NODE_OP_CODES[feature]).any():
                 features.add(feature)
         if np.isin(ops, [NODE_OP_CODES[op] for op in ("WAVE", "MAGIC", "BRICK", "WHITE_NOISE")]).any():
@@ -175,9 +176,11 @@ def program_instructions(program: np.ndarray, starts) -> np.ndarray:
 
 
 def program_textures(program: np.ndarray, starts) -> set:
-    """The texture indices that the node programs starting at `starts` (rows, -1 none) read."""
+    """The texture indices that the node programs starting at `starts` (rows, -1 none) read
+    (Image Textures, and the corner arrays of Color Attributes)."""
     code = program_instructions(program, starts)
-    return {int(v) for v in code[code[:, 0] == NODE_OP_CODES["IMAGE"], 5]}
+    reads = np.isin(code[:, 0], [NODE_OP_CODES["IMAGE"], NODE_OP_CODES["ATTRIBUTE"]])
+    return {int(v) for v in code[reads, 5]}
 
 
 def needed_arrays(features) -> set:

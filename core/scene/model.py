@@ -531,7 +531,8 @@ def check_node_program(rows, starts) -> np.ndarray:
                           NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS,
                           NODE_TRANSFORM_SIZE)
     tables = {NODE_OP_CODES["RAMP"]: NODE_RAMP_SIZE, NODE_OP_CODES["TRANSFORM"]: NODE_TRANSFORM_SIZE,
-              NODE_OP_CODES["NORMAL_MAP"]: NODE_TRANSFORM_SIZE}     # object space: its rows
+              NODE_OP_CODES["NORMAL_MAP"]: NODE_TRANSFORM_SIZE,     # object space: its rows
+              NODE_OP_CODES["OBJECT_INFO"]: NODE_TRANSFORM_SIZE}
     object_spaces = [NODE_NORMAL_SPACE_CODES[k] for k in NODE_OBJECT_NORMAL_SPACES]
     if not isinstance(rows, list) or len(rows) > MAX_NODE_ROWS or len(rows) % 2:
         raise SceneError("node_program must be an even number of rows")
@@ -562,7 +563,8 @@ def check_node_program(rows, starts) -> np.ndarray:
                 raise SceneError(f"node program row {pc}: register out of range")
         if op == NODE_OP_CODES["OUT"] and w1[1] not in NODE_OUT_CODES.values():
             raise SceneError(f"node program row {pc}: unknown BSDF input {w1[1]}")
-        if op == NODE_OP_CODES["IMAGE"] and not (w1[1] == int(w1[1]) and 0 <= w1[1] < MAX_TEXTURES):
+        if op in (NODE_OP_CODES["IMAGE"], NODE_OP_CODES["ATTRIBUTE"]) and \
+                not (w1[1] == int(w1[1]) and 0 <= w1[1] < MAX_TEXTURES):
             raise SceneError(f"node program row {pc}: bad texture {w1[1]}")
         pc += 2
         skipped = True                  # the tables after an END, whatever their order

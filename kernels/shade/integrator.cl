@@ -30,6 +30,10 @@ inline float3 shadow(const Scene *sc, float3 o, float3 w, float dist, float3 tar
             // colour, Principled's 1 - alpha), as Cycles' transparent shadows.
             Surface at = surface_at(sc, &h, w);
             ShadeInfo info = shade_info(&at, w);
+#ifdef HAS_LIGHT_PATH
+            info.path = PATH_SHADOW;
+            info.length = h.t;
+#endif
             ClosureSum cs;
             closures_eval(sc, h.tri, h.u, h.v, 0, &info, 0.5f, &cs);
             T *= clamp(cs.transparency, 0.0f, 1.0f);
@@ -38,6 +42,10 @@ inline float3 shadow(const Scene *sc, float3 o, float3 w, float dist, float3 tar
 #elif defined(HAS_ALPHA) && defined(HAS_NODES)
             Surface at = surface_at(sc, &h, w);
             ShadeInfo info = shade_info(&at, w);
+#ifdef HAS_LIGHT_PATH
+            info.path = PATH_SHADOW;
+            info.length = h.t;
+#endif
             Material m = material_eval(sc, h.tri, h.u, h.v, 0, &info);
             T *= 1.0f - clamp(m.alpha, 0.0f, 1.0f);
             if (all(T == 0.0f))
@@ -240,6 +248,9 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
     uint ray_kind = VISIBILITY_CAMERA;     // the kind of ray, as objects' ray visibility names it
     int unseen = 0;                        // surfaces passed because the ray does not see them
 #endif
+#ifdef HAS_LIGHT_PATH
+    uint path_kind = PATH_CAMERA;          // the kind of ray, as the Light Path node names it
+#endif
     *depth = 1e10f;
     *normal = (float3)(0.0f, 0.0f, 0.0f);
     *alpha = 1.0f;
@@ -321,6 +332,15 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
         }
 #endif
         ShadeInfo info = shade_info(&s, d);
+#ifdef HAS_LIGHT_PATH
+        info.path = path_kind;
+        info.length = h.t * kd_length(d);
+        info.bounce = bounces;
+        info.diffuse = diffuse;
+        info.glossy = glossy;
+        info.transmission = transmission;
+        info.transparent = transparent;
+#endif
         bool pass = false;      // the path goes on through the surface (not a bounce)
 #ifdef HAS_CLOSURES
         // A material of closures (docs/shading.md, Closures): their emission, holdout and
@@ -429,6 +449,11 @@ inline float3 trace_path(const Scene *sc, __global const float4 *cam, float3 o, 
 #ifdef HAS_VISIBILITY
         ray_kind = kind == LOBE_DIFFUSE ? VISIBILITY_DIFFUSE
                    : kind == LOBE_GLOSSY ? VISIBILITY_GLOSSY : VISIBILITY_TRANSMISSION;
+#endif
+#ifdef HAS_LIGHT_PATH
+        path_kind = (kind == LOBE_DIFFUSE || kind == LOBE_GLOSSY ? PATH_REFLECT : PATH_TRANSMIT)
+                    | (kind == LOBE_DIFFUSE || kind == LOBE_TRANSLUCENT ? PATH_DIFFUSE : PATH_GLOSSY)
+                    | (pdf_prev > 0.0f ? 0u : PATH_SINGULAR);
 #endif
         beta *= weight;
         if (!all(isfinite(beta)) || all(beta == 0.0f))

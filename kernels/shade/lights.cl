@@ -240,6 +240,12 @@ inline float3 emitter_sample(const Scene *sc, float3 p, float u0, float u1, floa
     info.incoming = -*wi;
     info.backfacing = kd_dot(n, *wi) > 0.0f;
     info.normal = info.backfacing ? -n : n;
+    info.ng = info.normal;
+#ifdef HAS_LIGHT_PATH
+    info.path = 0u;         // Cycles evaluates light samples' emission as PATH_RAY_EMISSION
+    info.length = *dist;
+    info.bounce = info.diffuse = info.glossy = info.transmission = info.transparent = 0;
+#endif
 #ifdef HAS_CLOSURES
     ClosureSum cs;
     closures_eval(sc, *tri, b1, 1.0f - b0 - b1, 0, &info, 0.5f, &cs);

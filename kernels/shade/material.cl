@@ -51,7 +51,7 @@ inline Material material_record(const Scene *sc, __global const float4 *M, uint 
         float2 uv = hit_uv(sc, tri, u, v);
         __global const float4 *T = sc->tri_verts + TRIANGLE_SIZE * tri;
         float3 p = (1.0f - u - v) * TRIANGLE_V0(T) + u * TRIANGLE_V1(T) + v * TRIANGLE_V2(T);
-        run_nodes(sc, program, tri, uv, p, s, info, &m);
+        run_nodes(sc, program, tri, (float2)(u, v), uv, p, s, info, &m);
     }
 #endif
     return m;
@@ -207,7 +207,13 @@ inline ShadeInfo shade_info(const Surface *s, float3 d)
     ShadeInfo info;
     info.incoming = -kd_normalize(d);
     info.normal = s->ns;
+    info.ng = s->ng;
     info.backfacing = !s->front;
+#ifdef HAS_LIGHT_PATH
+    info.path = 0u;         // (the caller says what kind of ray it is)
+    info.length = 0.0f;
+    info.bounce = info.diffuse = info.glossy = info.transmission = info.transparent = 0;
+#endif
     return info;
 }
 

@@ -357,6 +357,47 @@ inline float3 node_bump(float3 dpx, float3 dpy, float3 normal_in, float4 heights
 }
 #endif
 
+#ifdef HAS_TEXTURES
+// A Color Attribute / Attribute: the values at triangle tri's corners (texels 3 tri + k of
+// texture `tex`, the exporter's corner array laid out in rows) blended by the barycentrics.
+inline float4 corner_attribute(const Scene *sc, int tex, uint tri, float2 bary)
+{
+    __global const uint *size = sc->tex_sizes + TEXTURE_SIZE_COLUMNS * tex;
+    uint offset = size[TEXTURE_SIZE_OFFSET];
+    int w = max((int)size[TEXTURE_SIZE_WIDTH], 1), h = (int)size[TEXTURE_SIZE_HEIGHT];
+    float4 c[3];
+    for (int k = 0; k < 3; ++k) {
+        uint i = 3u * tri + (uint)k;
+        c[k] = texel(sc, offset, w, h, (int)(i % (uint)w), (int)(i / (uint)w));
+    }
+    return (1.0f - bary.x - bary.y) * c[0] + bary.x * c[1] + bary.y * c[2];
+}
+#endif
+
+#ifdef HAS_LIGHT_PATH
+// Cycles' Light Path node (svm_node_light_path): the ray's kind, length and depths.
+inline float node_light_path(int what, const ShadeInfo *info)
+{
+    uint bit = what == NODE_LIGHT_PATH_IS_CAMERA_RAY ? PATH_CAMERA
+             : what == NODE_LIGHT_PATH_IS_SHADOW_RAY ? PATH_SHADOW
+             : what == NODE_LIGHT_PATH_IS_DIFFUSE_RAY ? PATH_DIFFUSE
+             : what == NODE_LIGHT_PATH_IS_GLOSSY_RAY ? PATH_GLOSSY
+             : what == NODE_LIGHT_PATH_IS_SINGULAR_RAY ? PATH_SINGULAR
+             : what == NODE_LIGHT_PATH_IS_REFLECTION_RAY ? PATH_REFLECT
+             : what == NODE_LIGHT_PATH_IS_TRANSMISSION_RAY ? PATH_TRANSMIT : 0u;
+    if (bit)
+        return (info->path & bit) ? 1.0f : 0.0f;
+    if (what == NODE_LIGHT_PATH_RAY_LENGTH)
+        return info->length;
+    if (what == NODE_LIGHT_PATH_RAY_DEPTH)     // a shadow ray or light sample: one bounce further
+        return (float)(info->bounce + ((info->path & PATH_SHADOW) || !info->path ? 1 : 0));
+    return (float)(what == NODE_LIGHT_PATH_DIFFUSE_DEPTH ? info->diffuse
+                 : what == NODE_LIGHT_PATH_GLOSSY_DEPTH ? info->glossy
+                 : what == NODE_LIGHT_PATH_TRANSPARENT_DEPTH ? info->transparent
+                 : what == NODE_LIGHT_PATH_TRANSMISSION_DEPTH ? info->transmission : 0);
+}
+#endif
+
 // Cycles' fresnel_dielectric_cos (the Fresnel and Layer Weight nodes' reflectance).
 inline float fresnel_dielectric_cos(float cosi, float eta)
 {
@@ -395,12 +436,12 @@ inline float node_fresnel(int kind, float value, float3 normal, const ShadeInfo 
     return 1.0f - f;
 }
 
-// Runs the program at row `at` of the materials buffer for the hit on triangle `tri` (uv: its
-// texture coordinates, p: its position; s: the surface point, or 0 where the shading normal
+// Runs the program at row `at` of the materials buffer for the hit on triangle `tri` (bary:
+// its barycentrics u, v; uv: its texture coordinates, p: its position; s: the surface point, or 0 where the shading normal
 // does not matter; info: the ray's view of the hit, or 0) and sets the BSDF inputs it
 // computes; a Normal output sets s->ns.
-inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Surface *s,
-                      const ShadeInfo *info, Material *m)
+inline void run_nodes(const Scene *sc, int at, uint tri, float2 bary, float2 uv, float3 p,
+                      Surface *s, const ShadeInfo *info, Material *m)
 {
     float4 regs[NODE_REGISTERS];
     __global const float4 *code = sc->materials + at;
@@ -532,6 +573,39 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 uv, float3 p, Su
                             : info ? info->normal : (float3)(0.0f, 0.0f, 1.0f);
             float f = node_fresnel(op == NODE_OP_FRESNEL ? -1 : (int)w1.y, a.x, normal, info);
             out = (float4)(f, f, f, f);
+        } else if (op == NODE_OP_OBJECT_INFO) {    // p0: its table; p1: output
+            __global const float4 *rows = code + pc + (int)w1.y;
+            int what = (int)w1.z;
+            out = what == NODE_OBJECT_INFO_LOCATION ? (float4)(rows[0].xyz, 0.0f)
+                : what == NODE_OBJECT_INFO_COLOR ? rows[1] : what == NODE_OBJECT_INFO_ALPHA ? rows[1].wwww
+                : what == NODE_OBJECT_INFO_OBJECT_INDEX ? rows[2].xxxx
+                : what == NODE_OBJECT_INFO_MATERIAL_INDEX ? rows[2].yyyy : rows[0].wwww;
+        } else if (op == NODE_OP_GEOMETRY) {   // p0: output; p1: bump step (Position)
+            int what = (int)w1.y;
+            float3 g = info ? info->incoming : (float3)(0.0f, 0.0f, 1.0f);
+            if (what == NODE_GEOMETRY_POSITION) {
+                g = p;
+#ifdef HAS_BUMP
+                g += dp[clamp((int)w1.z, 0, 2)];
+#endif
+            } else if (what == NODE_GEOMETRY_NORMAL || what == NODE_GEOMETRY_TRUE_NORMAL) {
+                g = info ? (what == NODE_GEOMETRY_NORMAL ? info->normal : info->ng)
+                         : (float3)(0.0f, 0.0f, 1.0f);
+            } else if (what == NODE_GEOMETRY_BACKFACING) {
+                g = (float3)(info && info->backfacing ? 1.0f : 0.0f);
+            }
+            out = (float4)(g, g.x);
+#ifdef HAS_LIGHT_PATH
+        } else if (op == NODE_OP_LIGHT_PATH) {     // p0: output
+            out = (float4)(info ? node_light_path((int)w1.y, info) : 0.0f);
+#endif
+#ifdef HAS_TEXTURES
+        } else if (op == NODE_OP_ATTRIBUTE) {      // p0: the texture of its corners' values; p1: output
+            float4 c = corner_attribute(sc, (int)w1.y, tri, bary);
+            int what = (int)w1.z;
+            out = what == NODE_ATTRIBUTE_ALPHA ? c.wwww
+                : what == NODE_ATTRIBUTE_FAC ? (float4)((c.x + c.y + c.z) * (1.0f / 3.0f)) : c;
+#endif
         } else if (op == NODE_OP_DOT) {        // colour or vector to a value
             out = (float4)(kd_dot(a.xyz, w1.yzw));
         } else if (op == NODE_OP_OUT) {

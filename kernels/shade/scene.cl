@@ -51,9 +51,16 @@ typedef struct {
 // What a node program knows of the ray beyond the hit's position and UVs (Cycles' ShaderData
 // and path state): the unit direction back along the ray (Cycles' I), the shading normal its
 // nodes read (Cycles' N: the smooth normal facing the ray), whether the ray hit the back.
+// With LIGHT_PATH also the ray's PATH_<KIND> bits (Cycles' path flags), its length to the hit
+// and the path's depths before it (Cycles' bounce counts).
 typedef struct {
-    float3 incoming, normal;
+    float3 incoming, normal, ng;
     bool backfacing;
+#ifdef HAS_LIGHT_PATH
+    uint path;
+    float length;
+    int bounce, diffuse, glossy, transmission, transparent;
+#endif
 } ShadeInfo;
 
 // A surface point: position, its error bound, the geometric normal facing the incoming ray,

@@ -960,6 +960,74 @@ def build(name):
         add(bpy.ops.mesh.primitive_cube_add, speckle, size=0.6, location=(-0.5, -0.8, 0.3))
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
+    elif name == "attributes":
+        # Color Attribute, Attribute, Object Info, Geometry and Light Path (issue 38).
+        world((0.3, 0.32, 0.36))
+        floor(size=6.0)
+        m, nodes, links, bsdf = node_material("painted")
+        links.new(nodes.new("ShaderNodeVertexColor").outputs["Color"], bsdf.inputs["Base Color"])
+        painted = add(bpy.ops.mesh.primitive_cube_add, m, size=0.7, location=(-1.3, 0.3, 0.35),
+                      rotation=(0, 0, math.radians(30)))
+        colours = painted.data.color_attributes.new("paint", "BYTE_COLOR", "CORNER")
+        for k, corner in enumerate(colours.data):
+            corner.color = ((k * 0.37) % 1, (k * 0.61) % 1, (k * 0.13) % 1, 1.0)
+        m, nodes, links, bsdf = node_material("heights")
+        attribute = nodes.new("ShaderNodeAttribute")
+        attribute.attribute_name = "height"
+        ramp = nodes.new("ShaderNodeValToRGB")
+        ramp.color_ramp.elements[0].color = (0.1, 0.2, 0.8, 1)
+        ramp.color_ramp.elements[1].color = (0.9, 0.8, 0.1, 1)
+        links.new(attribute.outputs["Fac"], ramp.inputs["Fac"])
+        links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
+        ball = sphere(m, (-0.3, 0.6, 0.5), radius=0.5)
+        heights = ball.data.attributes.new("height", "FLOAT", "POINT")
+        for k, vertex in enumerate(ball.data.vertices):
+            heights.data[k].value = 0.5 + 0.5 * vertex.co.z / 0.5
+        m, nodes, links, bsdf = node_material("object info")
+        info = nodes.new("ShaderNodeObjectInfo")
+        links.new(info.outputs["Color"], bsdf.inputs["Base Color"])
+        links.new(info.outputs["Random"], bsdf.inputs["Roughness"])
+        for k, colour in enumerate(((0.9, 0.3, 0.2, 1), (0.2, 0.8, 0.3, 1), (0.3, 0.4, 0.9, 1))):
+            box = add(bpy.ops.mesh.primitive_cube_add, m, size=0.3, location=(0.4 + 0.35 * k, -0.7, 0.15))
+            box.color = colour
+        m, nodes, links, bsdf = node_material("normals")
+        geometry = nodes.new("ShaderNodeNewGeometry")
+        half = vector_math(nodes, links, "SCALE", geometry.outputs["Normal"], scale=0.5)
+        links.new(vector_math(nodes, links, "ADD", half, second=(0.5, 0.5, 0.5)),
+                  bsdf.inputs["Base Color"])
+        sphere(m, (0.8, 0.6, 0.5), radius=0.5)
+        # Light Path: a panel that glows for the camera only, and a ball whose shadow lets
+        # light through (Transparent for shadow rays) and that grows rough in reflections.
+        m, nodes, links, bsdf = node_material("camera glow")
+        nodes.remove(bsdf)
+        glow = nodes.new("ShaderNodeEmission")
+        glow.inputs["Color"].default_value = (1.0, 0.5, 0.2, 1)
+        path = nodes.new("ShaderNodeLightPath")
+        strength = nodes.new("ShaderNodeMath")
+        strength.operation = "MULTIPLY"
+        strength.inputs[1].default_value = 3.0
+        links.new(path.outputs["Is Camera Ray"], strength.inputs[0])
+        links.new(strength.outputs[0], glow.inputs["Strength"])
+        links.new(glow.outputs[0], nodes["Material Output"].inputs["Surface"])
+        add(bpy.ops.mesh.primitive_plane_add, m, size=0.6, location=(1.6, 0.9, 0.5),
+            rotation=(math.radians(90), 0, 0))
+        m, nodes, links, bsdf = node_material("no shadow")
+        bsdf.inputs["Base Color"].default_value = (0.8, 0.7, 0.3, 1)
+        path = nodes.new("ShaderNodeLightPath")
+        see_through = nodes.new("ShaderNodeBsdfTransparent")
+        mix = nodes.new("ShaderNodeMixShader")
+        links.new(path.outputs["Is Shadow Ray"], mix.inputs[0])
+        links.new(bsdf.outputs[0], mix.inputs[1])
+        links.new(see_through.outputs[0], mix.inputs[2])
+        links.new(mix.outputs[0], nodes["Material Output"].inputs["Surface"])
+        depth = nodes.new("ShaderNodeMath")
+        depth.operation = "MINIMUM"
+        depth.inputs[1].default_value = 1.0
+        links.new(path.outputs["Ray Depth"], depth.inputs[0])
+        links.new(depth.outputs[0], bsdf.inputs["Roughness"])
+        sphere(m, (-1.2, -0.6, 0.3), radius=0.3)
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "warned":
         # Things KD Trace does not render, each to be named in a warning (export only).
         w = bpy.data.worlds.new("sky world")
