@@ -38,10 +38,10 @@ class KDTraceRenderEngine(bpy.types.RenderEngine):
         self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")
         # Each tile filled with the colour of the slave that rendered it.
         self.register_pass(scene, renderlayer, "Slave", 4, "RGBA", "COLOR")
-        if renderlayer.use_pass_z:
-            self.register_pass(scene, renderlayer, "Depth", 1, "Z", "VALUE")
-        if renderlayer.use_pass_normal:
-            self.register_pass(scene, renderlayer, "Normal", 3, "XYZ", "VECTOR")
+        for _, name, channels, ids, kind, _ in render.view_layer_passes(renderlayer):
+            self.register_pass(scene, renderlayer, name, channels, ids, kind)
+        if scene.kdtrace.use_denoising:     # as Cycles: the image before denoising
+            self.register_pass(scene, renderlayer, *render.NOISY_IMAGE)
 
 
 classes = (KDTraceRenderEngine,)

@@ -20,9 +20,9 @@ from ..core.layout import VISIBILITY_CODES, VISIBLE_TO_ALL
 from ..core.scene.instances import blend_stays_invertible
 from ..core.scene.spatial_order import spatial_order
 from ..core.scene.features import needed_arrays, scene_features, strip_geometry
-from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
-                                MAX_MATERIALS, RenderSettings, SceneError, Shading, View,
-                                WorldTexture)
+from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, MIST, MIST_FALLOFFS,
+                                Camera, Geometry, Light, MAX_MATERIALS, RenderSettings,
+                                SceneError, Shading, View, WorldTexture)
 from .nodes import (PRINCIPLED_DEFAULTS, NodeProgram, cycles_output, input_value, mapping_affine,
                     material_closures, socket_value)
 
@@ -75,7 +75,7 @@ def _export(depsgraph, instanced: bool, every_object: bool = False, viewport=Non
     if viewport is None:
         view = View(_export_camera(depsgraph, warnings), *render_size(scene), shading,
                     render_region(scene), render_settings(scene),
-                    bool(scene.render.film_transparent))
+                    bool(scene.render.film_transparent), mist_settings(scene))
     else:
         camera, width, height = viewport
         view = View(camera, width, height, shading, (0, 0, width, height),
@@ -83,6 +83,15 @@ def _export(depsgraph, instanced: bool, every_object: bool = False, viewport=Non
     _motion_warnings(depsgraph, warnings, motion_handled)
     _missing_warnings(scene, warnings)
     return geometry, view, warnings, materials
+
+
+def mist_settings(scene) -> tuple:
+    """World > Mist Pass as core's View.mist: (start, depth, falloff power); Blender's defaults
+    without a world, as Cycles."""
+    if scene.world is None:
+        return MIST
+    mist = scene.world.mist_settings
+    return float(mist.start), float(mist.depth), MIST_FALLOFFS[mist.falloff]
 
 
 def _missing_warnings(scene, warnings: list) -> None:

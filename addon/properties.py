@@ -222,6 +222,21 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         del bpy.types.Scene.kdtrace
 
 
+class KDTraceViewLayerSettings(bpy.types.PropertyGroup):
+    """A view layer's KD Trace passes beyond Blender's own switches (View Layer > Passes)."""
+    denoising_store_passes: BoolProperty(
+        name="Denoising Data", description="Denoising Albedo and Denoising Normal passes (as "
+        "Cycles'), for the compositor's Denoise node", default=False)
+
+    @classmethod
+    def register(cls):
+        bpy.types.ViewLayer.kdtrace = PointerProperty(type=cls)
+
+    @classmethod
+    def unregister(cls):
+        del bpy.types.ViewLayer.kdtrace
+
+
 class KDTracePreferences(bpy.types.AddonPreferences):
     bl_idname = __package__.rpartition(".")[0]  # the extension's package, not addon/
 
@@ -305,4 +320,5 @@ def tree_folder_usage(prefs) -> tuple[int, int]:
     return NpzFolder(folder, 0).usage() if folder.is_dir() else (0, 0)
 
 
-classes = (KDTraceHost, KDTraceApprovedSlave, KDTraceRenderSettings, KDTracePreferences)
+classes = (KDTraceHost, KDTraceApprovedSlave, KDTraceRenderSettings, KDTraceViewLayerSettings,
+           KDTracePreferences)

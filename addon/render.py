@@ -55,11 +55,37 @@ def _fail(engine, message: str) -> None:
     engine.error_set(f"KD Trace: {message}")
 
 
+# The passes a view layer may show beyond Combined, as Cycles names them: (the slaves' pass,
+# Blender's name, channels, channel ids, type, what switches it on: a property of the view layer,
+# or of its KD Trace settings). Noisy Image is the master's (with denoising on).
+VIEW_LAYER_PASSES = (
+    ("depth", "Depth", 1, "Z", "VALUE", "use_pass_z"),
+    ("mist", "Mist", 1, "Z", "VALUE", "use_pass_mist"),
+    ("normal", "Normal", 3, "XYZ", "VECTOR", "use_pass_normal"),
+    ("denoising_normal", "Denoising Normal", 3, "XYZ", "VECTOR", "kdtrace.denoising_store_passes"),
+    ("albedo", "Denoising Albedo", 3, "RGB", "COLOR", "kdtrace.denoising_store_passes"),
+    ("diffuse_color", "Diffuse Color", 3, "RGB", "COLOR", "use_pass_diffuse_color"),
+    ("glossy_color", "Glossy Color", 3, "RGB", "COLOR", "use_pass_glossy_color"),
+    ("emission", "Emission", 3, "RGB", "COLOR", "use_pass_emit"),
+)
+NOISY_IMAGE = ("Noisy Image", 4, "RGBA", "COLOR")
+
+
+def _switched_on(view_layer, path: str) -> bool:
+    owner, _, name = path.rpartition(".")
+    owner = getattr(view_layer, owner, None) if owner else view_layer
+    return bool(getattr(owner, name, False))
+
+
+def view_layer_passes(view_layer) -> list:
+    """The entries of VIEW_LAYER_PASSES the view layer shows."""
+    return [entry for entry in VIEW_LAYER_PASSES if _switched_on(view_layer, entry[5])]
+
+
 def frame_options(settings, prefs, view_layer) -> FrameOptions:
     """The panel's settings (scene.kdtrace), the add-on's preferences and the passes the view
-    layer shows (Combined always, Depth and Normal where enabled) as core.frame's options."""
-    passes = ("combined",) + (("depth",) if view_layer.use_pass_z else ()) \
-        + (("normal",) if view_layer.use_pass_normal else ())
+    layer shows (Combined always, the others where enabled) as core.frame's options."""
+    passes = ("combined",) + tuple(entry[0] for entry in view_layer_passes(view_layer))
     return FrameOptions(
         tree_mode=settings.kdtree_mode,
         tree_settings=user_settings(settings.kdtree_mode, settings.tau_occu, settings.tau_freq,
@@ -147,8 +173,8 @@ class TileCanvas:
     its slave's colour) is written in one go, so the final Combined pass carries no frames.
     """
 
-    BLENDER_PASSES = {"combined": "Combined", "depth": "Depth", "normal": "Normal",
-                      "albedo": "Denoising Albedo", "denoising_normal": "Denoising Normal"}
+    BLENDER_PASSES = {"combined": "Combined",
+                      **{entry[0]: entry[1] for entry in VIEW_LAYER_PASSES}}
 
     def __init__(self, engine, job):
         x0, y0, x1, y1 = job.view.region
@@ -176,7 +202,9 @@ class TileCanvas:
         self.passes["Noisy Image"] = noisy
 
     def finish(self):
-        """Write the clean region (what arrived; the rest stays empty on a cancel)."""
+        """Write the clean region (what arrived; the rest stays empty on a cancel). Without
+        denoising, Noisy Image (where the view layer has it) is the image itself."""
+        self.passes.setdefault(NOISY_IMAGE[0], self.passes["Combined"])
         if self.received:
             self._write(0, 0, self.width, self.height, self.passes)
 

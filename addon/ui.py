@@ -142,6 +142,46 @@ class OBJECT_PT_kdtrace_visibility(KDTracePanel, bpy.types.Panel):
         layout.prop(obj, "is_holdout")
 
 
+class VIEWLAYER_PT_kdtrace_passes(KDTracePanel, bpy.types.Panel):
+    """As Cycles' View Layer > Passes: the passes KD Trace fills (each computed and sent by the
+    slaves only when switched on here)."""
+    bl_label = "Passes"
+    bl_context = "view_layer"
+
+    def draw(self, context):
+        pass
+
+
+class VIEWLAYER_PT_kdtrace_passes_data(KDTracePanel, bpy.types.Panel):
+    bl_label = "Data"
+    bl_context = "view_layer"
+    bl_parent_id = "VIEWLAYER_PT_kdtrace_passes"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        view_layer = context.view_layer
+        col = layout.column(heading="Include", align=True)
+        for name in ("use_pass_combined", "use_pass_z", "use_pass_mist", "use_pass_normal"):
+            col.prop(view_layer, name)
+        layout.prop(view_layer.kdtrace, "denoising_store_passes")
+
+
+class VIEWLAYER_PT_kdtrace_passes_light(KDTracePanel, bpy.types.Panel):
+    bl_label = "Light"
+    bl_context = "view_layer"
+    bl_parent_id = "VIEWLAYER_PT_kdtrace_passes"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        view_layer = context.view_layer
+        for heading, name, text in (("Diffuse", "use_pass_diffuse_color", "Color"),
+                                    ("Glossy", "use_pass_glossy_color", "Color"),
+                                    ("Other", "use_pass_emit", "Emission")):
+            layout.column(heading=heading, align=True).prop(view_layer, name, text=text)
+
+
 class RENDER_PT_kdtrace_kdtree(KDTracePanel, bpy.types.Panel):
     bl_label = "kd-Tree"
     bl_parent_id = "RENDER_PT_kdtrace"
@@ -298,14 +338,16 @@ def color_icon(color) -> str:
 
 classes = (KDTRACE_UL_hosts, RENDER_PT_kdtrace, RENDER_PT_kdtrace_sampling, RENDER_PT_kdtrace_denoise,
            RENDER_PT_kdtrace_light_paths, RENDER_PT_kdtrace_film, RENDER_PT_kdtrace_motion_blur,
-           OBJECT_PT_kdtrace_visibility, RENDER_PT_kdtrace_kdtree, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_network,
+           OBJECT_PT_kdtrace_visibility, VIEWLAYER_PT_kdtrace_passes,
+           VIEWLAYER_PT_kdtrace_passes_data, VIEWLAYER_PT_kdtrace_passes_light,
+           RENDER_PT_kdtrace_kdtree, RENDER_PT_kdtrace_slaves, RENDER_PT_kdtrace_network,
            RENDER_PT_kdtrace_legend)
 
 # Blender's own panels that show what KD Trace renders (camera, lights, material base colour,
 # world colour). Panels for Blender's generic engine list "BLENDER_RENDER"; the material and
 # world surface panels are EEVEE's.
 EXTRA_PANELS = ("EEVEE_MATERIAL_PT_context_material", "EEVEE_MATERIAL_PT_surface",
-                "EEVEE_WORLD_PT_surface")
+                "EEVEE_WORLD_PT_surface", "EEVEE_WORLD_PT_mist")
 SKIPPED_PANELS = ("VIEWLAYER_PT_filter", "VIEWLAYER_PT_layer_passes")
 
 

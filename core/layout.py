@@ -400,7 +400,7 @@ MATERIAL = Record("MATERIAL", "A closure of a material (materials buffer; a tria
     Slot("translucent", 4, "w", "the share of a diffuse transmission lobe (Translucent BSDF: 1)"),
 ))
 
-CAMERA = Record("CAMERA", "The camera (one record; the pixel filter's table follows it)", 12, (
+CAMERA = Record("CAMERA", "The camera (one record; the pixel filter's table follows it)", 13, (
     Slot("to_world", 0, "xyzw", "rows of camera.to_world (3x4: rotation/scale, translation)",
          rows=3),
     Slot("ndc_scale", 3, "xy", "camera-space point = ndc * ndc_scale + ndc_offset"),
@@ -420,6 +420,9 @@ CAMERA = Record("CAMERA", "The camera (one record; the pixel filter's table foll
          "blur; the same as to_world without it)", rows=3),
     Slot("filter", 11, "x", "the pixel filter, a PIXEL_FILTER_<KIND> code"),
     Slot("filter_width", 11, "y", "its width in pixels"),
+    Slot("mist_start", 11, "z", "the Mist pass: distance from the camera where mist starts"),
+    Slot("mist_inv_depth", 11, "w", "1 / the distance over which it reaches 1 (0: never)"),
+    Slot("mist_falloff", 12, "x", "its falloff as a power (2 quadratic, 1 linear, 0.5)"),
 ))
 
 BOUNDS = Record("BOUNDS", "The kd-tree's root box (bounds buffer, one record)", 2, (

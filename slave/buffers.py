@@ -95,6 +95,10 @@ def pack_camera(view: View) -> np.ndarray:
     settings = view.settings
     CAMERA.put(out, "filter", PIXEL_FILTER_CODES[settings.pixel_filter])
     CAMERA.put(out, "filter_width", settings.filter_width)
+    start, depth, falloff = view.mist
+    CAMERA.put(out, "mist_start", start)
+    CAMERA.put(out, "mist_inv_depth", 1.0 / depth if depth > 0 else 0.0)
+    CAMERA.put(out, "mist_falloff", falloff)
     if settings.pixel_filter == "BOX":
         return out.astype(np.float32)
     table = np.zeros(-(-FILTER_TABLE_SIZE // 4) * 4)

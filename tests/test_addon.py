@@ -186,6 +186,16 @@ def test_every_panel_draws_the_settings_it_offers(tmp_path):
     assert {"max_bounces", "diffuse_bounces", "glossy_bounces", "transmission_bounces",
             "clamp_indirect"} <= set(drawn["RENDER_PT_kdtrace_light_paths"])
     assert {"kdtree_mode", "tau_occu", "tau_freq"} <= set(drawn["RENDER_PT_kdtrace_kdtree"])
+    # Sampling > Denoise and View Layer > Passes (issue 40), with core's defaults.
+    assert {"denoising_prefilter", "denoising_quality"} <= set(drawn["RENDER_PT_kdtrace_denoise"])
+    assert {"use_pass_z", "use_pass_mist", "use_pass_normal", "denoising_store_passes"} <= set(
+        drawn["VIEWLAYER_PT_kdtrace_passes_data"])
+    assert {"use_pass_diffuse_color", "use_pass_glossy_color", "use_pass_emit"} <= set(
+        drawn["VIEWLAYER_PT_kdtrace_passes_light"])
+    from core.frame import denoising
+    assert [result["settings"][name]["default"] for name in
+            ("use_denoising", "denoising_prefilter", "denoising_quality")] == [
+        denoising.DENOISE, denoising.PREFILTER, denoising.QUALITY]
     assert {"payload", "interaction", "secret_file"} <= set(drawn["RENDER_PT_kdtrace_network"])
     assert {"use_zeroconf", "local_slaves"} <= set(drawn["RENDER_PT_kdtrace_slaves"])
     # Trust (issue 39): this computer's ID, a refused slave offered for approval by its ID, and

@@ -184,3 +184,60 @@ def test_untraced_pixels_take_their_traced_neighbours_mean():
     assert filled[1, 1] == pytest.approx(np.mean(neighbours))
     assert np.array_equal(np.delete(filled.ravel(), 5), np.delete(value.ravel(), 5))
     assert CYCLES_CAMERA_AXES[2] == -1
+
+
+def test_mist_is_cycles_distance_ramp_and_the_world_is_mist(tracer):
+    """Mist (start 2, depth 10, each falloff) of a floor 5 below a camera looking straight
+    down: ((distance - start) / depth)^falloff, 1 where the camera sees the world."""
+    load(tracer, (grid_plane(2.0, 2), 0))
+    view = view_of((0, 0, 5), (0, 0, 0), shading([material((0.5, 0.5, 0.5))]), size=16,
+                   fov=0.3, up=(0, 1, 0))
+    camera = view.camera
+    for falloff in (2.0, 1.0, 0.5):
+        view.mist = (2.0, 10.0, falloff)
+        passes = tracer.render_tile(view, 0, 0, 16, 16, ("combined", "mist"))
+        mist = passes["mist"]
+        assert mist[0, 0] == 1.0 and mist.dtype == np.float32    # a corner sees the world
+        # the centre pixel's ray, through the pixel's centre (the filter keeps the plane flat)
+        ndc = np.array([0.5 / 8, -0.5 / 8]) * camera.ndc_scale
+        ray = np.array([ndc[0], ndc[1], -1.0])
+        distance = 5.0 * np.linalg.norm(ray)
+        expected = ((distance - 2.0) / 10.0) ** falloff
+        assert mist[8, 8] == pytest.approx(expected, rel=2e-3)
+
+
+def test_emission_diffuse_and_glossy_colour_of_the_camera_hit(tracer):
+    """Emission: what the camera sees emitted (the world is not emission); Diffuse Color and
+    Glossy Color: the camera hit's diffuse and glossy albedos (a diffuse plane: its base and
+    none; a perfect metal: none and its Fresnel colour)."""
+    names = ("combined", "emission", "diffuse_color", "glossy_color")
+    load(tracer, (grid_plane(4.0, 2), 0))
+    glow = material((0.2, 0.4, 0.6))
+    glow[1][[COLUMN["emission_r"], COLUMN["emission_g"], COLUMN["emission_b"]]] = (2.0, 1.0, 0.5)
+    view = view_of((0, -3, 3), (0, 0, 0), shading([glow], (0.3, 0.3, 0.3)))
+    passes = tracer.render_tile(view, 0, 0, 8, 8, names)
+    np.testing.assert_allclose(passes["emission"], np.broadcast_to([2.0, 1.0, 0.5], (8, 8, 3)),
+                               rtol=1e-5)
+    np.testing.assert_allclose(passes["diffuse_color"], np.broadcast_to([0.2, 0.4, 0.6], (8, 8, 3)),
+                               rtol=1e-5)
+    assert not passes["glossy_color"].any()
+    tint = np.array([0.9, 0.8, 0.5])
+    view = view_of((0, -3, 3), (0, 0, 0), shading([material(tint, metallic=1.0, roughness=0.0)],
+                                                  (0.3, 0.3, 0.3)))
+    passes = tracer.render_tile(view, 0, 0, 8, 8, names)
+    assert not passes["emission"].any() and not passes["diffuse_color"].any()
+    fresnel = tint + (1 - tint) * (1 - np.sqrt(0.5)) ** 5
+    np.testing.assert_allclose(centre(passes["glossy_color"]), fresnel, rtol=2e-3)
+
+
+def test_the_views_mist_travels_and_is_checked():
+    from core.scene.model import MIST, SceneError
+    view = view_of((0, -3, 3), (0, 0, 0), shading([material((0.5, 0.5, 0.5))]))
+    assert View.from_dict(view.to_dict()).mist == MIST
+    view.mist = (1.0, 4.0, 0.5)
+    assert View.from_dict(view.to_dict()).mist == (1.0, 4.0, 0.5)
+    for bad in ([1.0, -1.0, 2.0], [1.0, 4.0, 3.0], [1.0, float("nan"), 2.0], [1.0, 2.0]):
+        d = view.to_dict()
+        d["mist"] = bad
+        with pytest.raises(SceneError, match="mist"):
+            View.from_dict(d)

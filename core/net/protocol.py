@@ -115,11 +115,13 @@ SLAVE_TO_MASTER = frozenset({MsgType.WELCOME, MsgType.SCENE_READY, MsgType.TILE_
 # Tile passes: name -> channels; (h, w) or (h, w, channels). Beyond the image, depth and normal:
 # the denoising guides (Blender's Denoising Albedo and Denoising Normal, Cycles' camera space)
 # and the data passes, computed by the slave only when a frame asks (slave/film.py).
-TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3, "albedo": 3, "denoising_normal": 3}
+TILE_PASSES = {"combined": 4, "depth": 1, "normal": 3, "albedo": 3, "denoising_normal": 3,
+               "mist": 1, "emission": 3, "diffuse_color": 3, "glossy_color": 3}
 # How a pass travels in the small payloads (f16, u8): "rgba" and "color" as colour, "direction"
 # as a unit vector's codes, "exact" always float32.
 PASS_CODING = {"combined": "rgba", "depth": "exact", "normal": "direction", "albedo": "color",
-               "denoising_normal": "direction"}
+               "denoising_normal": "direction", "mist": "exact", "emission": "color",
+               "diffuse_color": "color", "glossy_color": "color"}
 TILE_BYTES_PER_PIXEL = 4 * sum(TILE_PASSES.values())   # the most a tile pixel may take
 # The most an instance takes on the wire: its mesh (u4), 3x4 transforms at shutter open and
 # close (f4; the close one only with motion blur) and visibility (u1).

@@ -28,12 +28,18 @@ RESULTS_EVERY_S = 0.02   # RenderJob.next_results returns at most 50 times a sec
                          # come: smooth to watch, and a wake-up takes the tiles that came meanwhile
 
 
+def _channels(name: str) -> tuple:
+    """The last axis of a pass's frame: none for a pass of one channel (depth, mist)."""
+    channels = protocol.TILE_PASSES[name]
+    return (channels,) if channels > 1 else ()
+
+
 def _empty_frame(shape: tuple, passes: tuple, reuse: dict | None = None) -> dict:
     """pass -> the empty float32 frame (zero colour and normal, depth DEPTH_MISS: no surface),
     written into `reuse` (an earlier frame of this shape and passes) when given."""
     if reuse is None:
         return {name: (np.full(shape, DEPTH_MISS, np.float32) if name == "depth" else
-                       np.zeros(shape + (protocol.TILE_PASSES[name],), np.float32))
+                       np.zeros(shape + _channels(name), np.float32))
                 for name in passes}
     for name, array in reuse.items():
         array.fill(DEPTH_MISS if name == "depth" else 0.0)

@@ -695,6 +695,11 @@ PIXEL_FILTERS = tuple(PIXEL_FILTER_CODES)
 
 
 MAX_IMAGE_SIDE = 65536
+# The Mist pass (World > Mist Pass, as Cycles): the distance where mist starts, the depth over
+# which it reaches 1, and the falloff as a power (Blender's Quadratic 2, Linear 1, Inverse
+# Quadratic 0.5).
+MIST = (5.0, 25.0, 2.0)
+MIST_FALLOFFS = {"QUADRATIC": 2.0, "LINEAR": 1.0, "INVERSE_QUADRATIC": 0.5}
 
 
 @dataclass
@@ -704,7 +709,8 @@ class View:
     `region` is (x0, y0, x1, y1) in pixels of the full image, top-left origin, x1/y1 exclusive;
     it is the render border, or the whole image. `film_transparent` (Blender's Film >
     Transparent): camera rays that leave the scene, or reach a holdout, give alpha 0 and no
-    colour (the world still lights the scene).
+    colour (the world still lights the scene). `mist`: the Mist pass's (start, depth, falloff
+    power) (MIST).
     """
 
     camera: Camera
@@ -714,6 +720,7 @@ class View:
     region: tuple = None
     settings: RenderSettings = field(default_factory=RenderSettings)
     film_transparent: bool = False
+    mist: tuple = MIST
 
     def __post_init__(self):
         if self.region is None:
@@ -723,7 +730,8 @@ class View:
     def to_dict(self) -> dict:
         return {"camera": self.camera.to_dict(), "width": self.width, "height": self.height,
                 "region": list(self.region), "shading": self.shading.to_dict(),
-                "settings": self.settings.to_dict(), "film_transparent": self.film_transparent}
+                "settings": self.settings.to_dict(), "film_transparent": self.film_transparent,
+                "mist": [float(v) for v in self.mist]}
 
     @classmethod
     def from_dict(cls, d: dict) -> "View":
@@ -741,6 +749,10 @@ class View:
         transparent = d.get("film_transparent", False)
         if not isinstance(transparent, bool):
             raise SceneError("film_transparent must be true or false")
+        mist = _finite_floats(d.get("mist", list(MIST)), 3, "mist")
+        if mist[1] < 0 or mist[2] not in MIST_FALLOFFS.values():
+            raise SceneError(f"mist must be [start, depth >= 0, falloff in "
+                             f"{sorted(MIST_FALLOFFS.values())}], got {list(mist)}")
         return cls(Camera.from_dict(d.get("camera")), width, height,
                    Shading.from_dict(d.get("shading")), (x0, y0, x1, y1),
-                   RenderSettings.from_dict(d.get("settings")), transparent)
+                   RenderSettings.from_dict(d.get("settings")), transparent, mist)

@@ -1159,6 +1159,7 @@ for name in args["scenes"]:
     props.use_zeroconf = False
     props.local_slaves = 2
     props.tile_size = 32
+    props.use_denoising = False         # as Cycles here
     for key, value in settings.items():
         setattr(props, key, value)
     started = time.perf_counter()

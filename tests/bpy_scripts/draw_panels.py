@@ -40,7 +40,7 @@ bpy.ops.render.render()  # so the Last Render legend has something to show
 addon.addon.session.current().unapproved[("10.0.0.9", 47600)] = "A" * 52
 bpy.ops.kdtrace.slave_approve("EXEC_DEFAULT", slave_id="B" * 52, name="approved-box")
 context = SimpleNamespace(scene=scene, engine="KDTRACE", preferences=bpy.context.preferences,
-                          object=scene.objects[0])
+                          object=scene.objects[0], view_layer=bpy.context.view_layer)
 drawn = {}
 for panel in addon.addon.ui.classes:
     if issubclass(panel, bpy.types.Panel):

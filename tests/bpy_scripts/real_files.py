@@ -121,6 +121,7 @@ for name, path in args["files"].items():
     props = scene.kdtrace
     props.use_zeroconf, props.local_slaves, props.tile_size = False, 2, 32
     props.samples_per_axis, props.adaptive = samples, False
+    props.use_denoising = False         # as Cycles here
     for key, value in args["kdtrace"].items():
         setattr(props, key, value)
     started = time.perf_counter()
