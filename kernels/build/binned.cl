@@ -332,15 +332,21 @@ inline void exact_axis(Search* s, int a, const float* lo, const float* hi, uint 
     float side = s->d[(a + 1) % 3] + s->d[(a + 2) % 3];
     float face = s->d[(a + 1) % 3] * s->d[(a + 2) % 3];
     float base = KD_KT * s->area;
+    /* The flat references (lo == hi), counted apart: most nodes have none. */
+    float flat[KD_EXACT_MAX];
+    uint m = 0u;
+    for (uint j = 0u; j < n; j++)
+        if (lo[j] == hi[j])
+            flat[m++] = lo[j];
     for (uint g = 0u; g < c; g += 8u) {
         float8 p = vload8(0, cand + g);
         int8 nb = 0, na = 0, np = 0;
         for (uint j = 0u; j < n; j++) {
             nb -= lo[j] < p;          /* a true comparison is -1 */
             na -= hi[j] > p;
-            if (lo[j] == hi[j])
-                np -= lo[j] == p;
         }
+        for (uint j = 0u; j < m; j++)
+            np -= flat[j] == p;
         float8 ab = (p - s->lo[a]) * pow2 * side + face;
         float8 aa = (s->hi[a] - p) * pow2 * side + face;
         float8 fb = convert_float8(nb), fa = convert_float8(na), fp = convert_float8(np);
