@@ -152,19 +152,28 @@ class VIEWLAYER_PT_kdtrace_passes(KDTracePanel, bpy.types.Panel):
         pass
 
 
+def draw_pass_switches(layout, view_layer, rows) -> None:
+    """`rows` of (heading, switches) as Cycles draws its passes: each switch a property of the
+    view layer ("kdtrace.<name>": of its KD Trace settings) and its label (None: its own)."""
+    layout.use_property_split = True
+    for heading, switches in rows:
+        col = layout.column(heading=heading, align=True)
+        for path, text in switches:
+            owner, _, name = path.rpartition(".")
+            data = getattr(view_layer, owner) if owner else view_layer
+            col.prop(data, name, **({} if text is None else {"text": text}))
+
+
 class VIEWLAYER_PT_kdtrace_passes_data(KDTracePanel, bpy.types.Panel):
     bl_label = "Data"
     bl_context = "view_layer"
     bl_parent_id = "VIEWLAYER_PT_kdtrace_passes"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        view_layer = context.view_layer
-        col = layout.column(heading="Include", align=True)
-        for name in ("use_pass_combined", "use_pass_z", "use_pass_mist", "use_pass_normal"):
-            col.prop(view_layer, name)
-        layout.prop(view_layer.kdtrace, "denoising_store_passes")
+        draw_pass_switches(self.layout, context.view_layer, (
+            ("Include", (("use_pass_combined", None), ("use_pass_z", None),
+                         ("use_pass_mist", None), ("use_pass_normal", None))),
+            ("", (("kdtrace.denoising_store_passes", None),))))
 
 
 class VIEWLAYER_PT_kdtrace_passes_light(KDTracePanel, bpy.types.Panel):
@@ -173,13 +182,10 @@ class VIEWLAYER_PT_kdtrace_passes_light(KDTracePanel, bpy.types.Panel):
     bl_parent_id = "VIEWLAYER_PT_kdtrace_passes"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        view_layer = context.view_layer
-        for heading, name, text in (("Diffuse", "use_pass_diffuse_color", "Color"),
-                                    ("Glossy", "use_pass_glossy_color", "Color"),
-                                    ("Other", "use_pass_emit", "Emission")):
-            layout.column(heading=heading, align=True).prop(view_layer, name, text=text)
+        draw_pass_switches(self.layout, context.view_layer, (
+            ("Diffuse", (("use_pass_diffuse_color", "Color"),)),
+            ("Glossy", (("use_pass_glossy_color", "Color"),)),
+            ("Other", (("use_pass_emit", "Emission"),))))
 
 
 class RENDER_PT_kdtrace_kdtree(KDTracePanel, bpy.types.Panel):
