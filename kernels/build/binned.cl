@@ -312,12 +312,23 @@ inline void decide(__global Split* out, const Search* s, uint n, uint bad, uint 
    face of the cell, a floor in its cell's floor), in this order; counted 8 candidates at a
    time against every reference. */
 
-#define EXACT_CANDIDATES (2u * KD_EXACT_MAX + KD_MAX_BINS + 7u)
+#define EXACT_GROUPS ((2u * KD_EXACT_MAX + KD_MAX_BINS + 7u) / 8u)
+
+/* Whether any lane of m is set (PoCL calls any() out of line). */
+HOT int any8(int8 m)
+{
+    int4 m4 = m.lo | m.hi;
+    int2 m2 = m4.lo | m4.hi;
+    return (m2.x | m2.y) != 0;
+}
 
 inline void exact_axis(Search* s, int a, const float* lo, const float* hi, uint n, uint bins,
                        float pow2)
 {
-    float cand[EXACT_CANDIDATES];
+    /* Vectors and their lanes through pointers: PoCL calls vload8 / vstore8 / select out of
+       line. */
+    float8 groups[EXACT_GROUPS];
+    float* cand = (float*)groups;
     uint c = 0u;
     for (uint j = 0u; j < n; j++)
         cand[c++] = lo[j];
@@ -338,8 +349,8 @@ inline void exact_axis(Search* s, int a, const float* lo, const float* hi, uint 
     for (uint j = 0u; j < n; j++)
         if (lo[j] == hi[j])
             flat[m++] = lo[j];
-    for (uint g = 0u; g < c; g += 8u) {
-        float8 p = vload8(0, cand + g);
+    for (uint g = 0u; g < c / 8u; g++) {
+        float8 p = groups[g];
         int8 nb = 0, na = 0, np = 0;
         for (uint j = 0u; j < n; j++) {
             nb -= lo[j] < p;          /* a true comparison is -1 */
@@ -352,20 +363,15 @@ inline void exact_axis(Search* s, int a, const float* lo, const float* hi, uint 
         float8 fb = convert_float8(nb), fa = convert_float8(na), fp = convert_float8(np);
         float8 cost0 = base + KD_KI * (ab * (fb + fp) + aa * fa);
         float8 cost1 = base + KD_KI * (ab * fb + aa * (fa + fp));
-        cost0 = select(cost0, cost0 * KD_LAMBDA, (nb + np == 0) | (na == 0));
-        cost1 = select(cost1, cost1 * KD_LAMBDA, (nb == 0) | (na + np == 0));
+        cost0 = ((nb + np == 0) | (na == 0)) ? cost0 * KD_LAMBDA : cost0;
+        cost1 = ((nb == 0) | (na + np == 0)) ? cost1 * KD_LAMBDA : cost1;
         int8 inside = (s->lo[a] < p) & (p < s->hi[a]);
-        if (!any(inside & ((cost0 < s->best) | ((np != 0) & (cost1 < s->best)))))
+        if (!any8(inside & ((cost0 < s->best) | ((np != 0) & (cost1 < s->best)))))
             continue;           /* nothing better in this group */
-        float cp[8], c0[8], c1[8];
-        int bn[8], an[8], pn[8], ok[8];
-        vstore8(p, 0, cp);
-        vstore8(cost0, 0, c0);
-        vstore8(cost1, 0, c1);
-        vstore8(nb, 0, bn);
-        vstore8(na, 0, an);
-        vstore8(np, 0, pn);
-        vstore8(inside, 0, ok);
+        const float *cp = (const float*)&p, *c0 = (const float*)&cost0,
+                    *c1 = (const float*)&cost1;
+        const int *bn = (const int*)&nb, *an = (const int*)&na, *pn = (const int*)&np,
+                  *ok = (const int*)&inside;
         for (int k = 0; k < 8; k++) {
             if (!ok[k])
                 continue;
