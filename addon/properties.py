@@ -87,6 +87,9 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         "to (progressively: 1, then 4, 16, ... after each change)",
         default=viewport.SAMPLES_PER_AXIS, min=viewport.SAMPLES_PER_AXIS_RANGE[0],
         max=viewport.SAMPLES_PER_AXIS_RANGE[1])
+    viewport_denoise: BoolProperty(
+        name="Viewport Denoise", description="Denoise the viewport's image (Open Image Denoise, "
+        "from a few samples on)", default=viewport.DENOISE.enabled)
     viewport_time_limit: FloatProperty(
         name="Viewport Time Limit", description="Seconds the viewport refines after a change "
         "(0: until its max samples)", default=viewport.TIME_LIMIT,

@@ -56,6 +56,7 @@ class RENDER_PT_kdtrace_sampling(KDTracePanel, bpy.types.Panel):
         col = layout.column(align=True, heading="Viewport")
         col.prop(settings, "viewport_samples_per_axis", text="Max Samples")
         col.prop(settings, "viewport_time_limit", text="Time Limit")
+        col.prop(settings, "viewport_denoise", text="Denoise")
 
 
 class RENDER_PT_kdtrace_denoise(KDTracePanel, bpy.types.Panel):

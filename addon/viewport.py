@@ -6,9 +6,11 @@ the session a new view when the user navigates, and draws the newest image: a fl
 through the display-space shader, and asks for another redraw while the session refines."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from ..core.frame.viewport import ViewportSession
+from ..core.frame.viewport import DENOISE as VIEWPORT_DENOISE, ViewportSession
 from ..core.scene.model import Camera
 from . import session
 from .export import export_instanced_view, projection_ndc
@@ -39,6 +41,7 @@ def view_update(engine, context, depsgraph) -> None:
     viewport.options = options
     viewport.samples_per_axis = settings.viewport_samples_per_axis
     viewport.time_limit = settings.viewport_time_limit
+    viewport.denoise = dataclasses.replace(VIEWPORT_DENOISE, enabled=settings.viewport_denoise)
     camera, width, height, key = viewport_camera(context, depsgraph.scene)
     # Every object an instance: an object moved changes only the instances the slaves get.
     exported, view, info = export_instanced_view(depsgraph, every_object=True,
@@ -50,7 +53,6 @@ def view_update(engine, context, depsgraph) -> None:
 def view_draw(engine, context, depsgraph) -> None:
     """Draw the newest image; a navigated view starts a new frame (no export: the scene did
     not change)."""
-    import dataclasses
     state = getattr(engine, "kdtrace_viewport", None)
     if state is None:
         return

@@ -30,8 +30,11 @@ def session():
     session.close()
 
 
-def options() -> FrameOptions:
-    return FrameOptions(use_zeroconf=False, local_slaves=2, tile_size=16)
+def options(denoise=None) -> FrameOptions:
+    """Two local slaves; F12's denoising as given (off: the viewport's default)."""
+    from core.frame.denoising import DenoiseSettings
+    return FrameOptions(use_zeroconf=False, local_slaves=2, tile_size=16,
+                        denoise=denoise or DenoiseSettings(enabled=False))
 
 
 def wait_done(viewport, seconds=120):
@@ -89,6 +92,8 @@ def test_passes_preview_then_doubling_samples():
 
 
 def test_the_last_pass_is_f12_bit_for_bit(f12, session):  # noqa: F811
+    """The viewport's last pass is render_frame's image of the view at the viewport's samples
+    (which tests/test_frame_session.py shows is F12's in Blender)."""
     exported, view = load_export(f12 / "export.npz")
     viewport = ViewportSession(session, options(), samples_per_axis=SAMPLES)
     try:
@@ -97,7 +102,7 @@ def test_the_last_pass_is_f12_bit_for_bit(f12, session):  # noqa: F811
         assert not viewport.error
         shown = viewport.image()
         assert shown.final and shown.samples == SAMPLES ** 2
-        assert np.array_equal(shown.pixels, np.load(f12 / "f12.npy"))
+        assert np.array_equal(shown.pixels, f12_image(session, exported, view))
     finally:
         viewport.close()
 
@@ -157,3 +162,27 @@ def test_a_cancelled_change_never_replaces_a_newer_one(f12, session):  # noqa: F
         assert first not in after
     finally:
         viewport.close()
+
+
+def test_a_denoised_viewport_ends_in_f12s_denoised_image(f12, session):  # noqa: F811
+    """With viewport denoising on, the last pass is denoised as F12 denoises its frame (the
+    same noisy pixels and guides through the same filter)."""
+    from core.frame.denoising import DenoiseSettings
+    exported, view = load_export(f12 / "export.npz")
+    denoise = DenoiseSettings(enabled=True, prefilter="FAST", quality="BALANCED")
+    viewport = ViewportSession(session, options(), samples_per_axis=SAMPLES, denoise=denoise)
+    try:
+        viewport.update(view, exported)
+        wait_done(viewport)
+        assert not viewport.error
+        shown = viewport.image()
+    finally:
+        viewport.close()
+    settings = dataclasses.replace(view.settings, samples_per_axis=SAMPLES, adaptive=False)
+    host = ScriptedHost()
+    render_frame(session, exported, dataclasses.replace(view, settings=settings),
+                 options(denoise), host)
+    noisy = f12_image(session, exported, view)
+    assert not np.array_equal(shown.pixels, noisy)
+    np.testing.assert_allclose(shown.pixels, host.image["combined"], atol=1e-3)
+

@@ -2,15 +2,16 @@
 across redraws, keeps a Master connected and the scene on the slaves, and renders the current
 view progressively - a quick image at a fraction of the resolution, then the full resolution
 at 1, 4, 16, ... samples per pixel (N x N, N doubling) up to the viewport's samples or time
-limit. Any change restarts it: the frame in flight is cancelled on every slave (its late tiles
-never reach the image), a new scene is uploaded as F12 uploads it (only what changed: the
-instances where objects only moved, the edited meshes), a new view or shading only starts a
-new frame.
+limit, denoised from a few samples on where asked. Any change restarts it: the frame in
+flight is cancelled on every slave (its late tiles never reach the image), a new scene is
+uploaded as F12 uploads it (only what changed: the instances where objects only moved, the
+edited meshes), a new view or shading only starts a new frame.
 
 The host calls update() from Blender's main thread (view_update, view_draw) and reads image()
 to draw; everything else runs on the session's own thread, which shares the add-on's
 FrameSession (kd-trees, local slaves, the LAN browser) with F12. The final pass at N x N
-samples is an F12 frame of that view and those samples: the same pixels, bit for bit."""
+samples is an F12 frame of that view and those samples: the same pixels, bit for bit (and
+denoised as F12 denoises, where the viewport denoises)."""
 from __future__ import annotations
 
 import dataclasses
@@ -21,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..scene.model import View
+from .denoising import DenoiseSettings, FrameDenoiser, denoise_frame, with_guides
 from .options import FrameOptions
 from .render import FRAME_ERRORS, FrameHost, Steps, frame_scene, master_for
 from .session import FrameSession
@@ -31,6 +33,10 @@ SAMPLES_PER_AXIS = 8        # N x N = 64 samples per pixel at most
 SAMPLES_PER_AXIS_RANGE = (1, 64)
 TIME_LIMIT = 0.0            # seconds of refinement after a change, 0: none
 TIME_LIMIT_RANGE = (0.0, 86400.0)
+# Viewport denoising (Cycles' Viewport > Denoise: off by default, prefilter Fast, quality
+# Balanced): each full-resolution pass from DENOISE_START samples on is denoised once whole.
+DENOISE = DenoiseSettings(enabled=False, prefilter="FAST", quality="BALANCED")
+DENOISE_START = 4
 POLL_SECONDS = 0.02         # how often a pass in flight looks for a newer request
 
 
@@ -70,12 +76,15 @@ def passes(view: View, samples_per_axis: int) -> list[View]:
 class ViewportSession:
     def __init__(self, session: FrameSession, options: FrameOptions,
                  samples_per_axis: int = SAMPLES_PER_AXIS, time_limit: float = TIME_LIMIT,
-                 host: FrameHost | None = None):
+                 denoise: DenoiseSettings = DENOISE, host: FrameHost | None = None):
         """`samples_per_axis`: the viewport's N (N x N samples at most, Cycles' Viewport Max
-        Samples); `time_limit`: seconds of refinement after a change (0: none). `host` hears
-        the status and reports (the viewport shows them in its header)."""
+        Samples); `time_limit`: seconds of refinement after a change (0: none); `denoise`: the
+        viewport's denoising. `host` hears the status and reports (the viewport shows them in
+        its header)."""
         self.session, self.options = session, options
         self.samples_per_axis, self.time_limit = samples_per_axis, time_limit
+        self.denoise = denoise
+        self._denoiser = FrameDenoiser()    # its own: F12 may denoise on another thread
         self.host = host or FrameHost()
         self.error = ""             # the last problem, for the host to show ("": none)
         self.cancels = 0            # frames cancelled because something changed
@@ -162,6 +171,7 @@ class ViewportSession:
                     self._idle = True
         finally:
             self._drop_master()
+            self._denoiser.close()
 
     def _load(self, exported, warnings) -> None:
         """The export's scene on the slaves (the F12 pipeline: kd-trees cached, only what
@@ -194,7 +204,13 @@ class ViewportSession:
                 return
             if self.time_limit and time.monotonic() - started > self.time_limit:
                 return
-            job = master.render(pass_view, **self.options.job_options())
+            full = pass_view.width == view.width
+            denoised = self.denoise.enabled and full and \
+                pass_view.settings.samples_per_axis ** 2 >= DENOISE_START
+            job_options = self.options.job_options()
+            if denoised:
+                job_options = with_guides(job_options, self.denoise)
+            job = master.render(pass_view, **job_options)
             while not job.finished:
                 if self._newer(epoch):
                     cancelled = time.monotonic()
@@ -208,6 +224,8 @@ class ViewportSession:
                 job.next_results(POLL_SECONDS)
             if job.error and not job.cancelled:
                 raise RuntimeError(job.error)
+            if denoised:
+                denoise_frame(self._denoiser, self.denoise, job, self.host)
             self._publish(epoch, job.image["combined"].copy(), pass_view, view)
 
     def _publish(self, epoch, pixels, pass_view, view) -> None:
