@@ -19,6 +19,18 @@ def write_result(path: str, result: dict):
         json.dump(result, f)
 
 
+def cycles_at_pixel_centres(scene, samples=1):
+    """Cycles on the CPU with `samples` per pixel, all at the pixel centre (a box filter of tiny
+    width), neither adaptive sampling nor denoising."""
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = samples
+    scene.cycles.use_adaptive_sampling = False
+    scene.cycles.use_denoising = False
+    scene.cycles.pixel_filter_type = "BOX"
+    scene.cycles.filter_width = 0.01
+
+
 def install_extension(zip_path: str):
     """Install and enable the built zip into the isolated user repository; return the add-on module."""
     bpy.ops.wm.read_factory_settings(use_empty=True)

@@ -3,7 +3,8 @@ slaves) to multilayer EXR; return both Depth passes and the Normal passes."""
 import bpy
 import numpy as np
 
-from blender_setup import arguments, build_test_scene, exr_passes, install_extension, write_result
+from blender_setup import (arguments, build_test_scene, cycles_at_pixel_centres, exr_passes,
+                           install_extension, write_result)
 
 args, result_path = arguments()
 install_extension(args["zip"])
@@ -22,13 +23,7 @@ settings.file_format = "OPEN_EXR_MULTILAYER"
 settings.color_depth = "32"
 
 # Cycles, one sample per pixel at the pixel centre (box filter of tiny width).
-scene.render.engine = "CYCLES"
-scene.cycles.device = "CPU"
-scene.cycles.samples = 1
-scene.cycles.use_adaptive_sampling = False
-scene.cycles.use_denoising = False
-scene.cycles.pixel_filter_type = "BOX"
-scene.cycles.filter_width = 0.01
+cycles_at_pixel_centres(scene)
 scene.render.filepath = args["out"] + "/cycles.exr"
 bpy.ops.render.render(write_still=True)
 
