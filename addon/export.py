@@ -18,6 +18,8 @@ import numpy as np
 from ..core.frame.exported import InstancedExport
 from ..core.layout import VISIBILITY_CODES, VISIBLE_TO_ALL
 from ..core.scene.instances import blend_stays_invertible
+from ..core.scene.sky import (HOSEK_STAND_IN, SUPPORTED_TYPES as SKY_SUPPORTED_TYPES,
+                              SkyParams, sky_image)
 from ..core.scene.spatial_order import spatial_order
 from ..core.scene.features import needed_arrays, scene_features, strip_geometry
 from ..core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, MIST, MIST_FALLOFFS,
@@ -1036,6 +1038,9 @@ def export_world(scene, textures: _MaterialTable, warnings: list):
         source = color_socket.links[0].from_node
         if source.type == "TEX_ENVIRONMENT" and color_socket.links[0].from_socket.name == "Color":
             texture = _environment(source, textures, name, problems)
+        elif source.type == "TEX_SKY":
+            texture, scale = _sky(source, textures, problems)
+            strength *= scale
         else:
             problems.append(f"'Color' is linked to '{source.name}', which KD Trace cannot "
                             "evaluate; using its value")
@@ -1057,9 +1062,44 @@ def _environment(node, textures: _MaterialTable, name: str, problems: list):
     interpolation = "CLOSEST" if node.interpolation == "Closest" else "LINEAR"
     if node.interpolation not in ("Linear", "Closest"):
         problems.append(f"'{node.name}': interpolation {node.interpolation} is rendered as Linear")
+    matrix = _world_vector_map(node, problems)
+    index = textures.texture(node.image, name)
+    return WorldTexture(index, node.projection if node.projection in ("EQUIRECTANGULAR", "MIRROR_BALL")
+                        else "EQUIRECTANGULAR", matrix, interpolation)
+
+
+def _sky(node, textures: _MaterialTable, problems: list):
+    """(WorldTexture, scale) of a Sky Texture node: core/scene/sky.py's image of the sky (kept
+    by its parameters), added to the texture table; the texels are the colour over `scale`.
+    Hosek / Wilkie is rendered as Preetham's sky of the same sun and turbidity, dimmed to
+    Hosek's typical energy (sky.HOSEK_STAND_IN), warned."""
+    settings = {name: getattr(node, name) for name in (
+        "sky_type", "sun_disc", "sun_size", "sun_intensity", "sun_elevation", "sun_rotation",
+        "altitude", "air_density", "aerosol_density", "ozone_density", "turbidity",
+        "ground_albedo")}
+    settings["sun_direction"] = tuple(node.sun_direction)
+    dimmed = 1.0
+    if settings["sky_type"] not in SKY_SUPPORTED_TYPES:
+        problems.append(f"'{node.name}': the {settings['sky_type']} sky model is not computed "
+                        "by KD Trace (it needs Hosek and Wilkie's data set); rendering Preetham's "
+                        "sky of the same sun direction and turbidity, dimmed to Hosek's energy")
+        settings["sky_type"], dimmed = "PREETHAM", HOSEK_STAND_IN
+    matrix = _world_vector_map(node, problems)
+    rgba, scale = sky_image(SkyParams(**settings))
+    scale *= dimmed
+    height, width = rgba.shape[:2]
+    textures.textures.append((rgba.reshape(-1, 4).astype(np.float16), width, height))
+    return WorldTexture(len(textures.textures) - 1, "EQUIRECTANGULAR", matrix, "LINEAR"), scale
+
+
+def _world_vector_map(node, problems: list) -> np.ndarray:
+    """The 3 x 3 map of world directions into a world texture node's own (the Vector input:
+    a Mapping node from Generated or Object coordinates, or those coordinates; else the
+    identity, warned). A Sky Texture with its sun disc has no Vector input (Blender makes it
+    unavailable, and Cycles ignores a link to it)."""
     matrix = np.eye(3)
-    vector = node.inputs["Vector"]
-    if vector.is_linked:
+    vector = next((s for s in node.inputs if s.identifier == "Vector"), None)
+    if vector is not None and vector.enabled and vector.is_linked:
         source = vector.links[0].from_node
         if source.type == "MAPPING":
             matrix = _mapping_matrix(source, problems)
@@ -1075,9 +1115,7 @@ def _environment(node, textures: _MaterialTable, name: str, problems: list):
     if not abs(np.linalg.det(matrix)) > 1e-9 * float(np.abs(matrix).max()) ** 3:
         problems.append(f"the mapping of '{node.name}' is singular; ignored")
         matrix = np.eye(3)
-    index = textures.texture(node.image, name)
-    return WorldTexture(index, node.projection if node.projection in ("EQUIRECTANGULAR", "MIRROR_BALL")
-                        else "EQUIRECTANGULAR", matrix, interpolation)
+    return matrix
 
 
 def _mapping_matrix(node, problems: list) -> np.ndarray:

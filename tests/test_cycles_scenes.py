@@ -7,7 +7,8 @@ object motion blur, shader node programs and procedural textures, texture coordi
 Mapping nodes (as Blender's glTF importer makes them), the Material and World Output Cycles
 uses where there are several, Mix and Add Shaders (closures), Translucent and Transparent
 BSDFs, the Voronoi, Wave, Magic, Brick and White Noise textures, Color Attribute, Attribute,
-Object Info, Geometry and Light Path, and odd input (an object
+Object Info, Geometry and Light Path, the Sky Texture (Multiple and Single Scattering with
+their sun discs, Preetham through a Mapping node), and odd input (an object
 scaled to 0 on an axis and on all, text, curve and metaball objects, an image that cannot be
 loaded, an area light flattened to a line). Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
 uses; what is not supported is named in warnings. docs/cycles_features.md lists the rows."""
@@ -51,6 +52,9 @@ SCENES = {
                       "SMOOTH", "SPECULAR", "TRANSPARENT_FILM", "VISIBILITY", "WORLD"}),
     "translucent": (12, {"ALPHA", "AREA", "BOUNCES", "CLOSURES", "SMOOTH", "TRANSLUCENT", "WORLD"}),
     "textures": (12, {"AREA", "BOUNCES", "NODES", "NOISE", "SMOOTH", "SPECULAR", "VORONOI", "WORLD"}),
+    "sky_multiple": (12, {"BOUNCES", "SMOOTH", "SPECULAR", "WORLD", "WORLD_TEXTURE"}),
+    "sky_single": (12, {"BOUNCES", "SMOOTH", "SPECULAR", "WORLD", "WORLD_TEXTURE"}),
+    "sky_preetham": (12, {"BOUNCES", "SMOOTH", "SPECULAR", "WORLD", "WORLD_TEXTURE"}),
     "attributes": (12, {"ALPHA", "AREA", "BOUNCES", "CLOSURES", "EMISSION", "LIGHT_PATH", "NODES",
                         "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
 }
@@ -146,7 +150,7 @@ def test_unsupported_things_are_named(renders):
     def one(*words):
         found = [w for w in warnings if all(word in w for word in words)]
         assert len(found) == 1, (words, warnings)
-    one("world 'sky world'", "Sky Texture")
+    one("world 'sky world'", "HOSEK_WILKIE sky model is not computed")
     one("material 'coated'", "object 'coated ball'", "Coat Weight", "Normal")
     one("material 'toon'", "object 'toon floor'", "Toon")
     one("light 'narrow area'", "spread")

@@ -222,6 +222,38 @@ def world(color=(0.0, 0.0, 0.0), strength=1.0, image=None, rotation=None):
     bpy.context.scene.world = w
 
 
+def sky_world(strength, rotation=None, **settings):
+    """A world of a Sky Texture (its settings, Blender's names) times `strength`; through a
+    Mapping node of `rotation` from Generated coordinates when given."""
+    w = bpy.data.worlds.new("sky")
+    w.use_nodes = True
+    nodes, links = w.node_tree.nodes, w.node_tree.links
+    sky_node = nodes.new("ShaderNodeTexSky")
+    for key, value in settings.items():
+        setattr(sky_node, key, value)
+    links.new(sky_node.outputs["Color"], nodes["Background"].inputs["Color"])
+    nodes["Background"].inputs["Strength"].default_value = strength
+    if rotation is not None:
+        coords, mapping = nodes.new("ShaderNodeTexCoord"), nodes.new("ShaderNodeMapping")
+        mapping.inputs["Rotation"].default_value = rotation
+        links.new(coords.outputs["Generated"], mapping.inputs["Vector"])
+        links.new(mapping.outputs["Vector"], sky_node.inputs["Vector"])
+    bpy.context.scene.world = w
+
+
+def sky_scene():
+    """What the sky scenes light: a floor reaching almost to the horizon, a ball, a box and a
+    metal ball; the camera looks across the sun's light (the sun itself out of view) with the
+    sky above the horizon in the top of the image."""
+    floor(size=400.0)
+    sphere(material("clay", "DIFFUSE", (0.8, 0.55, 0.4)), (-0.6, 0.6, 0.6))
+    add(bpy.ops.mesh.primitive_cube_add, material("grey", color=(0.7, 0.7, 0.7)), size=0.8,
+        location=(0.7, 0.2, 0.4))
+    sphere(material("metal", color=(0.9, 0.9, 0.9), Metallic=1.0, Roughness=0.2),
+           (0.3, -0.9, 0.35), radius=0.35)
+    camera((4.5, -2.0, 1.6), (0.0, 0.5, 0.6))
+
+
 def floor(mat=None, size=12.0):
     return add(bpy.ops.mesh.primitive_plane_add, mat or material("floor", "DIFFUSE", (0.6, 0.6, 0.6)),
                size=size)
@@ -909,6 +941,23 @@ def build(name):
         light("AREA", (1.2, 2.0, 1.0), (0.7, 0.4, 0.6), energy=60.0, size=0.6)
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=40.0, size=1.0)
         camera((0.0, -4.0, 1.6), (0, 0.3, 0.5), lens=35)
+    elif name == "sky_multiple":
+        # Blender 5.0's default Sky Texture (Multiple Scattering, sun disc on, 15 degrees up).
+        sky_world(0.1)
+        sky_scene()
+    elif name == "sky_single":
+        # Single Scattering, the sun higher and turned, thinner air, more aerosols, a bigger
+        # sun disc (a sky with its sun disc has no Vector input).
+        sky_world(0.025, sky_type="SINGLE_SCATTERING", sun_elevation=math.radians(35),
+                  sun_rotation=math.radians(40), air_density=0.7, aerosol_density=2.0,
+                  sun_size=math.radians(1.5))
+        sky_scene()
+    elif name == "sky_preetham":
+        # Preetham's sky of a sun direction (no sun disc in Cycles' Preetham), through a
+        # Mapping node.
+        sky_world(1.0, rotation=(0.0, math.radians(10), math.radians(-40)), sky_type="PREETHAM",
+                  sun_direction=(0.4, 0.5, 0.77), turbidity=3.0)
+        sky_scene()
     elif name == "textures":
         # Voronoi, Wave, Magic, Brick and White Noise (issue 38) at their default Generated
         # coordinates and through Object coordinates.
@@ -1033,6 +1082,7 @@ def build(name):
         w = bpy.data.worlds.new("sky world")
         w.use_nodes = True
         sky_node = w.node_tree.nodes.new("ShaderNodeTexSky")
+        sky_node.sky_type = "HOSEK_WILKIE"              # the one model KD Trace lacks
         w.node_tree.links.new(sky_node.outputs["Color"], w.node_tree.nodes["Background"].inputs["Color"])
         bpy.context.scene.world = w
         coat = material("coated", color=(0.5, 0.5, 0.8), **{"Coat Weight": 0.5})
