@@ -993,6 +993,7 @@ def _export_lights(depsgraph, warnings: list) -> list:
                       axis_u=tuple(axes[:, 0]), axis_v=tuple(axes[:, 1]))
         if data.type in ("POINT", "SPOT"):
             light.radius = float(data.shadow_soft_size)
+            light.soft_falloff = bool(getattr(data, "use_soft_falloff", True))
         if data.type == "SUN":
             light.radius = float(data.angle)
         if data.type == "SPOT":

@@ -28,11 +28,15 @@ PRINCIPLED_DEFAULTS = {"metallic": 0.0, "roughness": 0.5, "ior": 1.5, "specular"
 # Principled BSDF input -> our parameter; inputs not listed here are ignored silently when at
 # their defaults and with a warning when linked.
 _PRINCIPLED = {"Metallic": "metallic", "Roughness": "roughness", "IOR": "ior",
-               "Transmission Weight": "transmission", "Specular IOR Level": "specular"}
+               "Transmission Weight": "transmission", "Specular IOR Level": "specular",
+               "Coat Weight": "coat_weight", "Coat Roughness": "coat_roughness",
+               "Coat IOR": "coat_ior"}
 
 
 _NODE_OUTPUTS = {"metallic": "METALLIC", "roughness": "ROUGHNESS", "ior": "IOR",
-                 "transmission": "TRANSMISSION", "specular": "SPECULAR"}
+                 "transmission": "TRANSMISSION", "specular": "SPECULAR",
+                 "coat_weight": "COAT_WEIGHT", "coat_roughness": "COAT_ROUGHNESS",
+                 "coat_ior": "COAT_IOR"}
 
 
 def _named_input(node, name):
@@ -104,7 +108,7 @@ class NodeProgram:
             keeps = "the surface's own normal" if field == "NORMAL" else f"its value {socket_value(socket)}"
             problems.append(f"input '{socket.name}': {error}; using {keeps}")
             return False
-        if field not in ("BASE_COLOR", "NORMAL", "EMISSION"):
+        if field not in ("BASE_COLOR", "NORMAL", "EMISSION", "COAT_TINT"):
             ref = self._as_float(ref)
         self._emit("OUT", 0, ref, params=(NODE_OUT_CODES[field],))
         self.outputs.append(field)
@@ -701,7 +705,7 @@ def _linked_stand_in(output, value):
     """The constant a material keeps for an input its node program sets: one that switches on
     the kernel features the input may need (core/scene/features.py)."""
     return {"METALLIC": 0.5, "TRANSMISSION": 0.5, "SPECULAR": max(value, 0.5),
-            "ALPHA": 0.5}.get(output, value)
+            "ALPHA": 0.5, "COAT_WEIGHT": 0.5}.get(output, value)
 
 
 def _emission(node, color_name, strength_name, params, problems, program):
@@ -719,6 +723,36 @@ def _emission(node, color_name, strength_name, params, problems, program):
     strength = input_value(node, strength_name, problems) or 0.0
     params["emission_r"], params["emission_g"], params["emission_b"] = (
         max(0.0, c * strength) for c in emission[:3])
+
+
+def _coat_tint(node, params, problems, program):
+    """Principled's Coat Tint (a constant, or through the node program) and Coat Normal (KD
+    Trace's coat takes the BSDF's normal: a linked one is named)."""
+    tint = node.inputs.get("Coat Tint")
+    if tint is not None and tint.is_linked and program is not None and \
+            program.output(tint, "COAT_TINT", problems):
+        pass
+    elif tint is not None:
+        for c, v in zip("rgb", socket_value(tint)[:3]):
+            params[f"coat_tint_{c}"] = max(0.0, v)
+    normal = node.inputs.get("Coat Normal")
+    coated = params.get("coat_weight", 0.0) > 0 or node.inputs["Coat Weight"].is_linked
+    if normal is not None and normal.is_linked and coated:
+        problems.append("'Coat Normal' is linked; the coat uses the BSDF's normal")
+
+
+def _subsurface(node, problems):
+    """Principled's Subsurface: rendered as the diffuse it replaces (Cycles' random walk
+    scatters the light under the surface over Radius x Scale: softer, tinted edges); named with
+    the radius it leaves out."""
+    weight = node.inputs.get("Subsurface Weight")
+    if weight is None or not (weight.is_linked or socket_value(weight) > 0):
+        return
+    radius = tuple(round(v, 4) for v in socket_value(node.inputs["Subsurface Radius"])[:3])
+    scale = socket_value(node.inputs["Subsurface Scale"])
+    amount = "linked" if weight.is_linked else f"{socket_value(weight):g}"
+    problems.append(f"'Subsurface Weight' ({amount}) is rendered as diffuse, without the light "
+                    f"scattered under the surface (Subsurface Radius {radius} x Scale {scale:g})")
 
 
 def _normal_input(node, problems, program):
@@ -897,8 +931,9 @@ def _closure(node, program, problems, fallback, mixed) -> Closure:
         alpha = input_value(node, "Alpha", problems, program, "ALPHA")
         color = color[:3] + (alpha if alpha is not None else 1.0,)
         _emission(node, "Emission Color", "Emission Strength", params, problems, program)
-        for other in ("Coat Weight", "Sheen Weight", "Subsurface Weight", "Anisotropic",
-                      "Diffuse Roughness", "Thin Film Thickness"):
+        _coat_tint(node, params, problems, program)
+        _subsurface(node, problems)
+        for other in ("Sheen Weight", "Anisotropic", "Diffuse Roughness", "Thin Film Thickness"):
             socket = node.inputs.get(other)
             if socket is not None and (socket.is_linked or socket_value(socket) > 0):
                 problems.append(f"'{other}' is not supported and is ignored")
@@ -907,7 +942,7 @@ def _closure(node, program, problems, fallback, mixed) -> Closure:
             problems.append("'Specular Tint' is not supported; rendering white")
         _normal_input(node, problems, program)
         _unhandled_links(node, ("Base Color", "Alpha", "Emission Color", "Emission Strength",
-                                "Normal", *_PRINCIPLED), problems)
+                                "Normal", "Coat Tint", "Coat Normal", *_PRINCIPLED), problems)
     elif kind == "BSDF_DIFFUSE":
         color, image = _color_input(node, "Color", problems, program)
         params["roughness"], params["specular"] = 1.0, 0.0
@@ -957,7 +992,8 @@ def _closure(node, program, problems, fallback, mixed) -> Closure:
                         "material's base colour there")
         return Closure(fallback, params, None, program)
     params["ior"] = min(max(params["ior"], 0.01), 100.0)
-    for name in ("metallic", "roughness", "transmission"):
+    params["coat_ior"] = min(max(params["coat_ior"], 1.0), 100.0)
+    for name in ("metallic", "roughness", "transmission", "coat_weight", "coat_roughness"):
         params[name] = min(max(params[name], 0.0), 1.0)
     params["specular"] = min(max(params["specular"], 0.0), 1000.0)
     color = tuple(min(max(c, 0.0), 1e6) for c in color[:3]) + (min(max(color[3], 0.0), 1.0),)

@@ -272,7 +272,8 @@ NODE_NOISE_TYPE_CODES = {"FBM": 0, "MULTIFRACTAL": 1, "HYBRID_MULTIFRACTAL": 2,
                          "RIDGED_MULTIFRACTAL": 3, "HETERO_TERRAIN": 4}
 NODE_OUT_CODES = {"BASE_COLOR": 0, "ALPHA": 1, "METALLIC": 2, "ROUGHNESS": 3,
                   "TRANSMISSION": 4, "IOR": 5, "SPECULAR": 6, "NORMAL": 7, "EMISSION": 8,
-                  "WEIGHT": 9}
+                  "WEIGHT": 9, "COAT_WEIGHT": 10, "COAT_ROUGHNESS": 11, "COAT_IOR": 12,
+                  "COAT_TINT": 13}
 # Layer Weight outputs (LAYER_WEIGHT p0): Cycles' NODE_LAYER_WEIGHT_FRESNEL and _FACING.
 NODE_LAYER_WEIGHT_CODES = {"FRESNEL": 0, "FACING": 1}
 # Voronoi Texture (VORONOI p0 = dimensions + 8 feature + 64 metric + 512 normalize + 1024
@@ -375,10 +376,12 @@ LIGHT = Record("LIGHT", "A light (lights buffer, light_count records)", 6, (
     Slot("area_v", 4, "xyz", "area: axis_v times size_v"),
     Slot("area_shape", 4, "w", "area: a LIGHT_SHAPE_<SHAPE> code"),
     Slot("sun_cos_half_angle", 5, "x", "sun: cos of half the angular diameter (1 = sharp)"),
+    Slot("sphere", 5, "y", "point/spot with a radius: 1 = a sphere of light (Soft Falloff off), "
+         "0 = a disk facing the surface (on)"),
 ))
 
 MATERIAL = Record("MATERIAL", "A closure of a material (materials buffer; a triangle's material "
-                  "id names the first of its closures)", 5, (
+                  "id names the first of its closures)", 7, (
     Slot("base_color", 0, "xyz", "base colour"),
     Slot("alpha", 0, "w", "alpha (< 1: cut-out)"),
     Slot("metallic", 1, "x", "metallic"),
@@ -398,6 +401,10 @@ MATERIAL = Record("MATERIAL", "A closure of a material (materials buffer; a tria
          "path; its program may set it: then a stand-in)"),
     Slot("kind", 4, "z", "a CLOSURE_<KIND> code"),
     Slot("translucent", 4, "w", "the share of a diffuse transmission lobe (Translucent BSDF: 1)"),
+    Slot("coat_weight", 5, "x", "Principled Coat Weight (0: no coat)"),
+    Slot("coat_roughness", 5, "y", "Coat Roughness"),
+    Slot("coat_ior", 5, "z", "Coat IOR"),
+    Slot("coat_tint", 6, "xyz", "Coat Tint"),
 ))
 
 CAMERA = Record("CAMERA", "The camera (one record; the pixel filter's table follows it)", 13, (

@@ -35,7 +35,7 @@ def pack_materials(shading) -> np.ndarray:
     MATERIAL.put(records, "base_color", shading.materials[:, :3])
     MATERIAL.put(records, "alpha", shading.materials[:, 3])
     for name in ("metallic", "roughness", "transmission", "ior", "specular", "texture", "visibility",
-                 "weight", "kind", "translucent"):
+                 "weight", "kind", "translucent", "coat_weight", "coat_roughness", "coat_ior"):
         MATERIAL.put(records, name, params[:, MATERIAL_PARAMS.index(name)])
     # A material's closures never reach past the records (validated on the wire; clamped here
     # as well, since the kernel reads them without a bound).
@@ -43,6 +43,7 @@ def pack_materials(shading) -> np.ndarray:
     MATERIAL.put(records, "closures", np.clip(closures, 1, n - np.arange(n)))
     emission = [MATERIAL_PARAMS.index(f"emission_{c}") for c in "rgb"]
     MATERIAL.put(records, "emission", params[:, emission])
+    MATERIAL.put(records, "coat_tint", params[:, [MATERIAL_PARAMS.index(f"coat_tint_{c}") for c in "rgb"]])
     MATERIAL.put(records, "texture_alpha", 1.0)
     # The node programs follow the records; a material's program slot is its absolute row.
     program = params[:, MATERIAL_PARAMS.index("program")]
@@ -181,6 +182,7 @@ def pack_lights(lights) -> np.ndarray:
             LIGHT.put(record, "spot_smooth", 1.0 / span if span > 0 else 0.0)
         if light.kind in ("POINT", "SPOT"):
             LIGHT.put(record, "radius", light.radius)
+            LIGHT.put(record, "sphere", 0.0 if light.soft_falloff or not light.radius > 0 else 1.0)
         if light.kind == "SUN":
             LIGHT.put(record, "sun_cos_half_angle", math.cos(min(light.radius, math.pi) / 2))
         if light.kind == "AREA":

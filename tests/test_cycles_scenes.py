@@ -8,7 +8,8 @@ Mapping nodes (as Blender's glTF importer makes them), the Material and World Ou
 uses where there are several, Mix and Add Shaders (closures), Translucent and Transparent
 BSDFs, the Voronoi, Wave, Magic, Brick and White Noise textures, Color Attribute, Attribute,
 Object Info, Geometry and Light Path, the Sky Texture (Multiple and Single Scattering with
-their sun discs, Preetham through a Mapping node), and odd input (an object
+their sun discs, Preetham through a Mapping node), Principled Coat, point and spot lights
+with Soft Falloff off, and odd input (an object
 scaled to 0 on an axis and on all, text, curve and metaball objects, an image that cannot be
 loaded, an area light flattened to a line). Compared by PSNR on Combined (and alpha); each scene's kernel compiles exactly the features it
 uses; what is not supported is named in warnings. docs/cycles_features.md lists the rows."""
@@ -55,6 +56,9 @@ SCENES = {
     "sky_multiple": (12, {"BOUNCES", "SMOOTH", "SPECULAR", "WORLD", "WORLD_TEXTURE"}),
     "sky_single": (12, {"BOUNCES", "SMOOTH", "SPECULAR", "WORLD", "WORLD_TEXTURE"}),
     "sky_preetham": (12, {"BOUNCES", "SMOOTH", "SPECULAR", "WORLD", "WORLD_TEXTURE"}),
+    "coat": (12, {"AREA", "BOUNCES", "COAT", "NODES", "SMOOTH", "SPECULAR", "WORLD"}),
+    "soft_falloff": (12, {"BOUNCES", "POINT", "SMOOTH", "SOFT_LIGHTS", "SPHERE_LIGHTS", "SPOT",
+                          "WORLD"}),
     "attributes": (12, {"ALPHA", "AREA", "BOUNCES", "CLOSURES", "EMISSION", "LIGHT_PATH", "NODES",
                         "SMOOTH", "SPECULAR", "TEXTURES", "WORLD"}),
 }
@@ -151,7 +155,8 @@ def test_unsupported_things_are_named(renders):
         found = [w for w in warnings if all(word in w for word in words)]
         assert len(found) == 1, (words, warnings)
     one("world 'sky world'", "HOSEK_WILKIE sky model is not computed")
-    one("material 'coated'", "object 'coated ball'", "Coat Weight", "Normal")
+    one("material 'brushed'", "object 'brushed ball'", "Anisotropic", "Normal",
+        "'Sheen Weight'", "'Subsurface Weight' (0.3) is rendered as diffuse", "Subsurface Radius")
     one("material 'toon'", "object 'toon floor'", "Toon")
     one("light 'narrow area'", "spread")
     one("object 'moving box'", "motion blur", "parents")

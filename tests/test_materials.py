@@ -49,6 +49,12 @@ Material grey_material(float grey, float metallic, float roughness, float transm
 #ifdef HAS_TRANSLUCENT
     m.translucent = 0.0f;
 #endif
+#ifdef HAS_COAT
+    m.coat_weight = 0.0f;
+    m.coat_roughness = 0.03f;
+    m.coat_ior = 1.5f;
+    m.coat_tint = (float3)(1.0f, 1.0f, 1.0f);
+#endif
     return m;
 }
 
@@ -56,13 +62,18 @@ Material grey_material(float grey, float metallic, float roughness, float transm
 // the reflected and transmitted weights (transmission as energy: times eta^2) and the largest
 // relative difference between a sample's density and bsdf_eval_local's.
 __kernel void probe(float metallic, float roughness, float transmission, float ior,
-                    float specular, float cos_o, int front, int n, float translucent,
+                    float specular, float cos_o, int front, int n, float4 extra,
                     __global float4 *out)
 {
     int i = get_global_id(0);
     Material m = grey_material(1.0f, metallic, roughness, transmission, ior, specular);
 #ifdef HAS_TRANSLUCENT
-    m.translucent = translucent;
+    m.translucent = extra.x;                // extra: translucent, coat weight, roughness, IOR
+#endif
+#ifdef HAS_COAT
+    m.coat_weight = extra.y;
+    m.coat_roughness = extra.z;
+    m.coat_ior = extra.w;
 #endif
     float3 wo = (float3)(sqrt(1.0f - cos_o * cos_o), 0.0f, cos_o);
     Lobes l = lobes_at(&m, cos_o, front != 0, 0.0f);
@@ -127,7 +138,8 @@ def probe():
 
     def sample(material, cos_o, front=True, n=1000):
         kernels["probe"](tracer.queue, (items,), None, *map(np.float32, material),
-                         np.float32(cos_o), np.int32(front), np.int32(n), np.float32(0), buf4)
+                         np.float32(cos_o), np.int32(front), np.int32(n),
+                         np.array([0, 0, 0.03, 1.5], np.float32), buf4)
         cl.enqueue_copy(tracer.queue, out4, buf4)
         return out4[:, 0].mean(), out4[:, 1].mean(), out4[:, 2].max()
 
@@ -157,6 +169,18 @@ def test_bsdf_samples_have_the_density_it_evaluates_and_keep_energy(probe, name)
             assert 0.3 < pdf_integral(material, cos_o) < 1.02
 
 
+def plane_under_sun(tracer, colour, params, sun, size=8):
+    """The loaded plane (z = 0) of one material (`colour`, `params`) under a sun of irradiance 2
+    shining along `sun`, seen from straight above, one sample at each pixel centre: RGB."""
+    shading = Shading(np.array([[*colour, 1]], np.float32),
+                      [Light("SUN", (1, 1, 1), 2.0, direction=tuple(sun))], (0, 0, 0), params)
+    m = np.eye(4)
+    m[2, 3] = 1.0
+    view = View(Camera("ORTHO", m, (1.0, 1.0), (0, 0), 0.01, 10.0), size, size, shading,
+                settings=RenderSettings(samples_per_axis=1, adaptive=False, max_bounces=0))
+    return tracer.render_tile(view, 0, 0, size, size)["combined"][..., :3]
+
+
 def test_translucent_transmits_lambertian_light():
     """The Translucent share of a white material (lobes_at, bsdf_sample_local,
     bsdf_eval_local): its samples transmit t of the light and reflect 1 - t, their densities
@@ -173,7 +197,7 @@ def test_translucent_transmits_lambertian_light():
         for cos_o in (0.9, 0.3):
             # a white diffuse material (specular 0) with its translucent share t
             kernel(tracer.queue, (64,), None, *map(np.float32, (0, 0.5, 0, 1.5, 0, cos_o)),
-                   np.int32(1), np.int32(1000), np.float32(t), buf)
+                   np.int32(1), np.int32(1000), np.array([t, 0, 0.03, 1.5], np.float32), buf)
             cl.enqueue_copy(tracer.queue, out, buf)
             assert out[:, 2].max() < 1e-3
             assert abs(out[:, 1].mean() - t) < 0.01 and abs(out[:, 0].mean() - (1 - t)) < 0.01
@@ -185,16 +209,77 @@ def test_translucent_transmits_lambertian_light():
     params[0, MATERIAL_PARAMS.index("specular")] = 0.0
     params[0, MATERIAL_PARAMS.index("translucent")] = 0.75
     colour = np.array([0.9, 0.6, 0.3])
-    shading = Shading(np.array([[*colour, 1]], np.float32),
-                      [Light("SUN", (1, 1, 1), 2.0, direction=(0, 0, 1))], (0, 0, 0), params)
-    m = np.eye(4)
-    m[2, 3] = 1.0
-    view = View(Camera("ORTHO", m, (1.0, 1.0), (0, 0), 0.01, 10.0), 8, 8, shading,
-                settings=RenderSettings(samples_per_axis=1, adaptive=False, max_bounces=0))
-    image = tracer.render_tile(view, 0, 0, 8, 8)["combined"][..., :3]
+    image = plane_under_sun(tracer, colour, params, (0, 0, 1))
     assert "TRANSLUCENT" in tracer.last_render["features"]
     np.testing.assert_allclose(image, np.broadcast_to(colour * 0.75 * 2.0 / np.pi, image.shape),
                                rtol=1e-5)
+
+
+def ggx(alpha2, cos_h):
+    return alpha2 / (np.pi * (cos_h * cos_h * (alpha2 - 1) + 1) ** 2)
+
+
+def smith_lambda(alpha2, cos_t):
+    return 0.5 * (-1 + np.sqrt(1 + alpha2 * (1 - cos_t ** 2) / cos_t ** 2))
+
+
+def fresnel(cos_i, eta):
+    sin2 = (1 - cos_i ** 2) / eta ** 2
+    cos_t = np.sqrt(np.maximum(1 - sin2, 0))
+    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
+    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
+    return np.where(sin2 >= 1, 1.0, 0.5 * (rs * rs + rp * rp))
+
+
+def test_coat_layers_as_cycles_does():
+    """Principled's Coat (lobes_at, bsdf_eval_local, bsdf_sample_local): samples have the density
+    evaluated and a white coated diffuse keeps at most the energy it gets; and a coated diffuse
+    plane under a slanted sun, seen from straight above, is Cycles' layering: base / pi x E cos
+    x (1 - weight F(cos_o)) x the tint over its path, plus the coat's GGX reflection of the sun
+    (alpha = coat roughness^2, exact Fresnel of the coat's IOR), as numpy says."""
+    import pyopencl as cl
+    tracer = Tracer()
+    program = cl.Program(tracer.context, kernel_source(kernel_files_through("shade/bsdf.cl"))
+                         + PROBE).build(options=["-DKD_STACK_SIZE=32", "-DHAS_COAT",
+                                                 "-DHAS_SPECULAR"])
+    kernel = cl.Kernel(program, "probe")
+    out = np.zeros((64, 4), np.float32)
+    buf = cl.Buffer(tracer.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+    for weight, coat_roughness in ((1.0, 0.3), (0.6, 0.1)):
+        for cos_o in (0.9, 0.4):
+            kernel(tracer.queue, (64,), None, *map(np.float32, (0, 0.5, 0, 1.5, 0.5, cos_o)),
+                   np.int32(1), np.int32(1000), np.array([0, weight, coat_roughness, 1.5],
+                                                         np.float32), buf)
+            cl.enqueue_copy(tracer.queue, out, buf)
+            assert out[:, 2].max() < 1e-3
+            assert 0.85 < out[:, 0].mean() < 1.01
+    from core.scene.model import MATERIAL_PARAMS
+    vertices, triangles = grid_plane(2.0, 1, 0.0)
+    tracer.load(Scene.from_parts(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)),
+                                 build_kdtree(vertices, triangles)))
+    params = default_material_params(1)
+    column = {name: k for k, name in enumerate(MATERIAL_PARAMS)}
+    weight, coat_roughness, coat_ior, tint = 0.8, 0.4, 1.6, np.array([0.9, 0.6, 0.3])
+    params[0, column["specular"]] = 0.0
+    params[0, column["coat_weight"]] = weight
+    params[0, column["coat_roughness"]] = coat_roughness
+    params[0, column["coat_ior"]] = coat_ior
+    params[0, [column["coat_tint_r"], column["coat_tint_g"], column["coat_tint_b"]]] = tint
+    colour = np.array([0.2, 0.7, 0.4])
+    sun = np.array([0.5, 0.0, -1.0])
+    image = plane_under_sun(tracer, colour, params, sun)
+    assert "COAT" in tracer.last_render["features"]
+    wi = -sun / np.linalg.norm(sun)
+    cos_i, cos_o = wi[2], 1.0
+    depth = 1 / np.sqrt(1 - (1 - cos_o ** 2) / coat_ior ** 2)
+    below = (1 - weight * fresnel(cos_o, coat_ior)) * (1 + weight * (tint ** depth - 1))
+    h = (wi + np.array([0, 0, 1.0]))
+    h /= np.linalg.norm(h)
+    alpha2 = coat_roughness ** 4
+    g2 = 1 / (1 + smith_lambda(alpha2, cos_o) + smith_lambda(alpha2, cos_i))
+    coat = weight * fresnel(h @ wi, coat_ior) * ggx(alpha2, h[2]) * g2 / (4 * cos_o * cos_i)
+    expected = (colour / np.pi * below + coat) * 2.0 * cos_i
+    np.testing.assert_allclose(image, np.broadcast_to(expected, image.shape), rtol=2e-4)
 
 
 def render_sphere(tracer, params, world=(1.0, 1.0, 1.0), base=(1, 1, 1), size=16, n=12):

@@ -20,7 +20,7 @@ CYCLES_NAMES = {"max_bounces": "max_bounces", "diffuse_bounces": "diffuse_bounce
                 "blur_glossy": "filter_glossy"}
 # What each file's export must warn of (every warning matches one of these, each is found);
 # zero-area faces dropped are always allowed.
-WARNED = {"clearcoat": ["'Coat Weight' is not supported"],
+WARNED = {"clearcoat": ["'Coat Normal' is linked; the coat uses the BSDF's normal"],
           "two_uv_maps": ["reads UV map(s) 'UVMap.001'"]}
 
 

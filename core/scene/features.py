@@ -16,11 +16,13 @@ from .model import MATERIAL_PARAMS, Geometry, View
 FEATURES = {
     "POINT": (), "SUN": (), "SPOT": (), "AREA": (),  # light kinds present
     "SOFT_LIGHTS": (),        # a point/spot light with a radius or a sun with an angle
+    "SPHERE_LIGHTS": (),      # a point/spot light with a radius and Soft Falloff off
     "SMOOTH": ("normals",),   # interpolated (or custom split) corner normals
     "TEXTURES": ("uvs", "texels", "texture_sizes"),  # image-textured base colours
     "SPECULAR": (),           # metallic or specular > 0: GGX reflection (any roughness)
     "TRANSMISSION": (),       # GGX refraction and reflection of glass, total internal reflection
     "TRANSLUCENT": (),        # diffuse transmission (Translucent BSDF)
+    "COAT": (),               # Principled's Coat: a GGX dielectric layer over the others
     "ALPHA": (),              # alpha cut-out (< 1): rays and shadow rays pass through
     "EMISSION": (),           # emissive materials: seen, and their triangles sampled as lights
     "WORLD": (),              # the world lights the scene (a colour that is not black)
@@ -74,6 +76,9 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
     features = {light.kind for light in shading.lights}
     if any((light.kind in ("POINT", "SPOT", "SUN") and light.radius > 0) for light in shading.lights):
         features.add("SOFT_LIGHTS")
+    if any(light.kind in ("POINT", "SPOT") and light.radius > 0 and not light.soft_falloff
+           for light in shading.lights):
+        features.add("SPHERE_LIGHTS")
     used = np.zeros(len(shading.materials), bool)
     if used_materials is None:
         used_materials = geometry.used_material_ids()
@@ -114,6 +119,9 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
     translucent = bsdf & (column("translucent") > 0)
     if translucent.any():
         features.add("TRANSLUCENT")
+    coat = bsdf & (column("coat_weight") > 0)
+    if coat.any():
+        features.add("COAT")
     if (colours[:, 3] < 1).any() or (kind == CLOSURE_CODES["TRANSPARENT"]).any():
         features.add("ALPHA")
     if (kind == CLOSURE_CODES["HOLDOUT"]).any():
@@ -151,7 +159,7 @@ def scene_features(geometry: Geometry, view: View, used_materials=None,
     # Diffuse: every material but pure metal and pure glass has a diffuse part.
     diffuse = settings.diffuse_bounces > 0 and bool(
         (bsdf & ((1 - column("metallic")) * (1 - column("transmission")) > 0)).any())
-    glossy = settings.glossy_bounces > 0 and bool(specular.any())
+    glossy = settings.glossy_bounces > 0 and bool(specular.any() or coat.any())
     refractive = settings.transmission_bounces > 0 and bool(transmissive.any() or
                                                             translucent.any())
     bounces = settings.max_bounces > 0 and (diffuse or glossy or refractive)

@@ -301,6 +301,7 @@ class Light:
     shape: str = "SQUARE"        # area lights
     size_u: float = 1.0
     size_v: float = 1.0
+    soft_falloff: bool = True    # point/spot: Blender's Soft Falloff (off: a sphere of light)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -315,6 +316,9 @@ class Light:
         shape = d.get("shape", "SQUARE")
         if shape not in AREA_SHAPES:
             raise SceneError(f"area light shape must be one of {AREA_SHAPES}, got {shape!r}")
+        soft_falloff = d.get("soft_falloff", True)
+        if not isinstance(soft_falloff, bool):
+            raise SceneError("light soft_falloff must be true or false")
         return cls(
             kind=kind,
             color=_finite_floats(d.get("color"), 3, "light color"),
@@ -329,6 +333,7 @@ class Light:
             shape=shape,
             size_u=_finite_float(d.get("size_u"), "area light size", 0.0),
             size_v=_finite_float(d.get("size_v"), "area light size", 0.0),
+            soft_falloff=soft_falloff,
         )
 
 
@@ -339,12 +344,15 @@ class Light:
 # A row is one closure (Mix Shader, Add Shader: docs/shading.md, Closures): closures, on a
 # material's first row, how many rows (this and the next) its closures take (1 to
 # MAX_CLOSURES); weight, the closure's (its program may set it); kind, a CLOSURE_CODES code.
-# translucent: the share of a diffuse transmission lobe (the Translucent BSDF: 1).
+# translucent: the share of a diffuse transmission lobe (the Translucent BSDF: 1). coat_*:
+# Principled's Coat (weight 0: none).
 MATERIAL_PARAMS = ("metallic", "roughness", "transmission", "ior", "emission_r", "emission_g",
                    "emission_b", "specular", "texture", "visibility", "program", "closures",
-                   "weight", "kind", "translucent")
+                   "weight", "kind", "translucent", "coat_weight", "coat_roughness", "coat_ior",
+                   "coat_tint_r", "coat_tint_g", "coat_tint_b")
 DEFAULT_MATERIAL_PARAMS = (0.0, 0.5, 0.0, 1.5, 0.0, 0.0, 0.0, 0.0, -1.0, float(VISIBLE_TO_ALL),
-                           -1.0, 1.0, 1.0, float(CLOSURE_CODES["PRINCIPLED"]), 0.0)
+                           -1.0, 1.0, 1.0, float(CLOSURE_CODES["PRINCIPLED"]), 0.0, 0.0, 0.03, 1.5,
+                           1.0, 1.0, 1.0)
 MAX_NODE_ROWS = 1 << 20
 # name -> (low, high) accepted from the network; texture is an index, -1 = none.
 _PARAM_RANGES = {"metallic": (0.0, 1.0), "roughness": (0.0, 1.0), "transmission": (0.0, 1.0),
@@ -353,7 +361,9 @@ _PARAM_RANGES = {"metallic": (0.0, 1.0), "roughness": (0.0, 1.0), "transmission"
                  "texture": (-1.0, MAX_TEXTURES - 1.0), "visibility": (0.0, 63.0),
                  "program": (-1.0, MAX_NODE_ROWS - 1.0), "closures": (1.0, float(MAX_CLOSURES)),
                  "weight": (0.0, 1.0), "kind": (0.0, float(max(CLOSURE_CODES.values()))),
-                 "translucent": (0.0, 1.0)}
+                 "translucent": (0.0, 1.0), "coat_weight": (0.0, 1.0), "coat_roughness": (0.0, 1.0),
+                 "coat_ior": (1.0, 100.0), "coat_tint_r": (0.0, 1000.0),
+                 "coat_tint_g": (0.0, 1000.0), "coat_tint_b": (0.0, 1000.0)}
 _WHOLE_PARAMS = ("visibility", "program", "closures", "kind")
 
 

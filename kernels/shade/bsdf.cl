@@ -9,19 +9,6 @@
 // ---------------------------------------------------------------------------------------------
 // Fresnel and GGX
 
-// Fresnel reflectance of a dielectric interface (unpolarised); eta = n_transmitted / n_incident.
-inline float fresnel_dielectric(float cos_i, float eta)
-{
-    cos_i = clamp(cos_i, 0.0f, 1.0f);
-    float sin2_t = (1.0f - cos_i * cos_i) / (eta * eta);
-    if (sin2_t >= 1.0f)
-        return 1.0f;                                    // total internal reflection
-    float cos_t = sqrt(1.0f - sin2_t);
-    float rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t);
-    float rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t);
-    return 0.5f * (rs * rs + rp * rp);
-}
-
 inline float pow5(float x)
 {
     float x2 = x * x;
@@ -173,6 +160,12 @@ typedef struct {
 #ifdef HAS_TRANSLUCENT
     float w_translucent, p_translucent;         // diffuse transmission (Translucent BSDF)
 #endif
+#ifdef HAS_COAT
+    float w_coat, p_coat;                       // Principled's Coat: a GGX dielectric on top
+    float coat_alpha, coat_alpha2, eta_coat;
+    bool coat_delta;
+    float3 below;                               // what it passes to the layers below (at wo)
+#endif
 } Lobes;
 
 inline float3 metal_fresnel(float3 f0, float cos_h)
@@ -249,7 +242,27 @@ inline Lobes lobes_at(const Material *m, float cos_o, bool front, float alpha_mi
     float a_translucent = l.w_translucent * mean3(m->base);
     total += a_translucent;
 #endif
+#ifdef HAS_COAT
+    // The coat over everything (Cycles' layering: the layers below get 1 - its albedo, and
+    // its tint); its own lobe a GGX of alpha = coat roughness^2 with the exact Fresnel of its
+    // IOR, as Cycles' coat (no multiple-scattering compensation).
+    l.w_coat = clamp(m->coat_weight, 0.0f, 1.0f);
+    l.eta_coat = fmax(m->coat_ior, 1.0f);
+    float coat_roughness = clamp(m->coat_roughness, 0.0f, 1.0f);
+    l.coat_alpha = fmax(coat_roughness * coat_roughness, alpha_min);
+    l.coat_alpha2 = l.coat_alpha * l.coat_alpha;
+    l.coat_delta = l.coat_alpha2 <= DELTA_ALPHA2;
+    l.coat_alpha = fmax(l.coat_alpha, 1e-4f);
+    l.coat_alpha2 = fmax(l.coat_alpha2, 1e-8f);
+    l.below = l.w_coat > 0.0f ? coat_below(m, cos_o) : (float3)(1.0f, 1.0f, 1.0f);
+    float a_coat = l.w_coat * fresnel_dielectric(cos_o, l.eta_coat), below_mean = mean3(l.below);
+    total = total * below_mean + a_coat;
+#endif
     float inv = total > 0.0f ? 1.0f / total : 0.0f;
+#ifdef HAS_COAT
+    l.p_coat = a_coat * inv;
+    inv *= below_mean;                          // the layers below, through the coat
+#endif
 #ifdef HAS_TRANSLUCENT
     l.p_translucent = a_translucent * inv;
 #endif
@@ -277,9 +290,9 @@ inline float bump_shadowing(float3 n, float3 wi)
 }
 #endif
 
-// The non-delta part of the BSDF for wo -> wi (local), without the cosine; *pdf: the
-// density of bsdf_sample choosing wi (solid angle).
-inline float3 bsdf_eval_local(const Material *m, const Lobes *l, float3 wo, float3 wi, float *pdf)
+// The non-delta part of the layers under a coat (all of the BSDF without one) for wo -> wi
+// (local), without the cosine; *pdf: the density of bsdf_sample choosing wi (solid angle).
+inline float3 bsdf_eval_layers(const Material *m, const Lobes *l, float3 wo, float3 wi, float *pdf)
 {
     float3 f = (float3)(0.0f, 0.0f, 0.0f);
     *pdf = 0.0f;
@@ -362,6 +375,32 @@ inline float3 bsdf_eval_local(const Material *m, const Lobes *l, float3 wo, floa
     return f;
 }
 
+// The non-delta part of the BSDF for wo -> wi (local), without the cosine; *pdf: the
+// density of bsdf_sample choosing wi (solid angle). With a coat: its lobe over the layers,
+// which it passes l->below.
+inline float3 bsdf_eval_local(const Material *m, const Lobes *l, float3 wo, float3 wi, float *pdf)
+{
+#ifdef HAS_COAT
+    float3 f = bsdf_eval_layers(m, l, wo, wi, pdf) * l->below;
+    float cos_o = wo.z, cos_i = wi.z;
+#if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
+    if (kd_dot(l->unbumped, wi) * l->unbumped.z * cos_i < 0.0f)
+        return f;
+#endif
+    if (l->w_coat > 0.0f && !l->coat_delta && cos_i > 0.0f) {
+        float3 h = kd_normalize(wo + wi);
+        float d = ggx_d(l->coat_alpha2, h.z), lambda_o = ggx_lambda(l->coat_alpha2, cos_o);
+        float g2 = 1.0f / (1.0f + lambda_o + ggx_lambda(l->coat_alpha2, cos_i));
+        f += l->w_coat * fresnel_dielectric(kd_dot(wo, h), l->eta_coat) * d * g2
+             / (4.0f * cos_o * cos_i);
+        *pdf += l->p_coat * d / ((1.0f + lambda_o) * 4.0f * cos_o);
+    }
+    return f;
+#else
+    return bsdf_eval_layers(m, l, wo, wi, pdf);
+#endif
+}
+
 // A direction from the BSDF. Returns false when the sample is lost (below the surface,
 // nothing to scatter). *weight = f cos / pdf; *pdf = 0 for a mirror (delta) direction;
 // *kind: LOBE_DIFFUSE, LOBE_GLOSSY, LOBE_TRANSMISSION or LOBE_TRANSLUCENT (for the bounce
@@ -375,8 +414,27 @@ inline bool bsdf_sample_local(const Material *m, const Lobes *l, float3 wo, floa
 #ifdef HAS_TRANSLUCENT
     p_any += l->p_translucent;
 #endif
+#ifdef HAS_COAT
+    p_any += l->p_coat;
+#endif
     if (p_any <= 0.0f)
         return false;
+#ifdef HAS_COAT
+    if (u_lobe < l->p_coat) {               // the coat's reflection
+        *kind = LOBE_GLOSSY;
+        if (l->coat_delta) {
+            *wi = (float3)(-wo.x, -wo.y, wo.z);
+            *pdf = 0.0f;
+            *weight = (float3)(l->w_coat * fresnel_dielectric(wo.z, l->eta_coat) / l->p_coat);
+            return true;
+        }
+        float3 h = sample_vndf(wo, l->coat_alpha, u1, u2);
+        *wi = 2.0f * kd_dot(wo, h) * h - wo;
+        if (!(wi->z > 0.0f))
+            return false;
+    } else {
+    u_lobe -= l->p_coat;                    // the layers below
+#endif
     if (u_lobe < l->p_diffuse) {
         *kind = LOBE_DIFFUSE;
         float2 d = concentric_disk(u1, u2);
@@ -393,6 +451,9 @@ inline bool bsdf_sample_local(const Material *m, const Lobes *l, float3 wo, floa
                 float F = fresnel_dielectric(wo.z, l->eta_specular);
                 *weight = (float3)(l->w_dielectric * F / l->p_specular);
             }
+#ifdef HAS_COAT
+            *weight *= l->below;
+#endif
             return true;
         }
         float3 h = sample_vndf(wo, l->alpha, u1, u2);
@@ -427,9 +488,15 @@ inline bool bsdf_sample_local(const Material *m, const Lobes *l, float3 wo, floa
             *pdf = 0.0f;
             *weight = reflect ? (float3)(l->w_glass / p_glass)
                               : sqrt(m->base) * (l->w_glass / (p_glass * etap * etap));
+#ifdef HAS_COAT
+            *weight *= l->below;
+#endif
             return true;
         }
     }
+#ifdef HAS_COAT
+    }
+#endif
     float3 f = bsdf_eval_local(m, l, wo, *wi, pdf);
     if (!(*pdf > 0.0f))
         return false;

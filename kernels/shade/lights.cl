@@ -272,6 +272,51 @@ inline float area_light_area(__global const float4 *L)
     return LIGHT_AREA_SHAPE(L) == LIGHT_SHAPE_ELLIPSE ? a * M_PI_4_F : a;
 }
 
+#ifdef HAS_SPHERE_LIGHTS
+// A point or spot light with Soft Falloff off: Cycles' sphere of light (point.h, spot.h; its
+// radiance the power over 4 pi^2 r^2, colour x LIGHT_INTENSITY / (pi r^2)), its visible cap
+// sampled uniformly in solid angle from outside, every direction from inside; a spot's cone
+// is measured along each sampled ray, as Cycles measures it. Returns radiance over density.
+inline float3 sample_sphere_light(__global const float4 *L, int kind, float3 p, float u1,
+                                  float u2, float3 *wi, float3 *target, float *dist)
+{
+    float r = LIGHT_RADIUS(L), r2 = r * r;
+    float3 to = LIGHT_POSITION(L) - p;
+    float d2 = kd_dot(to, to), d = sqrt(d2);
+    float3 radiance = LIGHT_INTENSITY(L) * (1.0f / (M_PI_F * r2));
+    float3 w;
+    float over_pdf, t;
+    if (d2 > r2) {
+        float s2 = r2 / d2, one_minus_cos = s2 / (1.0f + sqrt(1.0f - s2));
+        w = kd_normalize(uniform_cone(to / d, 1.0f - one_minus_cos, u1, u2));
+        over_pdf = 2.0f * M_PI_F * one_minus_cos;
+        float c = kd_dot(w, to) / d;        // law of cosines: the nearer intersection
+        t = d * c - sqrt(fmax(r2 - d2 + d2 * c * c, 0.0f));
+#ifdef HAS_SPOT
+        if (kind == LIGHT_SPOT) {
+            float cos_half = LIGHT_SPOT_COS_HALF(L), smooth = LIGHT_SPOT_SMOOTH(L);
+            float cz = -kd_dot(w, LIGHT_DIRECTION(L));
+            radiance *= smooth > 0.0f ? smoothstep01((cz - cos_half) * smooth)
+                                      : (cz > cos_half ? 1.0f : 0.0f);
+        }
+#endif
+    } else {
+        float z = 1.0f - 2.0f * u1, sz = sqrt(fmax(0.0f, 1.0f - z * z));
+        float2 e = sincos_poly(2.0f * M_PI_F * u2);
+        w = (float3)(sz * e.y, sz * e.x, z);
+        over_pdf = 4.0f * M_PI_F;
+        float c = d > 0.0f ? kd_dot(w, to) / d : 0.0f;
+        t = d * c + sqrt(fmax(r2 - d2 + d2 * c * c, 0.0f));
+    }
+    if (!(t > 0.0f))
+        return (float3)(0.0f, 0.0f, 0.0f);
+    *wi = w;
+    *dist = t;
+    *target = p + t * w;
+    return radiance * over_pdf;
+}
+#endif
+
 // Sample a point on light l as seen from p: returns the irradiance at normal incidence (before
 // the cosine at the surface and before shadowing); *wi the unit direction to it, *target the
 // point (for local lights), *dist its distance (INFINITY for the sun) and *pdf the sample's
@@ -316,6 +361,10 @@ inline float3 sample_light(const Scene *sc, uint l, float3 p, float u1, float u2
         return (float3)(0.0f, 0.0f, 0.0f);
 #endif
     }
+#ifdef HAS_SPHERE_LIGHTS
+    else if (LIGHT_RADIUS(L) > 0.0f && LIGHT_SPHERE(L) > 0.0f)
+        return sample_sphere_light(L, kind, p, u1, u2, wi, target, dist);
+#endif
 #ifdef HAS_SOFT_LIGHTS
     else if (LIGHT_RADIUS(L) > 0.0f) {
         // A sphere light seen from p: a disk facing p (uniform radiance: same irradiance as

@@ -11,6 +11,25 @@ inline float2 hit_uv(const Scene *sc, uint tri, float u, float v)
 }
 #endif
 
+#ifdef HAS_COAT
+// What Cycles' Principled passes to the layers below its Coat seen at cosine cos_o: 1 - the
+// coat's albedo (its weight x the dielectric Fresnel at cos_o: closure_layering_weight with
+// Cycles' smooth-surface estimate of a dielectric's albedo), times the tint over the path
+// through the coat (Beer's law: tint^(1 / cos of the refracted ray), blended by the weight).
+inline float3 coat_below(const Material *m, float cos_o)
+{
+    float weight = clamp(m->coat_weight, 0.0f, 1.0f), eta = fmax(m->coat_ior, 1.0f);
+    cos_o = clamp(cos_o, 0.0f, 1.0f);
+    float3 below = (float3)(clamp(1.0f - weight * fresnel_dielectric(cos_o, eta), 0.0f, 1.0f));
+    if (any(m->coat_tint != 1.0f)) {
+        float cos_t = sqrt(1.0f - (1.0f - cos_o * cos_o) / (eta * eta));
+        float3 tint = fmax(m->coat_tint, 0.0f);
+        below *= 1.0f + weight * (pow(tint, 1.0f / cos_t) - 1.0f);
+    }
+    return below;
+}
+#endif
+
 // The closure in MATERIAL record M of triangle `tri` at barycentrics (u, v); `s`: the surface
 // point where the shading normal matters (a node program's Normal output sets s->ns), else 0;
 // `info`: the ray's view of the hit for the nodes that read it (Fresnel, Layer Weight), or 0.
@@ -35,6 +54,12 @@ inline Material material_record(const Scene *sc, __global const float4 *M, uint 
 #ifdef HAS_TRANSLUCENT
     m.translucent = MATERIAL_TRANSLUCENT(M);
 #endif
+#ifdef HAS_COAT
+    m.coat_weight = MATERIAL_COAT_WEIGHT(M);
+    m.coat_roughness = MATERIAL_COAT_ROUGHNESS(M);
+    m.coat_ior = MATERIAL_COAT_IOR(M);
+    m.coat_tint = MATERIAL_COAT_TINT(M);
+#endif
 #ifdef HAS_TEXTURES
     int tex = (int)MATERIAL_TEXTURE(M);
     if (tex >= 0) {
@@ -53,6 +78,11 @@ inline Material material_record(const Scene *sc, __global const float4 *M, uint 
         float3 p = (1.0f - u - v) * TRIANGLE_V0(T) + u * TRIANGLE_V1(T) + v * TRIANGLE_V2(T);
         run_nodes(sc, program, tri, (float2)(u, v), uv, p, s, info, &m);
     }
+#endif
+#ifdef HAS_COAT
+    // Cycles attenuates the emission under the coat as the layers below (coat_below).
+    if (info && m.coat_weight > 0.0f)
+        m.emission *= coat_below(&m, kd_dot(info->incoming, info->normal));
 #endif
     return m;
 }

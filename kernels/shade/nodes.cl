@@ -630,6 +630,16 @@ inline void run_nodes(const Scene *sc, int at, uint tri, float2 bary, float2 uv,
             else if (field == NODE_OUT_WEIGHT)
                 m->weight = clamp(a.x, 0.0f, 1.0f);
 #endif
+#ifdef HAS_COAT
+            else if (field == NODE_OUT_COAT_WEIGHT)
+                m->coat_weight = clamp(a.x, 0.0f, 1.0f);
+            else if (field == NODE_OUT_COAT_ROUGHNESS)
+                m->coat_roughness = clamp(a.x, 0.0f, 1.0f);
+            else if (field == NODE_OUT_COAT_IOR)
+                m->coat_ior = clamp(a.x, 1.0f, 100.0f);
+            else if (field == NODE_OUT_COAT_TINT)
+                m->coat_tint = fmax(a.xyz, 0.0f);
+#endif
 #if defined(HAS_NORMAL_MAP) || defined(HAS_BUMP)
             else if (field == NODE_OUT_NORMAL && s) {
                 float3 n = safe_normalize(a.xyz);

@@ -46,6 +46,10 @@ typedef struct {
 #ifdef HAS_TRANSLUCENT
     float translucent;                  // the share of diffuse transmission
 #endif
+#ifdef HAS_COAT
+    float coat_weight, coat_roughness, coat_ior;    // Principled's Coat
+    float3 coat_tint;
+#endif
 } Material;
 
 // What a node program knows of the ray beyond the hit's position and UVs (Cycles' ShaderData
@@ -72,6 +76,20 @@ typedef struct {
     uint key;                           // the hit's key (Hit.key): what a ray leaving it ignores
     float u, v;
 } Surface;
+
+// Fresnel reflectance of a dielectric interface (unpolarised); eta = n_transmitted / n_incident
+// (the BSDF, bsdf.cl, and the coat's attenuation of what lies below it, material.cl).
+inline float fresnel_dielectric(float cos_i, float eta)
+{
+    cos_i = clamp(cos_i, 0.0f, 1.0f);
+    float sin2_t = (1.0f - cos_i * cos_i) / (eta * eta);
+    if (sin2_t >= 1.0f)
+        return 1.0f;                                    // total internal reflection
+    float cos_t = sqrt(1.0f - sin2_t);
+    float rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t);
+    float rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t);
+    return 0.5f * (rs * rs + rp * rp);
+}
 
 inline float mean3(float3 c)
 {

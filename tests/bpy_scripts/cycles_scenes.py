@@ -1077,6 +1077,41 @@ def build(name):
         sphere(m, (-1.2, -0.6, 0.3), radius=0.3)
         light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
         camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
+    elif name == "coat":
+        # Principled Coat (issue 38) as Cycles layers it: over a red plastic, a tinted coat of
+        # IOR 1.6 over a metal, a rough coat over a diffuse, a coat weighted by a checker.
+        world((0.3, 0.32, 0.36))
+        floor(material("floor", "DIFFUSE", (0.5, 0.5, 0.5)), size=8.0)
+        sphere(material("coated plastic", color=(0.8, 0.1, 0.05), Roughness=0.6,
+                        **{"Coat Weight": 1.0, "Coat Roughness": 0.05}), (-1.5, 0.3, 0.45),
+               radius=0.45)
+        sphere(material("tinted coat", color=(0.9, 0.8, 0.6), Metallic=1.0, Roughness=0.4,
+                        **{"Coat Weight": 0.8, "Coat IOR": 1.6, "Coat Tint": (0.3, 0.5, 0.9, 1.0),
+                           "Coat Roughness": 0.1}), (-0.5, 0.6, 0.45), radius=0.45)
+        sphere(material("rough coat", color=(0.2, 0.6, 0.3), Roughness=1.0,
+                        **{"Coat Weight": 1.0, "Coat Roughness": 0.35, "Coat IOR": 1.45}),
+               (0.5, 0.6, 0.45), radius=0.45)
+        m, nodes, links, bsdf = node_material("checkered coat")
+        bsdf.inputs["Base Color"].default_value = (0.1, 0.2, 0.7, 1)
+        bsdf.inputs["Coat Roughness"].default_value = 0.02
+        checker = nodes.new("ShaderNodeTexChecker")
+        checker.inputs["Scale"].default_value = 3.0
+        links.new(checker.outputs["Fac"], bsdf.inputs["Coat Weight"])
+        sphere(m, (1.5, 0.3, 0.45), radius=0.45)
+        light("AREA", (1.0, -2.0, 3.0), (0, 0, 0), energy=150.0, size=1.0)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
+    elif name == "soft_falloff":
+        # Point and spot lights with Soft Falloff off (issue 38): spheres of light, near a
+        # floor and a ball, beside a point light with it on.
+        world((0.05, 0.05, 0.06))
+        floor(material("floor", "DIFFUSE", (0.6, 0.6, 0.6)), size=8.0)
+        sphere(material("ball", "DIFFUSE", (0.7, 0.5, 0.3)), (0.0, 0.4, 0.4), radius=0.4)
+        light("POINT", (-1.2, 0.0, 0.7), (-1.2, 0.0, 0.0), energy=60.0, shadow_soft_size=0.5,
+              use_soft_falloff=False)
+        light("SPOT", (1.0, -0.2, 0.9), (1.0, 0.3, 0.0), energy=80.0, shadow_soft_size=0.3,
+              spot_size=math.radians(70), use_soft_falloff=False)
+        light("POINT", (0.0, 1.5, 1.2), (0.0, 1.5, 0.0), energy=30.0, shadow_soft_size=0.4)
+        camera((0.0, -4.0, 2.0), (0, 0.3, 0.4), lens=35)
     elif name == "warned":
         # Things KD Trace does not render, each to be named in a warning (export only).
         w = bpy.data.worlds.new("sky world")
@@ -1085,13 +1120,15 @@ def build(name):
         sky_node.sky_type = "HOSEK_WILKIE"              # the one model KD Trace lacks
         w.node_tree.links.new(sky_node.outputs["Color"], w.node_tree.nodes["Background"].inputs["Color"])
         bpy.context.scene.world = w
-        coat = material("coated", color=(0.5, 0.5, 0.8), **{"Coat Weight": 0.5})
+        coat = material("brushed", color=(0.5, 0.5, 0.8), **{"Anisotropic": 0.5,
+                                                             "Subsurface Weight": 0.3,
+                                                             "Sheen Weight": 0.4})
         bump = coat.node_tree.nodes.new("ShaderNodeBump")
         cells = coat.node_tree.nodes.new("ShaderNodeTexGabor")       # a height not evaluated
         coat.node_tree.links.new(cells.outputs["Value"], bump.inputs["Height"])
         coat.node_tree.links.new(bump.outputs["Normal"],
                                  coat.node_tree.nodes["Principled BSDF"].inputs["Normal"])
-        sphere(coat, (0, 0, 0.5), radius=0.5).name = "coated ball"
+        sphere(coat, (0, 0, 0.5), radius=0.5).name = "brushed ball"
         toon = bpy.data.materials.new("toon")
         toon.use_nodes = True
         node = toon.node_tree.nodes.new("ShaderNodeBsdfToon")
