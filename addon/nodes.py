@@ -841,6 +841,13 @@ def material_closures(material, new_program) -> tuple:
         return [Closure(fallback, params, None, new_program())], problems
     leaves = []
     node = _surface_node(material)
+    output = cycles_output(material.node_tree)
+    for socket, what in (("Volume", "its Volume shader is not rendered"),
+                         ("Displacement", "its Displacement is not rendered (Cycles: as bump or "
+                                          "true displacement)")):
+        linked = output.inputs.get(socket) if output is not None else None
+        if linked is not None and linked.is_linked:
+            problems.append(what)
     if node is not None:
         _collect_closures(node, 1.0, [], leaves, problems)
     params = dict(zip(MATERIAL_PARAMS, DEFAULT_MATERIAL_PARAMS), **PRINCIPLED_DEFAULTS)

@@ -162,5 +162,6 @@ def test_unsupported_things_are_named(renders):
     one("object 'moving box'", "motion blur", "parents")
     one("object 'spinning box'", "motion blur", "turns or scales through zero")
     one("object 'two maps'", "material 'second uvs'", "'second'", "one UV map per mesh")
-    one("material 'noisy'", "object 'noisy cube'", "Gabor Texture")
+    one("material 'noisy'", "object 'noisy cube'", "Gabor Texture", "Volume shader is not rendered",
+        "Displacement is not rendered")
     assert len(warnings) == 8, warnings

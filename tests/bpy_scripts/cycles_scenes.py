@@ -1137,6 +1137,11 @@ def build(name):
         noisy, nodes, links, bsdf = node_material("noisy")
         gabor = nodes.new("ShaderNodeTexGabor")
         links.new(gabor.outputs["Value"], bsdf.inputs["Base Color"])
+        fog = nodes.new("ShaderNodeVolumePrincipled")      # a volume and a displacement: named
+        links.new(fog.outputs[0], nodes["Material Output"].inputs["Volume"])
+        lift = nodes.new("ShaderNodeDisplacement")
+        links.new(gabor.outputs["Value"], lift.inputs["Height"])
+        links.new(lift.outputs[0], nodes["Material Output"].inputs["Displacement"])
         add(bpy.ops.mesh.primitive_cube_add, noisy, size=0.4, location=(-1.5, 0.0, 0.2)).name = "noisy cube"
         light("AREA", (0, 0, 3), (0, 0, 0), energy=100.0, size=1.0, spread=math.radians(60))
         bpy.data.objects["area"].name = "narrow area"
