@@ -20,6 +20,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.net.tiles import TileGrid
+from slave.tracer import RenderStopped
+
+STOP_POLL_S = 0.1       # how often a tile's sleep looks at its stop (the tracer: each launch)
 
 
 @dataclass
@@ -93,12 +96,16 @@ class StandInTracer:
     def prepare(self, view, passes=()) -> None:
         pass
 
-    def render_tile(self, view, x: int, y: int, w: int, h: int, passes=()) -> dict:
+    def render_tile(self, view, x: int, y: int, w: int, h: int, passes=(), stop=None) -> dict:
         ms = self.calibration.tile_ms.get((x, y, w, h))
         if ms is None:
             raise ValueError(f"tile {(x, y, w, h)} was not calibrated (tile sizes: "
                              f"{self.calibration.tile_sizes()})")
-        time.sleep(ms / 1000.0 / self.speed)
+        end = time.monotonic() + ms / 1000.0 / self.speed
+        while (left := end - time.monotonic()) > 0:     # stops between "launches", as the tracer
+            if stop is not None and stop():
+                raise RenderStopped("stopped between launches")
+            time.sleep(min(left, STOP_POLL_S))
         x0, y0 = self.calibration.region[:2]
         return {name: image[y - y0:y - y0 + h, x - x0:x - x0 + w].copy()
                 for name, image in self.calibration.image.items()}

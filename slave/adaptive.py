@@ -8,6 +8,10 @@ The policy runs against a `tile` that traces and holds the tile's accumulators o
     tile.write_accum(accum)                              write the accumulators back
 Seeds depend only on the global pixel and the sample number, so the pixels are the same
 whichever slave renders the tile.
+
+A run is traced in launches of bounded work (LaunchPlan), so that a stop (a cancelled frame)
+takes effect between them: the kernel adds a pixel's samples in order to its accumulator
+record, so a run's samples split into consecutive ranges give the same bits.
 """
 from __future__ import annotations
 
@@ -127,3 +131,53 @@ def pixel_error(accum: np.ndarray, w: int, h: int, neighbours: bool = True) -> n
         error[:, 1:] = np.maximum(error[:, 1:], rows[:, :-1])
         error[:, :-1] = np.maximum(error[:, :-1], rows[:, 1:])
     return error.reshape(-1)
+
+
+class LaunchPlan:
+    """How one run (pixels, first sample, sample count, aux) is cut into kernel launches of at
+    most a given number of pixel-samples each: blocks of consecutive pixels, each with all of
+    the run's samples in one launch where that fits (a pixel's samples one after another, as one
+    launch traces them: its rays meet the same nodes while they are in cache), else with as
+    many consecutive samples as fit beside at least `min_pixels` pixels (the device's
+    parallelism). Every pixel gets its samples in order, so the bits are those of one launch.
+    Only the launches with the run's first sample write depth and normal (aux): the kernel
+    writes them at its first sample (or, stratified, from the pixel centre), so once is what
+    one launch does. A run of no samples (depth and normal alone) counts a sample per pixel.
+
+        plan = LaunchPlan(len(pixels), start, count, aux, min_pixels)
+        while (launch := plan.next(pixel_samples)) is not None:
+            first, end, sample, samples, aux = launch   # pixels[first:end]
+    """
+
+    def __init__(self, pixel_count: int, start: int, count: int, aux: int, min_pixels: int = 1):
+        self.pixel_count, self.start, self.count, self.aux = pixel_count, start, count, aux
+        self.min_pixels = max(1, int(min_pixels))
+        self._pixel = 0             # the block under way: its first pixel ...
+        self._end = 0               # ... its end (0: none under way)
+        self._sample = start        # ... and the next sample to launch for it
+        self.launches = 0
+
+    @property
+    def done(self) -> bool:
+        return self._pixel >= self.pixel_count
+
+    def next(self, budget: int):
+        """The next launch as (first pixel, end pixel, first sample, samples, aux) within
+        `budget` pixel-samples (at least one sample of one pixel), or None when the run is
+        traced."""
+        if self.done:
+            return None
+        budget = max(1, int(budget))
+        per_pixel = max(self.count, 1)
+        if self._end == 0:          # a new block: as many pixels as the budget allows
+            samples = min(per_pixel, max(1, budget // self.min_pixels))
+            self._end = min(self.pixel_count, self._pixel + max(1, budget // samples))
+        first, end, sample = self._pixel, self._end, self._sample
+        samples = min(self.start + self.count - sample,
+                      max(1, budget // (end - first)))
+        aux = self.aux if sample == self.start else 0
+        self._sample += max(samples, 1)
+        if self._sample >= self.start + per_pixel:      # the block is traced
+            self._pixel, self._end, self._sample = end, 0, self.start
+        self.launches += 1
+        return first, end, sample, samples, aux

@@ -25,7 +25,7 @@ from core.scene.features import ALL_FEATURES, needed_arrays, pass_features
 from core.scene.model import SceneError, View
 from core.scene.scene import Scene
 
-from .adaptive import pixel_rgba, sample_tile
+from .adaptive import LaunchPlan, pixel_rgba, sample_tile
 from .film import TileFilm
 from .buffers import (pack_bounds, pack_camera, pack_emitters, pack_instances, pack_lights,
                       pack_materials, pack_triangles, pack_world, world_importance)
@@ -55,6 +55,19 @@ KERNEL_FILES = ("trace/trace.cl",           # rays, triangles, the kd-tree, trac
 SCENE_STRUCTURE = frozenset({"INSTANCES", "OBJECT_MOTION"})
 MIN_STACK_SIZE = 32
 PACKET_RAYS = 8             # rays per work-item of intersect_rays on CPU devices
+# A tile is traced in kernel launches of bounded work (slave/adaptive.py LaunchPlan), so that a
+# stop (a cancelled frame, Esc) takes effect between them and no launch runs long enough for a
+# display watchdog. Work is counted in rays as View.rays_per_sample counts them; a tile's first
+# launch traces at most FIRST_LAUNCH_RAYS (a few ms on one CPU core for every scene measured),
+# the next ones as many as the launches before them traced in LAUNCH_SECONDS (at most 4 times
+# the launch before: cost per ray varies between pixels), within [MIN_LAUNCH_RAYS,
+# MAX_LAUNCH_RAYS]. docs/tracer.md, "Launches".
+LAUNCH_SECONDS = 0.02
+FIRST_LAUNCH_RAYS = 1 << 16
+MIN_LAUNCH_RAYS = 1 << 12
+MAX_LAUNCH_RAYS = 1 << 34
+LAUNCH_GROWTH = 4
+LAUNCH_PIXELS_PER_UNIT = 16
 
 
 def kernel_arguments(params: KernelParams, flags, values: dict) -> list:
@@ -80,6 +93,10 @@ def kernel_files_through(last: str) -> tuple:
 
 class TracerError(OpenCLError):
     """The tracer cannot run: no OpenCL device, a kernel that does not build, bad input."""
+
+
+class RenderStopped(Exception):
+    """render_tile's `stop` said so between two launches: the tile is abandoned, no pixels."""
 
 
 class RayHits(NamedTuple):
@@ -347,7 +364,8 @@ class Tracer:
         return outs
 
     # -- camera tiles --------------------------------------------------------------------
-    def render_tile(self, view: View, x: int, y: int, w: int, h: int, passes=()) -> dict:
+    def render_tile(self, view: View, x: int, y: int, w: int, h: int, passes=(),
+                    stop=None) -> dict:
         """Render pixels [x, x+w) x [y, y+h) of the full image (top-left origin): combined,
         depth and normal, and the other `passes` asked for (core/net/protocol.py TILE_PASSES:
         the denoising guides, data passes; slave/film.py).
@@ -355,6 +373,11 @@ class Tracer:
         Samples as view.settings says (core/scene/model.py RenderSettings): uniform N x N stratified,
         or adaptive. Seeds depend only on the global pixel index and the sample number, so a
         tile gives the same pixels whichever slave renders it.
+
+        The tile is traced in launches of bounded work (LAUNCH_SECONDS each, see the module's
+        constants); `stop`, a function of no arguments, is called before each launch, and
+        when it returns true render_tile raises RenderStopped (the slave: its frame was
+        cancelled). How the launches are cut does not change a bit of the pixels.
         """
         cl = self._cl
         if not (0 <= x and 0 <= y and w > 0 and h > 0
@@ -389,7 +412,8 @@ class Tracer:
         film = TileFilm(cl, ctx, flags, n)
         values.update(film.values)
         started = time.perf_counter()
-        tile = _TileOnDevice(self, kernel, flags, values, settings, accum, accum_buf)
+        tile = _TileOnDevice(self, kernel, flags, values, settings, accum, accum_buf,
+                             view.rays_per_sample(), stop)
         sample_tile(tile, settings, x, y, w, h, tile_pixel_order(w, h))
         cl.enqueue_copy(self.queue, accum, accum_buf)
         cl.enqueue_copy(self.queue, depth, depth_buf)
@@ -398,7 +422,8 @@ class Tracer:
         self.queue.finish()
         combined = pixel_rgba(accum)
         self.last_render = {"kernel_seconds": time.perf_counter() - started,
-                            "samples": tile.traced, "features": sorted(flags)}
+                            "samples": tile.traced, "features": sorted(flags),
+                            "launches": tile.launches, "longest_launch_s": tile.longest}
         return {"combined": combined.reshape(h, w, 4), "depth": depth, "normal": normal,
                 **film.passes(view, w, h, passes)}
 
@@ -497,9 +522,11 @@ def tile_pixel_order(w: int, h: int) -> np.ndarray:
 class _TileOnDevice:
     """One tile's render kernel and accumulators: the device side of slave/adaptive.py."""
 
-    def __init__(self, tracer, kernel, flags, values, settings, accum, accum_buf):
+    def __init__(self, tracer, kernel, flags, values, settings, accum, accum_buf,
+                 sample_rays: int, stop=None):
         """`values`: the kernel's arguments by parameter name (core/layout.py RENDER_SAMPLES)
-        but the settings' and each launch's own."""
+        but the settings' and each launch's own. `sample_rays`: a sample's work
+        (View.rays_per_sample), `stop`: render_tile's."""
         self.tracer, self.kernel, self.flags = tracer, kernel, flags
         strata = settings.samples_per_axis
         self.values = {**values, "strata": 0 if strata == 1 else strata,
@@ -515,12 +542,36 @@ class _TileOnDevice:
         self.accum, self.accum_buf = accum, accum_buf
         self.next_pixel = tracer._cl.Buffer(tracer.context, tracer._cl.mem_flags.READ_WRITE, 4)
         self.traced = 0             # samples traced
+        self.sample_rays, self.stop = max(1, int(sample_rays)), stop
+        self.launch_rays = FIRST_LAUNCH_RAYS    # the next launch's work
+        self.launches = 0
+        self.longest = 0.0          # seconds of the longest launch
+        # Pixels a launch keeps beside fewer than all their samples: the device's parallelism.
+        self.min_pixels = LAUNCH_PIXELS_PER_UNIT * int(tracer.device.max_compute_units)
 
     def run(self, pixels, start, count, aux):
-        tracer, cl = self.tracer, self.tracer._cl
+        """Trace samples [start, start + count) of `pixels` (aux: also depth and normal) in
+        launches of bounded work, checking `stop` before each."""
         pixels = np.ascontiguousarray(pixels, np.int32)
-        if len(pixels) == 0:
-            return
+        plan = LaunchPlan(len(pixels), start, count, aux, self.min_pixels)
+        while (launch := plan.next(self.launch_rays // self.sample_rays)) is not None:
+            if self.stop is not None and self.stop():
+                raise RenderStopped("stopped between launches")
+            first, end, sample, samples, write_aux = launch
+            began = time.perf_counter()
+            self._launch(pixels[first:end], sample, samples, write_aux)
+            self.tracer.queue.finish()
+            seconds = time.perf_counter() - began
+            self.launches += 1
+            self.longest = max(self.longest, seconds)
+            # The next launch: as much work as this one's pace does in LAUNCH_SECONDS.
+            work = (end - first) * max(samples, 1) * self.sample_rays
+            pace = work * LAUNCH_SECONDS / max(seconds, 1e-6)
+            self.launch_rays = int(min(max(pace, MIN_LAUNCH_RAYS), MAX_LAUNCH_RAYS,
+                                       LAUNCH_GROWTH * max(self.launch_rays, work)))
+
+    def _launch(self, pixels, start, count, aux):
+        tracer, cl = self.tracer, self.tracer._cl
         pixel_buf = cl.Buffer(tracer.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
                               hostbuf=pixels)
         if tracer.pixel_queue:      # one work-item per compute unit, each taking pixels in turn

@@ -10,7 +10,7 @@ import numpy as np
 
 from core.layout import ACCUM
 from core.scene.model import RenderSettings
-from slave.adaptive import ADAPTIVE_STEP, THRESHOLD_SCALE, pixel_error, sample_tile
+from slave.adaptive import ADAPTIVE_STEP, THRESHOLD_SCALE, LaunchPlan, pixel_error, sample_tile
 
 
 class NoisyTile:
@@ -100,3 +100,80 @@ def test_threshold_is_five_times_the_noise_threshold():
 def test_uniform_when_the_minimum_covers_the_max():
     samples = render(np.full((4, 4), 0.5), np.full((4, 4), 0.3), samples_per_axis=4)
     assert (samples == 16).all()
+
+
+# -- launches (LaunchPlan) -------------------------------------------------------------------------
+def launches_of(pixel_count, start, count, aux, budgets, min_pixels=1):
+    """[(launch, the budget it was cut within)] of a LaunchPlan fed `budgets` in turn."""
+    plan = LaunchPlan(pixel_count, start, count, aux, min_pixels)
+    out = []
+    while (launch := plan.next(budget := budgets[len(out) % len(budgets)])) is not None:
+        out.append((launch, budget))
+    return out
+
+
+def test_launches_trace_each_sample_of_each_pixel_once_in_order_within_the_budget():
+    """Whatever the budgets, every pixel gets every sample of the run exactly once, in
+    increasing order; depth and normal (aux) come with the run's first sample only, once per
+    pixel. Each launch holds at most its budget of pixel-samples (at least one sample of one
+    pixel; a run of no samples counts one a pixel), or where the budget shrank in the middle
+    of a block of pixels, one sample of that block (cut within an earlier budget)."""
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        pixels, start = int(rng.integers(1, 300)), int(rng.integers(0, 40))
+        count, aux = int(rng.integers(0, 70)), int(rng.integers(0, 2))
+        budgets = [int(b) for b in rng.integers(1, 3 * pixels * max(count, 1), 5)]
+        if rng.random() < 0.3:
+            budgets = budgets[:1]
+        min_pixels = int(rng.integers(1, 64))
+        seen = [[] for _ in range(pixels)]
+        aux_seen = np.zeros(pixels, int)
+        for (first, end, sample, samples, launch_aux), budget in launches_of(
+                pixels, start, count, aux, budgets, min_pixels):
+            assert 0 <= first < end <= pixels and 0 <= samples <= count
+            work = (end - first) * max(samples, 1)
+            assert work <= budget or end - first == 1 or samples == 1 and work <= max(budgets)
+            if len(budgets) == 1:
+                assert work <= max(budget, 1)
+            for p in range(first, end):
+                seen[p] += list(range(sample, sample + samples))
+            aux_seen[first:end] += launch_aux
+            assert not launch_aux or sample == start
+        for p in range(pixels):
+            assert seen[p] == list(range(start, start + count)), (pixels, start, count, budgets)
+        assert (aux_seen == aux).all()
+
+
+def test_launches_keep_a_pixels_samples_together_and_the_device_busy():
+    """A budget for 10 of a block's pixels with all their samples: blocks of 10 pixels x all
+    64 samples; a budget below min_pixels x samples: min_pixels pixels with fewer samples."""
+    launches = [launch for launch, _ in launches_of(100, 0, 64, 1, [640])]
+    assert launches[0] == (0, 10, 0, 64, 1) and len(launches) == 10
+    launches = [launch for launch, _ in launches_of(100, 0, 64, 1, [640], min_pixels=32)]
+    assert launches[0] == (0, 32, 0, 20, 1) and launches[1] == (0, 32, 20, 20, 0)
+
+
+def test_sampling_cut_into_launches_gives_the_same_bits():
+    """The adaptive schedule run through LaunchPlan's launches (tiny budgets) accumulates
+    exactly what whole runs do: the same records, bit for bit."""
+    class Launched(NoisyTile):
+        def __init__(self, mean, spread, budget):
+            super().__init__(mean, spread)
+            self.budget = budget
+
+        def run(self, pixels, start, count, aux):
+            pixels = np.asarray(pixels)
+            plan = LaunchPlan(len(pixels), start, count, aux, 3)
+            while (launch := plan.next(self.budget)) is not None:
+                first, end, sample, samples, _ = launch
+                super().run(pixels[first:end], sample, samples, 0)
+
+    rng = np.random.default_rng(5)
+    mean, spread = rng.uniform(0.1, 1.0, (12, 10)), rng.uniform(0.0, 0.4, (12, 10))
+    settings = RenderSettings(samples_per_axis=8, adaptive_min_samples=8, adaptive_threshold=0.02)
+    whole = NoisyTile(mean, spread)
+    sample_tile(whole, settings, 0, 0, 10, 12, np.arange(120))
+    for budget in (1, 7, 100, 10_000):
+        cut = Launched(mean, spread, budget)
+        sample_tile(cut, settings, 0, 0, 10, 12, np.arange(120))
+        assert cut.accum.tobytes() == whole.accum.tobytes()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -361,6 +362,53 @@ def test_tile_equals_cut_from_full_image_and_is_deterministic(tracer):
     assert (full["depth"] == 1e10).any() and (full["depth"] < 1e10).any()
     with pytest.raises(ValueError):
         tracer.render_tile(view, 60, 0, 8, 8)
+
+
+def test_launches_of_any_size_give_the_same_bits_and_stop_between_them(tracer, monkeypatch):
+    """render_tile traces in launches of bounded work: with launches of one sample of a few
+    pixels the tile is the one-launch tile bit for bit (uniform, stratified with depth and
+    normal, adaptive); `stop` is asked before each launch and ends the tile with RenderStopped
+    (the tracer renders on afterwards)."""
+    import slave.tracer as tracer_module
+    from slave.tracer import RenderStopped
+    from tests.test_network import make_scene, make_view
+    tracer.load(Scene.from_parts(*make_scene()))
+    view = make_view(40, 30)
+    view.shading.lights.append(Light("AREA", (1, 1, 1), 300.0, (0, 2, 4), (0, -0.4, -1)))
+    for settings in (RenderSettings(samples_per_axis=1, adaptive=False),
+                     RenderSettings(samples_per_axis=3, adaptive=False, light_samples_per_axis=2),
+                     RenderSettings(samples_per_axis=6, adaptive=True, adaptive_min_samples=4,
+                                    adaptive_threshold=0.05)):
+        view.settings = settings
+        monkeypatch.setattr(tracer_module, "FIRST_LAUNCH_RAYS", 1 << 62)
+        monkeypatch.setattr(tracer_module, "MAX_LAUNCH_RAYS", 1 << 62)
+        monkeypatch.setattr(tracer_module, "LAUNCH_SECONDS", 1e9)
+        whole = tracer.render_tile(view, 3, 2, 33, 25)      # one launch a run
+        assert tracer.last_render["launches"] <= 5
+        per_sample = view.rays_per_sample()
+        for budget in (per_sample, 37 * per_sample):      # one pixel-sample; 37 of them
+            monkeypatch.setattr(tracer_module, "FIRST_LAUNCH_RAYS", budget)
+            monkeypatch.setattr(tracer_module, "MIN_LAUNCH_RAYS", budget)
+            monkeypatch.setattr(tracer_module, "MAX_LAUNCH_RAYS", budget)
+            monkeypatch.setattr(tracer_module, "LAUNCH_PIXELS_PER_UNIT", 1)
+            cut = tracer.render_tile(view, 3, 2, 33, 25)
+            assert tracer.last_render["launches"] > 33 * 25 // 37
+            for name in whole:
+                assert cut[name].tobytes() == whole[name].tobytes(), (settings, budget, name)
+        monkeypatch.undo()
+    asked = []
+
+    def stop():
+        asked.append(time.perf_counter())
+        return len(asked) > 3
+    monkeypatch.setattr(tracer_module, "FIRST_LAUNCH_RAYS", view.rays_per_sample() * 50)
+    monkeypatch.setattr(tracer_module, "MAX_LAUNCH_RAYS", view.rays_per_sample() * 50)
+    with pytest.raises(RenderStopped):
+        tracer.render_tile(view, 3, 2, 33, 25, stop=stop)
+    assert len(asked) == 4          # asked before each of 3 launches, and the 4th was not made
+    again = tracer.render_tile(view, 3, 2, 33, 25, stop=lambda: False)
+    for name in whole:
+        assert again[name].tobytes() == whole[name].tobytes()
 
 
 def test_pixel_order_is_a_coherent_permutation():

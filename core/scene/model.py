@@ -737,6 +737,21 @@ class View:
             self.region = (0, 0, self.width, self.height)
         self.region = tuple(int(v) for v in self.region)
 
+    def rays_per_sample(self) -> int:
+        """The rays one camera sample may trace at most, as a work count (Python integer):
+        every path vertex (1 + max_bounces + transparent_bounces: a transparent surface is
+        passed by a vertex of its own) traces its continuation and L x L shadow rays per light,
+        plus L x L each for the world and the emissive triangles. Not exact (a shadow ray may
+        pass through several surfaces, a path usually ends early): the unit of the tile work
+        budget and of the tracer's launch sizes, proportional to the work a tile may cost."""
+        s = self.settings
+        shadow = (len(self.shading.lights) + 2) * int(s.light_samples_per_axis) ** 2
+        return (1 + shadow) * (1 + int(s.max_bounces) + int(s.transparent_bounces))
+
+    def tile_rays(self, w: int, h: int) -> int:
+        """The work of a w x h tile of this view: pixels x max samples x rays_per_sample()."""
+        return int(w) * int(h) * int(self.settings.samples_per_axis) ** 2 * self.rays_per_sample()
+
     def to_dict(self) -> dict:
         return {"camera": self.camera.to_dict(), "width": self.width, "height": self.height,
                 "region": list(self.region), "shading": self.shading.to_dict(),
