@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import socket
+import time
 
 import numpy as np
 import pytest
@@ -416,6 +417,80 @@ def test_node_program_ends_are_those_a_walk_from_each_start_finds():
         for start in (s for s, ok in zip(starts, walked) if not ok):
             with pytest.raises(SceneError, match=f"at row {start} does not end"):
                 check_node_program(rows, [start])
+
+
+def _shared_tables(instructions: int) -> list:
+    """The quadratic case of issue 39: `instructions` TRANSFORM instructions, each with its
+    table (the same rows after the END: the table list grew with every instruction and was
+    searched at every row)."""
+    from core.layout import NODE_TRANSFORM_SIZE
+    rows_total = 2 * instructions + 2 + NODE_TRANSFORM_SIZE
+    table = rows_total - NODE_TRANSFORM_SIZE
+    rows = []
+    for i in range(instructions):
+        rows += [[NODE_OP_CODES["TRANSFORM"], 0, 0, 0], [0, table - 2 * i, 0, 0]]
+    return rows + [[0, 0, 0, 0]] * 2 + [[0, 0, 0, 1]] * NODE_TRANSFORM_SIZE
+
+
+def _check_seconds(rows, starts) -> float:
+    """CPU seconds of the checks a frame's node program gets (the check, then the
+    instructions the scene's features and textures read), the best of 3."""
+    from core.scene.features import program_instructions
+    best = float("inf")
+    for _ in range(3):
+        began = time.process_time()
+        program = check_node_program(rows, starts)
+        program_instructions(program, starts)
+        best = min(best, time.process_time() - began)
+    return best
+
+
+def test_the_node_program_checks_take_linear_time():
+    """Issue 39: 16,000 instructions took 3 s, a 16 MiB frame most of an hour. Tables and
+    starts 8 times as many cost at most 16 times as long (linear: 8; the quadratic check:
+    64), and the largest program the limits allow (2^20 rows: 2^19 instructions with tables,
+    65535 materials starting in it) is checked in seconds."""
+    def case(instructions, starts):
+        rows = _shared_tables(instructions)
+        return rows, [2 * (instructions - 1 - k % 1000) for k in range(starts)]
+    small = _check_seconds(*case(4096, 1024))
+    large = _check_seconds(*case(8 * 4096, 8 * 1024))
+    assert large < 16 * small + 0.05, (small, large)
+    rows, starts = case(MAX_NODE_ROWS // 2 - 4, MAX_MATERIALS)
+    assert len(rows) <= MAX_NODE_ROWS
+    began = time.process_time()
+    check_node_program(rows, starts)
+    assert time.process_time() - began < 15
+
+
+def _instructions_walked(program, starts) -> set:
+    """The rows program_instructions gave before (a walk from each start to its END)."""
+    rows = set()
+    for start in {int(v) for v in starts if v >= 0}:
+        pc = start
+        while pc < len(program) - 1 and program[pc, 0] != NODE_OP_CODES["END"]:
+            rows.add(pc)
+            pc += 2
+    return rows
+
+
+def test_program_instructions_are_each_starts_up_to_its_end():
+    """program_instructions (linear) gives every instruction that a walk from each start to
+    its END passes, once: on chains sharing their ends, from starts at random."""
+    from core.scene.features import program_instructions
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        rows = []
+        while len(rows) < 600:
+            steps = int(rng.integers(0, 40))
+            rows += [[float(rng.integers(1, 9)), 0, 0, 0], [0, 0, 0, 0]] * steps + [[0, 0, 0, 0]] * 2
+        program = np.array(rows, np.float32)
+        starts = list(rng.integers(0, len(rows) // 2, 30) * 2) + [-1]
+        got = program_instructions(program, np.array(starts, np.float32))
+        walked = _instructions_walked(program, starts)
+        expected = np.concatenate([program[sorted(walked)], program[[r + 1 for r in sorted(walked)]]],
+                                  axis=1) if walked else np.zeros((0, 8), np.float32)
+        assert got.tobytes() == expected.tobytes()
 
 
 # -- array shapes in a message --------------------------------------------------------------------

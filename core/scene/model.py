@@ -536,68 +536,110 @@ def check_node_program(rows, starts) -> np.ndarray:
     and operands in range, normal map spaces known, every table (colour ramps, coordinate and
     object normal transforms) inside the rows, and from each start in `starts`
     (>= 0) instructions up to an END (the kernel runs them so). A program's ramp tables
-    follow its END (addon/nodes.py compiles them)."""
+    follow its END (addon/nodes.py compiles them).
+
+    In time linear in the rows and starts (issue 39: a check per start, and a search of every
+    table at every row, took minutes on a 16 MiB frame): one walk over the rows finds the
+    instructions (a table's rows are skipped where an END is followed by them), then the
+    instructions' fields and each start's way to its END are checked with numpy. The first
+    problem by row is reported, as a walk that checked each row in full would."""
     from ..layout import (NODE_NORMAL_SPACE_CODES, NODE_OBJECT_NORMAL_SPACES, NODE_OP_CODES,
                           NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS,
                           NODE_TRANSFORM_SIZE)
     tables = {NODE_OP_CODES["RAMP"]: NODE_RAMP_SIZE, NODE_OP_CODES["TRANSFORM"]: NODE_TRANSFORM_SIZE,
               NODE_OP_CODES["NORMAL_MAP"]: NODE_TRANSFORM_SIZE,     # object space: its rows
               NODE_OP_CODES["OBJECT_INFO"]: NODE_TRANSFORM_SIZE}
-    object_spaces = [NODE_NORMAL_SPACE_CODES[k] for k in NODE_OBJECT_NORMAL_SPACES]
+    normal_map, end_op = NODE_OP_CODES["NORMAL_MAP"], NODE_OP_CODES["END"]
+    object_spaces = {float(NODE_NORMAL_SPACE_CODES[k]) for k in NODE_OBJECT_NORMAL_SPACES}
+    spaces = {float(v) for v in NODE_NORMAL_SPACE_CODES.values()}
+    operations = {float(v) for v in NODE_OP_CODES.values()}
     if not isinstance(rows, list) or len(rows) > MAX_NODE_ROWS or len(rows) % 2:
         raise SceneError("node_program must be an even number of rows")
-    program = np.array([_finite_floats(r, 4, "node program row") for r in rows], np.float32) \
-        if rows else np.zeros((0, 4), np.float32)
+    program = _node_rows(rows)
     n = len(program)
-    pc, ramps, instructions = 0, [], {}
+    # The walk: instruction rows, tables by their first row -> the row after the longest that
+    # starts there (a table is declared by an instruction before it, so before the walk gets
+    # there). Stops at the first problem it can see: an operation, a normal map space, a table.
+    ops, tables_at, spaces_at = (program[k::2, c].tolist() for k, c in ((0, 0), (1, 1), (1, 2)))
+    pc, table_end, pcs, problem = 0, {}, [], None
     while pc < n:
-        instructions[pc] = int(program[pc, 0])
-        w0, w1 = program[pc], program[pc + 1]
-        op = int(w0[0])
-        if op != w0[0] or op not in NODE_OP_CODES.values():
-            raise SceneError(f"node program row {pc}: unknown operation {w0[0]}")
-        if op == NODE_OP_CODES["NORMAL_MAP"] and w1[2] not in NODE_NORMAL_SPACE_CODES.values():
-            raise SceneError(f"node program row {pc}: unknown normal map space {w1[2]}")
-        if op in tables and (op != NODE_OP_CODES["NORMAL_MAP"] or w1[2] in object_spaces):
-            start = int(w1[1])
-            if start != w1[1] or not 2 <= start or not pc + start <= n - tables[op]:
-                raise SceneError(f"node program row {pc}: table outside the program")
-            ramps.append((pc + start, pc + start + tables[op]))
-        if op != NODE_OP_CODES["END"]:
-            # A CONST's second row is its value (the kernel reads its first lane as an
-            # operand too: kernels/shade/shading.cl node_operand must clamp it); its
-            # register and first-row operands are checked as every instruction's.
-            refs = (w0[2], w0[3]) if op == NODE_OP_CODES["CONST"] else (w0[2], w0[3], w1[0])
-            if any(r != int(r) or not 0 <= r < NODE_REGISTERS * NODE_REF_REGISTER for r in refs) \
-                    or not 0 <= w0[1] < NODE_REGISTERS:
-                raise SceneError(f"node program row {pc}: register out of range")
-        if op == NODE_OP_CODES["OUT"] and w1[1] not in NODE_OUT_CODES.values():
-            raise SceneError(f"node program row {pc}: unknown BSDF input {w1[1]}")
-        if op in (NODE_OP_CODES["IMAGE"], NODE_OP_CODES["ATTRIBUTE"]) and \
-                not (w1[1] == int(w1[1]) and 0 <= w1[1] < MAX_TEXTURES):
-            raise SceneError(f"node program row {pc}: bad texture {w1[1]}")
+        op, i = ops[pc >> 1], pc >> 1
+        if op not in operations:
+            problem = (pc, f"node program row {pc}: unknown operation {op}")
+            break
+        op = int(op)
+        if op == normal_map and spaces_at[i] not in spaces:
+            problem = (pc, f"node program row {pc}: unknown normal map space {spaces_at[i]}")
+            break
+        if op in tables and (op != normal_map or spaces_at[i] in object_spaces):
+            start = tables_at[i]
+            if start != int(start) or not 2 <= start or not pc + start <= n - tables[op]:
+                problem = (pc, f"node program row {pc}: table outside the program")
+                break
+            first = pc + int(start)
+            table_end[first] = max(table_end.get(first, 0), first + tables[op])
+        pcs.append(pc)
         pc += 2
-        skipped = True                  # the tables after an END, whatever their order
-        while skipped:
-            skipped = False
-            for lo, hi in ramps:
-                if pc == lo:
-                    pc, skipped = hi, True
+        while pc in table_end:          # the tables after an END, whatever their order
+            pc = table_end[pc]
         if pc % 2:
-            raise SceneError("node program tables must end on an even row")
-    # Instructions from each instruction row to the END that stops it (None: a table row or
-    # the program's end comes first), counted once from the last row back: a walk per start
-    # costs up to 1024 steps, and 65535 materials may start at 65535 rows (2.5 s).
-    to_end = {}
-    for pc in reversed(instructions):
-        after = to_end.get(pc + 2)
-        to_end[pc] = 0 if instructions[pc] == NODE_OP_CODES["END"] else \
-            None if after is None else after + 1
-    for start in (int(v) for v in starts if v >= 0):
-        steps = to_end.get(start)
-        if steps is None or steps > 1024:       # the kernel runs at most 1024 instructions
-            raise SceneError(f"the node program at row {start} does not end (with END) in its rows")
+            problem = (pc - 0.5, "node program tables must end on an even row")
+            break
+    pcs = np.array(pcs, np.int64)
+    # The fields of the instructions the walk passed, each row's problems in the order above.
+    w0, w1 = program[pcs], program[pcs + 1]
+    op = w0[:, 0]
+    limit = NODE_REGISTERS * NODE_REF_REGISTER
+
+    def bad_ref(r):
+        return (r != np.trunc(r)) | (r < 0) | (r >= limit)
+    const = op == NODE_OP_CODES["CONST"]
+    # A CONST's second row is its value (the kernel reads its first lane as an operand too:
+    # kernels/shade/nodes.cl node_operand clamps it); its register and first-row operands are
+    # checked as every instruction's.
+    registers = (op != end_op) & (bad_ref(w0[:, 2]) | bad_ref(w0[:, 3]) | (~const & bad_ref(w1[:, 0]))
+                                  | ~((w0[:, 1] >= 0) & (w0[:, 1] < NODE_REGISTERS)))
+    outs = (op == NODE_OP_CODES["OUT"]) & ~np.isin(w1[:, 1], list(NODE_OUT_CODES.values()))
+    images = np.isin(op, [NODE_OP_CODES["IMAGE"], NODE_OP_CODES["ATTRIBUTE"]]) & ~(
+        (w1[:, 1] == np.trunc(w1[:, 1])) & (w1[:, 1] >= 0) & (w1[:, 1] < MAX_TEXTURES))
+    bad = np.flatnonzero(registers | outs | images)
+    if len(bad) and (problem is None or pcs[bad[0]] < problem[0]):
+        k, row = bad[0], int(pcs[bad[0]])
+        what = ("register out of range" if registers[k] else
+                f"unknown BSDF input {w1[k, 1]}" if outs[k] else f"bad texture {w1[k, 1]}")
+        raise SceneError(f"node program row {row}: {what}")
+    if problem is not None:
+        raise SceneError(problem[1])
+    # From each start, consecutive instruction rows up to an END, at most 1024 instructions
+    # before it (the kernel runs at most that many): the next END at or after it, and no
+    # gap (a table, the program's end) before that END.
+    starts = np.unique(np.asarray([int(v) for v in starts if v >= 0], np.int64))
+    at = np.searchsorted(pcs, starts)
+    found = at < len(pcs)
+    found[found] = pcs[at[found]] == starts[found]
+    ends = np.flatnonzero(op == end_op)
+    gaps = np.append(np.flatnonzero(np.diff(pcs) != 2), len(pcs) - 1)   # last of each run
+    k = np.minimum(at, max(len(pcs) - 1, 0))
+    end_at = np.append(ends, len(pcs))[np.searchsorted(ends, k)]
+    gap_at = gaps[np.minimum(np.searchsorted(gaps, k), len(gaps) - 1)] if len(pcs) else k
+    ok = found & (end_at < len(pcs)) & (end_at <= gap_at) & (end_at - k <= 1024)
+    if not ok.all():
+        start = int(starts[np.flatnonzero(~ok)[0]])
+        raise SceneError(f"the node program at row {start} does not end (with END) in its rows")
     return program
+
+
+def _node_rows(rows) -> np.ndarray:
+    """The rows as float32 (n, 4), each 4 finite numbers (as _finite_floats takes them)."""
+    if not rows:
+        return np.zeros((0, 4), np.float32)
+    try:
+        program = np.array(rows, np.float64)
+    except (TypeError, ValueError, OverflowError):
+        program = None
+    if program is None or program.shape != (len(rows), 4) or not np.isfinite(program).all():
+        program = np.array([_finite_floats(r, 4, "node program row") for r in rows])
+    return program.astype(np.float32)
 
 
 @dataclass
