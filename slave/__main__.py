@@ -121,6 +121,9 @@ def parse_args(argv, prog: str = "python -m slave"):
     parser.add_argument("--no-zeroconf", action="store_true", help="do not advertise on the LAN")
     parser.add_argument("--max-scene-mib", type=int, default=4096,
                         help="largest scene upload accepted, MiB (default 4096)")
+    parser.add_argument("--upload-mib", type=int, default=None,
+                        help="what all masters' uploads in progress may hold at once, MiB "
+                             "(default: --max-scene-mib); one more waits, then is refused")
     parser.add_argument("--secret-file", default=None,
                         help="file holding the farm secret: masters that prove it are served "
                              f"(default: the {trust.SECRET_ENV} environment variable)")
@@ -159,6 +162,8 @@ def parse_args(argv, prog: str = "python -m slave"):
     args = parser.parse_args(argv)
     if args.max_scene_mib < 1:
         raise UsageError("--max-scene-mib must be at least 1")
+    if args.upload_mib is not None and args.upload_mib < 1:
+        raise UsageError("--upload-mib must be at least 1")
     if args.cache_disk_mib < 1 or args.cache_scenes < 1:
         raise UsageError("--cache-disk-mib and --cache-scenes must be at least 1")
     return args
@@ -313,7 +318,9 @@ def run(args) -> int:
                              cache_size=args.cache_scenes, secret=secret,
                              cache_dir=args.cache_dir,
                              cache_disk_bytes=args.cache_disk_mib * 2 ** 20, identity=identity,
-                             allowed=allowed, pairing=pairing)
+                             allowed=allowed, pairing=pairing,
+                             upload_bytes=None if args.upload_mib is None
+                             else args.upload_mib * 2 ** 20)
     except OSError as exc:
         raise UsageError(f"cannot listen on {args.bind}:{args.port}: {exc.strerror or exc}") from None
 

@@ -13,10 +13,16 @@ Per admitted connection four threads:
 Everything a master can make the slave hold is bounded: the work queue (a master may have at
 most protocol.MAX_TILES_IN_FLIGHT tiles requested and not yet sent; a tile requested twice is
 refused), the outbox (the render loop and the reader wait when it is full: backpressure), each
-message (protocol.Channel: limits, and a deadline for the whole message either way).
+message (protocol.Channel: limits, and a deadline for the whole message either way), the
+messages larger than a channel's buffer being received by all connections together (an
+UploadBudget), and a frame's work (protocol.MAX_TILE_RAYS a tile, MAX_SAMPLE_RAYS a camera
+sample). A tile renders in short launches and stops between two of them once its frame is
+cancelled or its master gone, so a cancel never waits for a whole tile.
 Connections in their handshake are a pool of their own with a deadline for the whole handshake,
 so unauthenticated peers never hold the slots of authenticated masters; a master that finds
-every slot taken by masters at work is told "slave busy" with the reason.
+every slot taken by masters at work is told "slave busy" with the reason. Heartbeats keep a
+connection open but are no work: a master that sent nothing else for EVICTABLE_AFTER_S gives
+its slot to a new one.
 
 Every connection is TLS 1.3 with the master's identity certificate (core/net/secure.py); the
 slave serves a master whose ID its owner allowed, that pairs with the slave's pairing code or
@@ -42,19 +48,24 @@ import numpy as np
 from core.net import protocol, secure, trust
 from core.net.identity import Identity, short_id
 from core.net.protocol import MsgType, ProtocolError
-from core.net.tiles import TileGrid
+from core.net.tiles import TileGrid, frame_work_problem
 from core.scene.model import SCENE_FORMAT_VERSION, SceneError, View
 from core.scene.scene import Scene
 
 from .activity import Activity
 from .scene_cache import SceneCache
+from .tracer import RenderStopped
 
 log = logging.getLogger("kdtrace.slave")
 
 MAX_CONNECTIONS = 16        # masters served at once
 MAX_HANDSHAKES = 32         # connections still in their handshake (the oldest gives way)
 HANDSHAKE_TIMEOUT_S = 10.0  # for the whole handshake, from accept to WELCOME
-EVICTABLE_AFTER_S = 5.0     # an idle master gives its slot to a new one after this long
+EVICTABLE_AFTER_S = 5.0     # an idle master (heartbeats alone) gives its slot to a new one
+                            # after this long
+UPLOAD_WAIT_S = 5.0         # a large message waits this long for the upload budget, then is
+                            # refused (the sender's deadline allows SILENCE_S)
+DEVICE_POLL_S = 0.05        # how often a tile waiting for the device looks at its stop
 OUTBOX_TILES = 2            # finished tiles waiting for the sender
 OUTBOX_MESSAGES = 64        # other replies waiting for the sender
 LINGER_S = 1.0              # reading what a closed peer still sends, so it sees our last words
@@ -71,6 +82,36 @@ class Frame:
     compress: bool = False
     passes: tuple = protocol.ALL_PASSES   # only these travel back
     cancelled: bool = False
+
+
+class UploadBudget:
+    """Bytes of the large messages (over protocol.RECV_KEEP_BYTES: scenes, big frames) that all
+    connections are receiving at once, at most `capacity`: each such message takes its length
+    when its header arrives and gives it back when its receiver asks for the next message (its
+    handling, a scene's validation included, is over) or closes (protocol.Channel's `budget`).
+    A message that does not fit waits up to `wait_s` for others to finish, then is refused; one
+    larger than the whole budget is taken alone (so at most max(capacity, the largest message
+    the limits allow) bytes are held)."""
+
+    def __init__(self, capacity: int, wait_s: float = UPLOAD_WAIT_S):
+        self.capacity, self.wait_s = int(capacity), wait_s
+        self.used = 0
+        self._changed = threading.Condition()
+
+    def take(self, nbytes: int) -> None:
+        with self._changed:
+            if not self._changed.wait_for(
+                    lambda: self.used == 0 or self.used + nbytes <= self.capacity, self.wait_s):
+                raise ProtocolError(
+                    f"slave busy: uploads in progress hold {self.used / 2 ** 20:.0f} of the "
+                    f"{self.capacity / 2 ** 20:.0f} MiB it receives at once, and this message "
+                    f"needs {nbytes / 2 ** 20:.0f} MiB; try again later")
+            self.used += nbytes
+
+    def give(self, nbytes: int) -> None:
+        with self._changed:
+            self.used -= nbytes
+            self._changed.notify_all()
 
 
 class WorkQueue:
@@ -207,6 +248,7 @@ class MasterConnection:
         self.frame: Frame | None = None
         self.heartbeat_s = protocol.HEARTBEAT_S
         self.last_heard = self.accepted        # the master's last complete message
+        self.last_work = self.accepted         # ... of those other than HEARTBEAT (its slot)
         self.doing = None          # the render loop's (state, frame id, tile), None when idle
         self.reader_doing = None   # the reader's, while it validates a scene upload
         self.ended = threading.Event()
@@ -313,7 +355,8 @@ class MasterConnection:
             log.info("master %s: left during the handshake: %s", self.peer, exc)
             return False
         self.sock = tls
-        self.channel = protocol.Channel(tls, "slave", grace_s=HANDSHAKE_TIMEOUT_S)
+        self.channel = protocol.Channel(tls, "slave", grace_s=HANDSHAKE_TIMEOUT_S,
+                                        budget=server.uploads)
         self.peer = f"{self.peer} (ID {short_id(self.master_id)})"
         try:
             msg = self.channel.recv(server.limits, {MsgType.HELLO}, deadline=deadline)
@@ -363,7 +406,7 @@ class MasterConnection:
             log.info("master %s: left during the handshake: %s", self.peer, exc)
             self.server._connection_closed(self)
             return False
-        self.last_heard = time.monotonic()
+        self.last_heard = self.last_work = time.monotonic()
         log.info("master %s connected (%s)", self.peer, {
             "allowed": "allowed by ID", "farm secret": "proved the farm secret",
             "pairing": "paired with the pairing code"}[admitted_by])
@@ -432,6 +475,8 @@ class MasterConnection:
             while True:
                 msg = self.channel.recv(self.server.limits, protocol.MASTER_TO_SLAVE)
                 self.last_heard = time.monotonic()
+                if msg.type != MsgType.HEARTBEAT:
+                    self.last_work = self.last_heard
                 if msg.type == MsgType.BYE:
                     log.info("master %s said bye", self.peer)
                     return
@@ -489,8 +534,10 @@ class MasterConnection:
                 or self.outbox.pending)
 
     def evictable(self, now: float) -> float | None:
-        """Seconds this master has been idle if it may give its slot to another, else None."""
-        idle = now - self.last_heard
+        """Seconds this master has been idle if it may give its slot to another, else None:
+        nothing under way for it, and nothing but heartbeats from it for EVICTABLE_AFTER_S
+        (a heartbeat keeps a connection open, not a slot against a master with work)."""
+        idle = now - self.last_work
         return idle if not self.busy and idle >= EVICTABLE_AFTER_S else None
 
     def _heartbeat(self) -> dict:
@@ -520,7 +567,13 @@ class MasterConnection:
             built_before = self.server.tracer.build_seconds
             try:
                 passes, ms = self.server.render_tile(
-                    frame, x, y, w, h, lambda state: self._doing(state, frame, index))
+                    frame, x, y, w, h, lambda state: self._doing(state, frame, index),
+                    stop=lambda: frame.cancelled or self.ended.is_set())
+            except RenderStopped:      # cancelled, superseded or the master gone: no tile
+                log.debug("master %s: tile %d of frame %d stopped", self.peer, index,
+                          frame.frame_id)
+                self.work.done(frame, index)
+                continue
             except Exception as exc:  # a tracer failure ends this frame, not the slave
                 log.exception("master %s: rendering tile %d failed", self.peer, index)
                 frame.cancelled = True
@@ -753,6 +806,10 @@ class MasterConnection:
                 passes = protocol.check_passes(h.get("passes", list(protocol.ALL_PASSES)))
             except ValueError as exc:
                 raise ProtocolError(str(exc)) from None
+            problem = frame_work_problem(view, (tile_w, tile_h), protocol.MAX_TILE_RAYS,
+                                         protocol.MAX_SAMPLE_RAYS)
+            if problem:
+                raise ProtocolError(f"over the work budget: {problem}")
         except (SceneError, ProtocolError) as exc:
             log.warning("master %s: frame %d refused: %s", self.peer, frame_id, exc)
             self.outbox.put((MsgType.ERROR, {"frame_id": frame_id, "message": str(exc)}, None))
@@ -769,18 +826,21 @@ class SlaveServer:
                  secret: bytes | None = None, cache_dir=None,
                  cache_disk_bytes: int = 2 * 1024 ** 3, *, identity: Identity | None = None,
                  allowed: trust.AllowList | None = None,
-                 pairing: trust.PairingCode | None = None):
+                 pairing: trust.PairingCode | None = None, upload_bytes: int | None = None):
         """Serves masters whose ID is `allowed`, that pair with `pairing` (the code is used up
         by the first) or that prove the farm `secret` (generated: trust.new_farm_secret); no
         other. `identity`: this slave's (None: a new one for this server only). `cache_dir`:
         also keep scenes on disk there (a folder private to this user), up to
-        `cache_disk_bytes`."""
+        `cache_disk_bytes`. `upload_bytes`: what all connections' large messages being
+        received may hold at once (default: the largest scene, limits.max_scene_bytes)."""
         self.tracer, self.name = tracer, name
         self.device_info = dict(tracer.device_info)
         self.identity = identity or Identity.ephemeral("slave")
         self.slave_id = self.identity.id
         self.instance = uuid.uuid4().hex[:12]    # this process (zeroconf names it apart)
         self.limits = limits
+        self.uploads = UploadBudget(limits.max_scene_bytes if upload_bytes is None
+                                    else upload_bytes)
         self.secret = None if secret is None else trust.check_farm_secret(
             secret.strip(), "the slave's secret")
         self.allowed = allowed if allowed is not None else trust.AllowList()
@@ -855,11 +915,17 @@ class SlaveServer:
         with self._connections_lock:
             self._connections.discard(connection)
 
-    def render_tile(self, frame: Frame, x: int, y: int, w: int, h: int, step) -> tuple:
+    def render_tile(self, frame: Frame, x: int, y: int, w: int, h: int, step,
+                    stop=None) -> tuple:
         """(passes, render ms) of one tile; step(state) says what is happening (the master hears
-        it in heartbeats). One device for all masters: loading and rendering are serialised."""
+        it in heartbeats). One device for all masters: loading and rendering are serialised.
+        RenderStopped once stop() says so, while the tile waits for the device or between two
+        of its launches (the tracer's render_tile)."""
         step("waiting")
-        with self._device_lock:
+        while not self._device_lock.acquire(timeout=DEVICE_POLL_S):
+            if stop is not None and stop():
+                raise RenderStopped("stopped while waiting for the device")
+        try:
             if self._loaded_hash != frame.scene.hash:
                 step("loading")
                 self._loaded_hash = None
@@ -869,8 +935,10 @@ class SlaveServer:
             self.tracer.prepare(frame.view, frame.passes)
             step("rendering")
             start = time.perf_counter()
-            passes = self.tracer.render_tile(frame.view, x, y, w, h, frame.passes)
+            passes = self.tracer.render_tile(frame.view, x, y, w, h, frame.passes, stop=stop)
             return passes, (time.perf_counter() - start) * 1000.0
+        finally:
+            self._device_lock.release()
 
     def close(self) -> None:
         self._listener.close()

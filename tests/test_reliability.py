@@ -106,6 +106,15 @@ class RawMaster:
         self.channel.close()
 
 
+def frame_reply(peer: RawMaster, scene, view: View, frame_id: int, **fields):
+    """What the slave answers a FRAME_START of `view` (and `fields`) on `peer`, which comes to
+    hold `scene` first."""
+    peer.hold(scene)
+    peer.send(MsgType.FRAME_START, {"frame_id": frame_id, "scene_hash": scene.hash,
+                                    "view": view.to_dict(), **fields})
+    return peer.recv()
+
+
 def slow_view(width=64, height=48, samples_per_axis=32, region=None) -> View:
     """The test view with an area light, 1024 samples per pixel and 16 shadow samples: seconds
     per tile on one core here, a real heavy render (no test-only slowdown in the slave)."""
@@ -170,7 +179,9 @@ class LoopbackServer:
 class FakeSlave(LoopbackServer):
     """A slave in this process that handshakes (no secret) and then misbehaves on every tile
     request: "half" sends half a TILE_RESULT and stalls; "baddtype" sends a result whose array
-    dtype is a list; "heartbeat" says it is rendering, forever, and never delivers."""
+    dtype is a list; "heartbeat" says it is rendering, forever, and never delivers; or on a
+    scene: "slowload" takes it and validates it forever (it says it is loading, never that the
+    scene is ready: a slow slave that would hold up load_scene)."""
 
     def __init__(self, mode: str):
         self.mode = mode
@@ -184,7 +195,11 @@ class FakeSlave(LoopbackServer):
                 msg = channel.recv(protocol.Limits())
                 if msg.type == MsgType.SCENE_QUERY:
                     channel.send(MsgType.SCENE_READY, {
-                        "scene_hash": msg.header["scene_hash"], "present": True})
+                        "scene_hash": msg.header["scene_hash"],
+                        "present": self.mode != "slowload"})
+                elif msg.type == MsgType.SCENE_UPLOAD:
+                    while not self.closed.wait(0.5):
+                        channel.send(MsgType.HEARTBEAT, {"state": "loading"})
                 elif msg.type == MsgType.FRAME_START:
                     frame = msg.header
                 elif msg.type == MsgType.TILE_REQUEST:
@@ -406,10 +421,12 @@ def test_an_exception_while_handling_a_slave_drops_that_slave(slaves, scene, ref
     with Master([s.endpoint for s in slaves], retry_delays=()) as master:
         master.connect()
         master.load_scene(scene)
-        job = master.render(make_view(), tile_size=16)
+        # No copies: the victim's tiles are its own to deliver (a copy finished elsewhere
+        # would cancel its tile, which it would then stop, and the bug would never be met).
+        job = master.render(make_view(), tile_size=16, duplicates=False)
         images, _ = render_all(job, timeout=60)
         assert job.error is None, job.error
-        assert job.wait(30)     # the slave's copies may come after the frame is complete
+        assert job.wait(30)
         assert any(slaves[1].name in e and "internal error (RuntimeError: a bug in the master)"
                    in e for e in job.errors), job.errors
     assert_images_equal(images, reference)
@@ -706,6 +723,49 @@ def test_idle_connections_cannot_lock_out_an_honest_master(slaves, scene, refere
             peer.close()
 
 
+def test_heartbeating_connections_cannot_lock_out_an_honest_master(slaves, scene, reference):
+    """Issue 39, finding 6: 16 admitted masters that send only HEARTBEAT every 2 s hold every
+    slot; an honest master is admitted within 15 s all the same (a heartbeat keeps a
+    connection open, not a slot: after EVICTABLE_AFTER_S of heartbeats alone a master gives
+    its slot to one that comes to work), renders, and the heartbeaters are told why."""
+    slave = slaves[1]
+    stop = threading.Event()
+    beaters = [RawMaster(slave.endpoint) for _ in range(16)]
+
+    def beat():
+        while not stop.wait(2.0):
+            for peer in beaters:
+                try:
+                    peer.send(MsgType.HEARTBEAT)
+                except (OSError, ProtocolError):
+                    pass
+    threading.Thread(target=beat, daemon=True).start()
+    try:
+        with pytest.raises(SlaveBusy, match="16 masters connected"):
+            connect_slave(*slave.endpoint, secret=FARM_SECRET, identity=tls_peers.identity())
+        started = time.monotonic()
+        with Master([slave.endpoint]) as master:
+            master.connect()           # asks again after back-off
+            assert time.monotonic() - started < 15
+            master.load_scene(scene)
+            images, _ = render_all(master.render(make_view(), tile_size=32))
+        assert_images_equal(images, reference)
+        stop.set()
+        told = []
+        for peer in beaters:
+            try:
+                while (msg := peer.recv(wait=0.5)).type == MsgType.HEARTBEAT:
+                    pass
+                told.append(msg.header.get("message", ""))
+            except (OSError, ProtocolError):
+                pass
+        assert any("another master needs the slot" in m for m in told), told
+    finally:
+        stop.set()
+        for peer in beaters:
+            peer.close()
+
+
 def test_dribbled_handshakes_cannot_lock_out_an_honest_master(tmp_path, scene, reference):
     secret_file = tmp_path / "secret"
     secret_file.write_bytes(FARM_SECRET)
@@ -772,10 +832,7 @@ def test_bad_frame_is_refused_at_frame_start(slaves, scene, reference, change, r
         scene.check_view(view)
     peer = RawMaster(slaves[0].endpoint)
     try:
-        peer.hold(scene)
-        peer.send(MsgType.FRAME_START, {"frame_id": 11, "scene_hash": scene.hash,
-                                        "view": view.to_dict(), "tile_size": 16})
-        reply = peer.recv()
+        reply = frame_reply(peer, scene, view, 11, tile_size=16)
         assert reply.type == MsgType.ERROR and reply.header["frame_id"] == 11
         assert reason.split(",")[0] in reply.header["message"], reply.header
     finally:
@@ -787,6 +844,179 @@ def test_bad_frame_is_refused_at_frame_start(slaves, scene, reference, change, r
             master.render(view, tile_size=16)
         images, _ = render_all(master.render(make_view(), tile_size=32))
     assert_images_equal(images, reference)
+
+
+# -- issue 39, finding 5: work within a budget ---------------------------------------------------
+def heavy_view() -> View:
+    """slow_view at 4096 samples per pixel with 16 shadow samples: 12.6 million camera samples
+    in its one 64 x 48 tile, tens of seconds on a core here."""
+    return slow_view(samples_per_axis=64)
+
+
+def test_cancel_stops_a_heavy_tile_within_a_launch(slaves, scene, reference):
+    """A tile of tens of seconds is rendering when CANCEL comes: the slave confirms within
+    1 s (CANCEL_BOUND_S; it stops between two launches of about 20 ms, LAUNCH_SECONDS), sends
+    nothing of the tile, and renders the next frame."""
+    peer = RawMaster(slaves[0].endpoint)
+    try:
+        peer.hold(scene)
+        peer.send(MsgType.FRAME_START, {"frame_id": 5, "scene_hash": scene.hash,
+                                        "view": heavy_view().to_dict(), "tile_size": 64,
+                                        "tile_height": 48})
+        peer.send(MsgType.TILE_REQUEST, {"frame_id": 5, "tile": 0})
+        deadline = time.monotonic() + 120      # the first build of this kernel may take long
+        while True:
+            beat = peer.recv(wait=30)
+            assert beat.type == MsgType.HEARTBEAT, beat
+            if beat.header.get("state") == "rendering":
+                break
+            assert time.monotonic() < deadline, "the tile never started rendering"
+        time.sleep(1.0)
+        sent = time.monotonic()
+        peer.send(MsgType.CANCEL, {"frame_id": 5})
+        while (msg := peer.recv(wait=30)).type == MsgType.HEARTBEAT:
+            pass
+        waited = time.monotonic() - sent
+        assert msg.type == MsgType.CANCEL and msg.header["frame_id"] == 5, msg
+        assert waited < CANCEL_BOUND_S, waited
+    finally:
+        peer.close()
+    real_render_works(slaves[0].endpoint, scene, reference)
+
+
+CANCEL_BOUND_S = 1.0
+
+
+@pytest.mark.parametrize("change, words", [
+    # 1024 x 1024 tiles of 4096 samples through 1033 path vertices: 2^50 rays a tile
+    (lambda v: setattr(v.settings, "max_bounces", 1024), "tile may trace"),
+    # 14 lights x 256 shadow samples at each of 2049 vertices: 7.3 million rays a sample
+    (lambda v: (v.shading.lights.extend([v.shading.lights[0]] * 10),
+                setattr(v.settings, "light_samples_per_axis", 16),
+                setattr(v.settings, "max_bounces", 1024),
+                setattr(v.settings, "transparent_bounces", 1024)), "one camera sample may trace"),
+])
+def test_an_over_budget_frame_is_refused_and_a_master_cuts_smaller_tiles(
+        slaves, scene, reference, change, words, monkeypatch):
+    """A frame whose tiles are over the work budget (protocol.MAX_TILE_RAYS, View.tile_rays:
+    pixels x samples x shadow rays x path vertices, in Python integers) or whose camera sample
+    is (MAX_SAMPLE_RAYS) is refused at FRAME_START with the numbers; the master cuts a
+    frame's tiles smaller until they are within it, and refuses a sample over budget itself."""
+    view = make_view(1024, 1024)
+    view.settings = network_settings(samples_per_axis=64)
+    change(view)
+    peer = RawMaster(slaves[0].endpoint)
+    try:
+        reply = frame_reply(peer, scene, view, 3, tile_size=1024)
+        assert reply.type == MsgType.ERROR and reply.header["frame_id"] == 3, reply
+        assert "over the work budget" in reply.header["message"] and words in reply.header["message"]
+        peer.send(MsgType.TILE_REQUEST, {"frame_id": 3, "tile": 0})     # ignored: no frame
+        peer.send(MsgType.HEARTBEAT)
+        with pytest.raises(socket.timeout):
+            peer.recv(wait=1.0)
+    finally:
+        peer.close()
+    from core.net.tiles import fit_tile_work
+    if words == "tile may trace":
+        w, h = fit_tile_work(view, 1024, protocol.MAX_TILE_RAYS, protocol.MAX_SAMPLE_RAYS)
+        assert view.tile_rays(w, h) <= protocol.MAX_TILE_RAYS < view.tile_rays(2 * w, h)
+    else:
+        with pytest.raises(ValueError, match=words):
+            fit_tile_work(view, 1024, protocol.MAX_TILE_RAYS, protocol.MAX_SAMPLE_RAYS)
+    # A master splits: with a budget of a 16 x 16 tile of the test view, 64 x 48 tiles become
+    # 16 x 12, and the image is the same.
+    small = make_view()
+    monkeypatch.setattr(protocol, "MAX_TILE_RAYS", small.tile_rays(16, 16))
+    with Master([slaves[0].endpoint]) as master:
+        master.connect()
+        master.load_scene(scene)
+        if words != "tile may trace":
+            with pytest.raises(MasterError, match=words):
+                master.render(view, tile_size=64)
+        job = master.render(small, tile_size=(64, 48))
+        images, _ = render_all(job)
+        assert (job.tile_w, job.tile_h) == (16, 12)
+    assert_images_equal(images, reference)
+
+
+def test_uploads_in_progress_share_one_memory_budget(scene):
+    """Large messages being received by all connections hold at most the slave's upload
+    budget: a second upload that does not fit beside one in progress waits, then is refused
+    ("slave busy: uploads in progress ..."); the budget comes back when an upload ends,
+    whole or not, and a real upload goes through."""
+    from slave.server import SlaveServer
+    server = SlaveServer(_NoTracer(), "kdt-budget", bind="127.0.0.1", port=0,
+                         secret=FARM_SECRET, upload_bytes=3 << 20)
+    server.uploads.wait_s = 0.5
+    server.start()
+    big = message(MsgType.SCENE_UPLOAD, {"scene_hash": scene.hash},
+                  {"vertices": np.zeros((200_000, 3), np.float32)})     # 2.3 MiB
+    first = second = None
+    try:
+        first = RawMaster(server.address)
+        first.send_bytes(big[:1 << 20])          # under way: holds its 2.3 MiB
+        deadline = time.monotonic() + 10
+        while server.uploads.used == 0:
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        assert server.uploads.used == len(big)
+        second = RawMaster(server.address)
+        second.send_bytes(big[:1 << 20])
+        while (reply := second.recv()).type == MsgType.HEARTBEAT:
+            pass
+        assert reply.type == MsgType.ERROR, reply
+        assert "slave busy: uploads in progress hold 2 of the 3 MiB" in reply.header["message"]
+        first.close()                            # gone half-way: its share comes back
+        deadline = time.monotonic() + 10
+        while server.uploads.used:
+            assert time.monotonic() < deadline, server.uploads.used
+            time.sleep(0.02)
+        third = RawMaster(server.address)
+        third.hold(scene)                        # a real (small) upload
+        third.close()
+        assert server.uploads.used == 0
+    finally:
+        for peer in (first, second):
+            if peer is not None:
+                peer.close()
+        server.close()
+
+
+class _NoTracer:
+    device_info = {"name": "none", "compute_units": 1, "memory": 0, "platform": "test"}
+    build_seconds = 0.0
+
+
+def test_a_slow_slave_is_dropped_at_its_upload_deadline_and_esc_stops_the_upload(
+        slaves, scene, reference, monkeypatch):
+    """A slave that takes longer than its upload deadline (UPLOAD_BASE_S + the bytes at
+    UPLOAD_MIN_BPS) to make the scene present is dropped, named, and the frame renders on
+    the others; alone, a load_scene whose `cancelled` says so (Esc) returns within a poll with
+    LoadCancelled."""
+    from core.net import master as master_module
+    from core.net.master import LoadCancelled
+    monkeypatch.setattr(master_module, "UPLOAD_BASE_S", 2.0)
+    slow = FakeSlave("slowload")
+    try:
+        with Master([slaves[0].endpoint, slow.endpoint]) as master:
+            master.connect()
+            started = time.monotonic()
+            master.load_scene(scene)
+            assert time.monotonic() - started < 5
+            assert any("did not take the scene within its upload deadline" in e
+                       for e in master.errors), master.errors
+            images, _ = render_all(master.render(make_view(), tile_size=32))
+        assert_images_equal(images, reference)
+        monkeypatch.setattr(master_module, "UPLOAD_BASE_S", 600.0)
+        with Master([slow.endpoint]) as master:
+            master.connect()
+            started = time.monotonic()
+            with pytest.raises(LoadCancelled):
+                master.load_scene(scene, cancelled=lambda: time.monotonic() > started + 1.0)
+            assert time.monotonic() - started < 2.0
+            assert master.slave_states()[0].state == "lost"
+    finally:
+        slow.close()
 
 
 # -- case 7: after the handshake, every byte is authenticated (TLS) ----------------------------

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time
 
-from ..net.master import Master, MasterError
+from ..net.master import LoadCancelled, Master, MasterError
 from ..net.protocol import ProtocolError
 from ..net.slave_colors import slave_color
 from ..net.trust import AllowList, AuthError
@@ -91,7 +91,7 @@ def render_frame(session: FrameSession, exported, view, options: FrameOptions, h
             legend = session.legend
             steps.mark("find slaves and connect")
             host.status(f"Sending scene to {len(master.slaves)} slave(s)")
-            master.load_scene(scene)
+            master.load_scene(scene, cancelled=host.cancelled)
             steps.mark("scene query")
             for problem in master.errors:
                 host.report("WARNING", f"KD Trace: {problem}")
@@ -114,7 +114,7 @@ def render_frame(session: FrameSession, exported, view, options: FrameOptions, h
                 raise FrameError(job.error)
             uploaded_to, scene_bytes = list(master.uploaded_to), dict(master.scene_bytes)
         finished = steps.mark("close")
-    except FrameCancelled:
+    except (FrameCancelled, LoadCancelled):
         return None
     per_slave = legend.tiles_per_slave()
     built = "built" in sources

@@ -43,9 +43,15 @@ from .render_job import RenderJob, SpareFrames, TileBudget
 from .slave_worker import DEFAULT_TILES_IN_FLIGHT
 from ..scene.model import SceneError, View
 from ..scene.scene import Scene
-from .tiles import TileGrid, partition_tile_size, tile_dims
+from .tiles import TileGrid, fit_tile_work, partition_tile_size, tile_dims
 
 POLL_S = 0.2             # how often waiting for a scene to load looks at its deadlines
+# Per-slave upload deadline: a slave makes a scene present (the query, the transfer and its
+# validation) within UPLOAD_BASE_S plus the bytes sent at UPLOAD_MIN_BPS, or is dropped for
+# the frame (a slave that reads a scene slowly, above the channel's own minimum rate, no
+# longer holds up everyone else's frame for hours).
+UPLOAD_BASE_S = 60.0
+UPLOAD_MIN_BPS = 1 << 20
 DEFAULT_TILE_SIZE = 64
 MAX_TILES_IN_FLIGHT = protocol.MAX_TILES_IN_FLIGHT
 # tile_size="auto": the largest of these edges that gives each slave about
@@ -96,8 +102,16 @@ class SlaveState:
 FROM_ENVIRONMENT = object()   # Master(secret=...) default: read $KDTRACE_SECRET if it is set
 
 
-def _in_parallel(function, items) -> list:
-    """function(item) for each item on its own thread; returns [(item, result or exception)]."""
+class LoadCancelled(MasterError):
+    """load_scene's `cancelled()` said so (Esc): the uploads under way were abandoned."""
+
+
+def _in_parallel(function, items, cancelled=None, deadline=None, give_up=None) -> list:
+    """function(item) for each item on its own thread; returns [(item, result or exception)].
+    The caller's thread waits, and every POLL_S looks at `cancelled()` (true: give_up(item,
+    why) for each item still running, then LoadCancelled) and at `deadline(item)` (a
+    time.monotonic(), or None: past it, give_up(item, why) for that item, whose function
+    then fails)."""
     outcomes = [None] * len(items)
 
     def call(i, item):
@@ -109,9 +123,22 @@ def _in_parallel(function, items) -> list:
     threads = [threading.Thread(target=call, args=(i, item), daemon=True) for i, item in enumerate(items)]
     for thread in threads:
         thread.start()
-    for thread in threads:
-        thread.join()
-    return outcomes
+    while True:
+        running = [(thread, item) for thread, item in zip(threads, items) if thread.is_alive()]
+        if not running:
+            return outcomes
+        running[0][0].join(POLL_S)
+        if cancelled is not None and cancelled():
+            for thread, item in running:
+                give_up(item, "cancelled")
+            for thread, _ in running:
+                thread.join(2.0)     # its socket is closed: it ends within a poll of its own
+            raise LoadCancelled("cancelled while the scene was being sent")
+        now = time.monotonic()
+        for thread, item in running:
+            due = None if deadline is None else deadline(item)
+            if due is not None and now > due:
+                give_up(item, "deadline")
 
 
 def _mesh_proofs(scene: Scene, held, nonce: str) -> np.ndarray:
@@ -188,6 +215,8 @@ class Master:
         self._spares = SpareFrames()     # frames handed back (RenderJob.release), for reuse
         self._lock = threading.RLock()
         self._closed = False
+        self._upload_due: dict = {}      # connection -> its upload deadline (time.monotonic())
+        self._upload_lost: dict = {}     # connection -> why its upload was given up
 
     @property
     def scene_hash(self) -> str | None:
@@ -317,12 +346,11 @@ class Master:
                     reason = str(exc)
                     self._set_state(endpoint, "reconnecting", reason)
                     continue
-                try:
-                    if self.scene is not None:
-                        self._ensure_scene(connection, self.scene)
-                except Exception as exc:
+                outcome = None if self.scene is None else \
+                    self._make_present([connection], self.scene)[0][1]
+                if isinstance(outcome, Exception):
                     connection.close()
-                    reason = describe(exc)
+                    reason = self._upload_failure(connection, outcome)
                     self._set_state(endpoint, "reconnecting", reason)
                     continue
                 with self._lock:
@@ -347,31 +375,89 @@ class Master:
 
     # -- the scene
 
-    def load_scene(self, scene: Scene) -> str:
+    def load_scene(self, scene: Scene, cancelled=None) -> str:
         """Make the scene present on every slave, uploading only where its hash is unknown.
-        Slaves that fail are dropped (see .errors). Returns the scene hash."""
+        Slaves that fail, or do not take the scene within their upload deadline
+        (UPLOAD_BASE_S + its bytes at UPLOAD_MIN_BPS), are dropped (see .errors). `cancelled`:
+        a function polled every POLL_S while the slaves load (Esc); when it returns true the
+        uploads under way are abandoned (their connections closed) and LoadCancelled is
+        raised. Returns the scene hash."""
         if self._job is not None:
             self._job.wait()  # its frame may still read the sockets (copies being cancelled)
         self.scene = scene
         self.uploaded_to = []
         self.scene_bytes = {}
-        for connection, outcome in _in_parallel(lambda c: self._ensure_scene(c, scene), self.slaves):
+        for connection, outcome in self._make_present(self.slaves, scene, cancelled):
             if outcome is True:
                 self.uploaded_to.append(connection.label)
             elif isinstance(outcome, Exception):
+                reason = self._upload_failure(connection, outcome)
                 self.errors.append(f"slave {connection.label} dropped while loading the scene: "
-                                   f"{describe(outcome)}")
-                self._set_state(connection.endpoint, "lost", describe(outcome))
+                                   f"{reason}")
+                self._set_state(connection.endpoint, "lost", reason)
                 connection.close()
         if not self.slaves:
             raise MasterError("no slave could load the scene: " + "; ".join(self.errors))
         return scene.hash
 
+    def _make_present(self, connections: list, scene: Scene, cancelled=None) -> list:
+        """_ensure_scene on each connection at once, each within its upload deadline, Esc
+        polled (_in_parallel); [(connection, True, False or the exception)]."""
+        def give_up(connection, why):
+            if why == "deadline":
+                with self._lock:
+                    self._upload_lost[connection] = (
+                        f"did not take the scene within its upload deadline ({UPLOAD_BASE_S:.0f} "
+                        f"s + {UPLOAD_MIN_BPS / 2 ** 20:.0f} s a MiB)")
+            connection.close()
+        try:
+            outcomes = _in_parallel(lambda c: self._ensure_scene(c, scene), connections,
+                                    cancelled, self._upload_due.get, give_up)
+            with self._lock:
+                for connection, outcome in outcomes:
+                    if not isinstance(outcome, Exception):  # it made it after all
+                        self._upload_lost.pop(connection, None)
+            return outcomes
+        except LoadCancelled:
+            for connection in connections:
+                if connection.closed:
+                    self._set_state(connection.endpoint, "lost", "the scene upload was cancelled")
+            raise
+
+    def _upload_failure(self, connection: SlaveConnection, exc: Exception) -> str:
+        """Why making the scene present on `connection` failed, for the user."""
+        with self._lock:
+            return self._upload_lost.pop(connection, None) or describe(exc)
+
+    def _upload_deadline(self, connection: SlaveConnection, nbytes: int = 0) -> None:
+        """The connection's upload deadline: from now (nbytes 0), or `nbytes` later."""
+        with self._lock:
+            if nbytes:
+                self._upload_due[connection] += nbytes / UPLOAD_MIN_BPS
+            else:
+                self._upload_due[connection] = time.monotonic() + UPLOAD_BASE_S
+
     def _ensure_scene(self, connection: SlaveConnection, scene: Scene) -> bool:
         """Make `scene` present on the slave; True if it was uploaded whole. Where the slave
         holds an instanced scene's meshes (the same meshes_hash: only instances changed), it is
         sent the instance arrays alone (SCENE_INSTANCES; it builds only its top level); where
-        it holds some of them, the others (SCENE_MESHES, by mesh hash)."""
+        it holds some of them, the others (SCENE_MESHES, by mesh hash). Within the
+        connection's upload deadline (_make_present watches it)."""
+        self._upload_deadline(connection)
+        try:
+            return self._send_scene(connection, scene)
+        finally:
+            with self._lock:
+                self._upload_due.pop(connection, None)
+
+    def _upload(self, connection: SlaveConnection, msg_type: MsgType, header: dict,
+                arrays: dict) -> None:
+        """Send a scene message, its bytes added to the connection's upload deadline."""
+        self._set_state(connection.endpoint, "uploading", connection=connection)
+        self._upload_deadline(connection, sum(a.nbytes for a in arrays.values()))
+        connection.send(msg_type, header, arrays)
+
+    def _send_scene(self, connection: SlaveConnection, scene: Scene) -> bool:
         sent_before = connection.channel.bytes_sent
         query = {"scene_hash": scene.hash}
         if scene.meshes_hash is not None:
@@ -386,19 +472,17 @@ class Master:
         # Not present after SCENE_INSTANCES or SCENE_MESHES: the slave let meshes go since it
         # answered; the whole scene is uploaded.
         if not present and meshes_present:
-            self._set_state(connection.endpoint, "uploading", connection=connection)
-            connection.send(MsgType.SCENE_INSTANCES, query, scene.instance_arrays())
+            self._upload(connection, MsgType.SCENE_INSTANCES, query, scene.instance_arrays())
             present = self._scene_ready(connection, scene.hash)[0]
         elif not present and hashes is not None and held is not None and \
                 held.shape == (len(scene.mesh_hashes),) and held.any():
-            self._set_state(connection.endpoint, "uploading", connection=connection)
-            connection.send(MsgType.SCENE_MESHES, {"scene_hash": scene.hash},
-                            {**scene.mesh_wire_arrays(held == 0),
-                             "mesh_proofs": _mesh_proofs(scene, held, connection.slave_nonce)})
+            self._upload(connection, MsgType.SCENE_MESHES, {"scene_hash": scene.hash},
+                         {**scene.mesh_wire_arrays(held == 0),
+                          "mesh_proofs": _mesh_proofs(scene, held, connection.slave_nonce)})
             present = self._scene_ready(connection, scene.hash)[0]
         if not present:
-            self._set_state(connection.endpoint, "uploading", connection=connection)
-            connection.send(MsgType.SCENE_UPLOAD, {"scene_hash": scene.hash}, scene.wire_arrays())
+            self._upload(connection, MsgType.SCENE_UPLOAD, {"scene_hash": scene.hash},
+                         scene.wire_arrays())
             if not self._scene_ready(connection, scene.hash)[0]:
                 raise MasterError("slave did not accept the scene")
             uploaded = True
@@ -482,6 +566,10 @@ class Master:
             raise MasterError(str(exc)) from None
         if not all(1 <= d <= protocol.MAX_TILE_SIZE for d in dims):
             raise MasterError(f"tile size must be 1 to {protocol.MAX_TILE_SIZE}, got {dims}")
+        try:    # smaller tiles where a tile would be over the slaves' work budget
+            dims = fit_tile_work(view, dims, protocol.MAX_TILE_RAYS, protocol.MAX_SAMPLE_RAYS)
+        except ValueError as exc:
+            raise MasterError(f"the frame cannot be rendered: {exc}") from None
         try:
             self.scene.check_view(view)   # what every slave checks at FRAME_START
         except SceneError as exc:
@@ -550,11 +638,12 @@ class Master:
                 else:
                     problems.append(str(outcome))
         stale = [c for c in self.slaves if c.scene_hash != self.scene.hash]
-        for connection, outcome in _in_parallel(lambda c: self._ensure_scene(c, self.scene), stale):
+        for connection, outcome in self._make_present(stale, self.scene):
             if isinstance(outcome, Exception):
+                reason = self._upload_failure(connection, outcome)
                 problems.append(f"slave {connection.label} dropped while loading the scene: "
-                                f"{describe(outcome)}")
-                self._set_state(connection.endpoint, "lost", describe(outcome))
+                                f"{reason}")
+                self._set_state(connection.endpoint, "lost", reason)
                 connection.close()
         self.errors += problems
         return problems

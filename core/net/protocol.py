@@ -55,6 +55,12 @@ MAX_DIMS = 4
 MAX_TILE_SIZE = 1024
 MAX_FRAME_TILES = 1 << 20       # tiles of one frame (65536 x 65536 pixels in 64-pixel tiles)
 MAX_TILES_IN_FLIGHT = 16        # tile requests a master may have outstanding on one slave
+# A frame's work (docs/protocol.md, "Frame"; counted as View.tile_rays counts it, in Python
+# integers): its largest tile at most MAX_TILE_RAYS (a master cuts smaller tiles where its own
+# would be larger: tiles.fit_tile_work), one camera sample at most MAX_SAMPLE_RAYS (the least
+# a slave's launch can trace, so what bounds the time a cancel waits for).
+MAX_TILE_RAYS = 1 << 40
+MAX_SAMPLE_RAYS = 1 << 22
 
 # Liveness (docs/protocol.md, "Liveness and deadlines"). A busy slave sends HEARTBEAT at least
 # every heartbeat_s (the master asks for its interval in HELLO); a peer that owes an answer and
@@ -416,8 +422,15 @@ class Channel:
     slave reads on one thread while it sends on another. Nobody waits while holding it: a
     thread waits for the socket (poll) first, then reads or writes what is there."""
 
-    def __init__(self, sock: socket.socket, role: str, grace_s: float = SILENCE_S):
+    def __init__(self, sock: socket.socket, role: str, grace_s: float = SILENCE_S,
+                 budget=None):
+        """`budget` (the slave's: slave.server.UploadBudget): a message larger than the
+        channel's buffer takes its length from it (take(n), which may refuse with
+        ProtocolError) when its header is in, and gives it back (give(n)) at the next
+        receive or at close."""
         self.sock, self.role, self.grace_s = sock, role, grace_s
+        self.budget, self._budgeted = budget, 0
+        self._budget_lock = threading.Lock()     # the receiver gives back, or close()
         self.tls = isinstance(sock, ssl.SSLSocket)
         self._tls_lock = threading.Lock()
         # Blocked calls wake up to look at their deadline; a TLS socket never blocks.
@@ -529,6 +542,7 @@ class Channel:
         as long as it takes). Once a message begins it must arrive within its transfer
         deadline, and before the absolute `deadline` (time.monotonic()) if given.
         ProtocolError on anything else. Its arrays are its own."""
+        self._give_budget()         # the message before is handled
         waited_from = time.monotonic()
         while True:
             msg = self._parse(limits, allowed, borrow=False)
@@ -622,6 +636,13 @@ class Channel:
                 self._began or time.monotonic(), msg_type, json_length, payload_length)
             self._began = None
             if incoming.total > RECV_KEEP_BYTES:
+                if self.budget is not None:
+                    self._give_budget()
+                    self.budget.take(incoming.total)
+                    with self._budget_lock:
+                        self._budgeted = incoming.total
+                    if self.closed:         # closed meanwhile: nobody gives it back else
+                        self._give_budget()
                 # (the buffer, at most RECV_KEEP_BYTES, holds nothing beyond this message)
                 with memoryview(self._buffer) as view:
                     incoming.head = bytes(view[self._start:self._start + HEADER.size])
@@ -778,9 +799,16 @@ class Channel:
         except (OSError, ValueError):
             pass
 
+    def _give_budget(self) -> None:
+        with self._budget_lock:
+            budgeted, self._budgeted = self._budgeted, 0
+        if budgeted:
+            self.budget.give(budgeted)
+
     def close(self) -> None:
         """Shut the connection down (wakes a thread blocked on it) and close it."""
         self.closed = True
+        self._give_budget()
         try:
             socket.socket.shutdown(self.sock, socket.SHUT_RDWR)
         except OSError:

@@ -66,6 +66,45 @@ class TileGrid:
         return (self[i] for i in range(len(self)))
 
 
+def frame_work_problem(view, tile_size, max_tile_rays: int, max_sample_rays: int) -> str | None:
+    """Why a frame of `view` (core.scene.model.View) in tiles of `tile_size` is over the work
+    budget (its largest tile over `max_tile_rays`, a camera sample over `max_sample_rays`, as
+    View.tile_rays counts them), or None. Python integers: no product wraps."""
+    per_sample = view.rays_per_sample()
+    if per_sample > max_sample_rays:
+        return (f"one camera sample may trace {per_sample:,} rays (lights x light samples x "
+                f"bounces), at most {max_sample_rays:,}: use fewer lights, light samples or "
+                f"bounces")
+    w, h = _largest_tile(view.region, tile_size)
+    rays = view.tile_rays(w, h)
+    if rays > max_tile_rays:
+        return (f"a {w} x {h} tile may trace {rays:,} rays (pixels x samples x lights x "
+                f"bounces), at most {max_tile_rays:,}: use smaller tiles or fewer samples")
+    return None
+
+
+def fit_tile_work(view, tile_size, max_tile_rays: int, max_sample_rays: int) -> tuple:
+    """`tile_size` as (width, height), halved (the longer side first) until the frame's largest
+    tile is within `max_tile_rays`; ValueError (frame_work_problem's words) where a camera
+    sample or a single pixel is over budget."""
+    w, h = _largest_tile(view.region, tile_size)
+    while frame_work_problem(view, (w, h), max_tile_rays, max_sample_rays) and w * h > 1:
+        if w >= h:
+            w = -(-w // 2)
+        else:
+            h = -(-h // 2)
+    problem = frame_work_problem(view, (w, h), max_tile_rays, max_sample_rays)
+    if problem:
+        raise ValueError(problem)
+    return (w, h) if (w, h) != _largest_tile(view.region, tile_size) else tile_dims(tile_size)
+
+
+def _largest_tile(region, tile_size) -> tuple:
+    w, h = tile_dims(tile_size)
+    x0, y0, x1, y1 = (int(v) for v in region)
+    return min(w, x1 - x0), min(h, y1 - y0)
+
+
 def tile_grid(region, tile_size) -> list:
     """The tiles of TileGrid(region, tile_size) as a list (`tile_size`: an int for square
     tiles or a (width, height) pair)."""
