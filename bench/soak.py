@@ -16,6 +16,14 @@ compared bit for bit with the same frame rendered by the tracer in this process.
   silent, or the opening dribbled a byte a second;
 - RSS: every 10 s each slave's resident memory (/proc/<pid>/status).
 
+Trust (--trust): "pairing" (the default) as a new user sets a farm up: no farm secret; each
+slave has an identity folder of its own and shows a pairing code at its first start, the
+master pairs with it once (Master(pairing=...)) and approves its ID, as the Slaves panel's
+Pair does; a restarted slave keeps its identity and its allowed master. The fuzzer's
+identity is allowed on every slave (--allow), as an owner allows a master, so that its
+messages reach the slave inside TLS. "secret": one generated farm secret for the master, the
+fuzzer and every slave. Every connection is TLS 1.3 with both identities either way.
+
 Reported: frames completed, frames lost (the job failed; target 0), wrong frames (pixels that
 differ; target 0), frame times, kills, unexpected slave exits (crashes; target 0), fuzz
 answers, and each slave's RSS over time. --long-tiles afterwards runs the 2-minute-tile render
@@ -23,6 +31,7 @@ answers, and each slave's RSS over time. --long-tiles afterwards runs the 2-minu
 
     .venv/bin/python bench/soak.py [--minutes 30] [--slaves 3] [--steady 0] [--mutated 10000]
                                    [--idle 500] [--json out.json] [--long-tiles]
+                                   [--trust pairing|secret]
 """
 from __future__ import annotations
 
@@ -32,6 +41,7 @@ import os
 import pathlib
 import platform
 import random
+import re
 import socket
 import statistics
 import subprocess
@@ -72,12 +82,17 @@ def free_port() -> int:
 
 
 class SlaveSlot:
-    """One slave position: a port, and the process currently serving it (restarted by chaos)."""
+    """One slave position: a port, and the process currently serving it (restarted by chaos).
+    With `pairing`: an identity folder of its own, a pairing code at its first start
+    (`code`), `allow` (master IDs) allowed from its first start."""
 
-    def __init__(self, index: int, log_dir: pathlib.Path):
+    def __init__(self, index: int, log_dir: pathlib.Path, pairing: bool = False, allow=()):
         self.name, self.port = f"soak-{index}", free_port()
         self.endpoint = ("127.0.0.1", self.port)
         self.log_dir = log_dir
+        self.pairing, self.allow = pairing, list(allow)
+        self.identity_dir = log_dir / f"identity-{self.name}"
+        self.id = self.code = None
         self.proc = None
         self.instances = []          # (pid, started at, [(t, rss MiB)])
         self.crashes = []            # exit codes of exits chaos did not cause
@@ -86,14 +101,29 @@ class SlaveSlot:
 
     def start(self) -> None:
         env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1", PYTHONUNBUFFERED="1")
-        log = open(self.log_dir / f"{self.name}-{len(self.instances)}.log", "w")
+        trust = []
+        if self.pairing:
+            env.pop("KDTRACE_SECRET", None)
+            trust = ["--identity-dir", str(self.identity_dir)]
+            if not self.instances:       # the first start: a code to pair with, the fuzzer
+                trust += ["--pair"] + [a for master in self.allow for a in ("--allow", master)]
+        log_path = self.log_dir / f"{self.name}-{len(self.instances)}.log"
+        log = open(log_path, "w")
         proc = subprocess.Popen(
             [sys.executable, "-m", "slave", "--port", str(self.port), "--bind", "127.0.0.1",
-             "--no-zeroconf", "--name", self.name, "--status-port", "off"],
+             "--no-zeroconf", "--name", self.name, "--status-port", "off", *trust],
             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=log, text=True)
         line = proc.stdout.readline()
         if "listening on" not in line:
             raise RuntimeError(f"{self.name} did not start: {line!r}")
+        self.id = line.split(" id ")[1].split()[0]
+        if self.pairing and not self.instances:     # its log shows the code after that line
+            deadline = time.monotonic() + 30
+            while not (code := re.search(r"pairs with the code (\S+?);", log_path.read_text())):
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"{self.name} showed no pairing code: {log_path}")
+                time.sleep(0.05)
+            self.code = code.group(1)
         threading.Thread(target=lambda: proc.stdout.read(), daemon=True).start()
         with self.lock:
             self.proc = proc
@@ -351,6 +381,8 @@ def main(argv=None) -> int:
     parser.add_argument("--json", default=None)
     parser.add_argument("--long-tiles", action="store_true",
                         help="afterwards, render with 2-minute tiles (the long test)")
+    parser.add_argument("--trust", choices=("pairing", "secret"), default="pairing",
+                        help="how master and slaves trust each other (see the docstring)")
     args = parser.parse_args(argv)
     command = "bench/soak.py " + " ".join(sys.argv[1:] if argv is None else argv)
     print(f"command: .venv/bin/python {command}")
@@ -368,8 +400,16 @@ def main(argv=None) -> int:
 
     log_dir = pathlib.Path(os.environ.get("TMPDIR", "/tmp")) / f"kdtrace-soak-{os.getpid()}"
     log_dir.mkdir(parents=True, exist_ok=True)
-    slots = [SlaveSlot(i, log_dir) for i in range(args.slaves)]
-    master = Master([s.endpoint for s in slots], name="soak")
+    pairing = args.trust == "pairing"
+    if pairing:       # the slaves get no secret; the fuzzer is a master their owner allowed
+        from tests.tls_peers import identity as probe_identity
+        slots = [SlaveSlot(i, log_dir, pairing=True, allow=[probe_identity().id])
+                 for i in range(args.slaves)]
+        master = Master([s.endpoint for s in slots], name="soak", secret=None,
+                        pairing={s.id: s.code for s in slots})
+    else:
+        slots = [SlaveSlot(i, log_dir) for i in range(args.slaves)]
+        master = Master([s.endpoint for s in slots], name="soak")
     fuzzer = Fuzzer(slots, args.mutated, seconds, scene, views[0][1], args.seed)
     idle = IdleSockets(slots, args.idle, seconds, args.seed + 1)
     stop = threading.Event()
@@ -399,6 +439,11 @@ def main(argv=None) -> int:
     errors_seen = 0
     try:
         master.connect()
+        if pairing:   # paired once: approved from now on, as the Slaves panel's Pair does
+            assert {c.trusted_by for c in master.slaves} == {"paired"}, \
+                [(c.label, c.trusted_by) for c in master.slaves]
+            for slot in slots:
+                master.approved.add(slot.id)
         master.load_scene(scene)
         started = time.monotonic()
         threads = [threading.Thread(target=t, daemon=True)
@@ -445,7 +490,8 @@ def main(argv=None) -> int:
                             "max_mib": round(max(values), 1),
                             "series": [(round((t - started) / 60, 2), round(v, 1)) for t, v in series]})
     report = {
-        "command": command, "minutes": round(elapsed_total / 60, 1), "frames": outcomes,
+        "command": command, "trust": args.trust, "minutes": round(elapsed_total / 60, 1),
+        "frames": outcomes,
         "frame_seconds": {n: {"count": len(t), "median": round(statistics.median(t), 3),
                               "p95": round(sorted(t)[int(0.95 * (len(t) - 1))], 3)}
                           for n, t in frame_times.items() if t},
