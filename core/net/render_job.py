@@ -78,18 +78,15 @@ class SpareFrames:
 class TileBudget:
     """How long one step of a slave (loading a scene, compiling, waiting for its device,
     rendering one tile) may take before the slave is dropped although it says it is busy:
-    base_s for any step, plus s_per_ray for each ray a tile may trace at most (samples x
-    (1 + shadow rays) x (1 + bounces) per pixel). Generous: it catches a slave stuck for good,
+    base_s for any step, plus s_per_ray for each ray a tile may trace at most (View.tile_rays:
+    the count the slaves' work budget uses). Generous: it catches a slave stuck for good,
     never a slow one (the default allows a device 500 times slower than one core here)."""
 
     base_s: float = 600.0
     s_per_ray: float = 1e-4
 
     def seconds(self, view: View, w: int, h: int) -> float:
-        s = view.settings
-        shadow_rays = len(view.shading.lights) * s.light_samples_per_axis ** 2
-        rays = w * h * s.max_samples * (1 + shadow_rays) * (1 + s.max_bounces)
-        return self.base_s + rays * self.s_per_ray
+        return self.base_s + view.tile_rays(w, h) * self.s_per_ray
 
 
 @dataclass
