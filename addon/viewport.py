@@ -13,7 +13,8 @@ import numpy as np
 from ..core.frame.viewport import DENOISE as VIEWPORT_DENOISE, ViewportSession
 from ..core.scene.model import Camera
 from . import session
-from .export import export_instanced_view, projection_ndc
+from .camera import projection_ndc
+from .export import export_instanced_view
 from .properties import preferences
 from .render import frame_options
 

@@ -85,7 +85,7 @@ def test_nested_collection_instances_render_as_realised(exported):
 
 
 def test_mesh_arrays_match_blenders_per_element_reads(tmp_path):
-    """export._mesh_arrays reads Blender's attribute arrays (a mesh of triangles only without
+    """meshes.mesh_arrays reads Blender's attribute arrays (a mesh of triangles only without
     loop triangles); the reference is Blender's per-element reads of the loop triangles, on
     quads and an n-gon, triangles only, and custom normals, each with materials per face,
     flat and smooth faces and a UV map."""

@@ -1,4 +1,4 @@
-"""The installed add-on's mesh reader (export._mesh_arrays, Blender's attribute arrays) against
+"""The installed add-on's mesh reader (meshes.mesh_arrays, Blender's attribute arrays) against
 Blender's per-element reads of the same evaluated meshes (loop_triangles' vertices,
 material_index, split_normals, and the UV map at each triangle's loops): meshes of quads and
 an n-gon, of triangles only, with material slots per face, custom normals, flat and smooth
@@ -14,7 +14,7 @@ from blender_setup import arguments, install_extension, write_result
 
 args, result_path = arguments()
 install_extension(args["zip"])
-export = importlib.import_module("bl_ext.user_default.kdtrace.addon.export")
+meshes = importlib.import_module("bl_ext.user_default.kdtrace.addon.meshes")
 scene = bpy.context.scene
 
 
@@ -60,7 +60,7 @@ depsgraph = bpy.context.evaluated_depsgraph_get()
 result = {}
 for obj in objects:
     mesh = obj.evaluated_get(depsgraph).data
-    ours = export._mesh_arrays(mesh, True, True)
+    ours = meshes.mesh_arrays(mesh, True, True)
     mesh.calc_loop_triangles()
     tris = mesh.loop_triangles
 
@@ -86,6 +86,6 @@ for obj in objects:
 # A mesh of vertices and edges only has no corner attributes: no triangles.
 wire = bpy.data.meshes.new("wire")
 wire.from_pydata([(0, 0, 0), (1, 0, 0), (0, 1, 0)], [(0, 1), (1, 2)], [])
-result["wire"] = {name: len(value) for name, value in export._mesh_arrays(wire, True, True).items()
+result["wire"] = {name: len(value) for name, value in meshes.mesh_arrays(wire, True, True).items()
                   if value is not None}
 write_result(result_path, result)
