@@ -233,7 +233,7 @@ VISIBLE_TO_ALL = 31             # every ray sees it; no holdout
 # colour; HOLDOUT cuts the camera's view (alpha) and is black.
 CLOSURE_CODES = {"PRINCIPLED": 0, "EMISSION": 1, "TRANSPARENT": 2, "HOLDOUT": 3}
 MAX_CLOSURES = 4
-# Shader node programs (addon/nodes.py NodeProgram; evaluated by shading.cl run_nodes):
+# Shader node programs (addon/node_program.py NodeProgram; evaluated by shading.cl run_nodes):
 # instructions of two float4 rows, (op, dst, a, b) and (c, p0, p1, p2); a, b, c are operand
 # references register * NODE_REF_REGISTER + lane (0-3: that lane in all four, 4: the whole
 # register). CONST loads its second row; OUT stores operand a into a BSDF input. Under a Bump

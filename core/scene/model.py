@@ -536,7 +536,7 @@ def check_node_program(rows, starts) -> np.ndarray:
     and operands in range, normal map spaces known, every table (colour ramps, coordinate and
     object normal transforms) inside the rows, and from each start in `starts`
     (>= 0) instructions up to an END (the kernel runs them so). A program's ramp tables
-    follow its END (addon/nodes.py compiles them).
+    follow its END (addon/node_program.py compiles them).
 
     In time linear in the rows and starts (issue 39: a check per start, and a search of every
     table at every row, took minutes on a 16 MiB frame): one walk over the rows finds the

@@ -1,4 +1,4 @@
-// Shader node programs (core/layout.py NODE_OP_CODES; compiled by addon/nodes.py): a few
+// Shader node programs (core/layout.py NODE_OP_CODES; compiled by addon/node_program.py): a few
 // registers, one instruction per node, then OUT instructions that set the BSDF inputs.
 // run_nodes interprets a program; the nodes it calls are above it (the Noise Texture in
 // noise.cl, Image Texture lookups in textures.cl).
