@@ -122,9 +122,16 @@ class BinnedBuilder(DeviceContext):
         self._hist_words = 9 * int(params.max_bins) + 7
         u4 = np.uint32
 
+        # The level's buffers, each reused while it is big enough (fresh pages cost about 1 s
+        # per GB on the VMs measured: a new buffer per level was most of 12 dragons' build),
+        # and the tree's arrays, written level by level where they end (grown when needed).
+        held = _Held(self)
+        tree_nodes = _Growing(self, 8, 6 * T + 64)
+        tree_lists = _Growing(self, 4, 3 * T + 64)
+
         # First references, the corners for the clipping, the root cell.
         corners = self.buffer(nbytes=36 * max(T, 1))
-        refs = self.buffer(nbytes=REF_BYTES * max(T, 1))
+        refs = held.get("refs0", REF_BYTES * max(T, 1))
         self.launch("first_refs", T, self.buffer(vertices), self.buffer(triangles.astype(u4)),
                     corners, refs, u4(T), piece=PIECE_REFS)
         per = SUM_BLOCK * 64
@@ -145,15 +152,15 @@ class BinnedBuilder(DeviceContext):
         # The levels.
         node_rows = _rows(BIN_NODE, 1, count=T)
         node_rows[0, 0:6] = bounds.reshape(-1).view(u4)
-        nodes = self.buffer(node_rows)
+        nodes = held.get("nodes0", node_rows.nbytes)
+        self._cl.enqueue_copy(self.queue, nodes, node_rows)
         host_nodes = node_rows             # the level's rows while it may have big nodes
         n, level, level_base, leaf_total, sah, leaves, empty = 1, 0, 0, 0, 0, 0, 0
         slots = T                          # the level's references, holes included
-        word_parts, leaf_parts = [], []
         while n:
             report(min(0.95, 0.95 * level / (depth_cap + 1)),
                    f"kd-tree level {level}: {n:,} nodes")
-            splits = self.buffer(nbytes=SPLIT_BYTES * n)
+            splits = held.get("splits", SPLIT_BYTES * n)
             args = (u4(n), u4(level), u4(depth_cap), pow2)
             # A node's exact candidates cost (its references)^2: pieces of about PIECE_PAIRS.
             mean = max(1.0, slots / n)
@@ -178,20 +185,17 @@ class BinnedBuilder(DeviceContext):
                 raise ValueError("kd-tree too large for the 30-bit child index")
             d_places = self.buffer(_rows(BIN_PLACES, blocks, **{
                 name: firsts[name][:-1] for name in BIN_PLACES.columns}))
-            words = self.buffer(nbytes=8 * n)
-            next_nodes = self.buffer(nbytes=BIN_NODE.nbytes * max(2 * inner, 1))
+            words = tree_nodes.reserve(level_base + n)
+            next_nodes = held.get(f"nodes{(level + 1) % 2}", BIN_NODE.nbytes * max(2 * inner, 1))
             self.launch("emit", blocks, nodes, splits, d_places, words, next_nodes, u4(n),
-                        u4(level_base + n), u4(leaf_total))
-            next_refs = self.buffer(nbytes=REF_BYTES * max(places, 1))
-            leaf_tris = self.buffer(nbytes=4 * max(leaf_refs, 1))
+                        u4(level_base), u4(level_base + n), u4(leaf_total))
+            next_refs = held.get(f"refs{(level + 1) % 2}", REF_BYTES * max(places, 1))
+            leaf_tris = tree_lists.reserve(leaf_total + leaf_refs)
             self.launch("scatter_nodes", n, nodes, refs, splits, corners, next_refs, leaf_tris,
                         u4(n), piece=PIECE_NODES)
             if chunks is not None:
                 self.launch("scatter_chunks", n_chunks, refs, chunks, splits, corners, next_refs,
                             leaf_tris, u4(n_chunks), piece=max(1, PIECE_REFS // self.chunk_refs))
-            word_parts.append((words, n))
-            if leaf_refs:
-                leaf_parts.append((leaf_tris, leaf_refs))
             level_base += n
             leaf_total += leaf_refs
             n, nodes, refs, slots = 2 * inner, next_nodes, next_refs, places
@@ -200,22 +204,12 @@ class BinnedBuilder(DeviceContext):
                 host_nodes = self.read(nodes, u4, (n, len(BIN_NODE.columns)))
             level += 1
             self.heartbeat()
-        del nodes, refs, splits
+        del nodes, refs, splits, held
         report(0.96, f"kd-tree: {level_base:,} nodes")
-
-        # The levels' words and lists, one after another.
-        node_buf = self.standalone(8 * level_base)
-        leaf_buf = self.standalone(4 * max(leaf_total, 1))
-        for parts, buffer, size in ((word_parts, node_buf, 8), (leaf_parts, leaf_buf, 4)):
-            at = 0
-            for part, count in parts:
-                self._cl.enqueue_copy(self.queue, buffer, part, byte_count=size * count,
-                                      dst_offset=size * at)
-                at += count
-        word_parts = leaf_parts = None
-        tree_nodes = self.take(node_buf, u4, (level_base, 2))
-        leaf_indices = self.take(leaf_buf, u4, leaf_total) if leaf_total else np.zeros(0, u4)
-        tree = KDTree(tree_nodes, leaf_indices, bounds)
+        nodes_array = self.take(tree_nodes.buffer, u4, (level_base, 2))
+        leaf_indices = (self.take(tree_lists.buffer, u4, leaf_total) if leaf_total
+                        else np.zeros(0, u4))
+        tree = KDTree(nodes_array, leaf_indices, bounds)
         tree.stats = {
             "nodes": level_base,
             "leaves": leaves,
@@ -260,6 +254,45 @@ class BinnedBuilder(DeviceContext):
         self.launch("choose_big", len(big), nodes, rows, chunks, hist, splits, u4(len(big)),
                     level, depth_cap, pow2)
         return chunks, C
+
+
+class _Held:
+    """A buffer per role, outside the pool, reused while big enough and grown by a quarter
+    beyond what is asked (a level's references, nodes and splits: the next level needs a
+    little more than this one)."""
+
+    def __init__(self, device: DeviceContext):
+        self.device, self.buffers = device, {}
+
+    def get(self, role: str, nbytes: int):
+        buffer, capacity = self.buffers.get(role, (None, 0))
+        if capacity < nbytes:
+            capacity = max(int(1.25 * nbytes), 4096)
+            self.buffers[role] = (None, 0)          # let the old one go first
+            buffer = self.device.standalone(capacity)
+            self.buffers[role] = (buffer, capacity)
+        return buffer
+
+
+class _Growing:
+    """One of the tree's arrays, written level by level in place: a buffer of `capacity`
+    items of `itemsize` bytes (pages are touched only where written), replaced by one half
+    as big again, with the items so far copied over, when a level needs more."""
+
+    def __init__(self, device: DeviceContext, itemsize: int, capacity: int):
+        self.device, self.itemsize, self.capacity = device, itemsize, int(capacity)
+        self.buffer, self.used = device.standalone(itemsize * self.capacity), 0
+
+    def reserve(self, items: int):
+        """The buffer, holding at least `items` items; the items written so far kept."""
+        if items > self.capacity:
+            capacity = max(int(items), int(1.5 * self.capacity))
+            grown = self.device.standalone(self.itemsize * capacity)
+            if self.used:
+                self.device.copy(grown, self.buffer, self.itemsize * self.used)
+            self.buffer, self.capacity = grown, capacity
+        self.used = max(self.used, int(items))
+        return self.buffer
 
 
 _BUILDERS: dict = {}

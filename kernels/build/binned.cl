@@ -613,14 +613,15 @@ __kernel void level_sums(__global const LevelNode* restrict nodes,
     row[BIN_SUMS_SAH_HIGH] = (uint)((ulong)sah >> 32);
 }
 
-/* The level's node words (final: child index and leaf offset absolute) and the next level's
-   nodes; every split record learns its children's and leaf's places. */
+/* The level's node words, at level_base in the tree's nodes (final: child index and leaf
+   offset absolute), and the next level's nodes; every split record learns its children's
+   places and its leaf's place in the tree's lists. */
 __kernel void emit(__global const LevelNode* restrict nodes,
                    __global Split* restrict splits,
                    __global const uint* restrict places,
                    __global uint2* restrict words,
                    __global LevelNode* restrict next,
-                   uint n_nodes, uint next_base, uint leaf_base)
+                   uint n_nodes, uint level_base, uint next_base, uint leaf_base)
 {
     uint blk = (uint)get_global_id(0);
     uint first = blk * KD_SUM_BLOCK;
@@ -634,14 +635,15 @@ __kernel void emit(__global const LevelNode* restrict nodes,
         Split d = splits[i];
         LevelNode node = nodes[i];
         if (d.flags & SPLIT_LEAF) {
-            words[i] = (uint2)(KD_PLAIN_TAG_PUT(KD_LEAF_TAG) | KD_PLAIN_FIELD_PUT(d.valid),
-                               leaf_base + leaf);
-            d.base = leaf;
+            words[level_base + i] = (uint2)(KD_PLAIN_TAG_PUT(KD_LEAF_TAG)
+                                            | KD_PLAIN_FIELD_PUT(d.valid), leaf_base + leaf);
+            d.base = leaf_base + leaf;
             leaf += d.valid;
         } else {
             int a = (int)SPLIT_AXIS(d.flags);
-            words[i] = (uint2)(KD_PLAIN_TAG_PUT(a) | KD_PLAIN_FIELD_PUT(next_base + 2u * inner),
-                               as_uint(d.plane));
+            words[level_base + i] = (uint2)(KD_PLAIN_TAG_PUT(a)
+                                            | KD_PLAIN_FIELD_PUT(next_base + 2u * inner),
+                                            as_uint(d.plane));
             d.child = 2u * inner;
             d.base = place;
             LevelNode c = node;
