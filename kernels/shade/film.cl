@@ -100,12 +100,19 @@ inline void film_surface(Film *f, __global const float4 *cam, const Material *m,
                          const Lobes *l, float cos_o, float3 ns, float3 beta, bool camera,
                          float dist)
 {
+#ifdef HAS_GUIDES
+    bool looking = f->looking;
+#else
+    bool looking = false;
+#endif
+    if (!looking && !camera)        // past the camera hit and the guide surface: nothing to do
+        return;
 #if defined(HAS_GUIDES) || defined(HAS_PASS_DIFFUSE_COLOR) || defined(HAS_PASS_GLOSSY_COLOR)
     float3 diffuse, glossy, refraction;
     lobe_albedos(m, l, cos_o, &diffuse, &glossy, &refraction);
 #endif
 #ifdef HAS_GUIDES
-    if (f->looking) {
+    if (looking) {
         float3 sharp = glossy + refraction;
         bool rough = l->alpha > 0.075f;
         float total = mean3(diffuse + sharp);
