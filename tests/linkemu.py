@@ -89,8 +89,8 @@ class _Direction:
                 delay = due - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
+                self.bytes += len(data)     # before sending: what the peer has read is counted
                 self.sink.sendall(data)
-                self.bytes += len(data)
             self.sink.shutdown(socket.SHUT_WR)
         except OSError:
             pass

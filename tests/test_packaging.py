@@ -130,8 +130,9 @@ def test_blender_command_runs_the_slave_on_the_bundled_wheels(linux_zip, tmp_pat
     slave it starts runs from the extension on its wheels, renders the same pixels as the
     tracer here, logs the frame and answers --status."""
     result_path = tmp_path / "command-result.json"
+    # A new identity folder: its identity is made here, with the bundled cryptography.
     argv = ["--port", "0", "--bind", "127.0.0.1", "--name", "blender-cli", "--no-zeroconf",
-            "--log-file", str(tmp_path / "slave.log")]
+            "--log-file", str(tmp_path / "slave.log"), "--identity-dir", str(tmp_path / "id")]
     blender = ChildProcess([str(SCRIPTS / "run_slave_command.py"),
                             json.dumps({"zip": str(linux_zip), "argv": argv}), str(result_path)],
                            env={"BLENDER_USER_RESOURCES": str(tmp_path / "blender-user"),
