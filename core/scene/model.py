@@ -2,7 +2,8 @@
 
 Plain Python + numpy. Arrays travel over the network as raw little-endian buffers; the small
 parts (camera, lights, materials, world) travel as JSON. Everything built from network data goes
-through the `from_dict` constructors here, which validate types, shapes and ranges.
+through the `from_dict` constructors here, which validate types, shapes and ranges (with the
+checks and limits of core/scene/checks.py).
 
 Conventions (Blender's): world space is right-handed, Z up. The camera looks along its local -Z
 with +Y up. Image pixels are addressed top-left first (row 0 is the top row); the add-on flips
@@ -17,6 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..layout import CLOSURE_CODES, MAX_CLOSURES, PIXEL_FILTER_CODES, VISIBLE_TO_ALL
+from .checks import (MAX_IMAGE_SIDE, MAX_LIGHTS, MAX_MATERIALS, MAX_NODE_ROWS, MAX_RADIANCE,
+                     MAX_TEXTURE_SIDE, MAX_TEXTURES, MAX_TRIANGLES, SceneError, check_node_program,
+                     checked_int, finite_float, finite_floats, same_arrays)
 
 SCENE_FORMAT_VERSION = 1
 
@@ -24,68 +28,10 @@ SCENE_FORMAT_VERSION = 1
 VERTEX_DTYPE = np.dtype("<f4")
 INDEX_DTYPE = np.dtype("<u4")
 MATERIAL_ID_DTYPE = np.dtype("<u2")
-MAX_MATERIALS = 65535
-MAX_LIGHTS = 4096
 NORMAL_DTYPE = np.dtype("<f4")
 UV_DTYPE = np.dtype("<f4")
 TEXEL_DTYPE = np.dtype("<f2")      # linear RGBA, half precision
 TEXTURE_SIZE_DTYPE = np.dtype("<u4")
-MAX_TEXTURES = 4096
-# Texels a texture may have per side: then w x h <= 2^32, and the kernel's texel index
-# (kernels/shade/shading.cl `texel`) is exact. Blender's images are at most 65536 per side too.
-MAX_TEXTURE_SIDE = 65536
-# Triangles of a scene: the kernels address a triangle's corner rows as 3 * tri + k and its
-# TRIANGLE record as TRIANGLE_SIZE * tri in 32 bits (a billion triangles is 12 GiB of indices
-# alone, far past what a slave takes).
-MAX_TRIANGLES = 1 << 30
-MAX_RADIANCE = 1e30
-
-
-class SceneError(ValueError):
-    """Scene content that cannot be rendered; the message names the problem."""
-
-
-def _finite_floats(value, count: int, what: str) -> tuple:
-    try:
-        numbers = tuple(float(v) for v in value)
-    except (TypeError, ValueError, OverflowError):     # OverflowError: a JSON integer past float
-        raise SceneError(f"{what} must be {count} numbers") from None
-    if len(numbers) != count or not all(math.isfinite(v) for v in numbers):
-        raise SceneError(f"{what} must be {count} finite numbers")
-    return numbers
-
-
-def _finite_float(value, what: str, low: float = -math.inf, high: float = math.inf) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError, OverflowError):
-        raise SceneError(f"{what} must be a number") from None
-    if not math.isfinite(number) or not low <= number <= high:
-        raise SceneError(f"{what} must be a finite number in [{low}, {high}], got {value!r}")
-    return number
-
-
-def _int(value, what: str, low: int, high: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-        raise SceneError(f"{what} must be an integer in [{low}, {high}], got {value!r}")
-    return value
-
-
-def _same_arrays(a: dict, b: dict) -> bool:
-    """Whether two dicts of contiguous arrays have the same names, dtypes, shapes and bytes
-    (bit for bit: -0.0 is not 0.0, a NaN equals itself), without copying either."""
-    if a.keys() != b.keys():
-        return False
-    for name, x in a.items():
-        y = b[name]
-        if x.dtype != y.dtype or x.shape != y.shape:
-            return False
-        if x is y or not x.size:
-            continue
-        as_bits = np.dtype(f"u{x.itemsize}") if x.itemsize in (1, 2, 4, 8) else np.dtype("u1")
-        if not np.array_equal(x.reshape(-1).view(as_bits), y.reshape(-1).view(as_bits)):
-            return False
-    return True
 
 
 @dataclass
@@ -204,7 +150,7 @@ class Geometry:
         arrays of the geometry that hashed to `digest`, are this geometry's bit for bit (the
         same names, dtypes, shapes and bytes: hashing would give `digest`). Comparing reads the
         arrays several times faster than blake2b hashes them. Whether it was taken."""
-        if not _same_arrays(self.arrays(), held):
+        if not same_arrays(self.arrays(), held):
             return False
         self._content_hash = digest
         return True
@@ -260,20 +206,20 @@ class Camera:
         kind = d.get("kind")
         if kind not in ("PERSP", "ORTHO"):
             raise SceneError(f"camera kind must be PERSP or ORTHO, got {kind!r}")
-        clip_start = _finite_float(d.get("clip_start"), "camera clip_start", 0.0)
-        clip_end = _finite_float(d.get("clip_end"), "camera clip_end", clip_start)
-        scale = _finite_floats(d.get("ndc_scale"), 2, "camera ndc_scale")
+        clip_start = finite_float(d.get("clip_start"), "camera clip_start", 0.0)
+        clip_end = finite_float(d.get("clip_end"), "camera clip_end", clip_start)
+        scale = finite_floats(d.get("ndc_scale"), 2, "camera ndc_scale")
         if scale[0] == 0.0 or scale[1] == 0.0:
             raise SceneError("camera ndc_scale must not be zero")
         end = d.get("to_world_end")
-        return cls(kind, np.array(_finite_floats(d.get("to_world"), 16, "camera to_world")),
-                   scale, _finite_floats(d.get("ndc_offset"), 2, "camera ndc_offset"),
+        return cls(kind, np.array(finite_floats(d.get("to_world"), 16, "camera to_world")),
+                   scale, finite_floats(d.get("ndc_offset"), 2, "camera ndc_offset"),
                    clip_start, clip_end,
-                   _finite_float(d.get("aperture", 0.0), "camera aperture", 0.0, 1e6),
-                   _finite_float(d.get("focus_distance", 10.0), "camera focus distance", 1e-6),
-                   _int(d.get("blades", 0), "camera blades", 0, 100),
-                   _finite_float(d.get("blade_rotation", 0.0), "camera blade rotation"),
-                   None if end is None else np.array(_finite_floats(end, 16, "camera to_world_end")))
+                   finite_float(d.get("aperture", 0.0), "camera aperture", 0.0, 1e6),
+                   finite_float(d.get("focus_distance", 10.0), "camera focus distance", 1e-6),
+                   checked_int(d.get("blades", 0), "camera blades", 0, 100),
+                   finite_float(d.get("blade_rotation", 0.0), "camera blade rotation"),
+                   None if end is None else np.array(finite_floats(end, 16, "camera to_world_end")))
 
 
 LIGHT_KINDS = ("POINT", "SUN", "SPOT", "AREA")
@@ -321,18 +267,18 @@ class Light:
             raise SceneError("light soft_falloff must be true or false")
         return cls(
             kind=kind,
-            color=_finite_floats(d.get("color"), 3, "light color"),
-            power=_finite_float(d.get("power"), "light power", 0.0),
-            position=_finite_floats(d.get("position"), 3, "light position"),
-            direction=_finite_floats(d.get("direction"), 3, "light direction"),
-            axis_u=_finite_floats(d.get("axis_u"), 3, "light axis_u"),
-            axis_v=_finite_floats(d.get("axis_v"), 3, "light axis_v"),
-            radius=_finite_float(d.get("radius"), "light radius", 0.0),
-            spot_size=_finite_float(d.get("spot_size"), "spot size", 0.0, math.pi),
-            spot_blend=_finite_float(d.get("spot_blend"), "spot blend", 0.0, 1.0),
+            color=finite_floats(d.get("color"), 3, "light color"),
+            power=finite_float(d.get("power"), "light power", 0.0),
+            position=finite_floats(d.get("position"), 3, "light position"),
+            direction=finite_floats(d.get("direction"), 3, "light direction"),
+            axis_u=finite_floats(d.get("axis_u"), 3, "light axis_u"),
+            axis_v=finite_floats(d.get("axis_v"), 3, "light axis_v"),
+            radius=finite_float(d.get("radius"), "light radius", 0.0),
+            spot_size=finite_float(d.get("spot_size"), "spot size", 0.0, math.pi),
+            spot_blend=finite_float(d.get("spot_blend"), "spot blend", 0.0, 1.0),
             shape=shape,
-            size_u=_finite_float(d.get("size_u"), "area light size", 0.0),
-            size_v=_finite_float(d.get("size_v"), "area light size", 0.0),
+            size_u=finite_float(d.get("size_u"), "area light size", 0.0),
+            size_v=finite_float(d.get("size_v"), "area light size", 0.0),
             soft_falloff=soft_falloff,
         )
 
@@ -353,7 +299,6 @@ MATERIAL_PARAMS = ("metallic", "roughness", "transmission", "ior", "emission_r",
 DEFAULT_MATERIAL_PARAMS = (0.0, 0.5, 0.0, 1.5, 0.0, 0.0, 0.0, 0.0, -1.0, float(VISIBLE_TO_ALL),
                            -1.0, 1.0, 1.0, float(CLOSURE_CODES["PRINCIPLED"]), 0.0, 0.0, 0.03, 1.5,
                            1.0, 1.0, 1.0)
-MAX_NODE_ROWS = 1 << 20
 # name -> (low, high) accepted from the network; texture is an index, -1 = none.
 _PARAM_RANGES = {"metallic": (0.0, 1.0), "roughness": (0.0, 1.0), "transmission": (0.0, 1.0),
                  "ior": (0.01, 100.0), "emission_r": (0.0, 1e30), "emission_g": (0.0, 1e30),
@@ -408,12 +353,12 @@ class WorldTexture:
         if interpolation not in INTERPOLATIONS:
             raise SceneError(f"world interpolation must be one of {INTERPOLATIONS}, "
                              f"got {interpolation!r}")
-        matrix = np.array(_finite_floats(d.get("to_texture"), 9, "world to_texture")).reshape(3, 3)
+        matrix = np.array(finite_floats(d.get("to_texture"), 9, "world to_texture")).reshape(3, 3)
         det = abs(float(np.linalg.det(matrix)))
         scale = float(np.abs(matrix).max())
         if not det > 1e-9 * scale ** 3:
             raise SceneError("the world's mapping is singular (a scale of zero)")
-        return cls(_int(d.get("texture"), "world texture", 0, MAX_TEXTURES - 1), projection,
+        return cls(checked_int(d.get("texture"), "world texture", 0, MAX_TEXTURES - 1), projection,
                    matrix, interpolation)
 
 
@@ -498,14 +443,14 @@ class Shading:
             raise SceneError(f"materials must be a list of 1 to {MAX_MATERIALS} colours")
         if not isinstance(lights, list) or len(lights) > MAX_LIGHTS:
             raise SceneError(f"lights must be a list of at most {MAX_LIGHTS} lights")
-        colours = [_finite_floats(m, 4, "material colour") for m in materials]
+        colours = [finite_floats(m, 4, "material colour") for m in materials]
         params = d.get("material_params")
         if params is not None:
             if not isinstance(params, list) or len(params) != len(materials):
                 raise SceneError("material_params must be a list with one row per material")
             rows = []
             for row in params:
-                row = _finite_floats(row, len(MATERIAL_PARAMS), "material parameters")
+                row = finite_floats(row, len(MATERIAL_PARAMS), "material parameters")
                 for name, value in zip(MATERIAL_PARAMS, row):
                     low, high = _PARAM_RANGES[name]
                     if not low <= value <= high:
@@ -521,7 +466,7 @@ class Shading:
                     raise SceneError(f"material {k} has {int(row[count])} closures, past the "
                                      f"{len(rows)} rows")
             params = np.array(rows, np.float32)
-        world = _finite_floats(d.get("world_color"), 3, "world colour")
+        world = finite_floats(d.get("world_color"), 3, "world colour")
         if min(world) < 0 or max(world) > MAX_RADIANCE:
             raise SceneError(f"world colour must be in [0, {MAX_RADIANCE}], got {world}")
         texture = d.get("world_texture")
@@ -529,117 +474,6 @@ class Shading:
         program = check_node_program(d.get("node_program") or [], starts)
         return cls(np.array(colours, np.float32), [Light.from_dict(l) for l in lights], world,
                    params, None if texture is None else WorldTexture.from_dict(texture), program)
-
-
-def check_node_program(rows, starts) -> np.ndarray:
-    """The node program rows from the network, checked: whole-number operations, registers
-    and operands in range, normal map spaces known, every table (colour ramps, coordinate and
-    object normal transforms) inside the rows, and from each start in `starts`
-    (>= 0) instructions up to an END (the kernel runs them so). A program's ramp tables
-    follow its END (addon/node_program.py compiles them).
-
-    In time linear in the rows and starts (issue 39: a check per start, and a search of every
-    table at every row, took minutes on a 16 MiB frame): one walk over the rows finds the
-    instructions (a table's rows are skipped where an END is followed by them), then the
-    instructions' fields and each start's way to its END are checked with numpy. The first
-    problem by row is reported, as a walk that checked each row in full would."""
-    from ..layout import (NODE_NORMAL_SPACE_CODES, NODE_OBJECT_NORMAL_SPACES, NODE_OP_CODES,
-                          NODE_OUT_CODES, NODE_RAMP_SIZE, NODE_REF_REGISTER, NODE_REGISTERS,
-                          NODE_TRANSFORM_SIZE)
-    tables = {NODE_OP_CODES["RAMP"]: NODE_RAMP_SIZE, NODE_OP_CODES["TRANSFORM"]: NODE_TRANSFORM_SIZE,
-              NODE_OP_CODES["NORMAL_MAP"]: NODE_TRANSFORM_SIZE,     # object space: its rows
-              NODE_OP_CODES["OBJECT_INFO"]: NODE_TRANSFORM_SIZE}
-    normal_map, end_op = NODE_OP_CODES["NORMAL_MAP"], NODE_OP_CODES["END"]
-    object_spaces = {float(NODE_NORMAL_SPACE_CODES[k]) for k in NODE_OBJECT_NORMAL_SPACES}
-    spaces = {float(v) for v in NODE_NORMAL_SPACE_CODES.values()}
-    operations = {float(v) for v in NODE_OP_CODES.values()}
-    if not isinstance(rows, list) or len(rows) > MAX_NODE_ROWS or len(rows) % 2:
-        raise SceneError("node_program must be an even number of rows")
-    program = _node_rows(rows)
-    n = len(program)
-    # The walk: instruction rows, tables by their first row -> the row after the longest that
-    # starts there (a table is declared by an instruction before it, so before the walk gets
-    # there). Stops at the first problem it can see: an operation, a normal map space, a table.
-    ops, tables_at, spaces_at = (program[k::2, c].tolist() for k, c in ((0, 0), (1, 1), (1, 2)))
-    pc, table_end, pcs, problem = 0, {}, [], None
-    while pc < n:
-        op, i = ops[pc >> 1], pc >> 1
-        if op not in operations:
-            problem = (pc, f"node program row {pc}: unknown operation {op}")
-            break
-        op = int(op)
-        if op == normal_map and spaces_at[i] not in spaces:
-            problem = (pc, f"node program row {pc}: unknown normal map space {spaces_at[i]}")
-            break
-        if op in tables and (op != normal_map or spaces_at[i] in object_spaces):
-            start = tables_at[i]
-            if start != int(start) or not 2 <= start or not pc + start <= n - tables[op]:
-                problem = (pc, f"node program row {pc}: table outside the program")
-                break
-            first = pc + int(start)
-            table_end[first] = max(table_end.get(first, 0), first + tables[op])
-        pcs.append(pc)
-        pc += 2
-        while pc in table_end:          # the tables after an END, whatever their order
-            pc = table_end[pc]
-        if pc % 2:
-            problem = (pc - 0.5, "node program tables must end on an even row")
-            break
-    pcs = np.array(pcs, np.int64)
-    # The fields of the instructions the walk passed, each row's problems in the order above.
-    w0, w1 = program[pcs], program[pcs + 1]
-    op = w0[:, 0]
-    limit = NODE_REGISTERS * NODE_REF_REGISTER
-
-    def bad_ref(r):
-        return (r != np.trunc(r)) | (r < 0) | (r >= limit)
-    const = op == NODE_OP_CODES["CONST"]
-    # A CONST's second row is its value (the kernel reads its first lane as an operand too:
-    # kernels/shade/nodes.cl node_operand clamps it); its register and first-row operands are
-    # checked as every instruction's.
-    registers = (op != end_op) & (bad_ref(w0[:, 2]) | bad_ref(w0[:, 3]) | (~const & bad_ref(w1[:, 0]))
-                                  | ~((w0[:, 1] >= 0) & (w0[:, 1] < NODE_REGISTERS)))
-    outs = (op == NODE_OP_CODES["OUT"]) & ~np.isin(w1[:, 1], list(NODE_OUT_CODES.values()))
-    images = np.isin(op, [NODE_OP_CODES["IMAGE"], NODE_OP_CODES["ATTRIBUTE"]]) & ~(
-        (w1[:, 1] == np.trunc(w1[:, 1])) & (w1[:, 1] >= 0) & (w1[:, 1] < MAX_TEXTURES))
-    bad = np.flatnonzero(registers | outs | images)
-    if len(bad) and (problem is None or pcs[bad[0]] < problem[0]):
-        k, row = bad[0], int(pcs[bad[0]])
-        what = ("register out of range" if registers[k] else
-                f"unknown BSDF input {w1[k, 1]}" if outs[k] else f"bad texture {w1[k, 1]}")
-        raise SceneError(f"node program row {row}: {what}")
-    if problem is not None:
-        raise SceneError(problem[1])
-    # From each start, consecutive instruction rows up to an END, at most 1024 instructions
-    # before it (the kernel runs at most that many): the next END at or after it, and no
-    # gap (a table, the program's end) before that END.
-    starts = np.unique(np.asarray([int(v) for v in starts if v >= 0], np.int64))
-    at = np.searchsorted(pcs, starts)
-    found = at < len(pcs)
-    found[found] = pcs[at[found]] == starts[found]
-    ends = np.flatnonzero(op == end_op)
-    gaps = np.append(np.flatnonzero(np.diff(pcs) != 2), len(pcs) - 1)   # last of each run
-    k = np.minimum(at, max(len(pcs) - 1, 0))
-    end_at = np.append(ends, len(pcs))[np.searchsorted(ends, k)]
-    gap_at = gaps[np.minimum(np.searchsorted(gaps, k), len(gaps) - 1)] if len(pcs) else k
-    ok = found & (end_at < len(pcs)) & (end_at <= gap_at) & (end_at - k <= 1024)
-    if not ok.all():
-        start = int(starts[np.flatnonzero(~ok)[0]])
-        raise SceneError(f"the node program at row {start} does not end (with END) in its rows")
-    return program
-
-
-def _node_rows(rows) -> np.ndarray:
-    """The rows as float32 (n, 4), each 4 finite numbers (as _finite_floats takes them)."""
-    if not rows:
-        return np.zeros((0, 4), np.float32)
-    try:
-        program = np.array(rows, np.float64)
-    except (TypeError, ValueError, OverflowError):
-        program = None
-    if program is None or program.shape != (len(rows), 4) or not np.isfinite(program).all():
-        program = np.array([_finite_floats(r, 4, "node program row") for r in rows])
-    return program.astype(np.float32)
 
 
 @dataclass
@@ -718,9 +552,9 @@ class RenderSettings:
             if name not in d:
                 continue
             if isinstance(low, int):
-                setattr(out, name, _int(d[name], f"render setting {name}", low, high))
+                setattr(out, name, checked_int(d[name], f"render setting {name}", low, high))
             else:
-                setattr(out, name, _finite_float(d[name], f"render setting {name}", low, high))
+                setattr(out, name, finite_float(d[name], f"render setting {name}", low, high))
         if "adaptive" in d:
             if not isinstance(d["adaptive"], bool):
                 raise SceneError("render setting adaptive must be true or false")
@@ -746,7 +580,6 @@ RENDER_SETTING_LIMITS = {
 PIXEL_FILTERS = tuple(PIXEL_FILTER_CODES)
 
 
-MAX_IMAGE_SIDE = 65536
 # The Mist pass (World > Mist Pass, as Cycles): the distance where mist starts, the depth over
 # which it reaches 1, and the falloff as a power (Blender's Quadratic 2, Linear 1, Inverse
 # Quadratic 0.5).
@@ -804,19 +637,19 @@ class View:
     def from_dict(cls, d: dict) -> "View":
         if not isinstance(d, dict):
             raise SceneError("view must be an object")
-        width = _int(d.get("width"), "image width", 1, MAX_IMAGE_SIDE)
-        height = _int(d.get("height"), "image height", 1, MAX_IMAGE_SIDE)
+        width = checked_int(d.get("width"), "image width", 1, MAX_IMAGE_SIDE)
+        height = checked_int(d.get("height"), "image height", 1, MAX_IMAGE_SIDE)
         region = d.get("region")
         if not isinstance(region, list) or len(region) != 4:
             raise SceneError("region must be [x0, y0, x1, y1]")
-        x0 = _int(region[0], "region x0", 0, width - 1)
-        y0 = _int(region[1], "region y0", 0, height - 1)
-        x1 = _int(region[2], "region x1", x0 + 1, width)
-        y1 = _int(region[3], "region y1", y0 + 1, height)
+        x0 = checked_int(region[0], "region x0", 0, width - 1)
+        y0 = checked_int(region[1], "region y0", 0, height - 1)
+        x1 = checked_int(region[2], "region x1", x0 + 1, width)
+        y1 = checked_int(region[3], "region y1", y0 + 1, height)
         transparent = d.get("film_transparent", False)
         if not isinstance(transparent, bool):
             raise SceneError("film_transparent must be true or false")
-        mist = _finite_floats(d.get("mist", list(MIST)), 3, "mist")
+        mist = finite_floats(d.get("mist", list(MIST)), 3, "mist")
         if mist[1] < 0 or mist[2] not in MIST_FALLOFFS.values():
             raise SceneError(f"mist must be [start, depth >= 0, falloff in "
                              f"{sorted(MIST_FALLOFFS.values())}], got {list(mist)}")
