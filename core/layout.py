@@ -316,8 +316,8 @@ NODE_TRANSFORM_SIZE = 4         # TRANSFORM: the hit point through a 3 x 4 matri
 # The top-level BVH of instanced scenes (core/accel/toplevel.py; TOPLEVEL_NODE below).
 TOPLEVEL_LEAF_MAX = 4           # instances in a top-level leaf
 TOPLEVEL_MAX_DEPTH = 48         # levels of the top-level BVH (its traversal stack)
-# The compactor (compact.cl lift_candidates: per reference of a triangle, its nearest gaps on
-# the left and right and a stack).
+# The compactor (compact_lifts.cl lift_candidates: per reference of a triangle, its nearest gaps
+# on the left and right and a stack).
 LIFT_SCRATCH_WORDS = 3
 CODES = (Codes("LIGHT", "Light kinds (LIGHT_KIND)", LIGHT_CODES),
          Codes("LIGHT_SHAPE", "Area light shapes (LIGHT_AREA_SHAPE)", AREA_SHAPE_CODES),
@@ -530,7 +530,7 @@ MESH = Columns("MESH", "A mesh of an instanced scene (meshes, uint32 rows)",
 
 CELL = Columns("CELL", "A box (float32 rows): a node's cell in the compaction's topology (by "
                "place in the level)", ("lo_x", "lo_y", "lo_z", "hi_x", "hi_y", "hi_z"))
-# The compaction (compact_cl.py; compact.cl).
+# The compaction (compact_cl.py; compact*.cl).
 CLIMB = Columns("CLIMB", "A node's climb record, by its preorder number (climb buffer): end of its "
                 "preorder range, the parent's number, depth, the node",
                 ("end", "parent", "depth", "node"), "uint4")

@@ -8,6 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
+from core.accel import binned, compact_cl
 from core.accel.compact import compact_tree
 from core.accel.kdtree import build_kdtree
 from core.scene.model import Geometry
@@ -65,9 +66,18 @@ def test_the_key_names_mesh_mode_settings_and_builder_version(bunny, tmp_path):
         target.parent.mkdir(parents=True, exist_ok=True)
         (shutil.copytree if source.is_dir() else shutil.copy)(source, target)
     assert builder_version(copy) == files.version
-    kernel = sorted((copy / "kernels/build").glob("*.cl"))[0]
-    kernel.write_text(kernel.read_text() + "\n")
-    assert builder_version(copy) != files.version
+    # Every file the builder's and the compaction's programs are made of (and no other in
+    # kernels/build/): a change in any of them gives another version.
+    kernels = set(binned.KERNEL_FILES) | set(compact_cl.KERNEL_FILES)
+    assert kernels == {str(p.relative_to(copy / "kernels"))
+                       for p in (copy / "kernels/build").glob("*.cl")}
+    for name in sorted(kernels):
+        kernel = copy / "kernels" / name
+        text = kernel.read_text()
+        kernel.write_text(text + "\n")
+        assert builder_version(copy) != files.version, name
+        kernel.write_text(text)
+    assert builder_version(copy) == files.version
 
 
 @pytest.mark.parametrize("damage", ["truncated", "flipped node bit", "moved bound", "other stats",

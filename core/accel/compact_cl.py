@@ -1,4 +1,4 @@
-"""core/accel/compact.py's compaction in OpenCL kernels (kernels/build/compact.cl), for trees in
+"""core/accel/compact.py's compaction in OpenCL kernels (kernels/build/compact*.cl), for trees in
 the builders' order: breadth-first with the k-th inner node's children at 1 + 2k, leaf lists in
 node order (what core/accel/kdtree.py and binned.py both build). Each level of such a tree is
 a contiguous range of nodes whose inner nodes' children are, pair by pair, the next level, so
@@ -19,7 +19,8 @@ from ..opencl import kernel_source
 from .arrays import exclusive_cumsum, run_starts
 from .device import DeviceContext, device_for
 
-KERNEL_FILES = ("build/common.cl", "build/compact.cl")
+KERNEL_FILES = ("build/common.cl", "build/compact.cl", "build/compact_lifts.cl",
+                "build/compact_layout.cl")
 U4 = np.uint32
 PRIVATE_GAPS = 64         # a triangle with more references keeps its lift stacks in the scratch
 TOPO_STACK = 64           # topo_subtrees' stack: more than the levels below its start
@@ -33,7 +34,7 @@ PIECE_SUBTREE_NODES = 1 << 20  # topo_subtrees' launches: roots of about this ma
 
 
 def program_options() -> list:
-    """The -D options of compact.cl (besides the device's double arithmetic)."""
+    """The -D options of compact*.cl (besides the device's double arithmetic)."""
     return [f"-DPRIVATE_GAPS={PRIVATE_GAPS}u", f"-DTOPO_STACK={TOPO_STACK}"]
 
 

@@ -1,4 +1,4 @@
-/* The compaction's (compact.cl) plain-node tests and the share of work of one work-item. */
+/* The compaction's (compact*.cl) plain-node tests and the share of work of one work-item. */
 
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
