@@ -543,7 +543,7 @@ LAYOUT_COUNTS = Columns("LAYOUT_COUNTS", "A block of nodes' counts for the compa
                         "(layout_stats, uint32 rows)",
                         ("leaves", "empty_leaves_stored", "empty_leaves_elided", "leaves_16bit",
                          "leaves_32bit", "inner", "largest_leaf", "collapsed_kept"))
-# The binned builder (core/accel/binned.py; kernels/build/binned.cl), one level at a time.
+# The binned builder (core/accel/binned.py; kernels/build/binned*.cl), one level at a time.
 BIN_NODE = Columns("BIN_NODE", "A node of the level being split (nodes buffer; lo, hi float32 "
                    "bits): its cell, its references' places in the level, bad refines on its path",
                    ("lo_x", "lo_y", "lo_z", "hi_x", "hi_y", "hi_z", "first", "count",

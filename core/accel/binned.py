@@ -1,5 +1,5 @@
-"""The kd-tree builder: binned SAH, breadth first, in OpenCL kernels (kernels/build/binned.cl;
-docs/kdtree_native.md).
+"""The kd-tree builder: binned SAH, breadth first, in OpenCL kernels (kernels/build/binned.cl,
+binned_level.cl; docs/kdtree_native.md).
 
 One level of the tree per round of launches, over every node of the level at once: nodes
 choose their splits (one work-item per node; nodes of more than `big_refs` references are
@@ -30,7 +30,7 @@ from .arrays import exclusive_cumsum
 from .device import DeviceContext
 from .kdtree import KDTree, KDTreeParams, checked_mesh, root_bounds
 
-KERNEL_FILES = ("build/binned.cl",)
+KERNEL_FILES = ("build/binned.cl", "build/binned_level.cl")
 EXACT_MAX = 256          # nodes of up to this many references: every reference bound a candidate
 SUM_BLOCK = 128          # nodes per work-item of level_sums and emit
 SPLIT_BYTES = BUILD_SPLIT.nbytes
