@@ -58,6 +58,7 @@ from bench.network_scaling import bench_scene  # noqa: E402
 from core.net import protocol  # noqa: E402
 from core.net.master import Master  # noqa: E402
 from core.net.protocol import HEADER, MsgType  # noqa: E402
+from core.net.tile_payloads import F16_MAX  # noqa: E402
 from core.scene.model import Light  # noqa: E402
 from core.scene.scene import Scene  # noqa: E402
 from tests.test_network import make_view, network_settings  # noqa: E402
@@ -343,7 +344,7 @@ def expected(tracer, view, options) -> dict:
     image = tracer.render_tile(view, 0, 0, view.width, view.height)
     if options.get("payload") == "f16":   # what float16 transport makes of it, exactly
         for name in ("combined", "normal"):
-            image[name] = np.clip(image[name], -protocol.F16_MAX, protocol.F16_MAX) \
+            image[name] = np.clip(image[name], -F16_MAX, F16_MAX) \
                 .astype(np.float16).astype(np.float32)
     return image
 

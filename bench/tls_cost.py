@@ -21,8 +21,10 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from core.net import protocol, secure  # noqa: E402
+from core.net.channel import Channel  # noqa: E402
 from core.net.identity import Identity  # noqa: E402
 from core.net.protocol import MsgType  # noqa: E402
+from core.net.tile_payloads import encode_tile  # noqa: E402
 
 
 IDENTITIES = {}
@@ -31,7 +33,7 @@ IDENTITIES = {}
 def pair(tls: bool):
     a, b = socket.socketpair()
     if not tls:
-        return protocol.Channel(a, "master"), protocol.Channel(b, "slave")
+        return Channel(a, "master"), Channel(b, "slave")
     if not IDENTITIES:
         IDENTITIES.update(master=Identity.ephemeral("master"), slave=Identity.ephemeral("slave"))
     master, slave, out = IDENTITIES["master"], IDENTITIES["slave"], {}
@@ -40,7 +42,7 @@ def pair(tls: bool):
     server.start()
     client = secure.open_client(a, master, time.monotonic() + 10)[0]
     server.join()
-    return protocol.Channel(client, "master"), protocol.Channel(out["s"], "slave")
+    return Channel(client, "master"), Channel(out["s"], "slave")
 
 
 def run(tls: bool, count: int, msg_type, header, arrays, limits) -> tuple:
@@ -78,7 +80,7 @@ def main():
         tile = {"combined": np.random.rand(edge, edge, 4).astype(np.float32),
                 "depth": np.random.rand(edge, edge).astype(np.float32),
                 "normal": np.random.rand(edge, edge, 3).astype(np.float32)}
-        fields, arrays = protocol.encode_tile(tile, payload, False, passes)
+        fields, arrays = encode_tile(tile, payload, False, passes)
         limits.tile_bytes_per_pixel = protocol.tile_bytes_per_pixel(payload, passes)
         count = args.tiles if edge == 64 else args.tiles // 8
         header = {"frame_id": 1, "tile": 0, "x": 0, "y": 0, "w": edge, "h": edge,

@@ -13,7 +13,7 @@ Per admitted connection four threads:
 Everything a master can make the slave hold is bounded: the work queue (a master may have at
 most protocol.MAX_TILES_IN_FLIGHT tiles requested and not yet sent; a tile requested twice is
 refused), the outbox (the render loop and the reader wait when it is full: backpressure), each
-message (protocol.Channel: limits, and a deadline for the whole message either way), the
+message (core/net/channel.py: limits, and a deadline for the whole message either way), the
 messages larger than a channel's buffer being received by all connections together (an
 UploadBudget), and a frame's work (protocol.MAX_TILE_RAYS a tile, MAX_SAMPLE_RAYS a camera
 sample). A tile renders in short launches and stops between two of them once its frame is
@@ -46,8 +46,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.net import protocol, secure, trust
+from core.net.channel import POLL_S, Channel, end_writing
 from core.net.identity import Identity, short_id
 from core.net.protocol import MsgType, ProtocolError
+from core.net.tile_payloads import encode_tile
 from core.net.tiles import TileGrid, frame_work_problem
 from core.scene.model import SCENE_FORMAT_VERSION, SceneError, View
 from core.scene.scene import Scene
@@ -85,10 +87,10 @@ class Frame:
 
 
 class UploadBudget:
-    """Bytes of the large messages (over protocol.RECV_KEEP_BYTES: scenes, big frames) that all
+    """Bytes of the large messages (over channel.RECV_KEEP_BYTES: scenes, big frames) that all
     connections are receiving at once, at most `capacity`: each such message takes its length
     when its header arrives and gives it back when its receiver asks for the next message (its
-    handling, a scene's validation included, is over) or closes (protocol.Channel's `budget`).
+    handling, a scene's validation included, is over) or closes (Channel's `budget`).
     A message that does not fit waits up to `wait_s` for others to finish, then is refused; one
     larger than the whole budget is taken alone (so at most max(capacity, the largest message
     the limits allow) bytes are held)."""
@@ -237,7 +239,7 @@ class MasterConnection:
     def __init__(self, server: "SlaveServer", sock: socket.socket, peer: str):
         self.server, self.peer = server, peer
         self.sock = sock                 # the TCP socket, then the TLS socket
-        self.channel: protocol.Channel | None = None     # once TLS is up
+        self.channel: Channel | None = None     # once TLS is up
         self.master_id = ""              # pinned in the TLS handshake
         self.slave_nonce = trust.new_nonce()   # this connection's, for holder proofs
         self.granted: set = set()        # scene hashes this connection uploaded or proved
@@ -307,7 +309,7 @@ class MasterConnection:
         (reading and discarding what it still sends), then close."""
         if linger:
             try:
-                protocol.end_writing(self.sock)
+                end_writing(self.sock)
             except OSError:
                 linger = False
         if linger and reader is not None and reader.is_alive():
@@ -319,7 +321,7 @@ class MasterConnection:
             try:
                 while time.monotonic() < deadline:
                     try:
-                        self.sock.settimeout(protocol.POLL_S)
+                        self.sock.settimeout(POLL_S)
                         if not self.sock.recv(65536):
                             break
                     except socket.timeout:
@@ -355,8 +357,8 @@ class MasterConnection:
             log.info("master %s: left during the handshake: %s", self.peer, exc)
             return False
         self.sock = tls
-        self.channel = protocol.Channel(tls, "slave", grace_s=HANDSHAKE_TIMEOUT_S,
-                                        budget=server.uploads)
+        self.channel = Channel(tls, "slave", grace_s=HANDSHAKE_TIMEOUT_S,
+                               budget=server.uploads)
         self.peer = f"{self.peer} (ID {short_id(self.master_id)})"
         try:
             msg = self.channel.recv(server.limits, {MsgType.HELLO}, deadline=deadline)
@@ -605,8 +607,7 @@ class MasterConnection:
         if item[0] == "tile":  # encoding (float16, zlib) happens here, off the render thread in 3b
             _, frame, index, header, passes = item
             self.work.done(frame, index)   # before the master can see it and ask for the next
-            fields, arrays = protocol.encode_tile(passes, frame.payload, frame.compress,
-                                                  frame.passes)
+            fields, arrays = encode_tile(passes, frame.payload, frame.compress, frame.passes)
             item = (MsgType.TILE_RESULT, {**header, **fields}, arrays)
             self.server.activity.sent(self.peer, frame.frame_id,
                                       sum(a.nbytes for a in arrays.values()))
@@ -632,7 +633,7 @@ class MasterConnection:
         finally:
             self._end()
             try:   # our direction is over: the master sees the end after our last message
-                protocol.end_writing(self.channel.sock)
+                end_writing(self.channel.sock)
             except OSError:
                 pass
 

@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from core.net import protocol
+from core.net.channel import RECV_KEEP_BYTES, Channel
 from core.net.protocol import HEADER, MAGIC, PROTOCOL_VERSION, Limits, MsgType, ProtocolError
+from core.net.tile_payloads import decode_tile
 from core.accel.kdtree import KDTree
 from core.scene.model import Geometry, SceneError
 from core.net.tiles import TilePool, tile_grid
@@ -286,14 +288,14 @@ def test_tile_pass_validation():
     """The master's check of a received tile (decode_tile): names, shapes, finite values."""
     good = {"combined": np.zeros((3, 4, 4), np.float32), "depth": np.zeros((3, 4), np.float32),
             "normal": np.zeros((3, 4, 3), np.float32)}
-    assert set(protocol.decode_tile({}, good, 4, 3, "f32")) == set(good)
+    assert set(decode_tile({}, good, 4, 3, "f32")) == set(good)
     with pytest.raises(ProtocolError, match=r"must be <f4 \(4, 3, 4\)"):
-        protocol.decode_tile({}, good, 3, 4, "f32")
+        decode_tile({}, good, 3, 4, "f32")
     bad = dict(good, depth=np.full((3, 4), np.inf, np.float32))
     with pytest.raises(ProtocolError, match="NaN or infinity"):
-        protocol.decode_tile({}, bad, 4, 3, "f32")
+        decode_tile({}, bad, 4, 3, "f32")
     with pytest.raises(ProtocolError, match="tile passes must be"):
-        protocol.decode_tile({}, {"combined": good["combined"]}, 4, 3, "f32")
+        decode_tile({}, {"combined": good["combined"]}, 4, 3, "f32")
 
 
 def test_field_helpers():
@@ -356,7 +358,7 @@ def test_the_end_of_a_long_part_arriving_late_is_received():
     thread.start()
     threading.Event().wait(0.2)     # all but the tail waits in the receive buffer
     try:
-        channel = protocol.Channel(receiver, "slave")
+        channel = Channel(receiver, "slave")
         msg = channel.recv(deadline=time.monotonic() + 5)
         np.testing.assert_array_equal(msg.arrays["values"], np.arange(1 << 19, dtype=np.float32))
     finally:
@@ -372,7 +374,7 @@ def test_a_channel_parses_messages_where_they_lie_and_big_ones_in_their_own_buff
     after it still arrive; a message cut short names the part it was cut in."""
     a, b = pair
     tile = np.arange(64 * 64 * 4, dtype=np.float32).reshape(64, 64, 4)
-    scene = np.arange((protocol.RECV_KEEP_BYTES + 4096) // 4, dtype=np.float32)
+    scene = np.arange((RECV_KEEP_BYTES + 4096) // 4, dtype=np.float32)
     data = b"".join(bytes(part) for msg in (
         (MsgType.TILE_RESULT, {"tile": 1}, {"combined": tile}),
         (MsgType.HEARTBEAT, {"state": "idle"}, None),
@@ -380,7 +382,7 @@ def test_a_channel_parses_messages_where_they_lie_and_big_ones_in_their_own_buff
         (MsgType.TILE_RESULT, {"tile": 2}, {"combined": tile + 1}),
     ) for part in protocol.encode_message(*msg))
     writer = send_raw(a, data)
-    channel = protocol.Channel(b, "master")
+    channel = Channel(b, "master")
     received = []
     while len(received) < 2:
         for msg in channel.recv_available():    # handled before the next read, as it must
@@ -410,7 +412,7 @@ def test_a_message_cut_short_in_a_channel_names_its_part():
                 MsgType.TILE_RESULT, {"tile": 1}, {"combined": np.zeros((8, 8, 4), np.float32)}))
             send_raw(a, data[:cut]).join(5)
             with pytest.raises(protocol.ConnectionBroken, match=f"middle of a message \\({part}: "):
-                protocol.Channel(b, "master").recv(deadline=time.monotonic() + 5)
+                Channel(b, "master").recv(deadline=time.monotonic() + 5)
         finally:
             a.close()
             b.close()
@@ -427,7 +429,7 @@ def test_messages_lent_by_one_read_stay_intact_while_the_next_one_waits(pair):
                     for part in protocol.encode_message(MsgType.TILE_RESULT, {"tile": i},
                                                         {"combined": tile}))
     writer = send_raw(a, data)
-    channel = protocol.Channel(b, "master")
+    channel = Channel(b, "master")
     seen = []
     while len(seen) < len(tiles):
         batch = channel.recv_available()

@@ -23,6 +23,8 @@ import numpy as np
 import pytest
 
 from core.net import protocol, secure, trust
+from core.net import channel as channel_module
+from core.net.channel import Channel
 from core.net.master import Master, MasterError, SlaveBusy, TileBudget, connect_slave
 from core.net.protocol import HEADER, MAGIC, MsgType, ProtocolError
 from core.net.tiles import TileGrid, TilePool, tile_grid
@@ -73,7 +75,7 @@ class RawMaster:
         sock.connect(endpoint)
         who = tls_peers.identity()
         tls, slave_id = secure.open_client(sock, who, time.monotonic() + timeout)
-        self.channel = protocol.Channel(tls, "master")
+        self.channel = Channel(tls, "master")
         self.channel.send(MsgType.HELLO, tls_peers.hello_fields(who, slave_id))
         self.welcome = self.recv()
         assert self.welcome.type == MsgType.WELCOME, self.welcome
@@ -304,7 +306,7 @@ def test_tls_refuses_injected_replayed_and_reordered_records():
         stop.clear()
         for sock in (tap, feed):
             sock.settimeout(2)
-        return protocol.Channel(master, "master"), protocol.Channel(result["slave"], "slave"), tap, feed
+        return Channel(master, "master"), Channel(result["slave"], "slave"), tap, feed
 
     stop = threading.Event()
 
@@ -351,9 +353,9 @@ def test_tls_refuses_injected_replayed_and_reordered_records():
 
 
 def test_channel_deadlines_for_whole_messages(monkeypatch):
-    monkeypatch.setattr(protocol, "MIN_RATE_BPS", 1000)
+    monkeypatch.setattr(channel_module, "MIN_RATE_BPS", 1000)
     a, b = socket.socketpair()
-    sender, receiver = protocol.Channel(a, "slave"), protocol.Channel(b, "master", grace_s=0.5)
+    sender, receiver = Channel(a, "slave"), Channel(b, "master", grace_s=0.5)
     assert receiver.recv(wait=0.3) is None            # nothing began: no deadline, no error
     data = message(MsgType.TILE_REQUEST, {"frame_id": 1, "tile": 0, "pad": "x" * 4000})
     started = time.monotonic()
@@ -362,9 +364,9 @@ def test_channel_deadlines_for_whole_messages(monkeypatch):
         receiver.recv(wait=5)
     assert time.monotonic() - started < 3
     # A peer that never reads: the send gives up (the stream is then unusable: closed).
-    monkeypatch.setattr(protocol, "MIN_RATE_BPS", 10 ** 7)
+    monkeypatch.setattr(channel_module, "MIN_RATE_BPS", 10 ** 7)
     sending_end, deaf_end = socket.socketpair()
-    slow_sender = protocol.Channel(sending_end, "slave", grace_s=0.5)
+    slow_sender = Channel(sending_end, "slave", grace_s=0.5)
     big = {"combined": np.zeros((512, 512, 4), np.float32)}
     started = time.monotonic()
     with pytest.raises(protocol.PeerTooSlow, match="the peer stopped reading"):
@@ -373,7 +375,7 @@ def test_channel_deadlines_for_whole_messages(monkeypatch):
     deaf_end.close()
     # The handshake: one absolute deadline, however the bytes dribble.
     a2, b2 = socket.socketpair()
-    channel = protocol.Channel(b2, "slave", grace_s=100)
+    channel = Channel(b2, "slave", grace_s=100)
     for byte in hello()[:5]:
         a2.send(bytes([byte]))
     with pytest.raises(protocol.PeerTooSlow, match="before the deadline"):

@@ -10,10 +10,11 @@ import zlib
 import numpy as np
 import pytest
 
-from core.net import protocol, trust
+from core.net import trust
 from tests.linkemu import LinkEmulator
 from core.net.protocol import ProtocolError
 from core.net.tiles import TilePool, partition_tile_size, tile_grid
+from core.net.tile_payloads import decode_tile, encode_tile
 from core.scene.scene import Scene
 from slave.scene_cache import SceneCache
 from tests.test_network import make_scene
@@ -54,9 +55,9 @@ def test_tile_payload_round_trip(payload, compress):
               "depth": np.full((h, w), 1e10, np.float32),
               "normal": rng.normal(size=(h, w, 3)).astype(np.float32)}
     passes["combined"][:2] = rng.random((2, w, 4))
-    fields, arrays = protocol.encode_tile(passes, payload, compress)
+    fields, arrays = encode_tile(passes, payload, compress)
     assert fields["compression"] == ("zlib" if compress else "none")
-    decoded = protocol.decode_tile(fields, arrays, w, h, payload)
+    decoded = decode_tile(fields, arrays, w, h, payload)
     np.testing.assert_array_equal(decoded["depth"], passes["depth"])   # depth always float32
     tolerance = 0 if payload == "f32" else 2e-3
     for name in ("combined", "normal"):
@@ -69,21 +70,21 @@ def test_tile_payload_rejects_bombs_and_lies():
     expected = w * h * 32
     bomb = {"zlib": np.frombuffer(zlib.compress(b"\0" * (expected * 100)), np.uint8)}
     with pytest.raises(ProtocolError, match="wrong size"):
-        protocol.decode_tile({"payload": "f32", "compression": "zlib"}, bomb, w, h, "f32")
+        decode_tile({"payload": "f32", "compression": "zlib"}, bomb, w, h, "f32")
     with pytest.raises(ProtocolError, match="inflate"):
-        protocol.decode_tile({"payload": "f32", "compression": "zlib"},
-                             {"zlib": np.arange(50, dtype=np.uint8)}, w, h, "f32")
+        decode_tile({"payload": "f32", "compression": "zlib"},
+                    {"zlib": np.arange(50, dtype=np.uint8)}, w, h, "f32")
     f16 = {"combined": np.zeros((h, w, 4), np.float16), "depth": np.zeros((h, w), np.float32),
            "normal": np.zeros((h, w, 3), np.float16)}
     with pytest.raises(ProtocolError, match="expected 'f32'"):
-        protocol.decode_tile({"payload": "f16"}, f16, w, h, "f32")
+        decode_tile({"payload": "f16"}, f16, w, h, "f32")
     with pytest.raises(ProtocolError, match="must be <f4"):
-        protocol.decode_tile({"payload": "f32"}, f16, w, h, "f32")
+        decode_tile({"payload": "f32"}, f16, w, h, "f32")
     with pytest.raises(ProtocolError, match="compression"):
-        protocol.decode_tile({"payload": "f16", "compression": "lz4"}, f16, w, h, "f16")
+        decode_tile({"payload": "f16", "compression": "lz4"}, f16, w, h, "f16")
     f16["normal"][0, 0, 0] = np.inf
     with pytest.raises(ProtocolError, match="NaN or infinity"):
-        protocol.decode_tile({"payload": "f16"}, f16, w, h, "f16")
+        decode_tile({"payload": "f16"}, f16, w, h, "f16")
 
 
 def test_farm_proofs_and_secrets(tmp_path, monkeypatch):

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from bench.standin import StandInTracer, calibrate
-from core.net import protocol
 from core.net.master import Master, auto_tile_size
 from core.net.render_job import DEPTH_MISS, RESULTS_EVERY_S
+from core.net.tile_payloads import decode_tile, encode_tile
 from core.scene.scene import Scene
 from slave.server import SlaveServer
 from tests.linkemu import LinkEmulator
@@ -218,8 +218,8 @@ def test_passes_not_enabled_are_not_sent(scene, calibration):
     assert pixels * 4 <= sent_u8 < pixels * 4 + overhead, sent_u8   # combined: 4 bytes
     np.testing.assert_array_equal(          # the master composes exactly what decoding gives
         passes["combined"],
-        protocol.decode_tile(*protocol.encode_tile(calibration.image, "u8", False, ["combined"]),
-                             128, 96, "u8", ["combined"])["combined"])
+        decode_tile(*encode_tile(calibration.image, "u8", False, ["combined"]),
+                    128, 96, "u8", ["combined"])["combined"])
 
 
 def _srgb(linear: float) -> float:
@@ -241,10 +241,10 @@ def test_8_bit_preview_is_exact_to_its_quantisation():
     normal = rng.uniform(-1.1, 1.1, (h, w, 3)).astype(np.float32)
     passes = {"combined": combined, "depth": rng.random((h, w)).astype(np.float32) * 50,
               "normal": normal}
-    fields, arrays = protocol.encode_tile(passes, "u8")
+    fields, arrays = encode_tile(passes, "u8")
     assert {n: a.dtype.str for n, a in arrays.items()} == {"combined": "|u1", "depth": "<f4",
                                                            "normal": "|u1"}
-    decoded = protocol.decode_tile(fields, arrays, w, h, "u8")
+    decoded = decode_tile(fields, arrays, w, h, "u8")
     np.testing.assert_array_equal(decoded["depth"], passes["depth"])        # depth stays exact
     for (y, x, c), value in np.ndenumerate(combined):
         v = min(max(float(value), 0.0), 1.0)
@@ -263,8 +263,8 @@ def test_8_bit_preview_is_exact_to_its_quantisation():
         assert arrays["normal"][y, x, c] == code
         assert decoded["normal"][y, x, c] == np.float32(code / 127.5 - 1)
     # compressed, the same values
-    fields, packed = protocol.encode_tile(passes, "u8", True)
-    again = protocol.decode_tile(fields, packed, w, h, "u8")
+    fields, packed = encode_tile(passes, "u8", True)
+    again = decode_tile(fields, packed, w, h, "u8")
     for name in decoded:
         np.testing.assert_array_equal(again[name], decoded[name])
 

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from core.net import protocol, secure, trust
+from core.net.channel import Channel
 from core.net.discovery import SlaveBrowser
 from core.net.identity import Identity, short_id
 from core.net.master import MAX_SLAVES, Master, MasterError
@@ -162,7 +163,7 @@ class RecordingSlave:
             self.connections += 1
             try:
                 tls, _ = secure.open_server(sock, self.identity, time.monotonic() + 10)
-                channel = protocol.Channel(tls, "slave")
+                channel = Channel(tls, "slave")
                 while chunk := tls_peers.read_all(channel, 3):
                     self.received += chunk
             except (OSError, protocol.ProtocolError):

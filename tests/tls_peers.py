@@ -8,6 +8,7 @@ import socket
 import time
 
 from core.net import protocol, secure, trust
+from core.net.channel import Channel
 from core.net.identity import Identity
 from core.net.protocol import MsgType
 from core.scene.model import SCENE_FORMAT_VERSION
@@ -29,7 +30,7 @@ def open_tls(endpoint, who: Identity | None = None, timeout: float = 10.0):
         endpoint = ("127.0.0.1", endpoint)
     sock = socket.create_connection(tuple(endpoint), timeout=timeout)
     tls, slave_id = secure.open_client(sock, who or identity(), time.monotonic() + timeout)
-    return protocol.Channel(tls, "master"), slave_id
+    return Channel(tls, "master"), slave_id
 
 
 def hello_fields(who: Identity, slave_id: str, secret: bytes | None = FARM_SECRET,
@@ -53,7 +54,7 @@ def handshaken(endpoint, secret: bytes | None = FARM_SECRET, who: Identity | Non
     return channel, channel.recv(allowed=protocol.SLAVE_TO_MASTER, wait=timeout)
 
 
-def read_all(channel: protocol.Channel, timeout: float = 10.0) -> bytes:
+def read_all(channel: Channel, timeout: float = 10.0) -> bytes:
     """Every byte the peer sends inside TLS until it closes (or `timeout`)."""
     chunks, deadline = [], time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -91,7 +92,7 @@ def serve_as_slave(sock: socket.socket, name: str, who: Identity | None = None,
     HELLO, a WELCOME that proves the farm secret. Returns (channel, HELLO header)."""
     who = who or identity("slave")
     tls, master_id = secure.open_server(sock, who, time.monotonic() + timeout)
-    channel = protocol.Channel(tls, "slave")
+    channel = Channel(tls, "slave")
     hello = channel.recv(allowed={MsgType.HELLO}, wait=timeout)
     nonce = trust.new_nonce()
     welcome = {"protocol_version": protocol.PROTOCOL_VERSION,

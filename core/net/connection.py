@@ -11,6 +11,7 @@ import ssl
 import time
 
 from . import protocol, secure, trust
+from .channel import Channel
 from .identity import Identity, short_id
 from .protocol import MsgType, ProtocolError
 from .trust import AllowList
@@ -39,7 +40,7 @@ class SlaveNotApproved(MasterError):
 class SlaveConnection:
     """A connected, handshaken slave. Sends are serialised by the channel; one thread receives."""
 
-    def __init__(self, host: str, port: int, channel: protocol.Channel, welcome: dict,
+    def __init__(self, host: str, port: int, channel: Channel, welcome: dict,
                  slave_id: str = "", trusted_by: str = ""):
         self.host, self.port, self.channel = host, port, channel
         self.name = trust.sanitize(protocol.get_str(welcome, "name", 64))
@@ -93,7 +94,7 @@ def _reason(exc: OSError) -> str:
     return exc.strerror or str(exc) or type(exc).__name__
 
 
-def _handshake(channel: protocol.Channel, host: str, port: int, master_name: str,
+def _handshake(channel: Channel, host: str, port: int, master_name: str,
                identity: Identity, slave_id: str, secret: bytes | None, approved: bool,
                pairing_code: str | None, heartbeat_s: float, deadline: float) -> tuple:
     """HELLO (with the farm proof and the pairing proof where this master has them), WELCOME;
@@ -154,7 +155,7 @@ def connect_slave(host: str, port: int, timeout: float = 3.0, master_name: str =
         if not is_approved and code is None and secret is None:
             # Not even a HELLO: an unknown machine learns nothing from this master.
             raise SlaveNotApproved(host, port, slave_id, "this master has no farm secret")
-        channel = protocol.Channel(tls, "master", grace_s=silence_s)
+        channel = Channel(tls, "master", grace_s=silence_s)
         welcome, trusted_by = _handshake(channel, host, port, master_name, identity, slave_id,
                                          secret, is_approved, code, heartbeat_s, deadline)
         return SlaveConnection(host, port, channel, welcome, slave_id, trusted_by)

@@ -17,7 +17,7 @@ import socket
 import ssl
 import time
 
-from . import protocol
+from . import channel, protocol
 from .identity import Identity, peer_id
 from .protocol import HEADER, MsgType, ProtocolError
 
@@ -39,7 +39,7 @@ def _recv_plain(sock: socket.socket, allowed, deadline: float) -> protocol.Messa
             if remaining <= 0:
                 raise protocol.PeerTooSlow(f"the opening did not arrive in time ({what}: "
                                            f"{len(data)} of {count} bytes)")
-            sock.settimeout(min(remaining, protocol.POLL_S))
+            sock.settimeout(min(remaining, channel.POLL_S))
             try:
                 chunk = sock.recv(count - len(data))
             except socket.timeout:
@@ -53,10 +53,10 @@ def _recv_plain(sock: socket.socket, allowed, deadline: float) -> protocol.Messa
         return bytes(data)
 
     head = exactly(HEADER.size, "header", allow_eof=True)
-    msg_type, json_length, payload_length = protocol._check_header(head, OPEN_LIMITS, allowed)
+    msg_type, json_length, payload_length = protocol.check_header(head, OPEN_LIMITS, allowed)
     text = exactly(json_length, "JSON")
     payload = exactly(payload_length, "payload")
-    return protocol._parse_body(msg_type, text, payload)
+    return protocol.parse_body(msg_type, text, payload)
 
 
 def _handshake(tls: ssl.SSLSocket, deadline: float) -> None:
@@ -73,7 +73,7 @@ def _handshake(tls: ssl.SSLSocket, deadline: float) -> None:
         remaining = deadline - time.monotonic()
         if remaining <= 0:
             raise protocol.PeerTooSlow("the TLS handshake did not finish in time")
-        protocol._wait(tls, writing, min(remaining, protocol.POLL_S))
+        channel.socket_ready(tls, writing, min(remaining, channel.POLL_S))
 
 
 def open_client(sock: socket.socket, identity: Identity, deadline: float) -> tuple:

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 from . import protocol
 from .connection import SlaveConnection, describe
 from .protocol import MsgType, ProtocolError
+from .tile_payloads import decode_tile
 
 if TYPE_CHECKING:
     from .render_job import RenderJob
@@ -332,8 +333,8 @@ class SlaveWorker:
         # Checked, then written straight into the frame; a copy of a tile another slave
         # delivered first is checked only (an honest copy has the same bits anyway).
         windows = job.windows(x, y, w, h_)
-        protocol.decode_tile(h, msg.arrays, w, h_, job.payload, job.passes,
-                             out=None if job.pool.is_done(index) else windows)
+        decode_tile(h, msg.arrays, w, h_, job.payload, job.passes,
+                    out=None if job.pool.is_done(index) else windows)
         self.render_s += max(render_ms, 0.0) / 1000.0
         self.tiles_rendered += 1
         self.in_flight.discard(index)
