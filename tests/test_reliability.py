@@ -31,7 +31,7 @@ from core.net.tiles import TileGrid, TilePool, tile_grid
 from core.scene.model import (MATERIAL_PARAMS, SCENE_FORMAT_VERSION, Light, SceneError, View,
                               default_material_params)
 from core.scene.scene import Scene
-from slave.server import Outbox, WorkQueue
+from slave.queues import Outbox, WorkQueue
 from tests import tls_peers
 from tests.conftest import FARM_SECRET
 from tests.processes import SlaveProcess

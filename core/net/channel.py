@@ -109,7 +109,7 @@ class Channel:
 
     def __init__(self, sock: socket.socket, role: str, grace_s: float = SILENCE_S,
                  budget=None):
-        """`budget` (the slave's: slave.server.UploadBudget): a message larger than the
+        """`budget` (the slave's: slave.queues.UploadBudget): a message larger than the
         channel's buffer takes its length from it (take(n), which may refuse with
         ProtocolError) when its header is in, and gives it back (give(n)) at the next
         receive or at close."""
