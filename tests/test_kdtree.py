@@ -288,10 +288,10 @@ def test_bad_input_is_rejected():
 @pytest.mark.parametrize("name", ["bunny", "cube_of_quads"])
 def test_binned_sah_in_chunks_gives_the_same_tree(name, monkeypatch):
     # Binned SAH runs in chunks of BINNED_CHUNK nodes; the chunking must not change the tree.
-    import core.accel.kdtree as kd
+    import core.accel.sah_splits as sah
     vertices, triangles = SCENES[name]()
     reference = build_kdtree(vertices, triangles)
-    monkeypatch.setattr(kd, "BINNED_CHUNK", 3)
+    monkeypatch.setattr(sah, "BINNED_CHUNK", 3)
     chunked = build_kdtree(vertices, triangles)
     assert np.array_equal(reference.nodes, chunked.nodes)
     assert np.array_equal(reference.leaf_indices, chunked.leaf_indices)
@@ -347,9 +347,9 @@ def _reference_halves(tri, cell_lo, cell_hi, axis, plane):
 
 
 def test_batched_straddler_clipping_matches_one_polygon_at_a_time():
-    # _clip_straddlers clips only crossing faces, groups polygons by vertex count and
+    # clip_straddlers clips only crossing faces, groups polygons by vertex count and
     # interpolates only crossing edges; the boxes must equal a plain per-polygon clip exactly.
-    import core.accel.kdtree as kd
+    from core.accel.clipping import clip_straddlers
     rng = np.random.default_rng(5)
     count = 600
     tri = rng.uniform(-1, 1, (count, 3, 3)).astype(np.float32).astype(np.float64)
@@ -361,7 +361,7 @@ def test_batched_straddler_clipping_matches_one_polygon_at_a_time():
     axis = rng.integers(0, 3, count)
     plane = np.zeros(count, np.float32)
     plane[100:] = rng.uniform(-0.05, 0.05, count - 100).astype(np.float32)
-    halves = kd._clip_straddlers(tri, cell_lo, cell_hi, axis, plane)
+    halves = clip_straddlers(tri, cell_lo, cell_hi, axis, plane)
     for k in range(count):
         expected = _reference_halves(tri[k], cell_lo[k], cell_hi[k], axis[k], plane[k])
         for side in (0, 1):
@@ -376,28 +376,28 @@ def test_reference_rows_keep_boxes_and_triangle_ids_bit_exact():
     # References live in one (N, 7) float32 array (box lo, box hi, triangle id as int32 bits)
     # moved by whole-row gathers; ids whose bits read as float32 NaN or denormals (very large
     # or small ids) and the boxes must come through unchanged.
-    import core.accel.kdtree as kd
+    import core.accel.ref_rows as ref_rows
     rng = np.random.default_rng(3)
     ids = np.array([0, 1, 5, 2**23 + 1, 0x7F800001, 0x7FC00000, 2**31 - 1], np.int32)
-    refs = np.empty((len(ids), kd.REF_WORDS), np.float32)
+    refs = np.empty((len(ids), ref_rows.REF_WORDS), np.float32)
     refs[:, 0:3] = rng.uniform(-1, 1, (len(ids), 3))
     refs[:, 3:6] = refs[:, 0:3] + 1
     refs[:, 6].view(np.int32)[:] = ids
     index = np.array([[6, 0, 4], [5, 5, 3]])
-    moved = kd._gather_refs(refs, index)
-    assert moved.shape == (2, 3, kd.REF_WORDS)
+    moved = ref_rows.gather_refs(refs, index)
+    assert moved.shape == (2, 3, ref_rows.REF_WORDS)
     assert np.array_equal(moved.view(np.int32), refs.view(np.int32)[index])
-    triangles = kd._ref_triangles(moved.reshape(-1, kd.REF_WORDS))
+    triangles = ref_rows.ref_triangles(moved.reshape(-1, ref_rows.REF_WORDS))
     assert np.array_equal(triangles, ids[index.reshape(-1)])
 
 
 @pytest.mark.parametrize("name", ["bunny", "cube_of_quads"])
 def test_exact_sah_in_chunks_gives_the_same_tree(name, monkeypatch):
     # Exact SAH runs in chunks of EXACT_CHUNK nodes; the chunking must not change the tree.
-    import core.accel.kdtree as kd
+    import core.accel.sah_splits as sah
     vertices, triangles = SCENES[name]()
     reference = build_kdtree(vertices, triangles)
-    monkeypatch.setattr(kd, "EXACT_CHUNK", 7)
+    monkeypatch.setattr(sah, "EXACT_CHUNK", 7)
     chunked = build_kdtree(vertices, triangles)
     assert np.array_equal(reference.nodes, chunked.nodes)
     assert np.array_equal(reference.leaf_indices, chunked.leaf_indices)

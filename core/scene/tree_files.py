@@ -32,7 +32,8 @@ LIMIT_MIB_RANGE = (0, 1 << 20)      # 0: no disk cache
 EXTENSION_ROOT = pathlib.Path(__file__).resolve().parents[2]
 # What decides a tree's bits, relative to the extension's root (files, or folders of them).
 DECIDING_SOURCES = ("core/layout.py", "core/opencl.py", "core/accel/arrays.py",
-                    "core/accel/kdtree.py", "core/accel/device.py", "core/accel/binned.py",
+                    "core/accel/kdtree.py", "core/accel/sah_splits.py", "core/accel/clipping.py",
+                    "core/accel/ref_rows.py", "core/accel/device.py", "core/accel/binned.py",
                     "core/accel/compact.py", "core/accel/compact_cl.py", "core/accel/reorder.py",
                     "kernels/build")
 
