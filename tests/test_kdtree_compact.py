@@ -14,9 +14,11 @@ import numpy as np
 import pytest
 
 from core.accel.arrays import distinct_count
-from core.accel.compact import (LEAF_TAG, MODES, NO_TRIANGLE, _lift_candidates, _neighbour_lcas,
-                                _Topology, compact_params, compact_tree, geometry_nbytes)
+from core.accel.compact import MODES, compact_params, compact_tree, geometry_nbytes
+from core.accel.compact_lifts import lift_candidates, neighbour_lcas
+from core.accel.compact_topology import Topology
 from core.accel.kdtree import KDTree, build_kdtree
+from core.layout import LEAF_TAG, NO_TRIANGLE
 from tests.meshes import load_bunny, uv_sphere
 from tests.scenes_architecture import architecture_scene
 
@@ -548,7 +550,7 @@ def naive_candidates(tree, params):
     """(depth, node, triangle, references, first, end) of every lift candidate, node by node from
     the definitions (docs/kdtree_compression.md): the references of t in the node's subtree, no
     candidate above the inner node where all of t's references have met."""
-    topo = _Topology(tree)
+    topo = Topology(tree)
     ref_leaf, ref_tri = topo.leaf_references(tree)
     order = np.lexsort((topo.pre[ref_leaf], ref_tri))
     leaf, tri, pre = ref_leaf[order], ref_tri[order], topo.pre[ref_leaf[order]]
@@ -573,12 +575,12 @@ def naive_candidates(tree, params):
 
 
 def fast_candidates(tree, params):
-    topo = _Topology(tree)
+    topo = Topology(tree)
     ref_leaf, ref_tri = topo.leaf_references(tree)
     order = np.lexsort((topo.pre[ref_leaf], ref_tri))
     s_leaf, s_tri = ref_leaf[order], ref_tri[order]
-    gap_node, gap_depth = _neighbour_lcas(topo, s_leaf, s_tri)
-    per_depth = _lift_candidates(topo, s_leaf, s_tri, gap_node, gap_depth, params)
+    gap_node, gap_depth = neighbour_lcas(topo, s_leaf, s_tri)
+    per_depth = lift_candidates(topo, s_leaf, s_tri, gap_node, gap_depth, params)
     return {(d, *map(int, row)) for d, cand in enumerate(per_depth) if cand is not None
             for row in zip(*cand)}
 

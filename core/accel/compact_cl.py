@@ -92,7 +92,8 @@ class CompactorCL:
 
     # -- steps -----------------------------------------------------------------------------
     def level_ranges(self, nodes, n):
-        """The level ranges of a tree in the builders' order (compact.level_ranges), or None."""
+        """The level ranges of a tree in the builders' order (compact_topology.level_ranges),
+        or None."""
         d = self.device
         flags = d.buffer(nbytes=4 * n)
         self.run("inner_flags", n, nodes, flags, U4(n))
@@ -171,7 +172,7 @@ class CompactorCL:
 
     def lift_candidates(self, tri_first, triangle_count, s_pre, gap_pre, gap_depth, climb, walk,
                         R, params):
-        """compact.py _lift_candidates: (a buffer of candidate rows, their number)."""
+        """compact_lifts.py lift_candidates: (a buffer of candidate rows, their number)."""
         d = self.device
         # Triangles with more than PRIVATE_GAPS references keep their stacks in the scratch.
         big_first = d.zeros(4 * (triangle_count + 1))
@@ -206,7 +207,7 @@ class CompactorCL:
         return node_next, grouped, grouped_node         # node_next: now each node's end
 
     def select_lifts(self, nodes, ranges, grouped_candidates, total, R, n, params):
-        """compact.py _select_lifts on the device (choose_lifts, level by level): (removed
+        """compact_lifts.py select_lifts on the device (choose_lifts, level by level): (removed
         references: a uchar buffer; lift node, triangle, first: host arrays, by node; refs per
         node: a buffer)."""
         d = self.device
@@ -231,7 +232,8 @@ class CompactorCL:
 
     def collapse(self, nodes, n, ranges, R, d_removed, s_leaf, gap_node, gap_depth, lift_node,
                  lift_first, refs_at, pre, walk, params):
-        """compact.py _distinct_below and _collapse: the collapsed nodes (a buffer)."""
+        """compact_lifts.py distinct_below, compact_layout.py collapse: the collapsed nodes (a
+        buffer)."""
         d = self.device
         per_node = d.zeros(4 * n)
         leaf_count = d.zeros(4 * n)
@@ -254,7 +256,7 @@ class CompactorCL:
         return collapsed
 
     def owners(self, nodes, n, ranges, collapsed):
-        """compact.py _owners: (dead, owner) buffers."""
+        """compact_layout.py owners: (dead, owner) buffers."""
         d = self.device
         dead, owner = d.zeros(n), d.zeros(4 * n)
         for first, end in ranges:
@@ -303,7 +305,7 @@ class CompactorCL:
 
     def layout(self, nodes, n, params, dead, collapsed, final_count, item_first, items,
                lift_node, lift_tri, shift):
-        """compact.py _layout: (nodes, leaf_index32, leaf_index16, leaf_shift, node kinds,
+        """compact_layout.py layout: (nodes, leaf_index32, leaf_index16, leaf_shift, node kinds,
         leaf stats), the refs per node of the kept lifts (a buffer), the collapsed nodes
         that stay."""
         d = self.device

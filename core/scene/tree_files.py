@@ -34,7 +34,9 @@ EXTENSION_ROOT = pathlib.Path(__file__).resolve().parents[2]
 DECIDING_SOURCES = ("core/layout.py", "core/opencl.py", "core/accel/arrays.py",
                     "core/accel/kdtree.py", "core/accel/sah_splits.py", "core/accel/clipping.py",
                     "core/accel/ref_rows.py", "core/accel/device.py", "core/accel/binned.py",
-                    "core/accel/compact.py", "core/accel/compact_cl.py", "core/accel/reorder.py",
+                    "core/accel/compact.py", "core/accel/compact_topology.py",
+                    "core/accel/compact_lifts.py", "core/accel/compact_layout.py",
+                    "core/accel/compact_cl.py", "core/accel/reorder.py",
                     "kernels/build")
 
 

@@ -49,10 +49,11 @@ __kernel void order_check(__global const uint2* restrict nodes,
 }
 
 /* ----------------------------------------------------------------------------------------
-   Topology (compact.py _Topology, _falls_going_up, subtree sums), level by level: subtree
-   sizes and non-empty leaves going up, then going down the cells (CELL rows, by position in
-   its level), areas and preorder numbers, and each node's records at its preorder number p
-   (so that climbing stays near its start: a below child follows its parent directly):
+   Topology (compact_topology.py Topology, compact_lifts.py _falls_going_up, subtree sums),
+   level by level: subtree sizes and non-empty leaves going up, then going down the cells
+   (CELL rows, by position in its level), areas and preorder numbers, and each node's records
+   at its preorder number p (so that climbing stays near its start: a below child follows its
+   parent directly):
      climb[p], a CLIMB row: end of its preorder range, the parent's preorder number, depth,
                 the node;
      walk[p] = (area, the parent's preorder number, non-empty leaves below | whether the area

@@ -1,9 +1,9 @@
-/* The compaction's layout (after compact_lifts.cl; compact.py _collapse, _layout): the
-   collapse of subtrees into leaves, the final leaves' items, prefix sums, and the nodes' and
+/* The compaction's layout (after compact_lifts.cl; compact_layout.py collapse, layout):
+   the collapse of subtrees into leaves, the final leaves' items, prefix sums, and the nodes' and
    lists' words of the compact tree. */
 
 /* ----------------------------------------------------------------------------------------
-   Collapse (compact.py _collapse), bottom-up per level in double: a subtree becomes one leaf
+   Collapse (compact_layout.py collapse), bottom-up per level in double: a subtree becomes one leaf
    when K_I distinct <= K_T + K_I refs + (A_b cost_b + A_a cost_a) / A. */
 
 __kernel void collapse(__global const uint2* restrict nodes, __global const uint* restrict pre,
@@ -137,7 +137,7 @@ __kernel void block_scan(__global const uint* values, __global const ulong* rest
 }
 
 /* ----------------------------------------------------------------------------------------
-   The layout (compact.py _layout). For a tree in the builders' order, groups are handed out
+   The layout (compact_layout.py layout). For a tree in the builders' order, groups are handed out
    in node index order, so a node's group is 1 + the sizes of the groups of the live inner
    nodes before it: one prefix sum; likewise the leaves' list offsets. */
 

@@ -1,12 +1,12 @@
-/* The compaction's lifts (after compact.cl; compact.py _neighbour_lcas, _lift_candidates,
-   _choose_lifts, _distinct_below): the LCA of each gap between a triangle's references, the
+/* The compaction's lifts (after compact.cl; compact_lifts.py neighbour_lcas, lift_candidates,
+   _choose_lifts, distinct_below): the LCA of each gap between a triangle's references, the
    candidate lifts of each triangle, the greedy choice of lifts level by level, and the
    distinct triangles below each node. Then compact_layout.cl. */
 
 /* ----------------------------------------------------------------------------------------
    Gap j lies before sorted reference j: the LCA of references j-1 and j when they hold the
    same triangle (climbing from the first until its subtree holds the second), and its depth;
-   -1 between triangles and at both ends (compact.py _neighbour_lcas). */
+   -1 between triangles and at both ends (compact_lifts.py neighbour_lcas). */
 
 /* In preorder numbers: x holds b when x <= b < end(x). gap_pre: the LCA's preorder number. */
 __kernel void neighbour_lcas(__global const uint* restrict s_pre, __global const uint* restrict s_tri,
@@ -35,7 +35,7 @@ __kernel void neighbour_lcas(__global const uint* restrict s_pre, __global const
 }
 
 /* ----------------------------------------------------------------------------------------
-   Lift candidates (compact.py _lift_candidates), one work-item per triangle: its references
+   Lift candidates (compact_lifts.py lift_candidates), one work-item per triangle: its references
    are one range of the sorted list, its gaps the range's inner gaps (the range's end gaps are
    -1). Runs from the nearest lower gaps on both sides (stacks in the scratch arrays), then
    each run walked up from its LCA while it qualifies. */
@@ -261,7 +261,7 @@ __kernel void lift_candidates(__global const uint* restrict tri_first,
 }
 
 /* ----------------------------------------------------------------------------------------
-   The greedy choice of lifts (compact.py _choose_lifts): the candidates grouped by node, then
+   The greedy choice of lifts (compact_lifts.py _choose_lifts): the candidates grouped by node, then
    level by level from the root, each node of a level takes its best candidates still live. */
 
 /* Per candidate: one more for its node. */
@@ -359,7 +359,7 @@ __kernel void lifts_out(__global const uint* restrict slot, __global const uint4
 }
 
 /* ----------------------------------------------------------------------------------------
-   Distinct triangles below each node (compact.py _distinct_below): kept references and lifts
+   Distinct triangles below each node (compact_lifts.py distinct_below): kept references and lifts
    count +1 at their node, the gap before each of them -1 at its LCA; then summed over
    subtrees. Also each leaf's kept references (leaf_count). Then the collapse. */
 
