@@ -112,7 +112,7 @@ def pixel_rgba(accum: np.ndarray) -> np.ndarray:
 
 def pixel_error(accum: np.ndarray, w: int, h: int, neighbours: bool = True) -> np.ndarray:
     """Per pixel, Cycles' noise estimate (film_adaptive_sampling_convergence_check): the
-    difference between the mean of all its samples and twice the mean of the odd-numbered
+    difference between the mean of all its samples and twice the mean of the stratified
     half, summed over RGB, over 1e-4 + the square root of the mean's RGB sum. With
     `neighbours`, as Cycles' filter after each check, a pixel counts as noisy where one of its
     8 neighbours in the tile is (what a check finds noisy at an edge is refined on both

@@ -1,5 +1,5 @@
 """slave/adaptive.py's schedule, as Cycles' adaptive sampling: the minimum, then 16 samples at a
-time while a pixel's noise (Cycles' estimate: all samples against the odd-numbered half) or a
+time while a pixel's noise (Cycles' estimate: all samples against the half of odd bit count) or a
 neighbour's exceeds 5 x the Noise Threshold; smooth pixels between converged ones are
 interpolated. Run against a tile on the host whose pixels have known noise."""
 from __future__ import annotations
@@ -14,8 +14,9 @@ from slave.adaptive import ADAPTIVE_STEP, THRESHOLD_SCALE, LaunchPlan, pixel_err
 
 
 class NoisyTile:
-    """A w x h tile whose pixel p's samples are mean[p] + spread[p] x (+1 or -1 by sample
-    parity and pixel), grey, accumulated as the kernel does (ACCUM, the odd samples' half)."""
+    """A w x h tile whose pixel p's samples are mean[p] + spread[p] x (+1 or -1 by the
+    sample's half and the pixel), grey, accumulated as the kernel does (ACCUM: the half of
+    samples of odd bit count, render.cl)."""
 
     def __init__(self, mean, spread):
         self.mean, self.spread = np.ravel(mean), np.ravel(spread)
@@ -25,13 +26,14 @@ class NoisyTile:
         records = self.accum.reshape(len(self.accum), ACCUM.size, 4)
         for p in pixels:
             for s in range(start, start + count):
-                sign = 1.0 if (s + p) % 2 else -1.0
+                in_half = bin(s).count("1") % 2
+                sign = 1.0 if (in_half + p) % 2 else -1.0
                 c = self.mean[p] + self.spread[p] * sign
                 record = records[p]
                 ACCUM.put(record, "color", ACCUM.get(record, "color") + c)
                 ACCUM.put(record, "samples", ACCUM.get(record, "samples") + 1)
                 ACCUM.put(record, "alpha", ACCUM.get(record, "alpha") + 1)
-                if s % 2:
+                if in_half:
                     ACCUM.put(record, "half", ACCUM.get(record, "half") + c)
 
     def read(self):
@@ -60,7 +62,7 @@ def test_automatic_minimum_is_cycles():
 
 
 def test_noise_estimate_is_cycles_half_buffer():
-    """One pixel of 32 samples whose odd samples are brighter: (|sum - 2 half| summed over
+    """One pixel of 32 samples whose half's samples are brighter: (|sum - 2 half| summed over
     RGB) / n over 1e-4 + sqrt(mean's RGB sum)."""
     tile = NoisyTile([[0.5]], [[0.1]])
     tile.run([0], 0, 32, 0)
