@@ -77,7 +77,7 @@ def main():
     args = parser.parse_args()
     print("command:", " ".join(["python"] + sys.argv))
     print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs)")
-    out = pathlib.Path(args.out)
+    out = pathlib.Path(args.out).resolve()   # the Blender child runs in another folder
     out.mkdir(parents=True, exist_ok=True)
     work = pathlib.Path(tempfile.mkdtemp(prefix="kdtrace-adaptive-"))
     from tests.blender import build_extension, run_bpy_script
