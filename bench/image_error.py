@@ -29,7 +29,17 @@ table, a JSON file and a PNG plot of PSNR against time for both.
 
 A scene is a CyclesScene: the function that builds it in an empty Blender file (objects,
 materials, lights, world, camera; issue 14's builders of tests/bpy_scripts/cycles_scenes.py by
-name) and the light paths both renderers use; add one to CYCLES_SCENES to compare another.
+name, or a real file opened as tests/bpy_scripts/real_files.py opens it) and the light paths
+both renderers use; add one to CYCLES_SCENES to compare another.
+
+With --denoise (issue 40) each sweep point is also rendered denoised by each engine as its F12
+does (Open Image Denoise with its own albedo and normal guides: Cycles' Denoise with prefilter
+Accurate, quality High; KD Trace's master the same), against the same undenoised Cycles
+reference: time and samples each needs to reach 30, 35 and 40 dB, KD Trace / Cycles, and each
+engine's time to 35 dB with and without denoising.
+
+    .venv/bin/python bench/image_error.py --against-cycles --denoise
+        [--cycles-scenes dragon interior engine] [--out bench/out/image_error_denoise]
 """
 from __future__ import annotations
 
@@ -128,7 +138,10 @@ def timed_render(tracer, view, repeat=1):
 
 # -- PNG plot with numpy + zlib ----------------------------------------------------------------
 COLOURS = {"uniform": (31, 119, 180), "adaptive": (214, 39, 40), "bounces": (44, 160, 44)}
-RENDERER_COLOURS = {"KD Trace": (31, 119, 180), "Cycles": (230, 120, 20)}
+RENDERER_COLOURS = {"KD Trace": (31, 119, 180), "Cycles": (230, 120, 20),
+                    "KD Trace + OIDN": (120, 180, 230), "Cycles + OIDN": (240, 190, 120)}
+DENOISED_SERIES = {"Cycles": "Cycles + OIDN", "KD Trace": "KD Trace + OIDN"}
+TARGET_PSNRS = (30.0, 35.0, 40.0)      # the levels of equal error the issue asks about
 FONT = {  # 3x5 digits for axis labels
     "0": "111101101101111", "1": "010110010010111", "2": "111001111100111", "3": "111001111001111",
     "4": "101101111001001", "5": "111100111001111", "6": "111100111101111", "7": "111001001001001",
@@ -317,12 +330,27 @@ def dragon_scene(b):
     b["camera"]((0.0, -9.0, 3.4), (0, 0, 1.3), lens=40)
 
 
+def engine_scene(b):
+    """A real glTF model (tests/real_files.py "engine": Khronos' 2CylinderEngine, 82 meshes,
+    binary glTF) imported as a user would, framed by a camera, lit by a sun and a grey world
+    (tests/bpy_scripts/real_files.py's frame_meshes and light_if_dark)."""
+    import bpy
+    from tests.real_files import real_files
+    real = script_functions("real_files.py", b["OUT"])
+    real["load"](str(real_files()["engine"]))
+    scene = bpy.context.scene
+    real["frame_meshes"](scene)
+    real["light_if_dark"](scene)
+
+
 CYCLES_SCENES = {
     # The Stanford dragon (871k triangles) under an area light.
     "dragon": CyclesScene(dragon_scene),
     # Issue 14's interior: an HDRI sky through a window and an emissive ceiling panel lighting
     # a diffuse room (with a chrome ball and a Principled table).
     "interior": CyclesScene(lambda b: b["build"]("interior")),
+    # A real glTF model of 82 meshes (Principled materials from the importer).
+    "engine": CyclesScene(engine_scene),
 }
 
 
@@ -340,8 +368,8 @@ def cycles_child(arguments, result_path):
     scene = bpy.context.scene
     timings = {}
 
-    def render(engine, name, axis, settings, label, seed=1, repeat=1):
-        use_renderer(scene, engine, axis, settings, seed)
+    def render(engine, name, axis, settings, label, seed=1, repeat=1, denoise=False):
+        use_renderer(scene, engine, axis, settings, seed, denoise)
         path = out / f"{name}-{label}.exr"
         scene.render.filepath = str(path)
         seconds = math.inf
@@ -369,6 +397,9 @@ def cycles_child(arguments, result_path):
             for engine, who in (order if axis % 2 else order[::-1]):
                 render(engine, name, axis, settings, f"{who}-{axis * axis}",
                        repeat=arguments["repeat"])
+                if arguments.get("denoise"):
+                    render(engine, name, axis, settings, f"{who}-denoised-{axis * axis}",
+                           repeat=arguments["repeat"], denoise=True)
         axis = arguments["reference_axis"]
         # Another seed: the reference's noise is independent of the sweep's.
         render("CYCLES", name, axis, settings, "cycles-reference", seed=2)
@@ -391,15 +422,19 @@ def build_scene(builders, name, width, height):
     r.image_settings.file_format, r.image_settings.color_depth = "OPEN_EXR", "32"
 
 
-def use_renderer(scene, engine, axis, settings, seed=1):
+def use_renderer(scene, engine, axis, settings, seed=1, denoise=False):
     """Make `engine` ("CYCLES" or "KDTRACE") render `scene` at axis x axis uniform samples and
     the light paths and pixel filter of `settings` as the comparison does (Cycles on the CPU
-    with every core, no denoising; KD Trace with one local slave, 32-pixel tiles)."""
+    with every core; KD Trace with one local slave, 32-pixel tiles); `denoise`: each as its F12
+    denoises by default (Open Image Denoise, albedo and normal, prefilter Accurate, quality
+    High), else neither denoises."""
     scene.render.engine = engine
     if engine == "CYCLES":
         c = scene.cycles
         c.device, c.samples, c.seed = "CPU", axis * axis, seed
-        c.use_adaptive_sampling = c.use_denoising = False
+        c.use_adaptive_sampling, c.use_denoising = False, denoise
+        c.denoiser, c.denoising_input_passes = "OPENIMAGEDENOISE", "RGB_ALBEDO_NORMAL"
+        c.denoising_prefilter, c.denoising_quality = "ACCURATE", "HIGH"
         scene.render.threads_mode = "AUTO"                   # every core
         for key, value in settings.items():
             setattr(c, CYCLES_NAMES.get(key, key), value)
@@ -407,6 +442,8 @@ def use_renderer(scene, engine, axis, settings, seed=1):
         props = scene.kdtrace
         props.use_zeroconf, props.local_slaves, props.tile_size = False, 1, 32
         props.samples_per_axis, props.adaptive, props.light_samples_per_axis = axis, False, 1
+        props.use_denoising = denoise
+        props.denoising_prefilter, props.denoising_quality = "ACCURATE", "HIGH"
         for key, value in settings.items():
             setattr(props, key, value)
 
@@ -414,9 +451,15 @@ def use_renderer(scene, engine, axis, settings, seed=1):
 def issue14_builders(out):
     """The scene-building functions of tests/bpy_scripts/cycles_scenes.py (issue 14's
     comparison scenes: build(name), material, add, floor, light, camera, world, clear ...),
-    without its render loop: the file's imports, constants and functions, run here."""
+    without its render loop."""
+    return script_functions("cycles_scenes.py", out)
+
+
+def script_functions(script, out):
+    """The imports, constants and functions of a script of tests/bpy_scripts/ (not what it
+    runs), run here with OUT = out."""
     import ast
-    path = ROOT / "tests" / "bpy_scripts" / "cycles_scenes.py"
+    path = ROOT / "tests" / "bpy_scripts" / script
     module = ast.parse(path.read_text())
     keep = [node for node in module.body
             if isinstance(node, (ast.Import, ast.ImportFrom, ast.FunctionDef))
@@ -472,7 +515,8 @@ def against_cycles(args):
     width, height, out = start_run(args)
     arguments = {"zip": str(build_extension(out / "dist")), "out": str(out), "width": width,
                  "height": height, "scenes": args.cycles_scenes, "kdtrace": {},
-                 "reference_axis": round(math.sqrt(args.reference_spp)), "repeat": args.repeat}
+                 "reference_axis": round(math.sqrt(args.reference_spp)), "repeat": args.repeat,
+                 "denoise": args.denoise}
     arguments["kdtrace"] = kdtrace_settings()
     result_path = out / "child-result.json"
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(without_trees_on_disk(out / "blender-user")),
@@ -485,10 +529,12 @@ def against_cycles(args):
     for name in args.cycles_scenes:
         reference = np.load(out / f"{name}-cycles-reference.npy")
         converged = np.load(out / f"{name}-kdtrace-converged.npy")
+        kinds = [("Cycles", "cycles"), ("KD Trace", "kdtrace")]
+        if args.denoise:
+            kinds += [(DENOISED_SERIES[series], f"{who}-denoised") for series, who in kinds]
         rows = [{"series": series, "spp": a * a, "seconds": timings[f"{name}-{who}-{a * a}"],
                  "psnr": psnr_db(np.load(out / f"{name}-{who}-{a * a}.npy"), reference)}
-                for a in SWEEP_AXES for series, who in (("Cycles", "cycles"),
-                                                        ("KD Trace", "kdtrace"))]
+                for a in SWEEP_AXES for series, who in kinds]
         floor = psnr_db(converged, reference)
         print(f"\n{name}: {width}x{height}, reference Cycles {args.reference_spp} spp "
               f"({timings[name + '-cycles-reference']:.1f} s); KD Trace at "
@@ -516,12 +562,54 @@ def against_cycles(args):
         report[name] = {"rows": rows, "kdtrace_floor_psnr": floor, "equal_error": equal,
                         "first_render_s": {w: timings[f"{name}-{w}-first"]
                                            for w in ("cycles", "kdtrace")}}
+        if args.denoise:
+            report[name].update(denoised_comparison(rows))
         panels[name] = rows
     plot(out / "image_error_cycles.png", panels, RENDERER_COLOURS)
     (out / "image_error_cycles.json").write_text(json.dumps(
         {"command": sys.argv, "size": [width, height], "reference_spp": args.reference_spp,
-         "scenes": report}, indent=1))
-    print(f"\nwrote {out / 'image_error_cycles.png'} and {out / 'image_error_cycles.json'}")
+         "load_average": os.getloadavg(), "scenes": report}, indent=1))
+    print(f"\nload average at the end {os.getloadavg()[0]:.1f}")
+    print(f"wrote {out / 'image_error_cycles.png'} and {out / 'image_error_cycles.json'}")
+
+
+def spp_for_psnr(rows, target):
+    """Samples per pixel to reach `target` dB along a sweep: PSNR linear in log samples between
+    neighbouring points; None outside them."""
+    return time_for_psnr([{"seconds": r["spp"], "psnr": r["psnr"], "spp": r["spp"]}
+                          for r in rows], target)
+
+
+def denoised_comparison(rows) -> dict:
+    """--denoise: both engines denoised, at TARGET_PSNRS: the time and samples each needs and
+    KD Trace / Cycles; and each engine's time to 35 dB with and without denoising. Printed as
+    tables; returned for the JSON."""
+    series = {name: [r for r in rows if r["series"] == name] for name in RENDERER_COLOURS}
+    equal = []
+    print("| PSNR dB | Cycles + OIDN s (spp) | KD Trace + OIDN s (spp) | KD Trace / Cycles |")
+    print("|---|---|---|---|")
+    for target in TARGET_PSNRS:
+        c, k = series["Cycles + OIDN"], series["KD Trace + OIDN"]
+        entry = {"psnr": target, "cycles_s": time_for_psnr(c, target),
+                 "kdtrace_s": time_for_psnr(k, target), "cycles_spp": spp_for_psnr(c, target),
+                 "kdtrace_spp": spp_for_psnr(k, target)}
+        entry["ratio"] = (entry["kdtrace_s"] / entry["cycles_s"]
+                          if entry["cycles_s"] and entry["kdtrace_s"] else None)
+        equal.append(entry)
+
+        def cell(s, spp):
+            return f"{s:.2f} ({spp:.0f})" if s else "out of the sweep"
+        print(f"| {target:.0f} | {cell(entry['cycles_s'], entry['cycles_spp'])} | "
+              f"{cell(entry['kdtrace_s'], entry['kdtrace_spp'])} | "
+              + (f"{entry['ratio']:.2f} |" if entry["ratio"] else "- |"))
+    to_35 = {name: time_for_psnr(rows_of, 35.0) for name, rows_of in series.items()}
+    print("| time to 35 dB | without denoising s | denoised s |")
+    print("|---|---|---|")
+    for engine in ("Cycles", "KD Trace"):
+        plain, denoised = to_35[engine], to_35[DENOISED_SERIES[engine]]
+        print(f"| {engine} | " + " | ".join(f"{t:.2f}" if t else "out of the sweep"
+                                            for t in (plain, denoised)) + " |")
+    return {"denoised_equal_error": equal, "time_to_35db": to_35}
 
 
 def main():
@@ -540,6 +628,8 @@ def main():
                         help="against Cycles: samples per pixel of the converged renders")
     parser.add_argument("--repeat", type=int, default=2,
                         help="against Cycles: renders per sweep point, the fastest counts")
+    parser.add_argument("--denoise", action="store_true",
+                        help="against Cycles: also each sweep point denoised by each engine")
     args = parser.parse_args()
     if args.against_cycles:
         args.out = args.out or str(ROOT / "bench" / "out" / "image_error_cycles")

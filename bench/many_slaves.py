@@ -14,6 +14,14 @@ time (time.process_time) is the master's own.
 
 Calibration (once, cached in bench/out/): the real tracer renders the bench frame with one PoCL
 thread at each tile size, timing every tile in CPU time.
+
+The master's denoising (issue 40): the master denoises a frame after its last tile, alone, so
+its time adds to the frame's at any S. --denoise-share times Open Image Denoise (core/denoise.py,
+Blender's library) on a 1920 x 1080 frame here, for each prefilter and quality, and puts it into
+the model's efficiency at 16 and 64 slaves (1920 x 1080 frames of the bench frame's cost per
+pixel, and of a given --denoise-spp):
+
+    flock /tmp/bench.lock .venv/bin/python bench/many_slaves.py --denoise-share [--json out.json]
 """
 from __future__ import annotations
 
@@ -237,6 +245,78 @@ def plot_png(path, rows) -> None:
     write_png(path, img)
 
 
+DENOISE_SIZE = (1920, 1080)
+DENOISE_COUNTS = (1, 16, 64)
+
+
+def denoise_seconds(width: int, height: int, repeat: int = 3) -> dict:
+    """Open Image Denoise's time on a width x height frame here, per (prefilter, quality): the
+    bench frame's image (the calibration's Combined, repeated to size) with a grey albedo and
+    its normals as guides; the fastest of `repeat` (the device is made before, as the master's
+    session keeps it)."""
+    from core.denoise import PREFILTERS, QUALITIES, Denoiser
+    image = Calibration.load(calibration_path()).image
+    reps = (-(-height // SIZE), -(-width // SIZE), 1)
+    colour = np.tile(image["combined"], reps)[:height, :width]
+    normal = np.tile(image["normal"], reps)[:height, :width]
+    albedo = np.full((height, width, 3), 0.6, np.float32)
+    seconds = {}
+    with Denoiser() as denoiser:
+        denoiser.denoise(colour[:64, :64], albedo[:64, :64], normal[:64, :64])
+        for prefilter in PREFILTERS[::-1]:
+            for quality in QUALITIES:
+                times = []
+                for _ in range(repeat):
+                    started = time.perf_counter()
+                    denoiser.denoise(colour, albedo, normal, prefilter=prefilter, quality=quality)
+                    times.append(time.perf_counter() - started)
+                seconds[f"{prefilter}/{quality}"] = min(times)
+                print(f"OIDN {width}x{height} {prefilter:8s} {quality:8s} {min(times):6.2f} s",
+                      flush=True)
+    return seconds
+
+
+def denoise_share(args) -> dict:
+    """--denoise-share (module docstring): the model's frame time tau_S of a 1920 x 1080 frame
+    (the calibrated frame's tile times scaled by the pixels, auto tile size, a link per slave,
+    Combined and the guides in f32: 40 bytes a pixel) with and without the master's denoising
+    at its default (prefilter Accurate, quality High) and fastest settings; efficiency
+    tau_1 / (S tau_S), the denoising in both."""
+    from core.net.master import auto_tile_size
+    width, height = DENOISE_SIZE
+    scale = width * height / (SIZE * SIZE)
+    calibration = Calibration.load(calibration_path())
+    seconds = denoise_seconds(width, height)
+    bpp = protocol.tile_bytes_per_pixel("f32", ["combined", "albedo", "denoising_normal"])
+    per_pixel_spp = SAMPLES_PER_AXIS ** 2
+    rows = []
+    for spp in (per_pixel_spp, args.denoise_spp):
+        for count in DENOISE_COUNTS:
+            edge = auto_tile_size((0, 0, SIZE, SIZE), count)[0]   # on the calibrated frame
+            size = min(TILE_SIZES, key=lambda s: abs(s - edge))
+            work = scale * spp / per_pixel_spp
+            tau = {s: model(calibration, (size, size), s, bpp, False) * work for s in (1, count)}
+            row = {"spp": spp, "S": count, "tile": size, "tau_s": tau[count]}
+            for setting in ("ACCURATE/HIGH", "FAST/FAST"):
+                dn = seconds[setting]
+                row[f"share {setting}"] = dn / (tau[count] + dn)
+                row[f"efficiency {setting}"] = (tau[1] + dn) / (count * (tau[count] + dn))
+            row["efficiency"] = tau[1] / (count * tau[count])
+            rows.append(row)
+            print(f"{spp:4d} spp S={count:2d} tile {size:3d}: frame {tau[count]:8.2f} s; "
+                  f"denoise share {row['share ACCURATE/HIGH'] * 100:5.1f} % (Accurate/High), "
+                  f"{row['share FAST/FAST'] * 100:5.1f} % (Fast/Fast); efficiency "
+                  f"{row['efficiency']:.3f} -> {row['efficiency ACCURATE/HIGH']:.3f} "
+                  f"({row['efficiency FAST/FAST']:.3f})", flush=True)
+    with open("/proc/loadavg") as handle:
+        load = handle.read().split()[:3]
+    out = {"command": " ".join([os.path.relpath(sys.executable, ROOT)] + sys.argv),
+           "machine": f"{platform.node()}, {os.cpu_count()} cores", "load_average": load,
+           "size": [width, height], "oidn_seconds": seconds, "rows": rows}
+    save(args.json, out)
+    return out
+
+
 def master_cost(scene, view, reps, ports) -> list:
     """The master's CPU per frame at 64 slaves (per-link) with 16, 64, 256 and 1024 tiles: a
     fixed part per frame and a part per tile (least squares)."""
@@ -398,6 +478,10 @@ def main():
     parser.add_argument("--calibrate", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--serve", nargs=2, type=int, help=argparse.SUPPRESS)
     parser.add_argument("--speeds", default="1")
+    parser.add_argument("--denoise-share", action="store_true",
+                        help="the master's denoising of a 1920 x 1080 frame in the efficiency")
+    parser.add_argument("--denoise-spp", type=int, default=256,
+                        help="with --denoise-share: also frames of this many samples a pixel")
     parser.add_argument("--network", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.table:
@@ -408,6 +492,8 @@ def main():
         return serve_slaves(*args.serve, [float(s) for s in args.speeds.split(",")])
     if args.network:
         return serve_network(args.network[0], [int(p) for p in args.network[1:]])
+    if args.denoise_share:
+        return denoise_share(args)
 
     counts = [int(c) for c in args.counts.split(",")]
     if missing_tile_sizes():

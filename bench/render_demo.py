@@ -7,7 +7,9 @@ local slaves (PoCL CPU device unless a GPU is found), writes the PNG and prints 
     .venv/bin/python bench/render_demo.py [--out bench/out/demo.png] [--width 960 --height 540] [--slaves 2] [--samples 4]
 
 The demo renders at most 4 x 4 samples per pixel (adaptive): the panel's defaults are Cycles'
-final-render ones (up to 64 x 64), minutes on two CPU cores instead of seconds.
+final-render ones (up to 64 x 64), minutes on two CPU cores instead of seconds. As with every
+F12 at the panel's defaults, the master denoises the finished image (Open Image Denoise, as
+Cycles; docs/denoising.md).
 
 Outputs go under bench/out/ by default, which git ignores and the extension zips leave out.
 """
@@ -75,6 +77,8 @@ def main():
     print(f"  kd-tree {report['tree_seconds']:7.2f} s  ({stats['nodes']:,} nodes, "
           f"{stats['bytes'] / 2**20:.1f} MiB)")
     print(f"  render  {report['render_seconds']:7.2f} s  (slave start-up included on the first render)")
+    if report.get("denoised"):
+        print(f"  of which denoising {report['denoise_seconds']:7.2f} s  ({report['denoise_note']})")
     print(f"  total   {wall:7.2f} s")
     from core.net.slave_colors import ansi_swatch, slave_color
     for name, count in sorted(report["tiles_per_slave"].items()):
