@@ -371,9 +371,16 @@ def check_invariants(tree, ct, triangle_count):
     assert np.isin(leaf_items, final_of_ref * T + ref_tri).all(), "a compact leaf gained a triangle"
     # Reference slots: (inner node on the path, triangle) pairs that some standard reference
     # below that node has.
-    slot_keys = np.unique(_slot_owner(ct, slot_pt, path_pt, path_node, slot_tri) * T + slot_tri)
-    allowed = np.unique(path_node_pairs(path_pt, path_node, ref_point, ref_tri, T))
-    assert np.isin(slot_keys, allowed).all(), "a reference slot holds a triangle not below it"
+    owners = _slot_owner(ct, slot_pt, path_pt, path_node, slot_tri)
+    slot_keys = np.unique(owners * T + slot_tri)
+    # Only pairs of nodes that hold slots can match: the others are not made (the dragon's
+    # pairs of every node on every path were 54 M keys to sort).
+    holds = np.zeros(len(ct.nodes), bool)
+    holds[owners] = True
+    keep = holds[path_node]
+    allowed = np.unique(path_node_pairs(path_pt[keep], path_node[keep], ref_point, ref_tri, T))
+    assert np.isin(slot_keys, allowed, assume_unique=True).all(), \
+        "a reference slot holds a triangle not below it"
 
     # Per-path limit: references met on the way to every cell.
     path_refs = np.bincount(slot_pt, minlength=len(leaves))
@@ -476,6 +483,23 @@ def test_nearest_hit_matches_brute_force(name, mode):
     assert np.isfinite(bt).sum() > len(bt) // 3, "the rays should hit often"
     assert np.array_equal(tri, btri), f"{(tri != btri).sum()} rays found another triangle"
     assert np.array_equal(t, bt)
+
+
+def test_invariants_find_a_slot_that_holds_a_triangle_not_below_it():
+    """The oracle can fail: a reference slot given a triangle from elsewhere (its empty second
+    slot filled, nothing lost) is found."""
+    vertices, triangles, corners, tree = scene("bunny")
+    ct = compact_tree(tree, len(triangles), "compressed")
+    w = ct.nodes[:, 0].astype(np.int64)
+    inner = np.flatnonzero(((w & 3) != LEAF_TAG) & ((w >> 2) & 1 == 1))
+    slots = ct.nodes[(w >> 5)[inner]]
+    one = inner[(slots[:, 1] == NO_TRIANGLE)][-1]           # a deep node with one slot used
+    nodes = ct.nodes.copy()
+    below = set(nodes[w[one] >> 5].tolist())
+    nodes[w[one] >> 5, 1] = next(t for t in range(len(triangles)) if t not in below)
+    ct.nodes = nodes
+    with pytest.raises(AssertionError, match="not below it"):
+        check_invariants(tree, ct, len(triangles))
 
 
 @pytest.mark.parametrize("mode", MODES)

@@ -62,3 +62,20 @@ def test_treelets_keep_groups_near_their_nodes():
     assert group_distance(treelet_order(ct)) < 0.05 * group_distance(ct)
     with pytest.raises(ValueError):
         treelet_order(ct, 0)
+
+
+def test_keys_sorted_in_pieces_give_the_order_of_one_sort(monkeypatch):
+    """treelet_order sorts its keys a piece at a time (so that Esc is heard between pieces):
+    the same tree as one sort, and the heartbeat called at every piece."""
+    from core.accel import reorder
+    corners, tree = scene("architecture")[2:]
+    ct = compact_tree(tree, len(corners), "compressed")
+    whole = treelet_order(ct)
+    monkeypatch.setattr(reorder, "SORT_PIECE", 64)
+    beats = []
+    pieces = treelet_order(ct, heartbeat=lambda: beats.append(1))
+    assert np.array_equal(whole.nodes, pieces.nodes)
+    assert np.array_equal(whole.leaf_index32, pieces.leaf_index32)
+    assert np.array_equal(whole.leaf_index16, pieces.leaf_index16)
+    inner = int((TAG.get(ct.nodes[:, 0].astype(np.int64)) != LEAF_TAG).sum())
+    assert len(beats) > min(inner // 64, 1 << 15)
