@@ -24,14 +24,15 @@ if not os.environ.get("KDTRACE_SLAVE_HOME"):
     os.environ["KDTRACE_SLAVE_HOME"] = tempfile.mkdtemp(prefix="kdtrace-test-slaves-")
     atexit.register(shutil.rmtree, os.environ["KDTRACE_SLAVE_HOME"], True)
 
-# The fast tier, `pytest -m "not slow"` (a few minutes, while working): these modules start
-# Blender, slave processes or network namespaces. .ci/run runs every test.
+# The fast tier, `pytest -m "not slow"` (under 3 minutes, while working): these modules start
+# Blender, slave processes or network namespaces, and a few long tests are marked slow where
+# they are. .ci/run runs every test.
 SLOW_MODULES = {
     "test_addon", "test_cycles_reference", "test_cycles_scenes", "test_degenerate_input",
     "test_export", "test_frame_denoise", "test_frame_session", "test_lan_first_render",
-    "test_netns", "test_network", "test_packaging", "test_real_files", "test_reliability",
-    "test_scale", "test_scene_deltas", "test_shading", "test_slave_install", "test_trust",
-    "test_viewport_blender", "test_viewport_session",
+    "test_netns", "test_network", "test_packaging", "test_passes_blender", "test_real_files",
+    "test_reliability", "test_scale", "test_scene_deltas", "test_shading", "test_slave_install",
+    "test_trust", "test_viewport_blender", "test_viewport_session",
 }
 
 

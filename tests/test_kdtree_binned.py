@@ -86,7 +86,8 @@ def sah_cost(tree, params=KDTreeParams()) -> float:
 # ---------------------------------------------------------------------------------------------
 # The definitions
 
-@pytest.mark.parametrize("name", list(ALL_SCENES))
+@pytest.mark.parametrize("name", [pytest.param(name, marks=pytest.mark.slow)  # 30 s
+                                  if name == "architecture" else name for name in ALL_SCENES])
 def test_leaves_hold_exactly_the_overlapping_triangles(builder, name):
     vertices, triangles = ALL_SCENES[name]()
     tree = builder.build(vertices, triangles)
@@ -256,6 +257,7 @@ def test_compaction_invariants_and_rays_match_brute_force(builder, name, mode):
     assert np.array_equal(tri, btri) and np.array_equal(t, bt)
 
 
+@pytest.mark.slow          # the full dragon: about 40 s
 def test_dragon_invariants_in_every_mode(builder):
     # The full dragon: the compaction's invariants in every mode (the leaves' own check is
     # brute force over every triangle and cell, for the smaller scenes above), and the kernels'
