@@ -96,16 +96,45 @@ class StandInTracer:
     def prepare(self, view, passes=()) -> None:
         pass
 
+    def calibration_for(self, view) -> Calibration:
+        """The Calibration that answers `view`'s tiles: the one given, whatever the view."""
+        return self.calibration
+
     def render_tile(self, view, x: int, y: int, w: int, h: int, passes=(), stop=None) -> dict:
-        ms = self.calibration.tile_ms.get((x, y, w, h))
+        calibration = self.calibration_for(view)
+        ms = calibration.tile_ms.get((x, y, w, h))
         if ms is None:
             raise ValueError(f"tile {(x, y, w, h)} was not calibrated (tile sizes: "
-                             f"{self.calibration.tile_sizes()})")
+                             f"{calibration.tile_sizes()})")
         end = time.monotonic() + ms / 1000.0 / self.speed
         while (left := end - time.monotonic()) > 0:     # stops between "launches", as the tracer
             if stop is not None and stop():
                 raise RenderStopped("stopped between launches")
             time.sleep(min(left, STOP_POLL_S))
-        x0, y0 = self.calibration.region[:2]
+        x0, y0 = calibration.region[:2]
         return {name: image[y - y0:y - y0 + h, x - x0:x - x0 + w].copy()
-                for name, image in self.calibration.image.items()}
+                for name, image in calibration.image.items()}
+
+
+def pass_key(view) -> tuple:
+    """What tells a view's passes apart for PassStandInTracer: (width, height, samples per
+    axis)."""
+    return (view.width, view.height, view.settings.samples_per_axis)
+
+
+class PassStandInTracer(StandInTracer):
+    """A StandInTracer for frames of several sizes and sample counts (the viewport's passes):
+    one Calibration per pass_key, each the real tracer's frame of one view at that size and
+    those samples. Any view of that size and those samples is answered from it (its camera
+    is not looked at)."""
+
+    def __init__(self, calibrations: dict, speed: float = 1.0, name: str = "stand-in"):
+        super().__init__(next(iter(calibrations.values())), speed, name)
+        self.calibrations = dict(calibrations)
+
+    def calibration_for(self, view) -> Calibration:
+        calibration = self.calibrations.get(pass_key(view))
+        if calibration is None:
+            raise ValueError(f"no calibration for a {pass_key(view)} frame (width, height, "
+                             f"samples per axis); calibrated: {sorted(self.calibrations)}")
+        return calibration
