@@ -42,7 +42,8 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from bench.network_scaling import bench_scene, simulate  # noqa: E402
-from bench.standin import Calibration, StandInTracer, calibrate  # noqa: E402
+from bench.standin import (Calibration, HostProcess, StandInTracer, calibrate,  # noqa: E402
+                           serve_tracers)
 from core.net import protocol  # noqa: E402
 from core.net.master import Master  # noqa: E402
 from core.net.tiles import TileGrid  # noqa: E402
@@ -98,23 +99,10 @@ def run_calibration() -> None:
 # -- child processes: slave hosts and the network
 
 def serve_slaves(count: int, first: int, speeds: list) -> None:
-    """Host `count` stand-in slaves; print their ports; run until stdin closes."""
-    from slave.server import SlaveServer
-    import logging
-    logging.basicConfig(level=logging.WARNING)
     calibration = Calibration.load(calibration_path())
-    servers = []
-    for i in range(count):
-        speed = speeds[(first + i) % len(speeds)]
-        server = SlaveServer(StandInTracer(calibration, speed, f"standin-{first + i}"),
-                             f"standin-{first + i}", bind="127.0.0.1", port=0,
-                             secret=bench_farm())
-        server.start()
-        servers.append(server)
-    print(json.dumps([s.address[1] for s in servers]), flush=True)
-    sys.stdin.read()
-    for server in servers:
-        server.close()
+    serve_tracers({f"standin-{i}": StandInTracer(calibration, speeds[i % len(speeds)],
+                                                 f"standin-{i}")
+                   for i in range(first, first + count)})
 
 
 def serve_network(kind: str, ports: list) -> None:
@@ -127,23 +115,6 @@ def serve_network(kind: str, ports: list) -> None:
     sys.stdin.read()
     for link in links:
         link.close()
-
-
-class Child:
-    def __init__(self, *args):
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.proc = subprocess.Popen([sys.executable, __file__, *args], cwd=ROOT, env=env,
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-        self.ports = json.loads(self.proc.stdout.readline())
-
-    def cpu_seconds(self) -> float:
-        """CPU time of the child so far (user + system, from /proc)."""
-        fields = pathlib.Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-    def close(self) -> None:
-        self.proc.stdin.close()
-        self.proc.wait(30)
 
 
 # -- the master's side
@@ -402,8 +373,8 @@ def mixed_speeds(scene, view, reps, count=16) -> list:
     here: the ideal time (all work spread in proportion to speed) over the measured."""
     speeds = [1.0, 3.0]
     calibration = Calibration.load(calibration_path())
-    host = Child("--serve", str(count), "0", "--speeds", ",".join(map(str, speeds)))
-    network = Child("--network", "link", *map(str, host.ports))
+    host = HostProcess(__file__, "--serve", count, 0, "--speeds", ",".join(map(str, speeds)))
+    network = HostProcess(__file__, "--network", "link", *map(str, host.ports))
     rows = []
     try:
         total_speed = sum(speeds[i % 2] for i in range(count))
@@ -509,11 +480,11 @@ def main():
     print(json.dumps(out), flush=True)
     most = max(counts)
     per_host = -(-most // args.hosts)
-    hosts = [Child("--serve", str(min(per_host, most - i)), str(i), "--speeds", args.speeds)
+    hosts = [HostProcess(__file__, "--serve", min(per_host, most - i), i, "--speeds", args.speeds)
              for i in range(0, most, per_host)]
     ports = [p for host in hosts for p in host.ports]
     if args.profile:
-        network = Child("--network", "link", *map(str, ports))
+        network = HostProcess(__file__, "--network", "link", *map(str, ports))
         try:
             size = args.profile if args.profile == "auto" else int(args.profile)
             return profile_loop(network.ports, scene, view, args.reps, size)
@@ -528,7 +499,7 @@ def main():
     rows, base = [], None
     try:
         for kind in ("link", "shared"):
-            network = Child("--network", kind, *map(str, ports))
+            network = HostProcess(__file__, "--network", kind, *map(str, ports))
             try:
                 for count in counts:
                     if kind == "shared" and count == 1:

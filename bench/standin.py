@@ -13,7 +13,11 @@ the tile's window, so the server encodes and sends the same bytes a real slave w
 """
 from __future__ import annotations
 
+import json
+import os
 import pathlib
+import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -138,3 +142,43 @@ class PassStandInTracer(StandInTracer):
             raise ValueError(f"no calibration for a {pass_key(view)} frame (width, height, "
                              f"samples per axis); calibrated: {sorted(self.calibrations)}")
         return calibration
+
+
+# -- host processes: many stand-in slaves (and the emulated network) in a few processes
+
+def serve_tracers(tracers: dict) -> None:
+    """In a host process: a SlaveServer on loopback for each name -> tracer, with the bench's
+    farm secret; prints their ports as one JSON line, serves until stdin closes."""
+    from bench.farm import bench_farm
+    from slave.server import SlaveServer
+    servers = []
+    for name, tracer in tracers.items():
+        server = SlaveServer(tracer, name, bind="127.0.0.1", port=0, secret=bench_farm())
+        server.start()
+        servers.append(server)
+    print(json.dumps([s.address[1] for s in servers]), flush=True)
+    sys.stdin.read()
+    for server in servers:
+        server.close()
+
+
+class HostProcess:
+    """A child process `script args...` that prints its ports as one JSON line (serve_tracers,
+    the network emulation) and runs until its stdin closes."""
+
+    def __init__(self, script, *args):
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        root = pathlib.Path(__file__).resolve().parent.parent
+        self.proc = subprocess.Popen([sys.executable, str(script), *map(str, args)], cwd=root,
+                                     env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     text=True)
+        self.ports = json.loads(self.proc.stdout.readline())
+
+    def cpu_seconds(self) -> float:
+        """CPU time of the child so far (user + system, from /proc)."""
+        fields = pathlib.Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        self.proc.wait(30)

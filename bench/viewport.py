@@ -39,7 +39,6 @@ servers and the links run on this machine's cores beside the master (the run pri
 time during the orbit).
 """
 import argparse
-import json
 import os
 import pathlib
 import statistics
@@ -220,43 +219,19 @@ def serve_standins(count, first, args) -> None:
     """--serve-standins: host `count` stand-in slaves of --scenes[0]'s calibrations; print
     their ports; run until stdin closes (as bench/many_slaves.py's hosts)."""
     import logging
-    from bench.farm import bench_farm
-    from bench.standin import Calibration, PassStandInTracer
-    from slave.server import SlaveServer
+    from bench.standin import Calibration, PassStandInTracer, serve_tracers
     logging.basicConfig(level=logging.WARNING)
     calibrations = {key: Calibration.load(path)
                     for key, path in standin_calibrations(args.scenes[0], args).items()}
-    servers = []
-    for i in range(first, first + count):
-        server = SlaveServer(PassStandInTracer(calibrations, 1.0, f"standin-{i}"),
-                             f"standin-{i}", bind="127.0.0.1", port=0, secret=bench_farm())
-        server.start()
-        servers.append(server)
-    print(json.dumps([s.address[1] for s in servers]), flush=True)
-    sys.stdin.read()
-    for server in servers:
-        server.close()
+    serve_tracers({f"standin-{i}": PassStandInTracer(calibrations, 1.0, f"standin-{i}")
+                   for i in range(first, first + count)})
 
 
-class StandInHost:
+def standin_host(count, first, name, args):
     """A child process of this script hosting stand-in slaves (--serve-standins)."""
-
-    def __init__(self, count, first, name, args):
-        command = [sys.executable, __file__, "--serve-standins", str(count), str(first),
-                   "--scenes", name, "--width", str(args.width), "--height", str(args.height),
-                   "--samples", str(args.samples)]
-        self.proc = subprocess.Popen(command, cwd=ROOT, stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True,
-                                     env=dict(os.environ, PYTHONUNBUFFERED="1"))
-        self.ports = json.loads(self.proc.stdout.readline())
-
-    def cpu_seconds(self) -> float:
-        from bench.many_slaves import Child
-        return Child.cpu_seconds(self)
-
-    def close(self) -> None:
-        self.proc.stdin.close()
-        self.proc.wait(30)
+    from bench.standin import HostProcess
+    return HostProcess(__file__, "--serve-standins", count, first, "--scenes", name,
+                       "--width", args.width, "--height", args.height, "--samples", args.samples)
 
 
 def standin_options(endpoints) -> FrameOptions:
@@ -270,7 +245,8 @@ def standin_figures(name, exported, centre, radius, args, session) -> list:
     """The orbit through each --standin count of stand-in slaves, each count on slaves and
     links of its own (every slave gets the scene anew); the kd-tree is built before (the
     first image is then connect, upload and the first pass)."""
-    from bench.many_slaves import Child
+    from bench.standin import HostProcess
+    many_slaves = ROOT / "bench" / "many_slaves.py"
     if not all(path.exists() for path in standin_calibrations(name, args).values()):
         subprocess.run([sys.executable, __file__, "--calibrate-standin", "--scenes", name,
                         "--width", str(args.width), "--height", str(args.height),
@@ -283,10 +259,10 @@ def standin_figures(name, exported, centre, radius, args, session) -> list:
         network = None
         try:
             for first in range(0, count, per_host):
-                hosts.append(StandInHost(min(per_host, count - first), first, name, args))
+                hosts.append(standin_host(min(per_host, count - first), first, name, args))
             ports = [port for host in hosts for port in host.ports]
             if args.link == "link":
-                network = Child("--network", "link", *map(str, ports))
+                network = HostProcess(many_slaves, "--network", "link", *ports)
                 ports = network.ports
             options = standin_options([("127.0.0.1", port) for port in ports])
             children = hosts + ([network] if network else [])
