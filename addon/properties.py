@@ -114,6 +114,11 @@ class KDTraceRenderSettings(bpy.types.PropertyGroup):
         "decides (0: automatic, as Cycles: 64 at a Noise Threshold of 0.01)",
         default=RENDER.adaptive_min_samples, min=LIMITS["adaptive_min_samples"][0],
         max=LIMITS["adaptive_min_samples"][1])
+    undersample: BoolProperty(
+        name="Undersample", description="With adaptive sampling, trace every other pixel "
+        "first and fill a pixel between converged neighbours that agree with their average "
+        "(fewer samples than Cycles at the same threshold, a little more error)",
+        default=RENDER.undersample)
     max_bounces: IntProperty(
         name="Total", description="Total maximum number of bounces",
         default=RENDER.max_bounces, min=LIMITS["max_bounces"][0], max=LIMITS["max_bounces"][1])

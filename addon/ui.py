@@ -50,6 +50,7 @@ class RENDER_PT_kdtrace_sampling(KDTracePanel, bpy.types.Panel):
         sub = col.column(align=True)
         sub.active = settings.adaptive
         sub.prop(settings, "adaptive_min_samples")
+        sub.prop(settings, "undersample")
         layout.label(text=f"{settings.samples_per_axis ** 2} samples at most")
         layout.prop(settings, "light_samples_per_axis")
         layout.prop(settings, "seed")

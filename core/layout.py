@@ -448,7 +448,7 @@ ACCUM = Record("ACCUM", "A pixel's colour accumulator (accum buffer, by tile pix
     Slot("color", 0, "xyz", "sum of the samples' RGB"),
     Slot("samples", 0, "w", "number of samples"),
     Slot("alpha", 1, "x", "sum of the samples' alpha"),
-    Slot("half", 1, "yzw", "sum of the RGB of the samples of odd bit count (Cycles' adaptive half buffer)"),
+    Slot("half", 1, "yzw", "sum of the RGB of Cycles' class A samples (its adaptive half buffer)"),
 ))
 
 # The passes beside the image (kernels/shade/film.cl; finished by slave/film.py): a pixel's

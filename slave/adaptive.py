@@ -1,5 +1,5 @@
 """How the samples of a tile are spent (docs/shading.md): N x N everywhere, or adaptively as
-Cycles does (its minimum, then 16 more at a time where pixels are still noisy), with
+Cycles does (its minimum, then 16 more at a time where pixels are still noisy), optionally with
 undersampling of smooth regions.
 
 The policy runs against a `tile` that traces and holds the tile's accumulators on the device:
@@ -36,8 +36,12 @@ def sample_tile(tile, settings, x: int, y: int, w: int, h: int, every: np.ndarra
         tile.run(every, 0, total, 1)
         return
     threshold = THRESHOLD_SCALE * settings.noise_threshold
-    tile.run(every, 0, 0, 1)                     # depth and normal of every pixel
-    active = _undersample(tile, x, y, w, h, count, settings.noise_threshold, threshold)
+    if settings.undersample:
+        tile.run(every, 0, 0, 1)                 # depth and normal of every pixel
+        active = _undersample(tile, x, y, w, h, count, settings.noise_threshold, threshold)
+    else:
+        tile.run(every, 0, count, 1)             # the minimum, depth and normal
+        active = every
     while count < total and len(active):
         batch = min(ADAPTIVE_STEP, total - count)
         tile.run(active, count, batch, 0)
@@ -113,7 +117,8 @@ def pixel_rgba(accum: np.ndarray) -> np.ndarray:
 def pixel_error(accum: np.ndarray, w: int, h: int, neighbours: bool = True) -> np.ndarray:
     """Per pixel, Cycles' noise estimate (film_adaptive_sampling_convergence_check): the
     difference between the mean of all its samples and twice the mean of the stratified
-    half, summed over RGB, over 1e-4 + the square root of the mean's RGB sum. With
+    half, summed over RGB, over 1e-4 + the square root of the mean's RGB sum, or the sum
+    itself where it is 1 or more (Cycles: bright pixels, near or past white, need less). With
     `neighbours`, as Cycles' filter after each check, a pixel counts as noisy where one of its
     8 neighbours in the tile is (what a check finds noisy at an edge is refined on both
     sides)."""
@@ -122,7 +127,8 @@ def pixel_error(accum: np.ndarray, w: int, h: int, neighbours: bool = True) -> n
     total = ACCUM.get(records, "color")
     difference = np.abs(total - 2.0 * ACCUM.get(records, "half")).sum(1) / count[:, 0]
     intensity = np.maximum((total / count).sum(1), 0.0)
-    error = (difference / (1e-4 + np.sqrt(intensity))).reshape(h, w)
+    scale = np.where(intensity < 1.0, np.sqrt(intensity), intensity)
+    error = (difference / (1e-4 + scale)).reshape(h, w)
     if neighbours:
         rows = error.copy()
         rows[1:] = np.maximum(rows[1:], error[:-1])

@@ -1,7 +1,7 @@
 """slave/adaptive.py's schedule, as Cycles' adaptive sampling: the minimum, then 16 samples at a
-time while a pixel's noise (Cycles' estimate: all samples against the half of odd bit count) or a
-neighbour's exceeds 5 x the Noise Threshold; smooth pixels between converged ones are
-interpolated. Run against a tile on the host whose pixels have known noise."""
+time while a pixel's noise (Cycles' estimate: all samples against its class A half) or a
+neighbour's exceeds 5 x the Noise Threshold; with undersampling, smooth pixels between converged
+ones are interpolated. Run against a tile on the host whose pixels have known noise."""
 from __future__ import annotations
 
 import math
@@ -16,7 +16,7 @@ from slave.adaptive import ADAPTIVE_STEP, THRESHOLD_SCALE, LaunchPlan, pixel_err
 class NoisyTile:
     """A w x h tile whose pixel p's samples are mean[p] + spread[p] x (+1 or -1 by the
     sample's half and the pixel), grey, accumulated as the kernel does (ACCUM: the half of
-    samples of odd bit count, render.cl)."""
+    Cycles' class A samples, render.cl)."""
 
     def __init__(self, mean, spread):
         self.mean, self.spread = np.ravel(mean), np.ravel(spread)
@@ -26,7 +26,7 @@ class NoisyTile:
         records = self.accum.reshape(len(self.accum), ACCUM.size, 4)
         for p in pixels:
             for s in range(start, start + count):
-                in_half = bin(s).count("1") % 2
+                in_half = class_a(s)
                 sign = 1.0 if (in_half + p) % 2 else -1.0
                 c = self.mean[p] + self.spread[p] * sign
                 record = records[p]
@@ -46,6 +46,17 @@ class NoisyTile:
         return ACCUM.get(self.accum.reshape(len(self.accum), ACCUM.size, 4), "samples").reshape(h, w)
 
 
+def class_a(sample: int) -> int:
+    """Cycles' sample_is_class_A: the sample's odd bits have an odd count."""
+    return bin(sample & 0xAAAAAAAA).count("1") % 2
+
+
+def test_class_a_is_half_of_every_aligned_four_in_pairs():
+    for start in range(0, 1024, 4):
+        quad = [class_a(s) for s in range(start, start + 4)]
+        assert sum(quad) == 2 and quad[0] == quad[1] and quad[2] == quad[3]
+
+
 def render(mean, spread, **settings):
     h, w = np.shape(mean)
     tile = NoisyTile(mean, spread)
@@ -62,28 +73,34 @@ def test_automatic_minimum_is_cycles():
 
 
 def test_noise_estimate_is_cycles_half_buffer():
-    """One pixel of 32 samples whose half's samples are brighter: (|sum - 2 half| summed over
-    RGB) / n over 1e-4 + sqrt(mean's RGB sum)."""
-    tile = NoisyTile([[0.5]], [[0.1]])
-    tile.run([0], 0, 32, 0)
-    expected = 3 * abs(16 * 0.6 + 16 * 0.4 - 2 * 16 * 0.6) / 32 / (1e-4 + math.sqrt(3 * 0.5))
-    assert math.isclose(pixel_error(tile.read(), 1, 1)[0], expected, rel_tol=1e-5)
+    """A pixel of 32 samples whose half's samples are brighter: (|sum - 2 half| summed over
+    RGB) / n over 1e-4 + sqrt(mean's RGB sum) where that sum is below 1, else over 1e-4 + the
+    sum itself (Cycles' film_adaptive_sampling_convergence_check)."""
+    for mean, spread, scale in ((0.2, 0.05, math.sqrt(3 * 0.2)), (0.5, 0.1, 3 * 0.5)):
+        tile = NoisyTile([[mean]], [[spread]])
+        tile.run([0], 0, 32, 0)
+        bright = 16 * (mean + spread)
+        expected = 3 * abs(bright + 16 * (mean - spread) - 2 * bright) / 32 / (1e-4 + scale)
+        assert math.isclose(pixel_error(tile.read(), 1, 1)[0], expected, rel_tol=1e-5)
 
 
 def test_clean_pixels_stop_at_the_first_check_noisy_ones_and_their_neighbours_go_on():
     h, w = 8, 8
     spread = np.zeros((h, w))
     spread[4, 4] = 0.3                      # one noisy pixel
-    samples = render(np.full((h, w), 0.5), spread, samples_per_axis=16, adaptive_min_samples=16,
-                     adaptive_threshold=0.01)
     first_check = 16 + ADAPTIVE_STEP
-    assert samples[4, 4] == 256                         # never converges: up to the max
-    assert (samples[3:6, 3:6] > first_check).all()      # its 8 neighbours follow it
     far = np.ones((h, w), bool)
     far[3:6, 3:6] = False
-    # Clean pixels: converged after the minimum and one step, or interpolated (1 sample).
-    assert set(np.unique(samples[far])) <= {1.0, float(first_check)}
-    assert (samples[far] == 1).any() and (samples[far] == first_check).any()
+    for undersample in (False, True):
+        samples = render(np.full((h, w), 0.5), spread, samples_per_axis=16,
+                         adaptive_min_samples=16, adaptive_threshold=0.01, undersample=undersample)
+        assert samples[4, 4] == 256                         # never converges: up to the max
+        assert (samples[3:6, 3:6] > first_check).all()      # its 8 neighbours follow it
+        if not undersample:     # as Cycles: every clean pixel stops at the first check
+            assert (samples[far] == first_check).all()
+        else:                   # or it is interpolated from its neighbours (1 sample)
+            assert set(np.unique(samples[far])) <= {1.0, float(first_check)}
+            assert (samples[far] == 1).any() and (samples[far] == first_check).any()
 
 
 def test_threshold_is_five_times_the_noise_threshold():
@@ -172,10 +189,12 @@ def test_sampling_cut_into_launches_gives_the_same_bits():
 
     rng = np.random.default_rng(5)
     mean, spread = rng.uniform(0.1, 1.0, (12, 10)), rng.uniform(0.0, 0.4, (12, 10))
-    settings = RenderSettings(samples_per_axis=8, adaptive_min_samples=8, adaptive_threshold=0.02)
-    whole = NoisyTile(mean, spread)
-    sample_tile(whole, settings, 0, 0, 10, 12, np.arange(120))
-    for budget in (1, 7, 100, 10_000):
-        cut = Launched(mean, spread, budget)
-        sample_tile(cut, settings, 0, 0, 10, 12, np.arange(120))
-        assert cut.accum.tobytes() == whole.accum.tobytes()
+    for undersample in (False, True):
+        settings = RenderSettings(samples_per_axis=8, adaptive_min_samples=8,
+                                  adaptive_threshold=0.02, undersample=undersample)
+        whole = NoisyTile(mean, spread)
+        sample_tile(whole, settings, 0, 0, 10, 12, np.arange(120))
+        for budget in (1, 7, 100, 10_000):
+            cut = Launched(mean, spread, budget)
+            sample_tile(cut, settings, 0, 0, 10, 12, np.arange(120))
+            assert cut.accum.tobytes() == whole.accum.tobytes()

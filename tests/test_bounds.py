@@ -303,10 +303,19 @@ def view_dict(**changes) -> dict:
     ({"settings": {"samples_per_axis": 2 ** 32}}, "samples_per_axis"),
     ({"settings": {"seed": 2 ** 31}}, "seed"),
     ({"settings": {"light_samples_per_axis": 2 ** 32 - 1}}, "light_samples_per_axis"),
+    ({"settings": {"undersample": 1}}, "undersample must be true or false"),
+    ({"settings": {"adaptive": "yes"}}, "adaptive must be true or false"),
+    ({"settings": {"undersampling": True}}, "unknown render settings"),
 ])
 def test_view_numbers_past_their_caps_are_refused(changes, match):
     with pytest.raises(SceneError, match=match):
         View.from_dict(view_dict(**changes))
+
+
+def test_switches_travel_with_the_view():
+    d = view_dict(settings=dict(RenderSettings(undersample=True, adaptive=False).to_dict()))
+    settings = View.from_dict(d).settings
+    assert settings.undersample and not settings.adaptive
 
 
 def test_the_caps_keep_the_kernels_32_bit_indices_exact():

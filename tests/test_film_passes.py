@@ -87,7 +87,7 @@ def test_adaptive_sampling_divides_by_each_pixels_samples_and_fills_skipped_pixe
     view = view_of((0, -3, 3), (0, 0, 0), shading([material((0.8, 0.2, 0.1))], (0.5, 0.5, 0.5)),
                    size=16)
     view.settings = RenderSettings(samples_per_axis=8, adaptive=True, adaptive_threshold=0.5,
-                                   adaptive_min_samples=4)
+                                   adaptive_min_samples=4, undersample=True)
     passes = tracer.render_tile(view, 0, 0, 16, 16, GUIDES)
     assert tracer.last_render["samples"] < 16 * 16 * 64      # it stopped early somewhere
     np.testing.assert_allclose(passes["albedo"], np.broadcast_to([0.8, 0.2, 0.1], (16, 16, 3)),

@@ -378,7 +378,9 @@ def test_launches_of_any_size_give_the_same_bits_and_stop_between_them(tracer, m
     for settings in (RenderSettings(samples_per_axis=1, adaptive=False),
                      RenderSettings(samples_per_axis=3, adaptive=False, light_samples_per_axis=2),
                      RenderSettings(samples_per_axis=6, adaptive=True, adaptive_min_samples=4,
-                                    adaptive_threshold=0.05)):
+                                    adaptive_threshold=0.05),
+                     RenderSettings(samples_per_axis=6, adaptive=True, adaptive_min_samples=4,
+                                    adaptive_threshold=0.05, undersample=True)):
         view.settings = settings
         monkeypatch.setattr(tracer_module, "FIRST_LAUNCH_RAYS", 1 << 62)
         monkeypatch.setattr(tracer_module, "MAX_LAUNCH_RAYS", 1 << 62)

@@ -138,12 +138,12 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
         ACCUM_COLOR(sum) += c;
         ACCUM_SAMPLES(sum) += 1.0f;
         ACCUM_ALPHA(sum) += alpha;
-        // Half of the samples, for the adaptive noise estimate: those of odd bit count, one
-        // of every two consecutive samples and a diagonal pair of every aligned four, so with
-        // the progressive strata this half stays stratified and a pixel's gradient cancels
-        // (Cycles' class A; Christensen et al. 2018, 10.2.1). The odd-numbered samples were
-        // the pixel's upper half: an edge across the pixel read as noise that never ended.
-        if (popcount(s) & 1u)
+        // Half of the samples, for the adaptive noise estimate: Cycles' class A
+        // (sample_is_class_A), the samples whose odd bits have an odd count: pairs of
+        // consecutive samples, half of every aligned four, so each half of a pixel's
+        // stratified sequence stays stratified (Christensen et al. 2018, 10.2.1) and a gradient
+        // across the pixel cancels rather than reading as noise.
+        if (popcount(s & 0xAAAAAAAAu) & 1u)
             ACCUM_HALF(sum) += c;
     }
     for (int k = 0; k < ACCUM_SIZE; ++k)
@@ -188,7 +188,7 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
 // Sample `sample_start + k` (k < sample_count) of each listed pixel. strata n > 0: sample s
 // lies in stratum progressive_stratum(s, n) of an n x n grid, jittered; n == 0: the pixel
 // centre (one sample). pixels[i]: tile-local index (row * tile_w + column).
-// accum: ACCUM records (sums of RGB and alpha, the sample count, the RGB of the samples of odd bit count).
+// accum: ACCUM records (sums of RGB and alpha, the sample count, the RGB of Cycles' class A samples).
 // write_aux: also write the depth and normal passes (from the pixel-centre ray).
 // film (HAS_FILM): FILM records, the sums of the other passes the frame asks for (film.cl).
 // With RENDER_PIXEL_QUEUE (CPU devices) a few work-items take the pixels in turn from the
