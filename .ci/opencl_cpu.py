@@ -4,7 +4,8 @@ import pathlib
 import sys
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent))
-from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, select_device  # noqa: E402
+from kdtrace.core.opencl import (OpenCLError, Programs, ensure_pocl_cache_dir,  # noqa: E402
+                                 select_device)
 
 ensure_pocl_cache_dir()
 import pyopencl as cl  # noqa: E402

@@ -21,7 +21,8 @@ def run_command(argv: list) -> int:
     """The `kdtrace_slave` command: the standalone slave with these arguments, as a child process
     (the add-on never imports the slave), until it ends; SIGTERM and Ctrl-C stop it."""
     env = slave_environment(KDTRACE_SLAVE_PROG=f"blender --background --command {COMMAND}")
-    process = subprocess.Popen([sys.executable, "-m", "slave", *argv], cwd=EXTENSION_ROOT, env=env)
+    process = subprocess.Popen([sys.executable, "-m", "kdtrace.slave", *argv], cwd=EXTENSION_ROOT,
+                               env=env)
     previous = {}
     for name in ("SIGTERM", "SIGINT"):
         number = getattr(signal, name)

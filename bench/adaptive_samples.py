@@ -45,11 +45,11 @@ def write_png(path, grey):
 
 def kdtrace_samples(export_path):
     """KD Trace's samples per pixel (each 8 x 8 tile's mean) and render seconds."""
-    from core.accel.compact import compact_tree
-    from core.accel.binned import build_standard
-    from core.frame.exported import load_export
-    from core.scene.scene import Scene
-    from slave.tracer import Tracer
+    from kdtrace.core.accel.compact import compact_tree
+    from kdtrace.core.accel.binned import build_standard
+    from kdtrace.core.frame.exported import load_export
+    from kdtrace.core.scene.scene import Scene
+    from kdtrace.slave.tracer import Tracer
     exported, view = load_export(export_path)
     [geometry] = exported.meshes
     tree, builder = build_standard(geometry.vertices, geometry.triangles, "cpu")

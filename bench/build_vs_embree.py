@@ -93,8 +93,8 @@ def warm_up(builder, mode):
     """Compile every kernel variant the timed runs launch (PoCL compiles a kernel at its first
     launch of each work-group size, offset and size class): a sphere of 8,064 triangles, then
     one of 158,001 with a degenerate triangle, its launches in small pieces."""
-    import core.accel.binned as binned
-    from core.accel.compact import compact_tree
+    import kdtrace.core.accel.binned as binned
+    from kdtrace.core.accel.compact import compact_tree
     from tests.meshes import uv_sphere
     ball = uv_sphere(64, 64)
     compact_tree(builder.build(*ball), len(ball[1]), mode, device=builder)
@@ -110,17 +110,17 @@ def warm_up(builder, mode):
 
 def build_ours(builder, vertices, triangles, mode, progress=None):
     """The master's work on a mesh: build, compaction, treelets (TreeCache.get's steps)."""
-    from core.accel.compact import compact_tree
-    from core.accel.reorder import treelet_order
+    from kdtrace.core.accel.compact import compact_tree
+    from kdtrace.core.accel.reorder import treelet_order
     tree = builder.build(vertices, triangles, progress=progress)
     ct = compact_tree(tree, len(triangles), mode, device=builder, progress=progress)
     return tree, ct, treelet_order(ct, heartbeat=lambda: progress and progress(1.0, "treelets"))
 
 
 def stage_ours(name, mode):
-    from core.accel.binned import BinnedBuilder
-    from core.accel.compact import compact_tree
-    from core.accel.reorder import treelet_order
+    from kdtrace.core.accel.binned import BinnedBuilder
+    from kdtrace.core.accel.compact import compact_tree
+    from kdtrace.core.accel.reorder import treelet_order
     vertices, triangles = load_scene(name)
     mesh_mb = peak_mb()
     builder = BinnedBuilder("cpu")
@@ -153,12 +153,12 @@ def stage_embree(name):
 
 
 def stage_profile(name, mode):
-    from core.accel.binned import BinnedBuilder
+    from kdtrace.core.accel.binned import BinnedBuilder
     vertices, triangles = load_scene(name)
     builder = BinnedBuilder("cpu", profile_kernels=True)
     warm_up(builder, mode)
     builder.kernel_times()
-    from core.accel.compact import compact_tree
+    from kdtrace.core.accel.compact import compact_tree
     tree, wall, cpu = timed(lambda: builder.build(vertices, triangles))
     out = {"build": {"wall": wall, "cpu": cpu, "kernels": builder.kernel_times()}}
     _, wall, cpu = timed(lambda: compact_tree(tree, len(triangles), mode, device=builder))
@@ -167,21 +167,21 @@ def stage_profile(name, mode):
 
 
 def scene_of(vertices, triangles, tree):
-    from core.scene.model import Geometry
-    from core.scene.scene import Scene
+    from kdtrace.core.scene.model import Geometry
+    from kdtrace.core.scene.scene import Scene
     return Scene.from_parts(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)),
                             tree)
 
 
 def stage_load(name, mode, tree_path=None):
     """A slave's load of the scene (from_wire's checks and the upload), best of 3."""
-    from core.scene.scene import Scene
-    from slave.tracer import Tracer
+    from kdtrace.core.scene.scene import Scene
+    from kdtrace.slave.tracer import Tracer
     vertices, triangles = load_scene(name)
     if tree_path:
         tree = _read_tree(tree_path)
     else:
-        from core.accel.binned import BinnedBuilder
+        from kdtrace.core.accel.binned import BinnedBuilder
         tree = build_ours(BinnedBuilder("cpu"), vertices, triangles, mode)[2]
     arrays = scene_of(vertices, triangles, tree).wire_arrays()
     tracer, times = Tracer("cpu"), []
@@ -198,9 +198,9 @@ def stage_render(name, mode, rounds, size, before_tree):
     in treelets), the same rays, one PoCL thread; best process CPU time of each."""
     from bench.kdtree_tables import table3_view
     from bench.ray_kinds import embree_scene, ours_query, scene_rays
-    from core.accel.binned import BinnedBuilder
-    from core.accel.reorder import treelet_order
-    from slave.tracer import Tracer
+    from kdtrace.core.accel.binned import BinnedBuilder
+    from kdtrace.core.accel.reorder import treelet_order
+    from kdtrace.slave.tracer import Tracer
     vertices, triangles = load_scene(name)
     ours = build_ours(BinnedBuilder("cpu"), vertices, triangles, mode)[2]
     trees = {"before": treelet_order(_read_tree(before_tree)), "ours": ours}
@@ -235,7 +235,7 @@ def stage_render(name, mode, rounds, size, before_tree):
 
 
 def _read_tree(path):
-    from core.accel.compact import CompactTree
+    from kdtrace.core.accel.compact import CompactTree
     with np.load(path) as data:
         return CompactTree(data["nodes"], data["leaf_index32"], data["leaf_index16"],
                            data["bounds"], int(data["leaf_shift"]))

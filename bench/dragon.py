@@ -24,7 +24,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
-from core.scene.scene import Scene  # noqa: E402
+from kdtrace.core.scene.scene import Scene  # noqa: E402
 
 from bench.trace_vs_embree import best_cpu_time, best_time, cpu_model  # noqa: E402
 
@@ -57,7 +57,7 @@ def main():
     work = pathlib.Path(tempfile.mkdtemp(prefix="kdtrace-bench-"))
     # Blender exports in a process of its own; this one runs core and the slave's tracer.
     from tests.blender import build_extension, run_bpy_script
-    from core.frame.exported import load_export
+    from kdtrace.core.frame.exported import load_export
     export_s = run_bpy_script("export_dragon", work, zip=str(build_extension(work / "dist")),
                               out=str(work / "dragon.npz"), size=args.size,
                               repeat=args.repeat)["export_seconds"]
@@ -66,14 +66,14 @@ def main():
     print(f"dragon: {geometry.triangle_count:,} triangles, {args.size}x{args.size}")
     print(f"export:        {export_s:8.3f} s")
 
-    from core.accel.kdtree import build_kdtree
+    from kdtrace.core.accel.kdtree import build_kdtree
     build_s, tree = best_time(lambda: build_kdtree(geometry.vertices, geometry.triangles), 1)
     stats = tree.stats
     print(f"kd-tree build: {build_s:8.3f} s  {stats['nodes']:,} nodes, {stats['leaves']:,} leaves, "
           f"depth {stats['depth']}, {stats['refs_per_triangle']:.2f} refs/triangle, "
           f"{tree.nbytes / 2**20:.1f} MiB")
 
-    from core.accel.compact import compact_tree
+    from kdtrace.core.accel.compact import compact_tree
     modes = [args.mode] + [m for m in ("compressed", "standard") if m != args.mode]
     compact = {}
     for mode in modes:
@@ -81,7 +81,7 @@ def main():
             lambda: compact_tree(tree, geometry.triangle_count, mode), 1)
         print(f"compact tree:  {compact_s:8.3f} s  {mode}: {compact[mode].nbytes / 2**20:.1f} MiB")
 
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     tracer = Tracer("cpu")
     tracer.load(Scene.from_parts(geometry, compact[args.mode]))
     tracer.render_tile(view, 0, 0, 16, 16)  # build the kernels outside the timing

@@ -6,7 +6,7 @@ import os
 import shutil
 import tempfile
 
-from core.net.trust import SECRET_ENV, new_farm_secret
+from kdtrace.core.net.trust import SECRET_ENV, new_farm_secret
 
 
 def bench_farm() -> bytes:

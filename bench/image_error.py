@@ -62,11 +62,11 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from core.scene.features import full_geometry, scene_features, strip_geometry  # noqa: E402
-from core.accel.kdtree import build_kdtree  # noqa: E402
-from core.scene.model import (Camera, Geometry, Light, RenderSettings, Shading, View,  # noqa: E402
-                        default_material_params)
-from core.scene.scene import Scene  # noqa: E402
+from kdtrace.core.scene.features import full_geometry, scene_features, strip_geometry  # noqa: E402
+from kdtrace.core.accel.kdtree import build_kdtree  # noqa: E402
+from kdtrace.core.scene.model import (Camera, Geometry, Light, RenderSettings,  # noqa: E402
+                                      Shading, View, default_material_params)
+from kdtrace.core.scene.scene import Scene  # noqa: E402
 from tests.meshes import grid_plane, load_bunny, look_at, merge, uv_sphere  # noqa: E402
 
 
@@ -219,7 +219,7 @@ def sampling_sweeps(args):
     width, height = (int(v) for v in args.size.split("x"))
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     tracer = Tracer()
     print(f"device: {tracer.device_info['name']}, image {width}x{height}")
     results, specialisation = {}, {}

@@ -12,8 +12,8 @@ equivalent (every dragon's triangles in world space, one kd-tree) is built and r
 by side for the first --realised dragons, where it fits; the instanced scene of those same
 dragons is rendered in the same run for the ratio.
 
---animation: the forest through a real slave (`python -m slave` on loopback, one PoCL thread)
-and the master, --frames frames in which every dragon turns and drifts: frame 0 uploads the
+--animation: the forest through a real slave (`python -m kdtrace.slave` on loopback, one PoCL
+thread) and the master, --frames frames in which every dragon turns and drifts: frame 0 uploads the
 whole scene, each later frame sends only the instances (SCENE_INSTANCES). Per frame: the
 master's Scene.moved, load_scene (send, the slave's check and top level) and the render, and
 the bytes sent on the socket.
@@ -31,11 +31,12 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from bench.trace_vs_embree import best_time, cpu_model  # noqa: E402
-from core.accel.compact import compact_tree  # noqa: E402
-from core.accel.binned import build_standard  # noqa: E402
-from core.accel.toplevel import build_toplevel  # noqa: E402
-from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View  # noqa: E402
-from core.scene.scene import Scene, memory_report, memory_summary  # noqa: E402
+from kdtrace.core.accel.compact import compact_tree  # noqa: E402
+from kdtrace.core.accel.binned import build_standard  # noqa: E402
+from kdtrace.core.accel.toplevel import build_toplevel  # noqa: E402
+from kdtrace.core.scene.model import (Camera, Geometry, Light, RenderSettings,  # noqa: E402
+                                      Shading, View)
+from kdtrace.core.scene.scene import Scene, memory_report, memory_summary  # noqa: E402
 from tests.meshes import load_dragon, look_at  # noqa: E402
 
 
@@ -114,7 +115,7 @@ def main():
         camera = Camera("PERSP", look_at(eye, (0.5 * far, 0.5 * far, 0.0)), ndc_scale=(0.6, 0.6))
         return View(camera, args.size, args.size, shading, settings=settings)
 
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     tracer = Tracer("cpu")
 
     def render(scene, view):
@@ -156,7 +157,7 @@ def main():
 def animate(scene, matrices, view, frames, cell):
     """Frames of the forest in which every dragon turns and circles within its grid cell (`cell`
     wide), on a real slave; prints per frame the seconds of each step and the bytes sent."""
-    from core.net.master import Master
+    from kdtrace.core.net.master import Master
     from tests.processes import SlaveProcess
     slave = SlaveProcess(f"bench-animation-{os.getpid()}")
     rng = np.random.default_rng(1)

@@ -34,7 +34,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
-from core.scene.scene import Scene  # noqa: E402
+from kdtrace.core.scene.scene import Scene  # noqa: E402
 
 MODES = ("standard", "choi", "compressed")
 MB = 1e6
@@ -67,7 +67,7 @@ def peak_rss_mb():
 
 
 def stage_build(name, cache):
-    from core.accel.kdtree import build_kdtree
+    from kdtrace.core.accel.kdtree import build_kdtree
     vertices, triangles = load_scene(name)
     before = peak_rss_mb()
     started = time.perf_counter()
@@ -90,8 +90,8 @@ def stage_build(name, cache):
 
 
 def stage_compact(name, cache, mode, options):
-    from core.accel.kdtree import KDTree
-    from core.accel.compact import compact_tree
+    from kdtrace.core.accel.kdtree import KDTree
+    from kdtrace.core.accel.compact import compact_tree
     data = np.load(cache / f"{name}.npz")
     tree = KDTree(data["nodes"], data["leaf_indices"], data["bounds"])
     triangle_count = int(options.pop("triangles"))
@@ -154,7 +154,7 @@ def main():
 
     if args.table3 or args.collapse_sweep:
         os.environ["POCL_MAX_PTHREAD_COUNT"] = "1"   # before the OpenCL platform loads
-    from core.accel.compact import geometry_nbytes
+    from kdtrace.core.accel.compact import geometry_nbytes
     print("command:", " ".join(["python"] + sys.argv))
     print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs),",
           f"{os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.0f} GiB RAM,",
@@ -283,8 +283,8 @@ def sweep(results, cache):
 
 def check(names, cache, count):
     """Nearest triangle and distance of every mode against brute force (float64)."""
-    from core.accel.kdtree import KDTree
-    from core.accel.compact import compact_tree
+    from kdtrace.core.accel.kdtree import KDTree
+    from kdtrace.core.accel.compact import compact_tree
     from tests.test_kdtree_compact import brute_force, random_rays, trace_compact
     print(f"\nCorrectness: {count:,} random rays per scene, every mode against brute force")
     for name in names:
@@ -310,8 +310,8 @@ def check(names, cache, count):
 
 
 def _compact_trees(name, cache, triangle_count):
-    from core.accel.kdtree import KDTree
-    from core.accel.compact import compact_tree
+    from kdtrace.core.accel.kdtree import KDTree
+    from kdtrace.core.accel.compact import compact_tree
     data = np.load(cache / f"{name}.npz")
     tree = KDTree(data["nodes"], data["leaf_indices"], data["bounds"])
     return {mode: compact_tree(tree, triangle_count, mode) for mode in MODES}
@@ -320,7 +320,7 @@ def _compact_trees(name, cache, triangle_count):
 def table3_view(name, vertices, size):
     """The Table 3 camera: the dragon seen from the front; the architecture from inside a room
     of the ground floor, looking diagonally through the doors. One point light, diffuse grey."""
-    from core.scene.model import Camera, Light, RenderSettings, Shading, View
+    from kdtrace.core.scene.model import Camera, Light, RenderSettings, Shading, View
     from tests.meshes import look_at
     lo, hi = vertices.min(0).astype(np.float64), vertices.max(0).astype(np.float64)
     centre, extent = (lo + hi) / 2, hi - lo
@@ -346,10 +346,10 @@ def render_times(name, cache, variants, repeats, size):
     """Render time of one scene per tree variant ({label: (mode, compact_tree options)}): the
     variants in turn within each round, median over the rounds. Returns {label: (median s,
     min s, tree bytes)}; prints the hit rate and whether all variants give identical images."""
-    from core.accel.kdtree import KDTree
-    from core.accel.compact import compact_tree
-    from core.scene.model import Geometry
-    from slave.tracer import Tracer
+    from kdtrace.core.accel.kdtree import KDTree
+    from kdtrace.core.accel.compact import compact_tree
+    from kdtrace.core.scene.model import Geometry
+    from kdtrace.slave.tracer import Tracer
     vertices, triangles = load_scene(name)
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
     data = np.load(cache / f"{name}.npz")
@@ -419,9 +419,9 @@ def collapse_sweep(names, cache, costs, repeats, size):
 def check_kernel(names, cache, count, brute_sample=1000):
     """The OpenCL kernel on `count` random rays: the three modes agree exactly (triangle, t, u,
     v); the first `brute_sample` rays also against the kernel's brute force (one leaf)."""
-    from core.accel.compact import CompactTree
-    from core.scene.model import Geometry
-    from slave.tracer import Tracer
+    from kdtrace.core.accel.compact import CompactTree
+    from kdtrace.core.scene.model import Geometry
+    from kdtrace.slave.tracer import Tracer
     from tests.test_kdtree_compact import random_rays
     print(f"\nKernel check: {count:,} random rays per scene through the OpenCL tracer")
     for name in names:

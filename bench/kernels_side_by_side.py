@@ -34,8 +34,8 @@ import numpy as np  # noqa: E402
 from bench.kdtree_tables import load_scene, table3_view  # noqa: E402
 from bench.ray_kinds import camera_rays, tree_for  # noqa: E402
 from bench.trace_vs_embree import cpu_model  # noqa: E402
-from core.opencl import Programs  # noqa: E402
-from slave.buffers import pack_bounds, pack_triangles  # noqa: E402
+from kdtrace.core.opencl import Programs  # noqa: E402
+from kdtrace.slave.buffers import pack_bounds, pack_triangles  # noqa: E402
 
 
 def surface_rays(vertices, triangles, count, seed):
@@ -59,8 +59,8 @@ def kernel_source_from(folder: pathlib.Path) -> str:
     """The tracer's kernel files from `folder`, after the layout header if they use it. (In
     copies from before intersect.cl held the packet kernel, packet.cl used intersect.cl's
     load_ray and came after it.)"""
-    from core.layout import c_header
-    from slave.tracer import KERNEL_FILES
+    from kdtrace.core.layout import c_header
+    from kdtrace.slave.tracer import KERNEL_FILES
     files = list(KERNEL_FILES)
     if "load_ray(" in (folder / "trace/packet.cl").read_text():
         files.remove("trace/packet.cl")
@@ -101,7 +101,7 @@ class Kernels:
 
     def __init__(self, tracer, source, scene_args, stack_size):
         import pyopencl as cl
-        from slave.tracer import kernel_options
+        from kdtrace.slave.tracer import kernel_options
         self.cl, self.tracer, self.scene_args = cl, tracer, scene_args
         exact = cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT
         features = {"stack_size": stack_size,
@@ -138,9 +138,9 @@ def main():
     parser.add_argument("--mode", default="compressed")
     parser.add_argument("--cases", nargs="*", help="only these cases (default: all four)")
     args = parser.parse_args()
-    from core.scene.model import Geometry
-    from core.scene.scene import Scene
-    from slave.tracer import Tracer, tile_pixel_order
+    from kdtrace.core.scene.model import Geometry
+    from kdtrace.core.scene.scene import Scene
+    from kdtrace.slave.tracer import Tracer, tile_pixel_order
 
     print(" ".join([".venv/bin/python", *sys.argv]))
     print(f"machine: {cpu_model()}, {os.cpu_count()} logical CPUs; PoCL 1 thread")

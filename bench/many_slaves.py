@@ -44,10 +44,10 @@ sys.path.insert(0, str(ROOT))
 from bench.network_scaling import bench_scene, simulate  # noqa: E402
 from bench.standin import (Calibration, HostProcess, StandInTracer, calibrate,  # noqa: E402
                            serve_tracers)
-from core.net import protocol  # noqa: E402
-from core.net.master import Master  # noqa: E402
-from core.net.tiles import TileGrid  # noqa: E402
-from core.scene.scene import Scene  # noqa: E402
+from kdtrace.core.net import protocol  # noqa: E402
+from kdtrace.core.net.master import Master  # noqa: E402
+from kdtrace.core.net.tiles import TileGrid  # noqa: E402
+from kdtrace.core.scene.scene import Scene  # noqa: E402
 from tests.linkemu import LinkEmulator, SharedMedium  # noqa: E402
 from tests.test_network import make_view, network_settings  # noqa: E402
 from bench.farm import bench_farm  # noqa: E402
@@ -80,7 +80,7 @@ def run_calibration() -> None:
     """Calibrate the tile sizes not yet in the cached file (the frame's pixels are the same
     whatever the tiling, so a new size only adds its tile times)."""
     os.environ["POCL_MAX_PTHREAD_COUNT"] = "1"   # before PoCL starts: one core, as a slave
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     scene = Scene.from_parts(*bench_scene())
     started = time.perf_counter()
     result = calibrate(Tracer(), scene, bench_view(), missing_tile_sizes())
@@ -225,7 +225,7 @@ def denoise_seconds(width: int, height: int, repeat: int = 3) -> dict:
     bench frame's image (the calibration's Combined, repeated to size) with a grey albedo and
     its normals as guides; the fastest of `repeat` (the device is made before, as the master's
     session keeps it)."""
-    from core.denoise import PREFILTERS, QUALITIES, Denoiser
+    from kdtrace.core.denoise import PREFILTERS, QUALITIES, Denoiser
     image = Calibration.load(calibration_path()).image
     reps = (-(-height // SIZE), -(-width // SIZE), 1)
     colour = np.tile(image["combined"], reps)[:height, :width]
@@ -253,7 +253,7 @@ def denoise_share(args) -> dict:
     Combined and the guides in f32: 40 bytes a pixel) with and without the master's denoising
     at its default (prefilter Accurate, quality High) and fastest settings; efficiency
     tau_1 / (S tau_S), the denoising in both."""
-    from core.net.master import auto_tile_size
+    from kdtrace.core.net.master import auto_tile_size
     width, height = DENOISE_SIZE
     scale = width * height / (SIZE * SIZE)
     calibration = Calibration.load(calibration_path())

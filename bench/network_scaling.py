@@ -1,6 +1,6 @@
 """Distributed runtime benchmarks (Tables 4, 5a, 5b of Seo, Kim & Ihm 2017) on emulated links.
 
-Slaves are local `python -m slave` processes, each pinned to its own core (taskset) with one
+Slaves are local `python -m kdtrace.slave` processes, each pinned to its own core (taskset) with one
 PoCL thread; the master runs in this process. Every master-slave connection goes through
 tests.linkemu.LinkEmulator (per connection and direction: latency + bandwidth), e.g. 802.11ac-like
 3 ms / 300 Mbit/s, or "loopback" (no emulation). Results go to stdout as Markdown and to --json.
@@ -26,12 +26,12 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from core.accel.kdtree import build_kdtree  # noqa: E402
+from kdtrace.core.accel.kdtree import build_kdtree  # noqa: E402
 from tests.linkemu import LinkEmulator  # noqa: E402
-from core.net.master import Master  # noqa: E402
-from core.net.protocol import ALL_PASSES, tile_bytes_per_pixel  # noqa: E402
-from core.scene.model import Geometry  # noqa: E402
-from core.scene.scene import Scene  # noqa: E402
+from kdtrace.core.net.master import Master  # noqa: E402
+from kdtrace.core.net.protocol import ALL_PASSES, tile_bytes_per_pixel  # noqa: E402
+from kdtrace.core.scene.model import Geometry  # noqa: E402
+from kdtrace.core.scene.scene import Scene  # noqa: E402
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere  # noqa: E402
 from tests.test_network import make_view  # noqa: E402
 from bench.farm import bench_farm  # noqa: E402
@@ -59,7 +59,7 @@ class Slaves:
         cores = os.cpu_count() or 1
         for i in range(count):
             env = dict(os.environ, POCL_MAX_PTHREAD_COUNT="1", PYTHONUNBUFFERED="1")
-            cmd = [sys.executable, "-m", "slave", "--port", "0", "--bind", "127.0.0.1",
+            cmd = [sys.executable, "-m", "kdtrace.slave", "--port", "0", "--bind", "127.0.0.1",
                    "--no-zeroconf", "--name", f"bench-{i}"]
             if cores > 1:
                 cmd = ["taskset", "-c", str(i % cores)] + cmd
@@ -262,7 +262,7 @@ def main():
             job.cancel()
             job.wait(30)
             session.close()
-            nbytes = sum(a.nbytes for a in __import__("core.net.protocol", fromlist=["x"]).scene_arrays(*big).values())
+            nbytes = sum(a.nbytes for a in Scene.from_parts(*big).wire_arrays().values())
             rows.append({"triangles": big[0].triangle_count, "bytes": nbytes, "upload_s": upload_s,
                          "cached_connect_to_first_tile_s": first})
             print(f"scene {big[0].triangle_count} tris {nbytes/2**20:.1f} MiB: upload+load {upload_s*1e3:.0f} ms; "

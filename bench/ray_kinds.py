@@ -135,7 +135,7 @@ def make_tracer(spec):
     kernels:DIR (the kernel files of another copy of kernels/), given-order (scattered rays
     not reordered), one-ray (one ray per work-item, no packets), local:N (work-groups of N
     work-items, not the driver's choice)."""
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     settings = [] if spec == "current" else spec.split("+")
     kernels = [x.split(":", 1)[1] for x in settings if x.startswith("kernels:")]
     tracer = Tracer("cpu", kernel_dir=kernels[0] if kernels else None)
@@ -165,10 +165,10 @@ def agreement(ours, embree, shadow):
 def tree_for(name, vertices, triangles, mode, cache):
     """The compact tree of the scene in treelets, as a master sends it (the standard tree
     cached as .npz under `cache`)."""
-    from core.accel.binned import build_standard
-    from core.accel.compact import compact_tree
-    from core.accel.kdtree import KDTree
-    from core.accel.reorder import treelet_order
+    from kdtrace.core.accel.binned import build_standard
+    from kdtrace.core.accel.compact import compact_tree
+    from kdtrace.core.accel.kdtree import KDTree
+    from kdtrace.core.accel.reorder import treelet_order
     path = cache / f"{name}.npz"
     if path.exists():
         with np.load(path) as data:
@@ -185,7 +185,7 @@ def tree_for(name, vertices, triangles, mode, cache):
 def scene_rays(name, vertices, triangles, size, embree):
     """The rays of every kind for scene `name` from its Table 3 view at size x size: a dict
     kind -> (origins, directions, tmax), float32, the secondary rays at Embree's primary hits."""
-    from slave.tracer import tile_pixel_order
+    from kdtrace.slave.tracer import tile_pixel_order
     view = table3_view(name, vertices, size)
     origins, directions = camera_rays(view)
     order = tile_pixel_order(size, size)
@@ -236,8 +236,8 @@ def render_times(tracers, view, repeat):
 def run_scene(name, args, cache, tracers):
     """Every ray kind of scene `name` through each of `tracers` (label -> Tracer) and Embree,
     alternating in every repeat; best process CPU time of each."""
-    from core.scene.model import Geometry
-    from core.scene.scene import Scene
+    from kdtrace.core.scene.model import Geometry
+    from kdtrace.core.scene.scene import Scene
     vertices, triangles = load_scene(name)
     print(f"\n{name}: {len(triangles):,} triangles", flush=True)
     tree = tree_for(name, vertices, triangles, args.mode, cache)
@@ -251,8 +251,8 @@ def run_scene(name, args, cache, tracers):
     print("  load (process s): " + ", ".join(f"{k} {v:.2f}" for k, v in load_s.items()))
     # What the reorderings cost: the treelet node order (the master's, once per tree), the
     # ray order once per query of scattered rays (here the diffuse bounces in random order).
-    from core.accel.reorder import treelet_order
-    from slave.tracer import ray_order
+    from kdtrace.core.accel.reorder import treelet_order
+    from kdtrace.slave.tracer import ray_order
     started = time.process_time()
     treelet_order(tree)
     treelet_s = time.process_time() - started

@@ -80,7 +80,7 @@ def main():
     if report.get("denoised"):
         print(f"  of which denoising {report['denoise_seconds']:7.2f} s  ({report['denoise_note']})")
     print(f"  total   {wall:7.2f} s")
-    from core.net.slave_colors import ansi_swatch, slave_color
+    from kdtrace.core.net.slave_colors import ansi_swatch, slave_color
     for name, count in sorted(report["tiles_per_slave"].items()):
         hex_color = "#" + "".join(f"{round(c * 255):02x}" for c in slave_color(name))
         print(f"  {ansi_swatch(name)} {hex_color} tiles from {name}: {count}")

@@ -2,7 +2,7 @@
 killed and restarted at random, mutated messages and idle sockets are thrown at the slaves.
 
 For --minutes, one master (kept for the whole run, as a long-lived API user would) renders
-frame after frame on --slaves local `python -m slave` processes, on loopback, each frame
+frame after frame on --slaves local `python -m kdtrace.slave` processes, on loopback, each frame
 compared bit for bit with the same frame rendered by the tracer in this process. Meanwhile:
 - chaos: every 20-60 s a random slave is SIGKILLed and restarted on its port 0.5-5 s later;
   the restarted slave is joined to the master as discovery would (Master.join), and the
@@ -55,12 +55,12 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from bench.network_scaling import bench_scene  # noqa: E402
-from core.net import protocol  # noqa: E402
-from core.net.master import Master  # noqa: E402
-from core.net.protocol import HEADER, MsgType  # noqa: E402
-from core.net.tile_payloads import F16_MAX  # noqa: E402
-from core.scene.model import Light  # noqa: E402
-from core.scene.scene import Scene  # noqa: E402
+from kdtrace.core.net import protocol  # noqa: E402
+from kdtrace.core.net.master import Master  # noqa: E402
+from kdtrace.core.net.protocol import HEADER, MsgType  # noqa: E402
+from kdtrace.core.net.tile_payloads import F16_MAX  # noqa: E402
+from kdtrace.core.scene.model import Light  # noqa: E402
+from kdtrace.core.scene.scene import Scene  # noqa: E402
 from tests.test_network import make_view, network_settings  # noqa: E402
 from bench.farm import bench_farm  # noqa: E402
 
@@ -111,7 +111,7 @@ class SlaveSlot:
         log_path = self.log_dir / f"{self.name}-{len(self.instances)}.log"
         log = open(log_path, "w")
         proc = subprocess.Popen(
-            [sys.executable, "-m", "slave", "--port", str(self.port), "--bind", "127.0.0.1",
+            [sys.executable, "-m", "kdtrace.slave", "--port", str(self.port), "--bind", "127.0.0.1",
              "--no-zeroconf", "--name", self.name, "--status-port", "off", *trust],
             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=log, text=True)
         line = proc.stdout.readline()
@@ -392,7 +392,7 @@ def main(argv=None) -> int:
     seconds = args.minutes * 60
     rng = random.Random(args.seed)
 
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     scene = Scene.from_parts(*bench_scene())
     tracer = Tracer()
     tracer.load(scene)

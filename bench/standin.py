@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.net.tiles import TileGrid
-from slave.tracer import RenderStopped
+from kdtrace.core.net.tiles import TileGrid
+from kdtrace.slave.tracer import RenderStopped
 
 STOP_POLL_S = 0.1       # how often a tile's sleep looks at its stop (the tracer: each launch)
 
@@ -150,7 +150,7 @@ def serve_tracers(tracers: dict) -> None:
     """In a host process: a SlaveServer on loopback for each name -> tracer, with the bench's
     farm secret; prints their ports as one JSON line, serves until stdin closes."""
     from bench.farm import bench_farm
-    from slave.server import SlaveServer
+    from kdtrace.slave.server import SlaveServer
     servers = []
     for name, tracer in tracers.items():
         server = SlaveServer(tracer, name, bind="127.0.0.1", port=0, secret=bench_farm())

@@ -20,11 +20,11 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from core.net import protocol, secure  # noqa: E402
-from core.net.channel import Channel  # noqa: E402
-from core.net.identity import Identity  # noqa: E402
-from core.net.protocol import MsgType  # noqa: E402
-from core.net.tile_payloads import encode_tile  # noqa: E402
+from kdtrace.core.net import protocol, secure  # noqa: E402
+from kdtrace.core.net.channel import Channel  # noqa: E402
+from kdtrace.core.net.identity import Identity  # noqa: E402
+from kdtrace.core.net.protocol import MsgType  # noqa: E402
+from kdtrace.core.net.tile_payloads import encode_tile  # noqa: E402
 
 
 IDENTITIES = {}

@@ -21,7 +21,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
-from core.scene.scene import Scene  # noqa: E402
+from kdtrace.core.scene.scene import Scene  # noqa: E402
 
 
 def cpu_model() -> str:
@@ -76,9 +76,9 @@ def main():
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
 
-    from core.accel.kdtree import build_kdtree
-    from core.scene.model import Geometry
-    from slave.tracer import Tracer
+    from kdtrace.core.accel.kdtree import build_kdtree
+    from kdtrace.core.scene.model import Geometry
+    from kdtrace.slave.tracer import Tracer
     from tests.meshes import load_dragon
     from embreex import rtcore_scene as rtcs
     from embreex.mesh_construction import TriangleMesh

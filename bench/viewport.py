@@ -52,13 +52,13 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from bench.trace_vs_embree import cpu_model  # noqa: E402
-from core.frame.exported import InstancedExport  # noqa: E402
-from core.frame.options import FrameOptions  # noqa: E402
-from core.frame.render import FrameHost, Steps, frame_scene, master_for  # noqa: E402
-from core.frame.session import FrameSession  # noqa: E402
-from core.frame.viewport import ViewportSession, passes  # noqa: E402
-from core.scene.model import (Camera, Geometry, Light, RenderSettings, Shading, View,  # noqa: E402
-                              default_material_params)
+from kdtrace.core.frame.exported import InstancedExport  # noqa: E402
+from kdtrace.core.frame.options import FrameOptions  # noqa: E402
+from kdtrace.core.frame.render import FrameHost, Steps, frame_scene, master_for  # noqa: E402
+from kdtrace.core.frame.session import FrameSession  # noqa: E402
+from kdtrace.core.frame.viewport import ViewportSession, passes  # noqa: E402
+from kdtrace.core.scene.model import (Camera, Geometry, Light, RenderSettings,  # noqa: E402
+                                      Shading, View, default_material_params)
 from tests.meshes import load_dragon, look_at  # noqa: E402
 
 OUT = ROOT / "bench" / "out"
@@ -189,7 +189,7 @@ def calibrate_standin(args) -> None:
     first view of --scenes[0] (bench/standin.py calibrate: every tile timed in CPU time)."""
     os.environ["POCL_MAX_PTHREAD_COUNT"] = "1"   # before PoCL starts: one core, as a slave
     from bench.standin import calibrate, pass_key
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     name = args.scenes[0]
     exported, centre, radius = scene(name)
     session = FrameSession()

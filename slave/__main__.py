@@ -1,5 +1,5 @@
-"""The KD Trace render slave: `kdtrace-slave` once installed (pyproject.toml), `python -m slave`
-from a checkout or the extension's folder, `blender --background --command kdtrace_slave` with
+"""The KD Trace render slave: `kdtrace-slave` once installed (pyproject.toml), `python -m
+kdtrace.slave` from a checkout or the extension's folder, `blender --background --command kdtrace_slave` with
 the extension installed (addon/slave_command.py registers the command).
 
 On start it prints one line to stdout, flushed, that a launcher can parse:
@@ -34,11 +34,11 @@ def default_prog() -> str:
     if os.environ.get("KDTRACE_SLAVE_PROG"):
         return os.environ["KDTRACE_SLAVE_PROG"]
     name = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
-    return "python -m slave" if name in ("", "-c", "__main__.py") else name
+    return "python -m kdtrace.slave" if name in ("", "-c", "__main__.py") else name
 
 
 try:
-    from core.net import protocol, trust
+    from ..core.net import protocol, trust
 except ModuleNotFoundError as missing:  # a Python without the slave's packages
     sys.exit(f"{default_prog()}: error: the slave needs {missing.name}, which this Python lacks: "
              "install the slave with pip (README: \"A slave on every other machine\")")
@@ -80,7 +80,7 @@ def _name(text: str) -> str:
 
 
 def _master_id(text: str) -> str:
-    from core.net.identity import check_id_pattern
+    from ..core.net.identity import check_id_pattern
     try:
         return check_id_pattern(text)
     except ValueError as exc:
@@ -105,7 +105,7 @@ def _status_port(text: str):
     return text if text in ("auto", "off") else _port(text)
 
 
-def parse_args(argv, prog: str = "python -m slave"):
+def parse_args(argv, prog: str = "python -m kdtrace.slave"):
     parser = _Parser(prog=prog, description="KD Trace render slave")
     parser.add_argument("--port", type=_port, default=protocol.DEFAULT_PORT,
                         help=f"TCP port (default {protocol.DEFAULT_PORT}; 0 = any free port)")
@@ -259,7 +259,7 @@ def _stop_on_signals(stop: threading.Event) -> None:
 
 def load_trust(args):
     """(identity, allowed masters, farm secret or None) of this slave, from its options."""
-    from core.net.identity import Identity, IdentityError
+    from ..core.net.identity import Identity, IdentityError
     folder = args.identity_dir or default_identity_dir()
     try:
         identity = Identity.load_or_create(folder, "slave")
@@ -332,7 +332,7 @@ def run(args) -> int:
         host, port = server.address
         addresses, interfaces = _advertise_addresses(args.bind, args.advertise_ip)
         if not args.no_zeroconf:
-            from core.net.discovery import advertise
+            from ..core.net.discovery import advertise
             info = server.device_info
             try:
                 advertisement = advertise(name, port, {

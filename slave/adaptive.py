@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.layout import ACCUM
+from ..core.layout import ACCUM
 
 # Cycles' adaptive sampling (integrator.cpp get_adaptive_sampling): its noise estimate is
 # compared with 5 x the Noise Threshold ("an arbitrary factor that makes the threshold more

@@ -12,10 +12,10 @@ import math
 
 import numpy as np
 
-from core.layout import (AREA_SHAPE_CODES, BOUNDS, CAMERA, CAMERA_CODES, EMITTER,
-                         FILTER_TABLE_SIZE, INSTANCE, INTERPOLATION_CODES, LIGHT, LIGHT_CODES,
-                         MATERIAL, PIXEL_FILTER_CODES, PROJECTION_CODES, TRIANGLE, WORLD)
-from core.scene.model import MATERIAL_PARAMS, View
+from ..core.layout import (AREA_SHAPE_CODES, BOUNDS, CAMERA, CAMERA_CODES, EMITTER,
+                           FILTER_TABLE_SIZE, INSTANCE, INTERPOLATION_CODES, LIGHT, LIGHT_CODES,
+                           MATERIAL, PIXEL_FILTER_CODES, PROJECTION_CODES, TRIANGLE, WORLD)
+from ..core.scene.model import MATERIAL_PARAMS, View
 
 # The world texture's importance map has at most this many columns (rows: half); larger
 # textures are averaged over square blocks of texels.

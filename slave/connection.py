@@ -29,14 +29,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from core.net import protocol, secure, trust
-from core.net.channel import POLL_S, Channel, end_writing
-from core.net.identity import short_id
-from core.net.protocol import MsgType, ProtocolError
-from core.net.tile_payloads import encode_tile
-from core.net.tiles import TileGrid, frame_work_problem
-from core.scene.model import SCENE_FORMAT_VERSION, SceneError, View
-from core.scene.scene import Scene
+from ..core.net import protocol, secure, trust
+from ..core.net.channel import POLL_S, Channel, end_writing
+from ..core.net.identity import short_id
+from ..core.net.protocol import MsgType, ProtocolError
+from ..core.net.tile_payloads import encode_tile
+from ..core.net.tiles import TileGrid, frame_work_problem
+from ..core.scene.model import SCENE_FORMAT_VERSION, SceneError, View
+from ..core.scene.scene import Scene
 
 from .queues import Frame, Outbox, WorkQueue
 from .tracer import RenderStopped

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.layout import FILM
+from ..core.layout import FILM
 
 # pass name -> (FILM slot, how it is finished)
 FILM_PASSES = {"albedo": "albedo", "denoising_normal": "guide_normal", "mist": "mist",

@@ -10,11 +10,11 @@ import collections
 import threading
 from dataclasses import dataclass
 
-from core.net import protocol
-from core.net.protocol import ProtocolError
-from core.net.tiles import TileGrid
-from core.scene.model import View
-from core.scene.scene import Scene
+from ..core.net import protocol
+from ..core.net.protocol import ProtocolError
+from ..core.net.tiles import TileGrid
+from ..core.scene.model import View
+from ..core.scene.scene import Scene
 
 UPLOAD_WAIT_S = 5.0         # a large message waits this long for the upload budget, then is
                             # refused (the sender's deadline allows SILENCE_S)

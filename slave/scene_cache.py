@@ -15,9 +15,9 @@ import logging
 import os
 import threading
 
-from core.net import protocol
-from core.npz_folder import NpzFolder
-from core.scene.scene import Scene
+from ..core.net import protocol
+from ..core.npz_folder import NpzFolder
+from ..core.scene.scene import Scene
 
 log = logging.getLogger("kdtrace.slave")
 

@@ -28,8 +28,8 @@ import threading
 import time
 import uuid
 
-from core.net import protocol, trust
-from core.net.identity import Identity
+from ..core.net import protocol, trust
+from ..core.net.identity import Identity
 
 from .activity import Activity
 from .connection import MasterConnection

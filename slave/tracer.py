@@ -17,13 +17,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from core.accel.morton import morton_order
-from core.layout import (ACCUM, INTERSECT_RAYS, MESH, OCCLUDED_RAYS, RENDER_SAMPLES,
-                         TREE_PARAMS, KernelParams, c_header)
-from core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
-from core.scene.features import ALL_FEATURES, needed_arrays, pass_features
-from core.scene.model import SceneError, View
-from core.scene.scene import Scene
+from ..core.accel.morton import morton_order
+from ..core.layout import (ACCUM, INTERSECT_RAYS, MESH, OCCLUDED_RAYS, RENDER_SAMPLES,
+                           TREE_PARAMS, KernelParams, c_header)
+from ..core.opencl import OpenCLError, Programs, ensure_pocl_cache_dir, kernel_source, select_device
+from ..core.scene.features import ALL_FEATURES, needed_arrays, pass_features
+from ..core.scene.model import SceneError, View
+from ..core.scene.scene import Scene
 
 from .adaptive import LaunchPlan, pixel_rgba, sample_tile
 from .film import TileFilm

@@ -1,4 +1,5 @@
-"""Tests import the extension's packages (core, slave) from the repository root.
+"""Tests import the extension's packages as kdtrace.core and kdtrace.slave (the installed names:
+kdtrace/__init__.py) from the repository root.
 
 The tests' farm: every master and slave process a test starts holds one generated farm secret
 ($KDTRACE_SECRET, inherited by the slaves and Blenders the tests start), unless a test says
@@ -15,7 +16,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from core.net.trust import SECRET_ENV, new_farm_secret  # noqa: E402
+from kdtrace.core.net.trust import SECRET_ENV, new_farm_secret  # noqa: E402
 
 if not os.environ.get(SECRET_ENV, "").startswith("kdtrace-farm-"):   # a test's child keeps it
     os.environ[SECRET_ENV] = new_farm_secret()

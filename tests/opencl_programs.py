@@ -1,5 +1,5 @@
 """An OpenCL device for tests that build small kernels of their own around the kernel files."""
-from core.opencl import Programs, ensure_pocl_cache_dir, select_device
+from kdtrace.core.opencl import Programs, ensure_pocl_cache_dir, select_device
 
 
 def programs_on(device="cpu"):

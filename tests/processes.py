@@ -12,7 +12,7 @@ import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 START_TIMEOUT = 60
-LINE_PREFIX = "KD Trace slave "  # the start line of `python -m slave`
+LINE_PREFIX = "KD Trace slave "  # the start line of `python -m kdtrace.slave`
 
 
 class ChildProcess:
@@ -64,11 +64,11 @@ class ChildProcess:
 
 
 class SlaveProcess(ChildProcess):
-    """A `python -m slave` subprocess on loopback; its start line gives the port."""
+    """A `python -m kdtrace.slave` subprocess on loopback; its start line gives the port."""
 
     def __init__(self, name: str, *extra: str, env: dict | None = None):
-        super().__init__(["-m", "slave", "--port", "0", "--bind", "127.0.0.1", "--name", name,
-                          *extra], env=env)
+        super().__init__(["-m", "kdtrace.slave", "--port", "0", "--bind", "127.0.0.1",
+                          "--name", name, *extra], env=env)
         self.name = name
         line = self.wait_line(LINE_PREFIX)
         assert line.startswith(LINE_PREFIX + name + " listening on 127.0.0.1:"), line

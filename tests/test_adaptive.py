@@ -8,9 +8,10 @@ import math
 
 import numpy as np
 
-from core.layout import ACCUM
-from core.scene.model import RenderSettings
-from slave.adaptive import ADAPTIVE_STEP, THRESHOLD_SCALE, LaunchPlan, pixel_error, sample_tile
+from kdtrace.core.layout import ACCUM
+from kdtrace.core.scene.model import RenderSettings
+from kdtrace.slave.adaptive import (ADAPTIVE_STEP, THRESHOLD_SCALE, LaunchPlan, pixel_error,
+                                    sample_tile)
 
 
 class NoisyTile:

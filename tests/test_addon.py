@@ -9,9 +9,9 @@ import threading
 import numpy as np
 import pytest
 
-from core.accel.compact import USER_SETTING_LIMITS, compact_params
-from core.net.tiles import tile_grid
-from core.scene.model import RENDER_SETTING_LIMITS, RenderSettings
+from kdtrace.core.accel.compact import USER_SETTING_LIMITS, compact_params
+from kdtrace.core.net.tiles import tile_grid
+from kdtrace.core.scene.model import RENDER_SETTING_LIMITS, RenderSettings
 from tests.blender import build_extension, run_bpy_script
 from tests.processes import SlaveProcess
 
@@ -84,7 +84,7 @@ def test_problems_reach_the_user_as_reports(tmp_path, slave_of_another_version, 
 
 
 def test_slave_pass_shows_who_rendered_each_tile_and_combined_is_clean(tmp_path):
-    from core.net.slave_colors import slave_color
+    from kdtrace.core.net.slave_colors import slave_color
     zip_path = build_extension(tmp_path / "dist")
     width, height, tile_size = 160, 120, 32
     result = run_bpy_script("render_passes", tmp_path, zip=str(zip_path), out=str(tmp_path),
@@ -192,7 +192,7 @@ def test_every_panel_draws_the_settings_it_offers(tmp_path):
         drawn["VIEWLAYER_PT_kdtrace_passes_data"])
     assert {"use_pass_diffuse_color", "use_pass_glossy_color", "use_pass_emit"} <= set(
         drawn["VIEWLAYER_PT_kdtrace_passes_light"])
-    from core.frame import denoising
+    from kdtrace.core.frame import denoising
     assert [result["settings"][name]["default"] for name in
             ("use_denoising", "denoising_prefilter", "denoising_quality")] == [
         denoising.DENOISE, denoising.PREFILTER, denoising.QUALITY]
@@ -225,7 +225,7 @@ def test_every_panel_draws_the_settings_it_offers(tmp_path):
                for line in drawn["RENDER_PT_kdtrace_legend"])
     # The preferences: the kd-tree cache's folder and size, with core's default and range,
     # and what it holds (the render above left its tree there).
-    from core.scene.tree_files import DEFAULT_LIMIT_MIB, LIMIT_MIB_RANGE
+    from kdtrace.core.scene.tree_files import DEFAULT_LIMIT_MIB, LIMIT_MIB_RANGE
     assert {"slave_device", "tree_cache_folder", "tree_cache_mib"} <= set(drawn["preferences"])
     assert "label:1 kd-tree(s) on disk" in " ".join(drawn["preferences"])
     size = result["preferences"]["tree_cache_mib"]

@@ -13,19 +13,19 @@ import time
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.layout import (ACCUM, LEAF16_BASE, LEAF16_INDEX_BITS, MATERIAL, MAX_LEAF_SHIFT, MESH,
-                         NODE_EXTENSION_CODES, NODE_MATH_CODES, NODE_OP_CODES, NODE_OUT_CODES,
-                         TRIANGLE)
-from core.net import protocol
-from core.net.protocol import MsgType, ProtocolError
-from core.scene import scene as scene_module
-from core.scene.instances import (MAX_MESHES, MAX_REFERENCED_TRIANGLES, InstanceSet)
-from core.scene.model import (MATERIAL_PARAMS, MAX_IMAGE_SIDE, MAX_MATERIALS, MAX_NODE_ROWS,
-                              MAX_TEXTURE_SIDE, MAX_TRIANGLES, Camera, Geometry, Light,
-                              RenderSettings, SceneError, Shading, View, check_node_program,
-                              default_material_params)
-from core.scene.scene import Scene
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.layout import (ACCUM, LEAF16_BASE, LEAF16_INDEX_BITS, MATERIAL, MAX_LEAF_SHIFT,
+                                 MESH, NODE_EXTENSION_CODES, NODE_MATH_CODES, NODE_OP_CODES,
+                                 NODE_OUT_CODES, TRIANGLE)
+from kdtrace.core.net import protocol
+from kdtrace.core.net.protocol import MsgType, ProtocolError
+from kdtrace.core.scene import scene as scene_module
+from kdtrace.core.scene.instances import (MAX_MESHES, MAX_REFERENCED_TRIANGLES, InstanceSet)
+from kdtrace.core.scene.model import (MATERIAL_PARAMS, MAX_IMAGE_SIDE, MAX_MATERIALS, MAX_NODE_ROWS,
+                                      MAX_TEXTURE_SIDE, MAX_TRIANGLES, Camera, Geometry, Light,
+                                      RenderSettings, SceneError, Shading, View, check_node_program,
+                                      default_material_params)
+from kdtrace.core.scene.scene import Scene
 from tests.meshes import grid_plane
 from tests.test_protocol import raw, send_raw, small_scene
 from tests.conftest import FARM_SECRET
@@ -112,8 +112,8 @@ def test_texel_reads_never_leave_the_texture():
     which converts to any int; closest/repeat then read at y * w + x of INT_MIN (a crash
     before the clamp). Every lookup, and texel() at any int, reads the texture's own texels,
     never its neighbours' (sentinels 7 and 9 around a 3 x 2 texture)."""
-    from core.opencl import kernel_source
-    from slave.tracer import kernel_files_through
+    from kdtrace.core.opencl import kernel_source
+    from kdtrace.slave.tracer import kernel_files_through
     from tests.opencl_programs import programs_on
     cl, context, queue, programs = programs_on("cpu")
     source = kernel_source(kernel_files_through("shade/textures.cl")) + TEXEL_PROBE
@@ -158,7 +158,7 @@ def test_a_node_program_with_infinite_coordinates_renders_the_clamped_texel():
     """Render level: Math 1e9 ^ 1e9 = inf into a closest, repeating Image Texture (uv = inf
     - floor(inf) = NaN) shades as texel (0, 0), as a program that asks for that texel (the
     unclamped kernel crashed here)."""
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     from tests.test_materials import render_program_under_sun
     texels = np.array([[1, 0, 0, 1], [0, 1, 0, 1], [0, 1, 0, 1], [0, 1, 0, 1]], np.float16)
     vertices, triangles = grid_plane(2.0, 1, 0.0)
@@ -329,7 +329,7 @@ def test_the_caps_keep_the_kernels_32_bit_indices_exact():
 
 
 def test_program_rows_pack_exactly_at_the_caps():
-    from slave.buffers import pack_materials
+    from kdtrace.slave.buffers import pack_materials
     params = default_material_params(MAX_MATERIALS)
     params[:, MATERIAL_PARAMS.index("program")] = MAX_NODE_ROWS - 2
     shading = Shading(np.ones((MAX_MATERIALS, 4), np.float32), [], (0, 0, 0), params,
@@ -407,7 +407,7 @@ def test_node_program_ends_are_those_a_walk_from_each_start_finds():
     """Instructions to the END counted once, from the last back (a walk from each of 65535
     starts took 2.5 s): the same starts accepted, on chains of random length, some with a
     RAMP whose table follows their END, from rows at random, in tables and past the end."""
-    from core.layout import NODE_RAMP_SIZE
+    from kdtrace.core.layout import NODE_RAMP_SIZE
     rng = np.random.default_rng(7)
     for _ in range(8):
         rows, tables = [], set()
@@ -432,7 +432,7 @@ def _shared_tables(instructions: int) -> list:
     """The quadratic case of issue 39: `instructions` TRANSFORM instructions, each with its
     table (the same rows after the END: the table list grew with every instruction and was
     searched at every row)."""
-    from core.layout import NODE_TRANSFORM_SIZE
+    from kdtrace.core.layout import NODE_TRANSFORM_SIZE
     rows_total = 2 * instructions + 2 + NODE_TRANSFORM_SIZE
     table = rows_total - NODE_TRANSFORM_SIZE
     rows = []
@@ -444,7 +444,7 @@ def _shared_tables(instructions: int) -> list:
 def _check_seconds(rows, starts) -> float:
     """CPU seconds of the checks a frame's node program gets (the check, then the
     instructions the scene's features and textures read), the best of 3."""
-    from core.scene.features import program_instructions
+    from kdtrace.core.scene.features import program_instructions
     best = float("inf")
     for _ in range(3):
         began = time.process_time()
@@ -486,7 +486,7 @@ def _instructions_walked(program, starts) -> set:
 def test_program_instructions_are_each_starts_up_to_its_end():
     """program_instructions (linear) gives every instruction that a walk from each start to
     its END passes, once: on chains sharing their ends, from starts at random."""
-    from core.scene.features import program_instructions
+    from kdtrace.core.scene.features import program_instructions
     rng = np.random.default_rng(11)
     for _ in range(20):
         rows = []
@@ -539,7 +539,7 @@ def test_a_slave_refuses_out_of_bounds_numbers_with_a_message(caplog):
     """Over a socket to a slave: a frame of 2^32 tiles, a frame whose camera holds an integer
     past float's range, a tile index of 2^32 and the finding's texture (4 texels, (2^32 - 1)^2)
     are each refused with an ERROR naming the problem, never an unexpected error."""
-    from slave.server import SlaveServer
+    from kdtrace.slave.server import SlaveServer
     server = SlaveServer(_NoDevice(), "kdt-bounds", bind="127.0.0.1", port=0, secret=FARM_SECRET)
     server.start()
     geometry, tree = small_scene()

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.accel.buffer_pool import MIN_POOLED_BYTES
-from core.accel.device import DeviceContext
+from kdtrace.core.accel.buffer_pool import MIN_POOLED_BYTES
+from kdtrace.core.accel.device import DeviceContext
 
 
 def _fill(builder, buffer, value, nbytes):

@@ -8,15 +8,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.layout import (CLOSURE_CODES, MATERIAL, NODE_LAYER_WEIGHT_CODES, NODE_MATH_CODES,
-                         NODE_OP_CODES as OP, NODE_OUT_CODES, NODE_REF_REGISTER as R)
-from core.opencl import kernel_source
-from core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings,
-                              SceneError, Shading, View, default_material_params)
-from core.scene.scene import Scene
-from slave.buffers import material_emission, pack_materials
-from slave.tracer import Tracer, kernel_files_through
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.layout import (CLOSURE_CODES, MATERIAL, NODE_LAYER_WEIGHT_CODES, NODE_MATH_CODES,
+                                 NODE_OP_CODES as OP, NODE_OUT_CODES, NODE_REF_REGISTER as R)
+from kdtrace.core.opencl import kernel_source
+from kdtrace.core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings,
+                                      SceneError, Shading, View, default_material_params)
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.buffers import material_emission, pack_materials
+from kdtrace.slave.tracer import Tracer, kernel_files_through
 from tests.meshes import grid_plane
 from tests.opencl_programs import programs_on
 

@@ -20,7 +20,7 @@ import json
 import numpy as np
 import pytest
 
-from core.scene.model import RenderSettings
+from kdtrace.core.scene.model import RenderSettings
 from tests.blender import build_extension, run_bpy_script
 
 WIDTH, HEIGHT = 64, 48

@@ -3,7 +3,7 @@ wheel, loaded without importing bpy), with Cycles' prefilter and quality choices
 import numpy as np
 import pytest
 
-from core.denoise import PREFILTERS, QUALITIES, Denoiser, find_library
+from kdtrace.core.denoise import PREFILTERS, QUALITIES, Denoiser, find_library
 
 
 @pytest.fixture(scope="module")

@@ -36,7 +36,7 @@ def test_particle_instances_replace_their_hidden_emitter(exported):
 
 
 def _geometry(arrays):
-    from core.scene.model import Geometry
+    from kdtrace.core.scene.model import Geometry
     return Geometry(np.array(arrays["vertices"], np.float32).reshape(-1, 3),
                     np.array(arrays["triangles"], np.uint32).reshape(-1, 3),
                     np.array(arrays["material_ids"], np.uint16),
@@ -60,10 +60,10 @@ def test_shared_meshes_are_exported_once_and_instanced(exported):
 def test_nested_collection_instances_render_as_realised(exported):
     """The exporter's instanced scene renders as its realised one (the same Blender scene
     exported both ways)."""
-    from core.accel.kdtree import build_kdtree
-    from core.scene.model import RenderSettings, View
-    from core.scene.scene import Scene
-    from slave.tracer import Tracer
+    from kdtrace.core.accel.kdtree import build_kdtree
+    from kdtrace.core.scene.model import RenderSettings, View
+    from kdtrace.core.scene.scene import Scene
+    from kdtrace.slave.tracer import Tracer
     realised_geometry = _geometry(exported["realised"])
     realised = Scene.from_parts(realised_geometry, build_kdtree(realised_geometry.vertices,
                                                                 realised_geometry.triangles))

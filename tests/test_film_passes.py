@@ -9,13 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.layout import CLOSURE_CODES
-from core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, RenderSettings, Shading, View,
-                              default_material_params)
-from core.scene.scene import Scene
-from slave.film import CYCLES_CAMERA_AXES, camera_space, fill_untraced
-from slave.tracer import Tracer
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.layout import CLOSURE_CODES
+from kdtrace.core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, RenderSettings, Shading,
+                                      View, default_material_params)
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.film import CYCLES_CAMERA_AXES, camera_space, fill_untraced
+from kdtrace.slave.tracer import Tracer
 from tests.meshes import grid_plane, look_at, merge
 
 COLUMN = {name: i for i, name in enumerate(MATERIAL_PARAMS)}
@@ -231,7 +231,7 @@ def test_emission_diffuse_and_glossy_colour_of_the_camera_hit(tracer):
 
 
 def test_the_views_mist_travels_and_is_checked():
-    from core.scene.model import MIST, SceneError
+    from kdtrace.core.scene.model import MIST, SceneError
     view = view_of((0, -3, 3), (0, 0, 0), shading([material((0.5, 0.5, 0.5))]))
     assert View.from_dict(view.to_dict()).mist == MIST
     view.mist = (1.0, 4.0, 0.5)

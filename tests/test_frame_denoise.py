@@ -8,17 +8,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.denoise import Denoiser
-from core.frame import denoising
-from core.frame.denoising import DenoiseSettings
-from core.frame.exported import InstancedExport
-from core.frame.options import FrameOptions
-from core.frame.render import FrameHost, render_frame, summary
-from core.frame.session import FrameSession
-from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
-from core.scene.scene import Scene
-from slave.tracer import Tracer
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.denoise import Denoiser
+from kdtrace.core.frame import denoising
+from kdtrace.core.frame.denoising import DenoiseSettings
+from kdtrace.core.frame.exported import InstancedExport
+from kdtrace.core.frame.options import FrameOptions
+from kdtrace.core.frame.render import FrameHost, render_frame, summary
+from kdtrace.core.frame.session import FrameSession
+from kdtrace.core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import Tracer
 from tests.meshes import grid_plane, look_at, merge, uv_sphere
 
 WIDTH, HEIGHT = 96, 64

@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.frame.exported import load_export, save_export
-from core.frame.options import FrameOptions
-from core.frame.render import FrameHost, render_frame
-from core.frame.session import FrameSession
+from kdtrace.core.frame.exported import load_export, save_export
+from kdtrace.core.frame.options import FrameOptions
+from kdtrace.core.frame.render import FrameHost, render_frame
+from kdtrace.core.frame.session import FrameSession
 from tests.blender import build_extension, run_bpy_script
 
 SETTINGS = {"use_zeroconf": False, "local_slaves": 2, "tile_size": 16, "samples_per_axis": 2}

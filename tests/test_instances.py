@@ -7,15 +7,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.accel.compact import compact_tree
-from core.accel.kdtree import build_kdtree
-from core.accel.toplevel import build_toplevel
-from core.layout import INSTANCE, TOPLEVEL_LEAF_MAX, TOPLEVEL_MAX_DEPTH
-from core.scene.instances import MAX_INSTANCES
-from core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings,
-                              SceneError, Shading, View)
-from core.scene.scene import Scene, memory_report
-from slave.tracer import Tracer
+from kdtrace.core.accel.compact import compact_tree
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.accel.toplevel import build_toplevel
+from kdtrace.core.layout import INSTANCE, TOPLEVEL_LEAF_MAX, TOPLEVEL_MAX_DEPTH
+from kdtrace.core.scene.instances import MAX_INSTANCES
+from kdtrace.core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings,
+                                      SceneError, Shading, View)
+from kdtrace.core.scene.scene import Scene, memory_report
+from kdtrace.slave.tracer import Tracer
 from tests.meshes import grid_plane, load_bunny, look_at, uv_sphere
 
 
@@ -68,7 +68,7 @@ def _realised(meshes, which, matrices):
         materials.append(g.material_ids)
         base += len(g.vertices)
         if smooth:
-            from core.scene.features import full_geometry
+            from kdtrace.core.scene.features import full_geometry
             n = full_geometry(g).normals.astype(np.float64) @ np.linalg.inv(m[:3, :3])
             normals.append(n / np.linalg.norm(n, axis=1, keepdims=True))
     geometry = Geometry(np.concatenate(vertices), np.concatenate(triangles),

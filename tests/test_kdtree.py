@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from core.accel.kdtree import KDTree, KDTreeParams, LEAF_TAG, build_kdtree
+from kdtrace.core.accel.kdtree import KDTree, KDTreeParams, LEAF_TAG, build_kdtree
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere
 
 
@@ -288,7 +288,7 @@ def test_bad_input_is_rejected():
 @pytest.mark.parametrize("name", ["bunny", "cube_of_quads"])
 def test_binned_sah_in_chunks_gives_the_same_tree(name, monkeypatch):
     # Binned SAH runs in chunks of BINNED_CHUNK nodes; the chunking must not change the tree.
-    import core.accel.sah_splits as sah
+    import kdtrace.core.accel.sah_splits as sah
     vertices, triangles = SCENES[name]()
     reference = build_kdtree(vertices, triangles)
     monkeypatch.setattr(sah, "BINNED_CHUNK", 3)
@@ -349,7 +349,7 @@ def _reference_halves(tri, cell_lo, cell_hi, axis, plane):
 def test_batched_straddler_clipping_matches_one_polygon_at_a_time():
     # clip_straddlers clips only crossing faces, groups polygons by vertex count and
     # interpolates only crossing edges; the boxes must equal a plain per-polygon clip exactly.
-    from core.accel.clipping import clip_straddlers
+    from kdtrace.core.accel.clipping import clip_straddlers
     rng = np.random.default_rng(5)
     count = 600
     tri = rng.uniform(-1, 1, (count, 3, 3)).astype(np.float32).astype(np.float64)
@@ -376,7 +376,7 @@ def test_reference_rows_keep_boxes_and_triangle_ids_bit_exact():
     # References live in one (N, 7) float32 array (box lo, box hi, triangle id as int32 bits)
     # moved by whole-row gathers; ids whose bits read as float32 NaN or denormals (very large
     # or small ids) and the boxes must come through unchanged.
-    import core.accel.ref_rows as ref_rows
+    import kdtrace.core.accel.ref_rows as ref_rows
     rng = np.random.default_rng(3)
     ids = np.array([0, 1, 5, 2**23 + 1, 0x7F800001, 0x7FC00000, 2**31 - 1], np.int32)
     refs = np.empty((len(ids), ref_rows.REF_WORDS), np.float32)
@@ -394,7 +394,7 @@ def test_reference_rows_keep_boxes_and_triangle_ids_bit_exact():
 @pytest.mark.parametrize("name", ["bunny", "cube_of_quads"])
 def test_exact_sah_in_chunks_gives_the_same_tree(name, monkeypatch):
     # Exact SAH runs in chunks of EXACT_CHUNK nodes; the chunking must not change the tree.
-    import core.accel.sah_splits as sah
+    import kdtrace.core.accel.sah_splits as sah
     vertices, triangles = SCENES[name]()
     reference = build_kdtree(vertices, triangles)
     monkeypatch.setattr(sah, "EXACT_CHUNK", 7)

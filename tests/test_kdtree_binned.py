@@ -16,11 +16,11 @@ import sys
 import numpy as np
 import pytest
 
-from core.accel import binned
-from core.accel.binned import BinnedBuilder
-from core.accel.compact import MODES, compact_tree
-from core.accel.kdtree import KDTreeParams, build_kdtree
-from core.layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
+from kdtrace.core.accel import binned
+from kdtrace.core.accel.binned import BinnedBuilder
+from kdtrace.core.accel.compact import MODES, compact_tree
+from kdtrace.core.accel.kdtree import KDTreeParams, build_kdtree
+from kdtrace.core.layout import LEAF_TAG, PLAIN_FIELD, PLAIN_TAG
 from tests.meshes import load_bunny, load_dragon, merge, uv_sphere
 from tests.scenes_architecture import architecture_scene
 from tests.test_kdtree import SCENES, check_tree
@@ -181,7 +181,7 @@ def test_tree_does_not_depend_on_big_nodes_chunks_or_work_groups(builder, name):
 THREADS_SCRIPT = """
 import sys
 sys.path.insert(0, {root!r})
-from core.accel.binned import BinnedBuilder
+from kdtrace.core.accel.binned import BinnedBuilder
 from tests.test_kdtree_binned import architecture_small, digest
 from tests.meshes import load_bunny
 b = BinnedBuilder("cpu", big_refs=256, chunk_refs=512)
@@ -272,9 +272,9 @@ def test_dragon_invariants_in_every_mode(builder):
 
 
 def test_images_identical_in_every_mode():
-    from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
-    from core.scene.scene import Scene
-    from slave.tracer import Tracer
+    from kdtrace.core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
+    from kdtrace.core.scene.scene import Scene
+    from kdtrace.slave.tracer import Tracer
     from tests.meshes import look_at
     vertices, triangles, _, tree = scene("architecture")
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))
@@ -302,11 +302,11 @@ def test_images_identical_in_every_mode():
 # What the add-on calls (core/frame/tree_cache.py TreeCache.get)
 
 def test_tree_cache_builds_here_and_sends_treelets(builder):
-    from core.accel.binned import build_standard, opencl_builder
-    from core.accel.compact import user_settings
-    from core.accel.reorder import treelet_order
-    from core.frame.tree_cache import TreeCache
-    from core.scene.model import Geometry
+    from kdtrace.core.accel.binned import build_standard, opencl_builder
+    from kdtrace.core.accel.compact import user_settings
+    from kdtrace.core.accel.reorder import treelet_order
+    from kdtrace.core.frame.tree_cache import TreeCache
+    from kdtrace.core.scene.model import Geometry
     vertices, triangles = load_bunny()
     geometry = Geometry(vertices, triangles.astype(np.uint32), np.zeros(len(triangles), np.uint16))
     settings = user_settings("compressed", 0.5, 0.4, 8)

@@ -13,12 +13,12 @@ import functools
 import numpy as np
 import pytest
 
-from core.accel.arrays import distinct_count
-from core.accel.compact import MODES, compact_params, compact_tree, geometry_nbytes
-from core.accel.compact_lifts import lift_candidates, neighbour_lcas
-from core.accel.compact_topology import Topology
-from core.accel.kdtree import KDTree, build_kdtree
-from core.layout import LEAF_TAG, NO_TRIANGLE
+from kdtrace.core.accel.arrays import distinct_count
+from kdtrace.core.accel.compact import MODES, compact_params, compact_tree, geometry_nbytes
+from kdtrace.core.accel.compact_lifts import lift_candidates, neighbour_lcas
+from kdtrace.core.accel.compact_topology import Topology
+from kdtrace.core.accel.kdtree import KDTree, build_kdtree
+from kdtrace.core.layout import LEAF_TAG, NO_TRIANGLE
 from tests.meshes import load_bunny, uv_sphere
 from tests.scenes_architecture import architecture_scene
 
@@ -632,7 +632,7 @@ def test_lift_candidates_match_definition(thresholds, stretched):
 
 
 def _general_standard(tree, triangle_count, monkeypatch):
-    import core.accel.compact as kc
+    import kdtrace.core.accel.compact as kc
     with monkeypatch.context() as m:
         m.setattr(kc, "_standard_reencoded", lambda *args: None)
         return compact_tree(tree, triangle_count, "standard")
@@ -651,7 +651,7 @@ def _same_compact(a, b):
 def test_standard_reencoding_equals_the_general_layout(name, monkeypatch):
     # Mode standard re-encodes a builder-ordered tree's words directly (_standard_reencoded);
     # it must give exactly what the general decode-and-lay-out path gives.
-    import core.accel.compact as kc
+    import kdtrace.core.accel.compact as kc
     _, triangles, _, tree = scene(name)
     assert kc._standard_reencoded(tree, len(triangles), compact_params("standard")) is not None
     _same_compact(compact_tree(tree, len(triangles), "standard"),
@@ -659,7 +659,7 @@ def test_standard_reencoding_equals_the_general_layout(name, monkeypatch):
 
 
 def test_standard_reencoding_falls_back_for_other_orders(monkeypatch):
-    import core.accel.compact as kc
+    import kdtrace.core.accel.compact as kc
     # Root with two leaves: an empty one first, then one whose list is not ascending.
     tree = KDTree(np.array([[0 | (1 << 2), np.float32(0.5).view(np.uint32)],
                             [LEAF_TAG, 7], [LEAF_TAG | (2 << 2), 0]], np.uint32),

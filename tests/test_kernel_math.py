@@ -7,8 +7,8 @@ import re
 import numpy as np
 import pytest
 
-from core.opencl import KERNEL_DIR, kernel_source
-from slave.tracer import KERNEL_FILES
+from kdtrace.core.opencl import KERNEL_DIR, kernel_source
+from kdtrace.slave.tracer import KERNEL_FILES
 from tests.opencl_programs import programs_on
 
 PROBE = r"""

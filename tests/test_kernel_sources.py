@@ -13,16 +13,16 @@ import shutil
 import numpy as np
 import pytest
 
-import core.opencl
-from core.accel.compact import compact_tree
-from core.accel.kdtree import build_kdtree
-from core.layout import KERNEL_PARAMS
-from core.opencl import KERNEL_DIR, kernel_source
-from core.scene.features import ALL_FEATURES, full_geometry
-from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
-from core.scene.scene import Scene
-from slave.tracer import (KERNEL_FILES, SCENE_STRUCTURE, Tracer, kernel_files_through,
-                          kernel_options)
+import kdtrace.core.opencl
+from kdtrace.core.accel.compact import compact_tree
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.layout import KERNEL_PARAMS
+from kdtrace.core.opencl import KERNEL_DIR, kernel_source
+from kdtrace.core.scene.features import ALL_FEATURES, full_geometry
+from kdtrace.core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import (KERNEL_FILES, SCENE_STRUCTURE, Tracer, kernel_files_through,
+                                  kernel_options)
 from tests.meshes import grid_plane, look_at, uv_sphere
 
 # Generated tables, not code (.ci/ggx_albedo.py writes it).
@@ -45,7 +45,7 @@ def test_the_program_text_changes_with_every_source(tmp_path, monkeypatch):
     must change that text (a file the compiler read by itself would not)."""
     copy = tmp_path / "kernels"
     shutil.copytree(KERNEL_DIR, copy)
-    monkeypatch.setattr(core.opencl, "KERNEL_DIR", copy)
+    monkeypatch.setattr(kdtrace.core.opencl, "KERNEL_DIR", copy)
     before = kernel_source(KERNEL_FILES)
     for name in KERNEL_FILES:
         path = copy / name

@@ -8,13 +8,13 @@ import re
 import numpy as np
 import pytest
 
-from core import layout
-from core.opencl import KERNEL_DIR, kernel_source
-from core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry, Light,
-                              Shading, View)
-from slave.buffers import (light_intensity, pack_bounds, pack_camera, pack_lights, pack_materials,
-                           pack_triangles)
-from slave.tracer import KERNEL_FILES
+from kdtrace.core import layout
+from kdtrace.core.opencl import KERNEL_DIR, kernel_source
+from kdtrace.core.scene.model import (DEFAULT_MATERIAL_PARAMS, MATERIAL_PARAMS, Camera, Geometry,
+                                      Light, Shading, View)
+from kdtrace.slave.buffers import (light_intensity, pack_bounds, pack_camera, pack_lights,
+                                   pack_materials, pack_triangles)
+from kdtrace.slave.tracer import KERNEL_FILES
 from tests.opencl_programs import programs_on
 
 FIELDS = [f for node in layout.NODE_FORMATS for f in node.fields]
@@ -380,8 +380,8 @@ def reachable_nodes(nodes):
 
 @pytest.fixture(scope="module")
 def bunny_trees():
-    from core.accel.compact import compact_tree
-    from core.accel.kdtree import build_kdtree
+    from kdtrace.core.accel.compact import compact_tree
+    from kdtrace.core.accel.kdtree import build_kdtree
     from tests.meshes import load_bunny
     vertices, triangles = load_bunny()
     tree = build_kdtree(vertices, triangles)
@@ -515,8 +515,8 @@ def test_build_elements_are_their_types_sizes():
     """The host sizes the buffers whose fields only kernels read by core/layout.py's ELEMENTS:
     each is sizeof(its C type) in the program that uses it, on the device, so that a struct
     changed on one side alone fails here."""
-    from core.accel import binned, compact_cl
-    from core.accel.kdtree import KDTreeParams
+    from kdtrace.core.accel import binned, compact_cl
+    from kdtrace.core.accel.kdtree import KDTreeParams
     builder = binned.BinnedBuilder("cpu")
     programs = [(binned.KERNEL_FILES, builder.build_options(KDTreeParams())),
                 (compact_cl.KERNEL_FILES, compact_cl.program_options())]

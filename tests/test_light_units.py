@@ -15,10 +15,10 @@ import textwrap
 import numpy as np
 import pytest
 
-from core.accel.kdtree import KDTree
-from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
-from core.scene.scene import Scene
-from slave.tracer import Tracer
+from kdtrace.core.accel.kdtree import KDTree
+from kdtrace.core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import Tracer
 from tests.meshes import grid_plane
 
 SIZE = 32               # image side in pixels

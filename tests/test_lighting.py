@@ -9,14 +9,14 @@ import math
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.scene.features import ALL_FEATURES, scene_features
-from core.layout import VISIBILITY_CODES, VISIBLE_TO_ALL
-from core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings, Shading,
-                              View, WorldTexture, default_material_params)
-from core.scene.scene import Scene
-from slave.buffers import alias_table, emitter_powers, world_importance
-from slave.tracer import Tracer, kernel_options
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.scene.features import ALL_FEATURES, scene_features
+from kdtrace.core.layout import VISIBILITY_CODES, VISIBLE_TO_ALL
+from kdtrace.core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings,
+                                      Shading, View, WorldTexture, default_material_params)
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.buffers import alias_table, emitter_powers, world_importance
+from kdtrace.slave.tracer import Tracer, kernel_options
 from tests.meshes import grid_plane, merge
 
 ALBEDO = 0.5

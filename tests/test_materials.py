@@ -11,12 +11,12 @@ import re
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.opencl import KERNEL_DIR, kernel_source
-from core.scene.model import (Camera, Geometry, Light, RenderSettings, Shading, View,
-                              default_material_params)
-from core.scene.scene import Scene
-from slave.tracer import Tracer, kernel_files_through
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.opencl import KERNEL_DIR, kernel_source
+from kdtrace.core.scene.model import (Camera, Geometry, Light, RenderSettings, Shading, View,
+                                      default_material_params)
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import Tracer, kernel_files_through
 from tests.meshes import grid_plane, look_at, merge, uv_sphere
 
 # metallic, roughness, transmission, ior, specular (Principled inputs)
@@ -201,7 +201,7 @@ def test_translucent_transmits_lambertian_light():
             cl.enqueue_copy(tracer.queue, out, buf)
             assert out[:, 2].max() < 1e-3
             assert abs(out[:, 1].mean() - t) < 0.01 and abs(out[:, 0].mean() - (1 - t)) < 0.01
-    from core.scene.model import MATERIAL_PARAMS
+    from kdtrace.core.scene.model import MATERIAL_PARAMS
     vertices, triangles = grid_plane(2.0, 1, 0.0)
     tracer.load(Scene.from_parts(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)),
                                  build_kdtree(vertices, triangles)))
@@ -253,7 +253,7 @@ def test_coat_layers_as_cycles_does():
             cl.enqueue_copy(tracer.queue, out, buf)
             assert out[:, 2].max() < 1e-3
             assert 0.85 < out[:, 0].mean() < 1.01
-    from core.scene.model import MATERIAL_PARAMS
+    from kdtrace.core.scene.model import MATERIAL_PARAMS
     vertices, triangles = grid_plane(2.0, 1, 0.0)
     tracer.load(Scene.from_parts(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)),
                                  build_kdtree(vertices, triangles)))
@@ -396,7 +396,7 @@ def render_program_under_sun(tracer, rows, size, sun=(0, 0, -1)):
     """The loaded scene (seen from z = 1 by an orthographic camera over [-1, 1]^2, one sample
     at each pixel centre) with one white diffuse material whose node program is `rows`
     (checked as the network's are), under a sun of irradiance 2: Combined RGB."""
-    from core.scene.model import MATERIAL_PARAMS, check_node_program
+    from kdtrace.core.scene.model import MATERIAL_PARAMS, check_node_program
     params = default_material_params(1)
     params[0, MATERIAL_PARAMS.index("specular")] = 0.0
     params[0, MATERIAL_PARAMS.index("program")] = 0
@@ -415,8 +415,9 @@ def test_node_program_evaluates_per_hit_as_numpy_does(tracer):
     """A shader node program (checker on the UVs, math, colour ramp, multiply mix) sets the base
     colour per hit: under a sun straight down (one sample at each pixel centre, no specular)
     each pixel is that colour x E / pi, against the same nodes evaluated here in numpy."""
-    from core.layout import NODE_MATH_CODES, NODE_MIX_CODES, NODE_OP_CODES as OP, NODE_OUT_CODES
-    from core.layout import NODE_RAMP_SIZE, NODE_REF_REGISTER as R
+    from kdtrace.core.layout import (NODE_MATH_CODES, NODE_MIX_CODES, NODE_OP_CODES as OP,
+                                     NODE_OUT_CODES)
+    from kdtrace.core.layout import NODE_RAMP_SIZE, NODE_REF_REGISTER as R
     vertices, triangles = grid_plane(2.0, 1, 0.0)
     uvs = (vertices[triangles.reshape(-1)][:, :2] + 1.0) / 2.0          # u, v = (x, y + 1) / 2
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16),
@@ -576,8 +577,8 @@ def test_noise_texture_is_cycles_perlin_fbm(tracer):
     """The Noise Texture instruction (fBm in 1D to 4D, and the other types in 3D, with a
     fractional detail, distortion and its Color) on a plane's Object coordinates (and W), as
     the base colour under a sun: each pixel is the numpy evaluation of Cycles' noise x E / pi."""
-    from core.layout import NODE_NOISE_TYPE_CODES, NODE_OP_CODES as OP, NODE_OUT_CODES
-    from core.layout import NODE_REF_REGISTER as R
+    from kdtrace.core.layout import NODE_NOISE_TYPE_CODES, NODE_OP_CODES as OP, NODE_OUT_CODES
+    from kdtrace.core.layout import NODE_REF_REGISTER as R
     vertices, triangles = grid_plane(2.0, 1, 0.37)
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16),
                         uvs=np.zeros((3 * len(triangles), 2), np.float32))
@@ -636,8 +637,8 @@ def test_normal_map_and_bump_set_the_shading_normal_as_numpy_does(tracer):
     GGX shadowing of alpha^2 = tan^2(tilt) / 8 at the light's angle to the unperturbed
     normal), the strongest tilts lifted as Cycles lifts normals that would mirror the view
     below the surface. One kernel for the three renders."""
-    from core.layout import (NODE_MATH_CODES, NODE_NORMAL_SPACE_CODES, NODE_OP_CODES as OP,
-                             NODE_OUT_CODES, NODE_REF_REGISTER as R)
+    from kdtrace.core.layout import (NODE_MATH_CODES, NODE_NORMAL_SPACE_CODES, NODE_OP_CODES as OP,
+                                     NODE_OUT_CODES, NODE_REF_REGISTER as R)
     vertices, triangles = grid_plane(2.0, 1, 0.0)
     uvs = (vertices[triangles.reshape(-1)][:, :2] + 1.0) / 2.0
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16),
@@ -699,8 +700,8 @@ def test_normal_map_and_bump_set_the_shading_normal_as_numpy_does(tracer):
     lambda rows: rows.__setitem__(slice(0, 2), [[18, 0, 4, 4], [0, 900, 1, 0]]),  # its rows outside
 ])
 def test_bad_node_programs_are_refused(bad):
-    from core.scene.model import SceneError, check_node_program
-    from core.layout import NODE_RAMP_SIZE
+    from kdtrace.core.scene.model import SceneError, check_node_program
+    from kdtrace.core.layout import NODE_RAMP_SIZE
     # six UV instructions, a RAMP (its table 6 rows on: after the END), OUT, END, the table
     rows = [[2, 0, 0, 0], [0, 0, 0, 0]] * 6 + [[9, 6, 4 * 8, 0], [0, 6, 1, 0], [10, 0, 4, 0],
                                                [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]] \
@@ -715,8 +716,8 @@ def test_a_program_whose_tables_follow_in_another_order_is_accepted():
     """A TRANSFORM before a RAMP (the compiler writes the ramp's table first): the check skips
     both tables after the END whatever their order (a transform row of 0.9999 read as an
     operation refused the scene on every slave)."""
-    from core.scene.model import check_node_program
-    from core.layout import NODE_RAMP_SIZE, NODE_TRANSFORM_SIZE
+    from kdtrace.core.scene.model import check_node_program
+    from kdtrace.core.layout import NODE_RAMP_SIZE, NODE_TRANSFORM_SIZE
     tables = 8                                              # the first table's row
     rows = [[16, 0, 0, 0], [0, tables + NODE_RAMP_SIZE, 0, 0],        # TRANSFORM
             [9, 1, 4, 0], [0, tables - 2, 1, 0],                      # RAMP
@@ -728,7 +729,7 @@ def test_a_program_whose_tables_follow_in_another_order_is_accepted():
 
 def test_a_node_program_reading_a_missing_texture_is_refused():
     """Scene.check_view refuses a program whose Image Texture is not in the geometry."""
-    from core.scene.model import MATERIAL_PARAMS, SceneError, default_material_params
+    from kdtrace.core.scene.model import MATERIAL_PARAMS, SceneError, default_material_params
     vertices, triangles = grid_plane(2.0, 1, 0.0)
     scene = Scene.from_parts(Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16)),
                              build_kdtree(vertices, triangles))

@@ -8,11 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.accel.compact import compact_tree
-from core.accel.kdtree import build_kdtree
-from core.scene.model import Camera, Geometry, SceneError, Shading, View
-from core.scene.scene import Scene
-from slave.tracer import Tracer
+from kdtrace.core.accel.compact import compact_tree
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.scene.model import Camera, Geometry, SceneError, Shading, View
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import Tracer
 from tests.meshes import uv_sphere
 
 

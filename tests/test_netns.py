@@ -17,12 +17,12 @@ import uuid
 import numpy as np
 import pytest
 
-from core.net import protocol
-from core.net.discovery import SlaveBrowser
-from core.net.master import Master, MasterError
-from core.net.protocol import HEADER, MAGIC, MsgType
-from core.net.trust import new_farm_secret
-from core.scene.scene import Scene
+from kdtrace.core.net import protocol
+from kdtrace.core.net.discovery import SlaveBrowser
+from kdtrace.core.net.master import Master, MasterError
+from kdtrace.core.net.protocol import HEADER, MAGIC, MsgType
+from kdtrace.core.net.trust import new_farm_secret
+from kdtrace.core.scene.scene import Scene
 from tests.conftest import FARM_SECRET
 from tests.processes import ChildProcess
 from tests.test_network import (assert_images_equal, make_scene, make_view, raw_exchange,
@@ -82,8 +82,9 @@ def HostProcess(ns: str, argv: list, env: dict | None = None) -> ChildProcess:
 
 def start_slave(lan: Lan, host: int, name: str, *extra, port=PORT, env=None) -> HostProcess:
     address = lan.addresses[host]
-    slave = HostProcess(lan.namespaces[host], ["-m", "slave", "--bind", address, "--port", str(port),
-                                               "--name", name, *extra], env=env)
+    slave = HostProcess(lan.namespaces[host], ["-m", "kdtrace.slave", "--bind", address,
+                                               "--port", str(port), "--name", name, *extra],
+                        env=env)
     line = slave.wait_line(f"KD Trace slave {name} listening on {address}:{port}")
     slave.name, slave.endpoint = name, (address, port)
     slave.id = line.split(" id ")[1].split()[0]
@@ -95,8 +96,8 @@ def start_slave(lan: Lan, host: int, name: str, *extra, port=PORT, env=None) -> 
 FAKE_SLAVE = r"""
 import os, socket, sys, threading, time
 import numpy
-from core.net import protocol
-from core.net.protocol import MsgType, HEADER, MAGIC
+from kdtrace.core.net import protocol
+from kdtrace.core.net.protocol import MsgType, HEADER, MAGIC
 from tests.tls_peers import serve_as_slave
 mode, host, port = sys.argv[1], sys.argv[2], int(sys.argv[3])
 

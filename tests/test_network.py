@@ -1,4 +1,4 @@
-"""The network runtime end to end: real `python -m slave` processes on 127.0.0.1, the real
+"""The network runtime end to end: real `python -m kdtrace.slave` processes on 127.0.0.1, the real
 Tracer and build_kdtree, discovery over zeroconf on loopback, and a misbehaving master."""
 from __future__ import annotations
 
@@ -14,13 +14,13 @@ import time
 import numpy as np
 import pytest
 
-from core.net import protocol
-from core.net.discovery import SlaveBrowser, browse_slaves
-from core.accel.kdtree import build_kdtree
-from core.net.master import Master, MasterError
-from core.net.protocol import HEADER, MAGIC, MsgType
-from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
-from core.scene.scene import Scene
+from kdtrace.core.net import protocol
+from kdtrace.core.net.discovery import SlaveBrowser, browse_slaves
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.net.master import Master, MasterError
+from kdtrace.core.net.protocol import HEADER, MAGIC, MsgType
+from kdtrace.core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
+from kdtrace.core.scene.scene import Scene
 from tests.conftest import ROOT
 from tests.meshes import grid_plane, merge, uv_sphere
 from tests.processes import SlaveProcess
@@ -95,7 +95,7 @@ def render_all(job, timeout=60.0):
 @pytest.fixture(scope="module")
 def reference():
     """The full image from the real Tracer in this process."""
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     geometry, tree = make_scene()
     tracer = Tracer()
     tracer.load(Scene.from_parts(geometry, tree))
@@ -173,7 +173,7 @@ def test_two_slaves_render_the_same_pixels_as_one_and_as_the_tracer(slaves, refe
 def test_compressed_kdtree_renders_the_same_pixels_over_the_network(slaves, reference):
     """Mode "compressed" (triangle references in inner nodes, 2-byte leaves) travels to real slaves,
     gets its own scene hash (another upload), and renders what the standard tree renders."""
-    from core.accel.compact import compact_tree
+    from kdtrace.core.accel.compact import compact_tree
     geometry, tree = make_scene()
     ours = compact_tree(tree, geometry.triangle_count, "compressed")
     assert ours.stats["inner_references"] > 0 and ours.stats["leaves_16bit"] > 0
@@ -396,8 +396,8 @@ def test_master_pointed_at_a_dead_port_says_so(slaves):
     (["--device", "9:9", "--no-zeroconf", "--port", "0"], "cannot use OpenCL device '9:9'"),
 ])
 def test_bad_command_lines_exit_2_with_one_line(args, message):
-    proc = subprocess.run([sys.executable, "-m", "slave", *args], cwd=ROOT, capture_output=True,
-                          text=True, timeout=60, env=dict(os.environ, POCL_MAX_PTHREAD_COUNT="1"))
+    proc = subprocess.run([sys.executable, "-m", "kdtrace.slave", *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60, env=dict(os.environ, POCL_MAX_PTHREAD_COUNT="1"))
     assert proc.returncode == 2
     assert proc.stdout == ""
     lines = proc.stderr.strip().splitlines()

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.accel.kdtree import build_kdtree
-from core.layout import (NODE_ATTRIBUTE_CODES, NODE_GEOMETRY_CODES, NODE_LIGHT_PATH_CODES,
-                         NODE_OBJECT_INFO_CODES, NODE_OP_CODES as OP, NODE_OUT_CODES,
-                         NODE_REF_REGISTER as R)
-from core.scene.model import Geometry
-from core.scene.scene import Scene
-from slave.tracer import Tracer
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.layout import (NODE_ATTRIBUTE_CODES, NODE_GEOMETRY_CODES, NODE_LIGHT_PATH_CODES,
+                                 NODE_OBJECT_INFO_CODES, NODE_OP_CODES as OP, NODE_OUT_CODES,
+                                 NODE_REF_REGISTER as R)
+from kdtrace.core.scene.model import Geometry
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import Tracer
 from tests.meshes import grid_plane
 from tests.test_materials import render_program_under_sun
 

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.layout import (NODE_MATH_CODES, NODE_OP_CODES as OP, NODE_OUT_CODES,
-                         NODE_REF_REGISTER as R, NODE_VECTOR_MATH_CODES)
-from core.scene.model import Geometry
-from core.scene.scene import Scene
-from slave.tracer import Tracer
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.layout import (NODE_MATH_CODES, NODE_OP_CODES as OP, NODE_OUT_CODES,
+                                 NODE_REF_REGISTER as R, NODE_VECTOR_MATH_CODES)
+from kdtrace.core.scene.model import Geometry
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import Tracer
 from tests.meshes import grid_plane
 from tests.test_materials import render_program_under_sun
 

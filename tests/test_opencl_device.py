@@ -2,7 +2,7 @@
 can list two CPU devices of which one cannot compile here (the PoCL wheel on AMD Zen 5)."""
 import pytest
 
-from core.opencl import UNKNOWN_CPU_HINT, OpenCLError, Programs, select_device
+from kdtrace.core.opencl import UNKNOWN_CPU_HINT, OpenCLError, Programs, select_device
 
 
 class FakeCL:

@@ -15,8 +15,8 @@ import zipfile
 
 import pytest
 
-from core.net.master import Master
-from core.scene.scene import Scene
+from kdtrace.core.net.master import Master
+from kdtrace.core.scene.scene import Scene
 from tests.blender import ROOT, SCRIPTS, run_bpy_script
 from tests.processes import LINE_PREFIX, ChildProcess
 from tests.test_network import assert_images_equal, make_scene, make_view, render_all
@@ -149,7 +149,7 @@ def test_blender_command_runs_the_slave_on_the_bundled_wheels(linux_zip, tmp_pat
             master.connect()
             master.load_scene(scene)
             images, results = render_all(master.render(make_view(), tile_size=16))
-        from slave.tracer import Tracer
+        from kdtrace.slave.tracer import Tracer
         tracer = Tracer()
         tracer.load(scene)
         view = make_view()
@@ -157,7 +157,7 @@ def test_blender_command_runs_the_slave_on_the_bundled_wheels(linux_zip, tmp_pat
         # The status port is the slave's port + 1 unless that was taken: the log says which.
         [status_port] = re.findall(r"--status --status-port (\d+)",
                                    (tmp_path / "slave.log").read_text())
-        status = subprocess.run([sys.executable, "-m", "slave", "--status", "--status-port",
+        status = subprocess.run([sys.executable, "-m", "kdtrace.slave", "--status", "--status-port",
                                  status_port], cwd=ROOT, capture_output=True, text=True,
                                 timeout=30)
         assert status.returncode == 0, status.stderr
@@ -167,7 +167,7 @@ def test_blender_command_runs_the_slave_on_the_bundled_wheels(linux_zip, tmp_pat
         blender.stop()
     outcome = json.loads(result_path.read_text())
     assert outcome["registered"] and outcome["status"] == 0, blender.log[-3000:]
-    assert slave_cwd == outcome["extension_root"]   # `python -m slave` from the extension
+    assert slave_cwd == outcome["extension_root"]   # `python -m kdtrace.slave` from the extension
     pyopencl = [path for path in loaded if "/pyopencl/_cl." in path]
     assert pyopencl and all(any(p.startswith(d) for d in outcome["wheel_dirs"]) for p in pyopencl)
     # Its identity was made with the bundled cryptography (its compiled part from the wheel).

@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.net import protocol
-from core.net.master import Master
-from core.scene.features import PASS_FEATURES
-from core.scene.scene import Scene
-from slave.server import SlaveServer
-from slave.tracer import Tracer
+from kdtrace.core.net import protocol
+from kdtrace.core.net.master import Master
+from kdtrace.core.scene.features import PASS_FEATURES
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.server import SlaveServer
+from kdtrace.slave.tracer import Tracer
 from tests.conftest import FARM_SECRET
 from tests.linkemu import LinkEmulator
 from tests.test_network import make_scene, make_view

@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings, Shading,
-                              View, default_material_params)
-from core.scene.scene import Scene
-from slave.buffers import filter_table
-from slave.tracer import Tracer
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings,
+                                      Shading, View, default_material_params)
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.buffers import filter_table
+from kdtrace.slave.tracer import Tracer
 
 WIDTH = 24          # pixels across [-3, 3]: 4 pixels a unit; the edge at x = 0 lies between two
 

@@ -10,14 +10,15 @@ import time
 import numpy as np
 import pytest
 
-from core.net import protocol
-from core.net.channel import RECV_KEEP_BYTES, Channel
-from core.net.protocol import HEADER, MAGIC, PROTOCOL_VERSION, Limits, MsgType, ProtocolError
-from core.net.tile_payloads import decode_tile
-from core.accel.kdtree import KDTree
-from core.scene.model import Geometry, SceneError
-from core.net.tiles import TilePool, tile_grid
-from core.scene.scene import Scene
+from kdtrace.core.net import protocol
+from kdtrace.core.net.channel import RECV_KEEP_BYTES, Channel
+from kdtrace.core.net.protocol import (HEADER, MAGIC, PROTOCOL_VERSION, Limits, MsgType,
+                                       ProtocolError)
+from kdtrace.core.net.tile_payloads import decode_tile
+from kdtrace.core.accel.kdtree import KDTree
+from kdtrace.core.scene.model import Geometry, SceneError
+from kdtrace.core.net.tiles import TilePool, tile_grid
+from kdtrace.core.scene.scene import Scene
 
 
 @pytest.fixture
@@ -197,8 +198,8 @@ def test_scene_round_trip_and_hash(pair):
 def test_scene_hash_depends_on_the_kdtree_mode():
     """The mode and thresholds are part of what the master builds: other arrays, another hash;
     the compact arrays round-trip through the upload unchanged."""
-    from core.accel.kdtree import build_kdtree
-    from core.accel.compact import compact_tree
+    from kdtrace.core.accel.kdtree import build_kdtree
+    from kdtrace.core.accel.compact import compact_tree
     from tests.meshes import uv_sphere
     vertices, triangles = uv_sphere(32, 16)
     geometry = Geometry(vertices, triangles, np.zeros(len(triangles), np.uint16))

@@ -1,8 +1,8 @@
 """Reliability (docs/distributed.md, "Liveness, bounds and authentication"): a slow tile is not a
 dead slave, and no peer can stall, flood or lock out the other side.
 
-Real `python -m slave` processes on 127.0.0.1 and the real tracer; misbehaving masters are raw
-sockets, misbehaving slaves are fakes in this process, and a splicing proxy injects and replays
+Real `python -m kdtrace.slave` processes on 127.0.0.1 and the real tracer; misbehaving masters are
+raw sockets, misbehaving slaves are fakes in this process, and a splicing proxy injects and replays
 messages. Each numbered case of issue 13 has a test here that shows the good behaviour: the
 slave alive and serving a real render afterwards, memory under a stated bound, an honest master
 admitted while hostile sockets are held, the render returning with the bad slave named, the bad
@@ -22,16 +22,16 @@ import time
 import numpy as np
 import pytest
 
-from core.net import protocol, secure, trust
-from core.net import channel as channel_module
-from core.net.channel import Channel
-from core.net.master import Master, MasterError, SlaveBusy, TileBudget, connect_slave
-from core.net.protocol import HEADER, MAGIC, MsgType, ProtocolError
-from core.net.tiles import TileGrid, TilePool, tile_grid
-from core.scene.model import (MATERIAL_PARAMS, SCENE_FORMAT_VERSION, Light, SceneError, View,
-                              default_material_params)
-from core.scene.scene import Scene
-from slave.queues import Outbox, WorkQueue
+from kdtrace.core.net import protocol, secure, trust
+from kdtrace.core.net import channel as channel_module
+from kdtrace.core.net.channel import Channel
+from kdtrace.core.net.master import Master, MasterError, SlaveBusy, TileBudget, connect_slave
+from kdtrace.core.net.protocol import HEADER, MAGIC, MsgType, ProtocolError
+from kdtrace.core.net.tiles import TileGrid, TilePool, tile_grid
+from kdtrace.core.scene.model import (MATERIAL_PARAMS, SCENE_FORMAT_VERSION, Light, SceneError,
+                                      View, default_material_params)
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.queues import Outbox, WorkQueue
 from tests import tls_peers
 from tests.conftest import FARM_SECRET
 from tests.processes import SlaveProcess
@@ -134,7 +134,7 @@ def scene():
 @pytest.fixture(scope="module")
 def slow_reference(scene):
     """The slow view rendered by the tracer in this process, in one piece."""
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     tracer = Tracer()
     tracer.load(scene)
     view = slow_view()
@@ -410,7 +410,7 @@ def test_array_spec_with_a_list_or_object_dtype_is_refused(slaves, scene, refere
 
 
 def test_an_exception_while_handling_a_slave_drops_that_slave(slaves, scene, reference, monkeypatch):
-    from core.net import slave_worker
+    from kdtrace.core.net import slave_worker
     real_handle = slave_worker.SlaveWorker._handle
     victim_port = slaves[1].port
 
@@ -487,8 +487,8 @@ def test_a_slave_with_nothing_left_stays_in_a_long_frame(scene, reference, monke
     """The last tile of a frame takes longer than the slave's idle deadline: the other slave,
     which has nothing left to render, is kept in the frame by the master's HEARTBEAT, not
     closed as an idle master (2 tiles, one slave much slower; deadlines scaled down)."""
-    from slave.server import SlaveServer
-    from slave.tracer import Tracer
+    from kdtrace.slave.server import SlaveServer
+    from kdtrace.slave.tracer import Tracer
 
     class SlowTracer(Tracer):
         def render_tile(self, *args, **kwargs):
@@ -527,7 +527,7 @@ def test_a_slave_with_nothing_left_stays_in_a_long_frame(scene, reference, monke
                                            "this with KDTRACE_LONG_TESTS=1")
 def test_two_minute_tiles_with_the_default_deadlines(scene):
     """Tiles of about 2 minutes each on this machine's cores, default heartbeat and silence."""
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     view = slow_view(64, 32, samples_per_axis=64)
     view.settings.light_samples_per_axis = 10
     started = [SlaveProcess(name) for name in ("kdt-long-a", "kdt-long-b")]
@@ -918,7 +918,7 @@ def test_an_over_budget_frame_is_refused_and_a_master_cuts_smaller_tiles(
             peer.recv(wait=1.0)
     finally:
         peer.close()
-    from core.net.tiles import fit_tile_work
+    from kdtrace.core.net.tiles import fit_tile_work
     if words == "tile may trace":
         w, h = fit_tile_work(view, 1024, protocol.MAX_TILE_RAYS, protocol.MAX_SAMPLE_RAYS)
         assert view.tile_rays(w, h) <= protocol.MAX_TILE_RAYS < view.tile_rays(2 * w, h)
@@ -946,7 +946,7 @@ def test_uploads_in_progress_share_one_memory_budget(scene):
     budget: a second upload that does not fit beside one in progress waits, then is refused
     ("slave busy: uploads in progress ..."); the budget comes back when an upload ends,
     whole or not, and a real upload goes through."""
-    from slave.server import SlaveServer
+    from kdtrace.slave.server import SlaveServer
     server = SlaveServer(_NoTracer(), "kdt-budget", bind="127.0.0.1", port=0,
                          secret=FARM_SECRET, upload_bytes=3 << 20)
     server.uploads.wait_s = 0.5
@@ -995,8 +995,8 @@ def test_a_slow_slave_is_dropped_at_its_upload_deadline_and_esc_stops_the_upload
     UPLOAD_MIN_BPS) to make the scene present is dropped, named, and the frame renders on
     the others; alone, a load_scene whose `cancelled` says so (Esc) returns within a poll with
     LoadCancelled."""
-    from core.net import master as master_module
-    from core.net.master import LoadCancelled
+    from kdtrace.core.net import master as master_module
+    from kdtrace.core.net.master import LoadCancelled
     monkeypatch.setattr(master_module, "UPLOAD_BASE_S", 2.0)
     slow = FakeSlave("slowload")
     try:

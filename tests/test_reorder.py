@@ -9,10 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.accel.compact import MODES, compact_tree
-from core.accel.reorder import treelet_order
-from core.accel.validate import validate_compact
-from core.layout import INNER_EMPTY_ABOVE, INNER_EMPTY_BELOW, INNER_GROUP, INNER_REF, LEAF_TAG, TAG
+from kdtrace.core.accel.compact import MODES, compact_tree
+from kdtrace.core.accel.reorder import treelet_order
+from kdtrace.core.accel.validate import validate_compact
+from kdtrace.core.layout import (INNER_EMPTY_ABOVE, INNER_EMPTY_BELOW, INNER_GROUP, INNER_REF,
+                                 LEAF_TAG, TAG)
 from tests.test_kdtree_compact import random_rays, scene, trace_compact
 
 
@@ -67,7 +68,7 @@ def test_treelets_keep_groups_near_their_nodes():
 def test_keys_sorted_in_pieces_give_the_order_of_one_sort(monkeypatch):
     """treelet_order sorts its keys a piece at a time (so that Esc is heard between pieces):
     the same tree as one sort, and the heartbeat called at every piece."""
-    from core.accel import reorder
+    from kdtrace.core.accel import reorder
     corners, tree = scene("architecture")[2:]
     ct = compact_tree(tree, len(corners), "compressed")
     whole = treelet_order(ct)

@@ -9,11 +9,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.scene.model import (Camera, Geometry, Light, RenderSettings, SceneError, Shading,
-                              View, default_material_params)
-from core.scene.scene import Scene
-from slave.tracer import Tracer
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.scene.model import (Camera, Geometry, Light, RenderSettings, SceneError, Shading,
+                                      View, default_material_params)
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import Tracer
 from tests.meshes import grid_plane, look_at, merge, uv_sphere
 from tests.test_tracer import single_leaf_tree, two_level_tree
 

@@ -10,13 +10,13 @@ import zlib
 import numpy as np
 import pytest
 
-from core.net import trust
+from kdtrace.core.net import trust
 from tests.linkemu import LinkEmulator
-from core.net.protocol import ProtocolError
-from core.net.tiles import TilePool, partition_tile_size, tile_grid
-from core.net.tile_payloads import decode_tile, encode_tile
-from core.scene.scene import Scene
-from slave.scene_cache import SceneCache
+from kdtrace.core.net.protocol import ProtocolError
+from kdtrace.core.net.tiles import TilePool, partition_tile_size, tile_grid
+from kdtrace.core.net.tile_payloads import decode_tile, encode_tile
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.scene_cache import SceneCache
 from tests.test_network import make_scene
 
 

@@ -5,7 +5,7 @@ pixels and uses must be independent of it."""
 import numpy as np
 import pytest
 
-from core.opencl import KERNEL_DIR, kernel_source
+from kdtrace.core.opencl import KERNEL_DIR, kernel_source
 from tests.opencl_programs import programs_on
 
 POINTS = r"""

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from bench.standin import StandInTracer, calibrate
-from core.net.master import Master, auto_tile_size
-from core.net.render_job import DEPTH_MISS, RESULTS_EVERY_S
-from core.net.tile_payloads import decode_tile, encode_tile
-from core.scene.scene import Scene
-from slave.server import SlaveServer
+from kdtrace.core.net.master import Master, auto_tile_size
+from kdtrace.core.net.render_job import DEPTH_MISS, RESULTS_EVERY_S
+from kdtrace.core.net.tile_payloads import decode_tile, encode_tile
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.server import SlaveServer
 from tests.linkemu import LinkEmulator
 from tests.test_network import make_scene, make_view
 from tests.conftest import FARM_SECRET
@@ -33,7 +33,7 @@ def scene():
 def calibration(scene):
     """The real tracer's frame (128 x 96, 48 tiles of 16 x 16), checked against its one-piece
     render; the stand-ins then answer every tile with its real bytes in TILE_MS."""
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     tracer = Tracer()
     view = make_view(128, 96)
     result = calibrate(tracer, scene, view, [(TILE, TILE)])

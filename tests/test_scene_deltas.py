@@ -9,11 +9,12 @@ import time
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.net.master import Master
-from core.net.protocol import MsgType
-from core.scene.model import Camera, Geometry, Light, RenderSettings, SceneError, Shading, View
-from core.scene.scene import Scene
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.net.master import Master
+from kdtrace.core.net.protocol import MsgType
+from kdtrace.core.scene.model import (Camera, Geometry, Light, RenderSettings, SceneError, Shading,
+                                      View)
+from kdtrace.core.scene.scene import Scene
 from tests.meshes import grid_plane, look_at, uv_sphere
 from tests.processes import SlaveProcess
 from tests.test_network import render_all
@@ -110,7 +111,7 @@ def test_moving_two_of_ten_objects_sends_only_the_instances(scenes):
         assert "Traceback" not in slave.log, slave.log
     # The slaves placed `second` on the meshes they held and kept their buffers: the same bits
     # as `second` loaded whole here.
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     tracer = Tracer()
     tracer.load(second)
     expected = tracer.render_tile(view, 0, 0, view.width, view.height)
@@ -178,7 +179,7 @@ def test_meshes_from_the_wire_are_checked(scenes):
 
 
 def test_a_restarted_slave_finds_the_meshes_on_disk(scenes, tmp_path):
-    from slave.scene_cache import SceneCache
+    from kdtrace.slave.scene_cache import SceneCache
     first, second, changed = scenes
     SceneCache(2, tmp_path).put(first)
     fresh = SceneCache(2, tmp_path)                  # a restarted slave: nothing in memory

@@ -9,9 +9,9 @@ import json
 import numpy as np
 import pytest
 
-from core.scene.features import scene_features
-from core.scene.model import Geometry, RenderSettings, View
-from core.scene.scene import Scene
+from kdtrace.core.scene.features import scene_features
+from kdtrace.core.scene.model import Geometry, RenderSettings, View
+from kdtrace.core.scene.scene import Scene
 from tests.blender import build_extension, run_bpy_script
 
 WIDTH, HEIGHT = 96, 72
@@ -31,8 +31,8 @@ def load_exported(work):
 
 
 def render(geometry, view, **settings):
-    from core.accel.kdtree import build_kdtree
-    from slave.tracer import Tracer
+    from kdtrace.core.accel.kdtree import build_kdtree
+    from kdtrace.slave.tracer import Tracer
     tracer = Tracer()
     tracer.load(Scene.from_parts(geometry, build_kdtree(geometry.vertices, geometry.triangles)))
     view.settings = RenderSettings(**settings)
@@ -123,9 +123,9 @@ def test_bad_input_is_named_and_cleaned(extension, tmp_path):
 def test_tiles_match_the_full_image_with_supersampling():
     """Seeds come from the global pixel index: a tile equals the same pixels of the full image
     (uniform supersampling with soft lights), and renders repeat exactly."""
-    from core.accel.kdtree import build_kdtree
-    from core.scene.model import Camera, Light, Shading
-    from slave.tracer import Tracer
+    from kdtrace.core.accel.kdtree import build_kdtree
+    from kdtrace.core.scene.model import Camera, Light, Shading
+    from kdtrace.slave.tracer import Tracer
     from tests.meshes import grid_plane, merge, uv_sphere
     vertices, triangles = merge(uv_sphere(16, 8, 1.0, (0, 0, 1)), grid_plane(6.0, 2, 0.0))
     tracer = Tracer()

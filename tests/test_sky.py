@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from core.scene import sky
-from core.scene.sky import SkyParams, sky_image, sky_radiance
+from kdtrace.core.scene import sky
+from kdtrace.core.scene.sky import SkyParams, sky_image, sky_radiance
 
 ODD = dict(sun_elevation=0.7, sun_rotation=1.0, altitude=2000.0, air_density=2.0,
            aerosol_density=3.0, ozone_density=0.5, sun_size=0.05, sun_intensity=0.5)

@@ -15,7 +15,7 @@ from tests.processes import ROOT
 PROBE = textwrap.dedent("""
     import ctypes, sys, tempfile, threading
     sys.path.insert(0, ".")
-    from slave.__main__ import limit_malloc_arenas
+    from kdtrace.slave.__main__ import limit_malloc_arenas
     if sys.argv[1] == "limited":
         limit_malloc_arenas()
     libc = ctypes.CDLL(None)

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.accel.compact import compact_tree
-from core.accel.kdtree import build_kdtree
-from core.scene.model import Geometry
-from core.scene.scene import Scene
-from core.scene.spatial_order import spatial_order
-from slave.tracer import Tracer
+from kdtrace.core.accel.compact import compact_tree
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.scene.model import Geometry
+from kdtrace.core.scene.scene import Scene
+from kdtrace.core.scene.spatial_order import spatial_order
+from kdtrace.slave.tracer import Tracer
 from tests.meshes import load_bunny
 from tests.test_kdtree_compact import random_rays
 

@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.accel.kdtree import build_kdtree
-from core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings, Shading,
-                              View, default_material_params)
-from core.scene.scene import Scene
-from slave.tracer import Tracer
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.scene.model import (MATERIAL_PARAMS, Camera, Geometry, Light, RenderSettings,
+                                      Shading, View, default_material_params)
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import Tracer
 from tests.meshes import grid_plane
 
 SIZE = 12

@@ -9,14 +9,15 @@ import itertools
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.layout import (NODE_OP_CODES as OP, NODE_OUT_CODES, NODE_REF_REGISTER as R,
-                         NODE_VORONOI_FEATURE_CODES, NODE_VORONOI_METRIC_CODES,
-                         NODE_VORONOI_OUTPUT_CODES, NODE_WAVE_BANDS_CODES, NODE_WAVE_PROFILE_CODES,
-                         NODE_WAVE_RINGS_CODES, NODE_WAVE_TYPE_CODES)
-from core.scene.model import Geometry
-from core.scene.scene import Scene
-from slave.tracer import Tracer
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.layout import (NODE_OP_CODES as OP, NODE_OUT_CODES, NODE_REF_REGISTER as R,
+                                 NODE_VORONOI_FEATURE_CODES, NODE_VORONOI_METRIC_CODES,
+                                 NODE_VORONOI_OUTPUT_CODES, NODE_WAVE_BANDS_CODES,
+                                 NODE_WAVE_PROFILE_CODES, NODE_WAVE_RINGS_CODES,
+                                 NODE_WAVE_TYPE_CODES)
+from kdtrace.core.scene.model import Geometry
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import Tracer
 from tests.meshes import grid_plane
 from tests.test_materials import lookup3, noise_texture, render_program_under_sun
 
@@ -390,8 +391,8 @@ __kernel void white_noise(__global float4 *out, __global const float4 *points, i
 def test_white_noise_is_cycles_hash():
     """White Noise (1D to 4D, Value and Color) on given points: Cycles' lookup3 of the floats'
     bits, exactly (a hash has no tolerance: the points go in as bits)."""
-    from core.opencl import kernel_source
-    from slave.tracer import kernel_files_through
+    from kdtrace.core.opencl import kernel_source
+    from kdtrace.slave.tracer import kernel_files_through
     from tests.opencl_programs import programs_on
     cl, context, queue, programs = programs_on(None)
     kernel = programs.kernels(kernel_source(kernel_files_through("shade/noise.cl")) + WHITE_NOISE,

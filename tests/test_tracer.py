@@ -7,10 +7,10 @@ import time
 import numpy as np
 import pytest
 
-from core.accel.kdtree import KDTree, build_kdtree
-from core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
-from core.scene.scene import Scene
-from slave.tracer import Tracer, TracerError, kernel_options, tile_pixel_order
+from kdtrace.core.accel.kdtree import KDTree, build_kdtree
+from kdtrace.core.scene.model import Camera, Geometry, Light, RenderSettings, Shading, View
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import Tracer, TracerError, kernel_options, tile_pixel_order
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere
 
 
@@ -369,8 +369,8 @@ def test_launches_of_any_size_give_the_same_bits_and_stop_between_them(tracer, m
     pixels the tile is the one-launch tile bit for bit (uniform, stratified with depth and
     normal, adaptive); `stop` is asked before each launch and ends the tile with RenderStopped
     (the tracer renders on afterwards)."""
-    import slave.tracer as tracer_module
-    from slave.tracer import RenderStopped
+    import kdtrace.slave.tracer as tracer_module
+    from kdtrace.slave.tracer import RenderStopped
     from tests.test_network import make_scene, make_view
     tracer.load(Scene.from_parts(*make_scene()))
     view = make_view(40, 30)

@@ -13,11 +13,12 @@ import functools
 import numpy as np
 import pytest
 
-from core.accel.kdtree import build_kdtree
-from core.accel.compact import MODES, CompactTree, compact_tree
-from core.scene.model import Camera, Geometry, Light, RenderSettings, SceneError, Shading, View
-from core.scene.scene import Scene
-from slave.tracer import RayHits, Tracer, TracerError
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.accel.compact import MODES, CompactTree, compact_tree
+from kdtrace.core.scene.model import (Camera, Geometry, Light, RenderSettings, SceneError, Shading,
+                                      View)
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.tracer import RayHits, Tracer, TracerError
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere
 from tests.scenes_architecture import architecture_scene
 from tests.test_kdtree_compact import random_rays
@@ -191,7 +192,7 @@ def test_scattered_rays_are_traced_in_origin_order(tracer):
     """intersect() traces rays in scattered order (consecutive origins far apart) in their
     origins' Morton order and gives every ray its own result back; coherent rays (one origin)
     and small queries keep their order."""
-    from slave.tracer import MIN_REORDERED_RAYS, ray_order
+    from kdtrace.slave.tracer import MIN_REORDERED_RAYS, ray_order
     geometry, tree, origins, directions = scene("bunny")
     bounds = np.array([geometry.vertices.min(0), geometry.vertices.max(0)])
     order = ray_order(origins, bounds)
@@ -312,8 +313,8 @@ def test_bad_compact_trees_are_rejected(tracer):
 def test_validation_catches_shared_nodes_and_overlapping_leaves_in_any_order():
     # The shortcuts of validate_compact: nodes counted instead of sorted per level, leaves
     # sorted only when out of order, one slice for lists that follow each other.
-    from core.accel.validate import validate_compact
-    from core.layout import INNER_GROUP, LEAF32_COUNT, LEAF_TAG, LEAF_WIDE, TAG
+    from kdtrace.core.accel.validate import validate_compact
+    from kdtrace.core.layout import INNER_GROUP, LEAF32_COUNT, LEAF_TAG, LEAF_WIDE, TAG
     geometry, tree, _, _ = scene("bunny")
     T = geometry.triangle_count
     ct = compact_tree(tree, T, "standard")      # 32-bit lists, every node stored

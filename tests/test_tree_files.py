@@ -8,12 +8,13 @@ import shutil
 import numpy as np
 import pytest
 
-from core.accel import binned, compact_cl
-from core.accel.compact import compact_tree
-from core.accel.kdtree import build_kdtree
-from core.scene.model import Geometry
-from core.scene.scene import Scene
-from core.scene.tree_files import DECIDING_SOURCES, EXTENSION_ROOT, TreeFiles, builder_version
+from kdtrace.core.accel import binned, compact_cl
+from kdtrace.core.accel.compact import compact_tree
+from kdtrace.core.accel.kdtree import build_kdtree
+from kdtrace.core.scene.model import Geometry
+from kdtrace.core.scene.scene import Scene
+from kdtrace.core.scene.tree_files import (DECIDING_SOURCES, EXTENSION_ROOT, TreeFiles,
+                                           builder_version)
 from tests.meshes import grid_plane, load_bunny, merge, uv_sphere
 
 
@@ -157,7 +158,7 @@ def test_a_read_only_folder_serves_its_trees_and_reading_never_raises(bunny, tmp
     # still read, a damaged file is skipped though it cannot be deleted, and a write raises
     # OSError, which TreeCache turns into a warning. (Root writes anywhere: the refusals are
     # made by hand.)
-    import core.npz_folder as npz_folder
+    import kdtrace.core.npz_folder as npz_folder
     geometry, trees = bunny
     files = TreeFiles(tmp_path, 1 << 30)
     key = files.key(geometry.content_hash(), "compressed", {})

@@ -1,6 +1,6 @@
 """Issue 39, "Safe on any network": identities, pairing and TLS (findings 2, 3, 4 and the
 hygiene items of 7), each shown by the safe behaviour (docs/protocol.md, "Identities and
-trust"). Slaves are `python -m slave` processes on loopback (what their owner sees: the log,
+trust"). Slaves are `python -m kdtrace.slave` processes on loopback (what their owner sees: the log,
 --status, the zeroconf record) or SlaveServers in this process (what crosses the wire)."""
 from __future__ import annotations
 
@@ -16,16 +16,16 @@ import urllib.request
 import numpy as np
 import pytest
 
-from core.net import protocol, secure, trust
-from core.net.channel import Channel
-from core.net.discovery import SlaveBrowser
-from core.net.identity import Identity, short_id
-from core.net.master import MAX_SLAVES, Master, MasterError
-from core.net.protocol import MsgType
-from core.private import NotPrivate
-from core.scene.scene import Scene
-from slave.scene_cache import SceneCache
-from slave.server import SlaveServer
+from kdtrace.core.net import protocol, secure, trust
+from kdtrace.core.net.channel import Channel
+from kdtrace.core.net.discovery import SlaveBrowser
+from kdtrace.core.net.identity import Identity, short_id
+from kdtrace.core.net.master import MAX_SLAVES, Master, MasterError
+from kdtrace.core.net.protocol import MsgType
+from kdtrace.core.private import NotPrivate
+from kdtrace.core.scene.scene import Scene
+from kdtrace.slave.scene_cache import SceneCache
+from kdtrace.slave.server import SlaveServer
 from tests import tls_peers
 from tests.conftest import FARM_SECRET
 from tests.processes import ChildProcess, SlaveProcess
@@ -46,7 +46,7 @@ def scene():
 
 @pytest.fixture(scope="module")
 def tracer():
-    from slave.tracer import Tracer
+    from kdtrace.slave.tracer import Tracer
     return Tracer()
 
 
@@ -109,7 +109,7 @@ def test_allow_and_status_and_zeroconf_show_the_slaves_id(tmp_path):
                     approved_slaves=[slave.id]) as allowed:
             assert allowed.connect()[0].trusted_by == "approved"
         port = int(re.search(r"--status --status-port (\d+)", slave.log)[1])
-        status = ChildProcess(["-m", "slave", "--status", "--status-port", str(port)])
+        status = ChildProcess(["-m", "kdtrace.slave", "--status", "--status-port", str(port)])
         status.proc.wait(30)
         assert f"(ID {short_id(slave.id)})" in "".join(status.lines), status.lines
         browser = SlaveBrowser(interfaces=["127.0.0.1"])
@@ -222,7 +222,7 @@ def test_discovered_slaves_and_a_masters_endpoints_are_bounded(monkeypatch):
     assert ("127.0.0.1", 999) not in master.endpoints
     master.close()
     # A browser keeps at most MAX_DISCOVERED slaves (here 2 of 3 advertised).
-    import core.net.discovery as discovery
+    import kdtrace.core.net.discovery as discovery
     monkeypatch.setattr(discovery, "MAX_DISCOVERED", 2)
     adverts = [discovery.advertise(f"kdt-bound-{os.getpid()}-{i}", 40000 + i, {"id": "x"},
                                    ["127.0.0.1"], ["127.0.0.1"], instance=f"b{i}")
@@ -242,8 +242,8 @@ def test_discovered_slaves_and_a_masters_endpoints_are_bounded(monkeypatch):
 def test_a_frame_uses_only_approved_lan_slaves():
     """core/frame's choice of LAN slaves: by the advertised ID (checked again in TLS), all of
     them only with the farm secret; the others wait in the panel, unconnected."""
-    from core.frame.session import FrameSession
-    from core.net.discovery import SlaveInfo
+    from kdtrace.core.frame.session import FrameSession
+    from kdtrace.core.net.discovery import SlaveInfo
     session = FrameSession()
     known, other = "A" * 52, "B" * 52
     slaves = [SlaveInfo("a", "10.0.0.2", 47600, {"id": known}),
@@ -487,7 +487,7 @@ def test_caches_and_identities_are_private(tmp_path, scene):
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="planting a folder of another user needs root")
 def test_pocl_cache_folder_of_another_user_is_not_used(tmp_path, monkeypatch):
-    from core import opencl
+    from kdtrace.core import opencl
     cache, temporary = tmp_path / "cache", tmp_path / "tmp"
     for folder in (cache / "kdtrace" / "pocl", temporary / f"kdtrace-pocl-{os.getuid()}"):
         folder.mkdir(parents=True)
@@ -504,8 +504,8 @@ def test_pocl_cache_folder_of_another_user_is_not_used(tmp_path, monkeypatch):
 
 
 def test_status_checks_the_host_and_shows_no_scene_hash():
-    from slave.activity import Activity
-    from slave.status import StatusServer
+    from kdtrace.slave.activity import Activity
+    from kdtrace.slave.status import StatusServer
     activity = Activity()
     activity.master_connected("m")
     activity.frame_started("m", 1, "ab" * 16, 4)

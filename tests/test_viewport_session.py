@@ -12,12 +12,12 @@ import time
 import numpy as np
 import pytest
 
-from core.frame.exported import load_export
-from core.frame.options import FrameOptions
-from core.frame.render import render_frame
-from core.frame.session import FrameSession
-from core.frame.viewport import PREVIEW_PIXELS, ViewportSession, passes
-from core.scene.model import Geometry
+from kdtrace.core.frame.exported import load_export
+from kdtrace.core.frame.options import FrameOptions
+from kdtrace.core.frame.render import render_frame
+from kdtrace.core.frame.session import FrameSession
+from kdtrace.core.frame.viewport import PREVIEW_PIXELS, ViewportSession, passes
+from kdtrace.core.scene.model import Geometry
 from tests.test_frame_session import ScriptedHost, f12  # noqa: F401 (the F12 fixture)
 
 SAMPLES = 2         # the viewport's N: passes at 1 and 2 x 2 samples
@@ -32,7 +32,7 @@ def session():
 
 def options(denoise=None) -> FrameOptions:
     """Two local slaves; F12's denoising as given (off: the viewport's default)."""
-    from core.frame.denoising import DenoiseSettings
+    from kdtrace.core.frame.denoising import DenoiseSettings
     return FrameOptions(use_zeroconf=False, local_slaves=2, tile_size=16,
                         denoise=denoise or DenoiseSettings(enabled=False))
 
@@ -79,7 +79,7 @@ def edits(exported, view):
 
 
 def test_passes_preview_then_doubling_samples():
-    from core.scene.model import Camera, RenderSettings, Shading, View
+    from kdtrace.core.scene.model import Camera, RenderSettings, Shading, View
     view = View(Camera("PERSP", np.eye(4), (1, 1), (0, 0), 0.1, 100), 960, 540,
                 Shading(np.array([[1, 1, 1, 1]], np.float32), [], (0, 0, 0)),
                 settings=RenderSettings(adaptive=True))
@@ -167,7 +167,7 @@ def test_a_cancelled_change_never_replaces_a_newer_one(f12, session):  # noqa: F
 def test_a_denoised_viewport_ends_in_f12s_denoised_image(f12, session):  # noqa: F811
     """With viewport denoising on, the last pass is denoised as F12 denoises its frame (the
     same noisy pixels and guides through the same filter)."""
-    from core.frame.denoising import DenoiseSettings
+    from kdtrace.core.frame.denoising import DenoiseSettings
     exported, view = load_export(f12 / "export.npz")
     denoise = DenoiseSettings(enabled=True, prefilter="FAST", quality="BALANCED")
     viewport = ViewportSession(session, options(), samples_per_axis=SAMPLES, denoise=denoise)

@@ -7,11 +7,11 @@ from __future__ import annotations
 import socket
 import time
 
-from core.net import protocol, secure, trust
-from core.net.channel import Channel
-from core.net.identity import Identity
-from core.net.protocol import MsgType
-from core.scene.model import SCENE_FORMAT_VERSION
+from kdtrace.core.net import protocol, secure, trust
+from kdtrace.core.net.channel import Channel
+from kdtrace.core.net.identity import Identity
+from kdtrace.core.net.protocol import MsgType
+from kdtrace.core.scene.model import SCENE_FORMAT_VERSION
 from tests.conftest import FARM_SECRET
 
 _IDENTITIES: dict = {}

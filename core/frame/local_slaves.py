@@ -1,4 +1,4 @@
-"""Slaves on this machine: `python -m slave` processes run from the extension's root folder,
+"""Slaves on this machine: `python -m kdtrace.slave` processes run from the extension's root folder,
 bound to loopback and not advertised (only this master uses them). A frame session starts them
 when no other slave is known and keeps them between frames; closing it stops them.
 
@@ -44,7 +44,7 @@ NO_CPU_DEVICE = ("local slaves need an OpenCL device on this system (PoCL, the C
 def slave_environment(**variables) -> dict:
     """The environment of a slave run by Blender's Python: Blender's sys.path holds the folder
     where it installed the extension's wheels (zeroconf, pyopencl, PoCL), and the slave needs
-    them too. The slave runs from the extension's root folder (`python -m slave`)."""
+    them too. The slave runs from the extension's root folder (`python -m kdtrace.slave`)."""
     return dict(os.environ, PYTHONUNBUFFERED="1",
                 PYTHONPATH=os.pathsep.join(p for p in sys.path if p and os.path.isdir(p)),
                 **variables)
@@ -62,7 +62,7 @@ class LocalSlave:
         env = slave_environment(POCL_MAX_PTHREAD_COUNT=str(threads))
         env.pop(SECRET_ENV, None)       # it serves this master by ID, nobody else
         env.pop("KDTRACE_SLAVE_HOME", None)
-        command = [python, "-m", "slave", "--port", "0", "--bind", "127.0.0.1",
+        command = [python, "-m", "kdtrace.slave", "--port", "0", "--bind", "127.0.0.1",
                    "--name", name, "--device", device, "--no-zeroconf",
                    "--identity-dir", identity_dir, "--allow", master_id, "--status-port", "off"]
         self.name = name
