@@ -59,6 +59,8 @@ def test_zip_holds_the_wheels_and_licences_and_no_outputs(linux_zip, bench_outpu
                for name in ("cryptography", "cffi", "pycparser")), wheels
     assert not any("numpy" in w for w in wheels), "numpy must never be bundled"
     assert not any(n.startswith(("tests/", "bench/", "docs/", ".ci/")) for n in names)
+    # Local slaves run `python -m kdtrace.slave` in the extension's root: kdtrace/ names it.
+    assert {"__init__.py", "kdtrace/__init__.py", "slave/__main__.py"} <= set(names)
     assert bench_output.name not in " ".join(names)
     # Nothing git ignores (build outputs, caches, bench results) is in the zip.
     ignored = subprocess.run(["git", "check-ignore", "--no-index", "--stdin"], cwd=ROOT,

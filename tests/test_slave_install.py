@@ -1,6 +1,7 @@
 """The slave on another machine, as a user installs it: a fresh virtual environment gets the
-checkout installed with pip (pyproject.toml) and so only the runtime packages; its
-`kdtrace-slave` command works from any folder and renders for the add-on in Blender."""
+checkout installed with pip (pyproject.toml) and so only the runtime packages, its own under
+kdtrace/; its `kdtrace-slave` command works from any folder and renders for the add-on in
+Blender."""
 import os
 import queue
 import shutil
@@ -44,6 +45,19 @@ def test_install_holds_only_the_runtime_packages(venv):
     assert names == RUNTIME | {"kdtrace-slave"}
 
 
+def test_install_is_one_namespace(venv):
+    """site-packages gets kdtrace/ (core, slave, kernels with the OpenCL sources) and nothing of
+    ours at its top level, where a user's own `core` or `slave` could be."""
+    bin_dir, _ = venv
+    [site] = (bin_dir.parent / "lib").glob("python3*/site-packages")
+    assert (site / "kdtrace" / "slave" / "__main__.py").is_file()
+    assert (site / "kdtrace" / "core" / "opencl.py").is_file()
+    assert (site / "kdtrace" / "kernels" / "trace" / "trace.cl").is_file()
+    assert not (site / "kdtrace" / "__init__.py").exists()   # a namespace package (pyproject.toml)
+    assert sorted(p.name for p in (site / "kdtrace").iterdir()) == ["core", "kernels", "slave"]
+    assert not [name for name in ("core", "slave", "kernels") if (site / name).exists()]
+
+
 def test_installed_slave_renders_for_the_addon_from_another_folder(venv, tmp_path):
     bin_dir, elsewhere = venv
     elsewhere.mkdir(exist_ok=True)
@@ -53,8 +67,10 @@ def test_installed_slave_renders_for_the_addon_from_another_folder(venv, tmp_pat
                               capture_output=True, text=True, timeout=60)
     assert help_run.returncode == 0, help_run.stderr
     assert help_run.stdout.startswith("usage: kdtrace-slave")
-    where = subprocess.run([str(bin_dir / "python"), "-c", "import slave, core.opencl as o; "
-                            "print(slave.__file__); print(sorted(p.name for p in o.KERNEL_DIR.rglob('*.cl')))"],
+    where = subprocess.run([str(bin_dir / "python"), "-c",
+                            "import kdtrace.slave, kdtrace.core.opencl as o; "
+                            "print(kdtrace.slave.__file__); "
+                            "print(sorted(p.name for p in o.KERNEL_DIR.rglob('*.cl')))"],
                            cwd=elsewhere, env=env, capture_output=True, text=True, check=True)
     assert "site-packages" in where.stdout and "trace.cl" in where.stdout, where.stdout
 
