@@ -1,19 +1,18 @@
 """How many samples each engine's adaptive sampling takes per pixel at the same Noise
-Threshold (issue 40): Cycles (its Debug Sample Count pass) against KD Trace (samples traced per
-tile of 8 x 8 pixels), on the README's demo scene, and what each costs.
+Threshold (issue 40): Cycles (its Debug Sample Count pass) against KD Trace (each pixel's
+samples), on the README's demo scene, and what each costs.
 
     .venv/bin/python bench/adaptive_samples.py [--width 240 --height 135] [--threshold 0.01]
                                                [--samples 32] [--out bench/out/adaptive]
 
 Cycles renders in a Blender process of its own (tests/bpy_scripts/adaptive_scene.py), on every
 core, with Min Samples 0 (automatic, Cycles' default); KD Trace's tracer renders the exported
-scene in this process on PoCL's CPU device (every core), tile by tile, with the panel's
-defaults for what the bench does not set. Prints the mean, median and 90th percentile of
-samples per pixel and the seconds of each; writes <out>/samples.png (Cycles left, KD Trace
-right, black 0 to white the max samples).
+scene in this process on PoCL's CPU device (every core), in the frame's tiles (64 x 64), with
+the panel's defaults for what the bench does not set. Prints the mean, median and 90th
+percentile of samples per pixel and the seconds of each; writes <out>/samples.png (Cycles left,
+KD Trace right, black 0 to white the most samples either took).
 """
 import argparse
-import os
 import pathlib
 import struct
 import sys
@@ -26,9 +25,25 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from bench.trace_vs_embree import cpu_model  # noqa: E402
+from bench.machine import machine_line  # noqa: E402
 
-TILE = 8
+from kdtrace.core.net.master import DEFAULT_TILE_SIZE as TILE  # noqa: E402
+
+
+def cycles_sample_counts(values: np.ndarray) -> np.ndarray:
+    """Samples per pixel from Cycles' Debug Sample Count pass. The pass holds each pixel's
+    samples over the samples the render ran (film_get_pass_pixel_sample_count's scale), which
+    with adaptive sampling is the most any pixel took, not Max Samples; pixels stop at multiples
+    of the adaptive step (16), so the smallest step between the pass's values is 16 over it."""
+    values = np.asarray(values, np.float64)
+    steps = np.diff(np.unique(values))
+    if not len(steps):
+        raise ValueError("every pixel took the same samples: the pass cannot say how many")
+    ran = round(16.0 / steps.min())
+    counts = values * ran
+    if not np.allclose(counts, np.round(counts), atol=1e-2) or np.round(counts).max() != ran:
+        raise ValueError(f"the Debug Sample Count pass is not a count over {ran} samples")
+    return np.round(counts)
 
 
 def write_png(path, grey):
@@ -44,7 +59,8 @@ def write_png(path, grey):
 
 
 def kdtrace_samples(export_path):
-    """KD Trace's samples per pixel (each 8 x 8 tile's mean) and render seconds."""
+    """KD Trace's samples per pixel (0 where undersampling filled a pixel) and render
+    seconds."""
     from kdtrace.core.accel.compact import compact_tree
     from kdtrace.core.accel.binned import build_standard
     from kdtrace.core.frame.exported import load_export
@@ -63,7 +79,8 @@ def kdtrace_samples(export_path):
         for x in range(0, view.width, TILE):
             w, h = min(TILE, view.width - x), min(TILE, view.height - y)
             tracer.render_tile(view, x, y, w, h)
-            samples[y:y + h, x:x + w] = tracer.last_render["samples"] / (w * h)
+            counts = tracer.last_render["pixel_samples"]
+            samples[y:y + h, x:x + w] = np.where(counts > 1, counts, 0)   # 1: filled
     return samples, time.perf_counter() - started, view
 
 
@@ -76,7 +93,7 @@ def main():
     parser.add_argument("--out", default=str(ROOT / "bench" / "out" / "adaptive"))
     args = parser.parse_args()
     print("command:", " ".join(["python"] + sys.argv))
-    print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs)")
+    print(f"machine: {machine_line()}; Cycles and KD Trace on every core")
     out = pathlib.Path(args.out).resolve()   # the Blender child runs in another folder
     out.mkdir(parents=True, exist_ok=True)
     work = pathlib.Path(tempfile.mkdtemp(prefix="kdtrace-adaptive-"))
@@ -86,7 +103,7 @@ def main():
         out=str(out), width=args.width, height=args.height, threshold=args.threshold,
         samples_per_axis=args.samples)["cycles_seconds"]
     most = args.samples ** 2
-    cycles = np.load(out / "cycles-samples.npy") * most     # the pass holds samples / max
+    cycles = cycles_sample_counts(np.load(out / "cycles-samples.npy"))
     ours, ours_s, view = kdtrace_samples(out / "export.npz")
     print(f"demo scene {args.width}x{args.height}, Noise Threshold {args.threshold}, "
           f"Max Samples {most}; KD Trace's Min Samples {view.settings.adaptive_min_samples}, "
@@ -97,7 +114,8 @@ def main():
               f"at the max {np.mean(spp >= most):.1%}; {seconds:6.1f} s "
               f"({seconds / spp.sum() * 1e6:.2f} us per sample)")
     print(f"  mean samples KD Trace / Cycles {ours.mean() / cycles.mean():.2f}")
-    write_png(out / "samples.png", np.concatenate([cycles, np.ones((len(ours), 4)) * most, ours], 1) / most)
+    top = max(cycles.max(), ours.max())
+    write_png(out / "samples.png", np.concatenate([cycles, np.full((len(ours), 4), top), ours], 1) / top)
     print(f"  wrote {out / 'samples.png'}")
 
 

@@ -17,7 +17,6 @@ import os
 import pathlib
 import sys
 import tempfile
-import time
 
 os.environ["POCL_MAX_PTHREAD_COUNT"] = "1"  # before pyopencl loads PoCL
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -26,7 +25,8 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 from kdtrace.core.scene.scene import Scene  # noqa: E402
 
-from bench.trace_vs_embree import best_cpu_time, best_time, cpu_model  # noqa: E402
+from bench.machine import cpu_model  # noqa: E402
+from bench.trace_vs_embree import best_cpu_time, best_time  # noqa: E402
 
 
 def camera_rays(view):

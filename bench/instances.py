@@ -30,7 +30,8 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from bench.trace_vs_embree import best_time, cpu_model  # noqa: E402
+from bench.machine import cpu_model  # noqa: E402
+from bench.trace_vs_embree import best_time  # noqa: E402
 from kdtrace.core.accel.compact import compact_tree  # noqa: E402
 from kdtrace.core.accel.binned import build_standard  # noqa: E402
 from kdtrace.core.accel.toplevel import build_toplevel  # noqa: E402

@@ -24,7 +24,6 @@ import argparse
 import json
 import os
 import pathlib
-import platform
 import resource
 import subprocess
 import sys
@@ -34,6 +33,8 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
+
+from bench.machine import cpu_model  # noqa: E402
 from kdtrace.core.scene.scene import Scene  # noqa: E402
 
 MODES = ("standard", "choi", "compressed")
@@ -108,16 +109,6 @@ def child(cache, *args):
                          check=True,
                          stdout=subprocess.PIPE, text=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
-
-
-def cpu_model():
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 def percent(x, base):

@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 
 from bench.kdtree_tables import load_scene, table3_view  # noqa: E402
 from bench.ray_kinds import camera_rays, tree_for  # noqa: E402
-from bench.trace_vs_embree import cpu_model  # noqa: E402
+from bench.machine import cpu_model  # noqa: E402
 from kdtrace.core.opencl import Programs  # noqa: E402
 from kdtrace.slave.buffers import pack_bounds, pack_triangles  # noqa: E402
 

@@ -10,8 +10,6 @@ from __future__ import annotations
 import argparse
 import os
 import pathlib
-import platform
-import subprocess
 import sys
 import time
 
@@ -21,18 +19,9 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
+
+from bench.machine import cpu_model  # noqa: E402
 from kdtrace.core.scene.scene import Scene  # noqa: E402
-
-
-def cpu_model() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-        for line in out.splitlines():
-            if line.startswith("Model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def camera_rays(vertices, size):

@@ -421,9 +421,12 @@ class Tracer:
         film.read(self.queue)
         self.queue.finish()
         combined = pixel_rgba(accum)
+        records = accum.reshape(n, ACCUM.size, 4)
         self.last_render = {"kernel_seconds": time.perf_counter() - started,
                             "samples": tile.traced, "features": sorted(flags),
-                            "launches": tile.launches, "longest_launch_s": tile.longest}
+                            "launches": tile.launches, "longest_launch_s": tile.longest,
+                            # each pixel's samples (1 where undersampling filled it)
+                            "pixel_samples": ACCUM.get(records, "samples").reshape(h, w)}
         return {"combined": combined.reshape(h, w, 4), "depth": depth, "normal": normal,
                 **film.passes(view, w, h, passes)}
 

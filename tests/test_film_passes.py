@@ -90,6 +90,9 @@ def test_adaptive_sampling_divides_by_each_pixels_samples_and_fills_skipped_pixe
                                    adaptive_min_samples=4, undersample=True)
     passes = tracer.render_tile(view, 0, 0, 16, 16, GUIDES)
     assert tracer.last_render["samples"] < 16 * 16 * 64      # it stopped early somewhere
+    counts = tracer.last_render["pixel_samples"]              # 1 where undersampling filled
+    assert counts.shape == (16, 16) and (counts == 1).any() and counts.max() <= 64
+    assert counts[counts > 1].sum() == tracer.last_render["samples"]
     np.testing.assert_allclose(passes["albedo"], np.broadcast_to([0.8, 0.2, 0.1], (16, 16, 3)),
                                rtol=1e-5)
     assert np.allclose(np.linalg.norm(passes["denoising_normal"], axis=-1), 1.0, atol=1e-5)

@@ -2,7 +2,8 @@
 rendered by Cycles with adaptive sampling (its Noise Threshold, Max Samples, Min Samples 0 =
 automatic, no denoising), with the Debug Sample Count pass; and the same scene exported for KD
 Trace (core/frame/exported.py) with the same threshold and max samples. Writes
-cycles-samples.npy (the pass: samples per pixel / Max Samples, rows top first), cycles.npy
+cycles-samples.npy (the pass: samples per pixel / the samples the render ran, the most any pixel
+took; rows top first), cycles.npy
 (Combined) and export.npz;
 returns Cycles' render seconds."""
 import importlib
