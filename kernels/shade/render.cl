@@ -108,9 +108,12 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
         Rng rng = rng_seed(pixel_index, s, seed);
         float jx = 0.5f, jy = 0.5f;
         if (strata > 0) {
-            uint2 cell = progressive_stratum(s % (uint)(strata * strata), (uint)strata);
-            jx = ((float)cell.x + rng_next(&rng)) / (float)strata;
-            jy = ((float)cell.y + rng_next(&rng)) / (float)strata;
+            // Where the sample goes in its pixel (through the filter): point s of the pixel's
+            // own Owen-scrambled Sobol sequence, so the first 2^k samples of the pixel are
+            // stratified and placed at random within their strata, whatever the maximum.
+            float2 u = rng_2d_at(&rng, RNG_FILM_DIM, s);
+            jx = u.x;
+            jy = u.y;
         }
         float2 lens = (float2)(0.0f, 0.0f);
         float time = 0.5f;
@@ -186,8 +189,8 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
 }
 
 // Sample `sample_start + k` (k < sample_count) of each listed pixel. strata n > 0: sample s
-// lies in stratum progressive_stratum(s, n) of an n x n grid, jittered; n == 0: the pixel
-// centre (one sample). pixels[i]: tile-local index (row * tile_w + column).
+// goes to point s of the pixel's Sobol sequence RNG_FILM_DIM; n == 0: the pixel centre (one
+// sample). pixels[i]: tile-local index (row * tile_w + column).
 // accum: ACCUM records (sums of RGB and alpha, the sample count, the RGB of Cycles' class A samples).
 // write_aux: also write the depth and normal passes (from the pixel-centre ray).
 // film (HAS_FILM): FILM records, the sums of the other passes the frame asks for (film.cl).

@@ -80,6 +80,7 @@ inline uint sobol_second(uint index)
 #define RNG_WORLD 1u
 #define RNG_EMISSION 2u
 #define RNG_BSDF 3u
+#define RNG_FILM_DIM 0xFFFFFFFFu    // where a camera sample goes in its pixel: beyond every depth
 
 inline uint rng_dim(const Rng *r, uint use, uint which)
 {
@@ -223,26 +224,4 @@ inline float3 uniform_cone(float3 axis, float cos_max, float u1, float u2)
     float3 t, b;
     basis(axis, &t, &b);
     return sin_t * (d.x * t + d.y * b) + cos_t * axis;
-}
-
-// Stratum `s` of an n x n grid in a progressive order: when n is a power of two, the first 4
-// samples fall in the 4 quadrants, the first 16 in the 16 sub-blocks, ... (bit-reversed Morton
-// order), so adaptive sampling that stops after any power of 4 is still stratified.
-inline uint2 progressive_stratum(uint s, uint n)
-{
-    if (n & (n - 1u))
-        return (uint2)(s % n, s / n);
-    uint bits = 0;
-    while ((1u << bits) < n)
-        ++bits;
-    uint total_bits = 2u * bits;
-    uint rev = 0;
-    for (uint i = 0; i < total_bits; ++i)
-        rev |= ((s >> i) & 1u) << (total_bits - 1u - i);
-    uint x = 0, y = 0;
-    for (uint i = 0; i < bits; ++i) {
-        x |= ((rev >> (2u * i)) & 1u) << i;
-        y |= ((rev >> (2u * i + 1u)) & 1u) << i;
-    }
-    return (uint2)(x, y);
 }
