@@ -95,7 +95,10 @@ def test_scene_matches_cycles(renders, name):
     cycles, ours = np.load(work / f"{name}-cycles.npy"), np.load(work / f"{name}-kdtrace.npy")
     assert cycles.shape == ours.shape == (HEIGHT, WIDTH, 4) and np.isfinite(ours).all()
     value = psnr(ours, cycles)
-    ratio = ours[..., :3].mean() / cycles[..., :3].mean()
+    # The brightness a viewer sees, clipped to the display range as psnr is: a sample on a
+    # pixel-sized glint (ray_visibility's sun in the mirror, radiance ~3,000) would move the
+    # whole image's mean by 1 % on its own, in either engine.
+    ratio = np.clip(ours[..., :3], 0, 1).mean() / np.clip(cycles[..., :3], 0, 1).mean()
     print(f"{name}: PSNR {value:.2f} dB, mean ours / Cycles {ratio:.4f}, "
           f"{result['timings'][name + '-kdtrace']:.1f} s / {result['timings'][name + '-cycles']:.1f} s")
     assert value >= 30.0

@@ -352,14 +352,17 @@ def glossy_scene(tracer):
 
 def test_rough_glossy_and_glass_converge(tracer):
     """The error against a 48 x 48 sample reference falls as 1 / sqrt(samples) from 16 to 256
-    samples (a factor of 4; at least 3 here), so rough glossy and glass converge."""
+    samples (a factor of 4; at least 3 here), so rough glossy and glass converge. Each error is
+    over 8 images of other seeds: the rough glass's rare bright paths make one image's error a
+    lottery."""
     view = glossy_scene(tracer)
 
-    def image(n):
-        view.settings = RenderSettings(samples_per_axis=n, adaptive=False, seed=n)
+    def image(n, seed):
+        view.settings = RenderSettings(samples_per_axis=n, adaptive=False, seed=seed)
         return tracer.render_tile(view, 0, 0, view.width, view.height)["combined"][..., :3]
-    reference = image(48)
-    errors = [np.sqrt(np.mean((image(n) - reference) ** 2)) for n in (4, 16)]
+    reference = image(48, 0)
+    errors = [np.sqrt(np.mean([np.mean((image(n, seed) - reference) ** 2) for seed in range(1, 9)]))
+              for n in (4, 16)]
     assert errors[0] / errors[1] > 3.0, f"RMSE {errors[0]:.4f} at 16, {errors[1]:.4f} at 256"
     assert errors[1] < 0.03
 
