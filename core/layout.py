@@ -661,7 +661,7 @@ RENDER_SAMPLES = KernelParams("render_samples", "Camera samples of a tile's pixe
     Param("x0", "int"), Param("y0", "int"), Param("tile_w", "int"),
     Param("pixels", "int*"), Param("pixel_count", "int"),
     Param("next_pixel", "int*", "atomic"),      # RENDER_PIXEL_QUEUE's counter
-    Param("sample_start", "int"), Param("sample_count", "int"), Param("strata", "int"),
+    Param("sample_start", "int"), Param("sample_count", "int"), Param("jitter", "int"),
     # RenderSettings' Light Paths and clamping (PathLimits)
     Param("max_bounces", "int"), Param("diffuse_bounces", "int"), Param("glossy_bounces", "int"),
     Param("transmission_bounces", "int"), Param("transparent_bounces", "int"),

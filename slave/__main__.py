@@ -1,6 +1,6 @@
 """The KD Trace render slave: `kdtrace-slave` once installed (pyproject.toml), `python -m
-kdtrace.slave` from a checkout or the extension's folder, `blender --background --command kdtrace_slave` with
-the extension installed (addon/slave_command.py registers the command).
+kdtrace.slave` from a checkout or the extension's folder, `blender --background --command
+kdtrace_slave` with the extension installed (addon/slave_command.py registers the command).
 
 On start it prints one line to stdout, flushed, that a launcher can parse:
     KD Trace slave <name> listening on <host>:<port> id <ID> device <device name>

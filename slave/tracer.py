@@ -531,8 +531,7 @@ class _TileOnDevice:
         but the settings' and each launch's own. `sample_rays`: a sample's work
         (View.rays_per_sample), `stop`: render_tile's."""
         self.tracer, self.kernel, self.flags = tracer, kernel, flags
-        strata = settings.samples_per_axis
-        self.values = {**values, "strata": 0 if strata == 1 else strata,
+        self.values = {**values, "jitter": int(settings.samples_per_axis > 1),
                        "max_bounces": settings.max_bounces,
                        "diffuse_bounces": settings.diffuse_bounces,
                        "glossy_bounces": settings.glossy_bounces,

@@ -186,7 +186,7 @@ def test_the_tracer_passes_arguments_in_the_order_of_the_table(instanced, monkey
     scene = small_scene(instanced)
     tracer.load(scene)
     known = {**tracer._scene, **tracer._toplevel, "x0": 3, "y0": 2, "tile_w": 13,
-             "strata": 2, "max_bounces": 9, "diffuse_bounces": 3, "glossy_bounces": 2,
+             "jitter": 1, "max_bounces": 9, "diffuse_bounces": 3, "glossy_bounces": 2,
              "transmission_bounces": 5, "transparent_bounces": 6, "clamp_direct": 7.5,
              "clamp_indirect": 8.5, "filter_glossy": 0.25, "light_n": 4, "seed": 77,
              "light_count": 2, "ray_count": 37, "tmin": np.float32(0.125), "tmax": 1000.0}

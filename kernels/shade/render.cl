@@ -83,7 +83,7 @@ inline float filter_offset(__global const float4 *cam, float u)
 // record and, with HAS_FILM, its FILM record in `film` (render_samples).
 inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits *limits,
                          int here, int x0, int y0, int tile_w, int sample_start,
-                         int sample_count, int strata, uint seed, int write_aux,
+                         int sample_count, int jitter, uint seed, int write_aux,
                          __global float4 *accum,
                          __global float *out_depth, __global float *out_normal,
                          __global float4 *film)
@@ -107,7 +107,7 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
         uint s = (uint)(sample_start + k);
         Rng rng = rng_seed(pixel_index, s, seed);
         float jx = 0.5f, jy = 0.5f;
-        if (strata > 0) {
+        if (jitter) {
             // Where the sample goes in its pixel (through the filter): point s of the pixel's
             // own Owen-scrambled Sobol sequence, so the first 2^k samples of the pixel are
             // stratified and placed at random within their strata, whatever the maximum.
@@ -134,7 +134,7 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
         float3 c = trace_path(sc, cam, o, d, &rng, limits, &depth, &normal, &alpha, &path_film);
         if (!all(isfinite(c)))
             c = (float3)(0.0f, 0.0f, 0.0f);                 // never let NaN/inf reach a pixel
-        if (write_aux && strata == 0 && k == 0) {
+        if (write_aux && !jitter && k == 0) {
             out_depth[here] = depth;
             vstore3(normal, here, out_normal);
         }
@@ -155,7 +155,7 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
     for (int k = 0; k < FILM_SIZE; ++k)
         film[FILM_SIZE * here + k] = film_sum[k];
 #endif
-    if (write_aux && strata > 0) {
+    if (write_aux && jitter) {
         // Depth and normal from the pixel centre, as with one sample.
 #ifdef HAS_OBJECT_MOTION
         sc->top.time = 0.5f;
@@ -188,9 +188,8 @@ inline void render_pixel(Scene *sc, __global const float4 *cam, const PathLimits
     }
 }
 
-// Sample `sample_start + k` (k < sample_count) of each listed pixel. strata n > 0: sample s
-// goes to point s of the pixel's Sobol sequence RNG_FILM_DIM; n == 0: the pixel centre (one
-// sample). pixels[i]: tile-local index (row * tile_w + column).
+// Sample `sample_start + k` (k < sample_count) of each listed pixel. jitter: sample s goes to
+// point s of the pixel's Sobol sequence RNG_FILM_DIM; 0: the pixel centre (one sample). pixels[i]: tile-local index (row * tile_w + column).
 // accum: ACCUM records (sums of RGB and alpha, the sample count, the RGB of Cycles' class A samples).
 // write_aux: also write the depth and normal passes (from the pixel-centre ray).
 // film (HAS_FILM): FILM records, the sums of the other passes the frame asks for (film.cl).
@@ -238,5 +237,5 @@ __kernel void render_samples(RENDER_SAMPLES_PARAMS)
     if (i < pixel_count)
 #endif
         render_pixel(&sc, cam, &limits, pixels[i], x0, y0, tile_w, sample_start, sample_count,
-                     strata, seed, write_aux, accum, out_depth, out_normal, FILM_BUFFER);
+                     jitter, seed, write_aux, accum, out_depth, out_normal, FILM_BUFFER);
 }
