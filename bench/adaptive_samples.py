@@ -13,6 +13,7 @@ percentile of samples per pixel and the seconds of each; writes <out>/samples.pn
 KD Trace right, black 0 to white the most samples either took).
 """
 import argparse
+import os
 import pathlib
 import struct
 import sys
@@ -25,7 +26,7 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from bench.machine import machine_line  # noqa: E402
+from bench.machine import cpu_model  # noqa: E402
 
 from kdtrace.core.net.master import DEFAULT_TILE_SIZE as TILE  # noqa: E402
 
@@ -93,7 +94,7 @@ def main():
     parser.add_argument("--out", default=str(ROOT / "bench" / "out" / "adaptive"))
     args = parser.parse_args()
     print("command:", " ".join(["python"] + sys.argv))
-    print(f"machine: {machine_line()}; Cycles and KD Trace on every core")
+    print("machine:", cpu_model(), f"({os.cpu_count()} logical CPUs); Cycles and KD Trace on every core")
     out = pathlib.Path(args.out).resolve()   # the Blender child runs in another folder
     out.mkdir(parents=True, exist_ok=True)
     work = pathlib.Path(tempfile.mkdtemp(prefix="kdtrace-adaptive-"))

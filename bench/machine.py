@@ -1,6 +1,5 @@
 """What the benchmarks print about the machine they ran on. No side effects on import: benches
 that want one PoCL thread set POCL_MAX_PTHREAD_COUNT themselves, before pyopencl loads."""
-import os
 import platform
 
 
@@ -14,7 +13,3 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
-
-
-def machine_line() -> str:
-    return f"{cpu_model()} ({os.cpu_count()} logical CPUs)"

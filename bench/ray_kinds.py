@@ -41,7 +41,7 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from bench.kdtree_tables import load_scene, table3_view  # noqa: E402
-from bench.trace_vs_embree import cpu_model  # noqa: E402
+from bench.machine import cpu_model  # noqa: E402
 
 KINDS = ("primary_rows", "primary_tiles", "diffuse", "diffuse_pixels", "shadow_point",
          "shadow_area", "glossy")

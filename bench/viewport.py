@@ -51,7 +51,7 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from bench.trace_vs_embree import cpu_model  # noqa: E402
+from bench.machine import cpu_model  # noqa: E402
 from kdtrace.core.frame.exported import InstancedExport  # noqa: E402
 from kdtrace.core.frame.options import FrameOptions  # noqa: E402
 from kdtrace.core.frame.render import FrameHost, Steps, frame_scene, master_for  # noqa: E402
